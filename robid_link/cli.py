@@ -1,0 +1,179 @@
+"""The ``robid`` command: parse, call, print. Errors are one line, never a traceback."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from robid_link.exceptions import RobidError
+
+__all__ = ["main"]
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+
+
+def _shared_inputs(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--robot", required=True, help="MDH YAML or URDF robot description")
+    p.add_argument("--data", action="append", required=True, metavar="LOG",
+                   help="log file (.csv, .npz, .mat); repeat to identify on several")
+    p.add_argument("--validate", action="append", metavar="LOG",
+                   help="held-out log(s); default: the last 20 %% of each --data file")
+    p.add_argument("--lock", action="append", default=[], metavar="NAME",
+                   help="URDF joint to lock (e.g. gripper fingers); repeatable")
+    p.add_argument("--fs", type=float, help="sampling rate in Hz (needed for .mat logs)")
+    p.add_argument("--cutoff", type=float, metavar="HZ",
+                   help="zero-phase low-pass cutoff (default 10 Hz, at most 40 %% of Nyquist)")
+    p.add_argument("--interval", type=int, default=1, metavar="K",
+                   help="keep every K-th sample after anti-alias filtering (default 1)")
+    p.add_argument("--motor-side", action="store_true",
+                   help="logs are on the motor side; convert through the robot's transmission")
+    p.add_argument("--model", help="model file (YAML with effects:); default "
+                   "[rigid_body, viscous, coulomb]")
+    p.add_argument("--add", action="append", default=[], metavar="EFFECT[@J]",
+                   help="add an effect to the model for this run; repeatable")
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="robid", description="Dynamic-model identification of "
+                                 "industrial robots.")
+    ap.add_argument("--debug", action="store_true", help="show tracebacks")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+
+    p = sub.add_parser("identify", help="identify the dynamic model from logs")
+    _shared_inputs(p)
+    p.add_argument("--method", choices=("ols", "wls", "irls"), default="ols")
+    p.add_argument("--weight", default="bisquare",
+                   help="IRLS weight: andrews, bisquare, cauchy, fair, huber, logistic, "
+                        "talwar, welsch")
+    p.add_argument("--json", metavar="FILE", help="write the result as JSON")
+    p.add_argument("--out", metavar="DIR", help="write figures, parameter table and YAML")
+
+    p = sub.add_parser("show-robot", help="draw the kinematic chain at a pose (PNG)")
+    p.add_argument("--robot", required=True)
+    p.add_argument("--lock", action="append", default=[], metavar="NAME")
+    p.add_argument("--q", type=float, nargs="+", metavar="DEG",
+                   help="joint positions in degrees (metres for prismatic); default zeros")
+    p.add_argument("--out", required=True, metavar="PNG")
+
+    p = sub.add_parser("model", help="edit a model file")
+    msub = p.add_subparsers(dest="model_cmd", required=True)
+    pa = msub.add_parser("add", help="add an effect (creates the file from the default model)")
+    pa.add_argument("model_file")
+    pa.add_argument("effect", help="EFFECT or EFFECT@J")
+
+    p = sub.add_parser("demo", help="identify a simulated robot end to end and write a report")
+    p.add_argument("--json", metavar="FILE")
+    p.add_argument("--out", metavar="DIR", default="demo-out")
+    return ap
+
+
+def _one_line_warnings() -> None:
+    def show(message: Warning | str, category: type[Warning], *args: Any, **kw: Any) -> None:
+        print(f"robid: warning: {message}", file=sys.stderr)
+
+    warnings.showwarning = show  # type: ignore[assignment]
+    warnings.simplefilter("default")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    _one_line_warnings()
+    try:
+        return int(_dispatch(args) or 0)
+    except RobidError as err:
+        if args.debug:
+            raise
+        print(f"robid: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("robid: interrupted", file=sys.stderr)
+        return 130
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    if args.cmd == "identify":
+        return _identify(args)
+    if args.cmd == "show-robot":
+        return _show_robot(args)
+    if args.cmd == "model":
+        return _model_add(args)
+    if args.cmd == "demo":
+        return _demo(args)
+    raise AssertionError(args.cmd)
+
+
+def _load_model(args: argparse.Namespace):
+    from robid_link.ident.effects import load_model, parse_effect
+
+    model = load_model(args.model)
+    for entry in args.add:
+        model = model.with_added(parse_effect(entry, f"--add {entry}"))
+    return model
+
+
+def _identify(args: argparse.Namespace) -> int:
+    from robid_link.ident.identify import identify, load_logs
+    from robid_link.ident.report import write_json, write_report
+    from robid_link.ident.robot import load_robot
+
+    robot = load_robot(args.robot, args.lock)
+    model = _load_model(args)
+    data = load_logs(robot, args.data, args.fs, args.motor_side)
+    valid = load_logs(robot, args.validate, args.fs, args.motor_side) if args.validate else None
+    res = identify(robot, data, model, validate=valid, cutoff_hz=args.cutoff,
+                   interval=args.interval, method=args.method, weight=args.weight)
+    print(res.summary())
+    if args.json:
+        write_json(args.json, res.to_dict())
+    if args.out:
+        paths = write_report(res, args.out)
+        print(f"\n  wrote {len(paths)} files to {args.out}")
+    return 0
+
+
+def _show_robot(args: argparse.Namespace) -> int:
+    from robid_link.ident.report import draw_robot
+    from robid_link.ident.robot import load_robot
+
+    robot = load_robot(args.robot, args.lock)
+    q = np.zeros(robot.n)
+    if args.q is not None:
+        if len(args.q) != robot.n:
+            raise RobidError(f"--q: {len(args.q)} values given, the robot has {robot.n} joints")
+        scale = np.array([np.pi / 180 if t == "revolute" else 1.0 for t in robot.joint_types])
+        q = np.array(args.q) * scale
+    path = draw_robot(robot, q, args.out)
+    for jt in robot.mapping():
+        print(f"  {jt['joint']:>2}  {jt['name']}  ({jt['type']})")
+    print(f"wrote {path}")
+    return 0
+
+
+def _model_add(args: argparse.Namespace) -> int:
+    from robid_link.ident.effects import DEFAULT_MODEL, load_model, parse_effect, save_model
+
+    path = Path(args.model_file)
+    model = load_model(path) if path.exists() else DEFAULT_MODEL
+    spec = parse_effect(args.effect, args.effect)
+    model = model.with_added(spec)
+    save_model(path, model)
+    print(f"{path}: effects [{', '.join(model.labels())}]")
+    return 0
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from robid_link.demo import run_demo
+
+    with tempfile.TemporaryDirectory(prefix="robid-demo-") as tmp:
+        return run_demo(Path(tmp), Path(args.out), args.json)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

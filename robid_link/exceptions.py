@@ -1,0 +1,81 @@
+"""One error tree for robid_link, and the warning categories users can filter.
+
+    RobidError
+     ├── ConfigError (ValueError)       bad YAML, unknown key, bad value; names the key path
+     ├── RobotError (ValueError)        robot description cannot be turned into a model
+     ├── DataError (ValueError)         a log file is missing, malformed or inconsistent
+     ├── ModelError (ValueError)        unknown effect, bad effect option
+     ├── EstimationError (ArithmeticError)  too few samples, rank deficiency
+     └── DriverError                    the controller link failed
+          └── DriverTimeoutError (TimeoutError)
+
+    RobidWarning (UserWarning)
+     ├── ConditioningWarning            poorly excited / ill-conditioned regressor
+     ├── ExcitationWarning              validation outside the training range, weak joints
+     └── DataWarning                    saturation, sign/scale mismatch, resampling, gaps
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "RobidError",
+    "ConfigError",
+    "RobotError",
+    "DataError",
+    "ModelError",
+    "EstimationError",
+    "DriverError",
+    "DriverTimeoutError",
+    "RobidWarning",
+    "ConditioningWarning",
+    "ExcitationWarning",
+    "DataWarning",
+]
+
+
+class RobidError(Exception):
+    """Base of every error robid_link raises on purpose."""
+
+
+class ConfigError(RobidError, ValueError):
+    """A configuration file or option is invalid; the message names the key path."""
+
+
+class RobotError(RobidError, ValueError):
+    """A robot description (MDH YAML or URDF) cannot be turned into a model."""
+
+
+class DataError(RobidError, ValueError):
+    """A log file is missing, malformed or inconsistent with the robot."""
+
+
+class ModelError(RobidError, ValueError):
+    """A model file or effect entry is invalid."""
+
+
+class EstimationError(RobidError, ArithmeticError):
+    """The estimation problem cannot be solved as posed."""
+
+
+class DriverError(RobidError):
+    """The controller link failed."""
+
+
+class DriverTimeoutError(DriverError, TimeoutError):
+    """The controller did not answer in time."""
+
+
+class RobidWarning(UserWarning):
+    """Base of robid_link's warnings."""
+
+
+class ConditioningWarning(RobidWarning):
+    """The regressor is ill-conditioned; some parameters are poorly determined."""
+
+
+class ExcitationWarning(RobidWarning):
+    """Validation data leaves the training range, or a joint is weakly excited."""
+
+
+class DataWarning(RobidWarning):
+    """A log looks suspicious: saturation, gaps, resampling, sign or scale mismatch."""

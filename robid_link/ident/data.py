@@ -1,0 +1,277 @@
+"""Log files (CSV, npz, FDURoID .mat) → checked, uniformly sampled joint-side logs.
+
+Every bad input raises a one-line :class:`DataError` naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from robid_link.exceptions import DataError, DataWarning
+
+__all__ = ["Log", "load_log", "file_sha256", "write_log_csv"]
+
+#: time steps longer than this many median steps split the log into segments
+GAP_FACTOR = 2.5
+#: relative jitter of the time step above which the log is resampled onto a uniform grid
+JITTER_TOL = 0.01
+
+
+@dataclass
+class Log:
+    """One log on the joint side: uniform time grid, arrays (samples × joints)."""
+
+    path: str
+    t: np.ndarray
+    q: np.ndarray
+    tau: np.ndarray
+    qd: np.ndarray | None = None
+    qdd: np.ndarray | None = None
+    segments: list[slice] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def fs(self) -> float:
+        return 1.0 / float(np.median(np.diff(self.t)))
+
+    @property
+    def n_joints(self) -> int:
+        return int(self.q.shape[1])
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+
+def file_sha256(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def load_log(path: str | Path, n_joints: int, fs: float | None = None) -> Log:
+    """Read and check a log; resample jittered time stamps, split at gaps."""
+    p = Path(path)
+    if not p.is_file():
+        raise DataError(f"{p}: log file not found")
+    suffix = p.suffix.lower()
+    if suffix == ".csv":
+        cols = _read_csv(p)
+    elif suffix == ".npz":
+        cols = _read_npz(p)
+    elif suffix == ".mat":
+        cols = _read_mat(p, n_joints, fs)
+    else:
+        raise DataError(f"{p}: unknown log format '{suffix}' (expected .csv, .npz or .mat)")
+    return _check_and_grid(p, cols, n_joints, fs)
+
+
+# ----------------------------------------------------------------------------- readers
+
+
+def _read_csv(p: Path) -> dict[str, np.ndarray]:
+    try:
+        with open(p, newline="") as fh:
+            reader = csv.reader(fh)
+            header = next(reader, None)
+            if not header:
+                raise DataError(f"{p}: empty file, expected a header t,q1..qn,tau1..taun")
+            header = [h.strip() for h in header]
+            rows = [r for r in reader if r]
+    except UnicodeDecodeError as err:
+        raise DataError(f"{p}: not a text CSV file") from err
+    if len(set(header)) != len(header):
+        dup = next(h for h in header if header.count(h) > 1)
+        raise DataError(f"{p}: column {dup} appears twice")
+    if not rows:
+        raise DataError(f"{p}: no data rows")
+    for i, r in enumerate(rows):
+        if len(r) != len(header):
+            raise DataError(f"{p}: row {i + 2} has {len(r)} fields, header has {len(header)}")
+    try:
+        arr = np.array(rows, dtype=float)
+    except ValueError:
+        for i, r in enumerate(rows):
+            for h, v in zip(header, r, strict=True):
+                try:
+                    float(v)
+                except ValueError:
+                    raise DataError(f"{p}: row {i + 2}, column {h}: not a number: {v!r}") from None
+        raise
+    return {"__csv__": arr, "__header__": np.array(header, dtype=object)}
+
+
+def _read_npz(p: Path) -> dict[str, np.ndarray]:
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            return {k: np.asarray(z[k]) for k in z.files}
+    except (OSError, ValueError) as err:
+        raise DataError(f"{p}: not a readable .npz file") from err
+
+
+def _read_mat(p: Path, n: int, fs: float | None) -> dict[str, np.ndarray]:
+    import scipy.io
+
+    if fs is None or fs <= 0:
+        raise DataError(f"{p}: a .mat log has no time stamps; give the sampling rate with --fs")
+    try:
+        mat = scipy.io.loadmat(str(p))
+    except (OSError, ValueError, NotImplementedError) as err:
+        raise DataError(f"{p}: not a readable MATLAB file") from err
+    arrays = {k: v for k, v in mat.items() if not k.startswith("__") and isinstance(v, np.ndarray)}
+    mats = {k: v for k, v in arrays.items() if v.ndim == 2 and v.shape[0] > 1}
+    if len(mats) != 1:
+        raise DataError(f"{p}: expected one matrix (columns q, qd, qdd, tau), found {len(mats)}")
+    (name, m), = mats.items()
+    if m.shape[1] != 4 * n:
+        raise DataError(f"{p}: matrix '{name}' has {m.shape[1]} columns, expected 4×{n} = {4 * n} "
+                        "(q, qd, qdd, tau)")
+    m = m.astype(float)
+    t = np.arange(m.shape[0]) / fs
+    return {"t": t, "q": m[:, :n], "qd": m[:, n:2 * n], "qdd": m[:, 2 * n:3 * n],
+            "tau": m[:, 3 * n:]}
+
+
+def _csv_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
+    header = list(cols["__header__"])
+    arr = cols["__csv__"]
+    idx = {h: i for i, h in enumerate(header)}
+    if "t" not in idx:
+        raise DataError(f"{p}: column t missing")
+    log_n = sum(1 for h in header if h.startswith("q") and h[1:].isdigit())
+    if log_n and log_n != n:
+        raise DataError(f"{p}: the log has {log_n} joints (q1..q{log_n}), the robot has {n}")
+    out: dict[str, np.ndarray] = {"t": arr[:, idx["t"]]}
+    for key in ("q", "tau"):
+        for j in range(1, n + 1):
+            if f"{key}{j}" not in idx:
+                raise DataError(f"{p}: column {key}{j} missing")
+        out[key] = arr[:, [idx[f"{key}{j}"] for j in range(1, n + 1)]]
+    for key in ("qd", "qdd"):
+        have = [f"{key}{j}" in idx for j in range(1, n + 1)]
+        if any(have) and not all(have):
+            missing = next(f"{key}{j}" for j in range(1, n + 1) if not have[j - 1])
+            raise DataError(f"{p}: column {missing} missing (give all of {key}1..{key}{n} or none)")
+        if all(have):
+            out[key] = arr[:, [idx[f"{key}{j}"] for j in range(1, n + 1)]]
+    known = {"t"} | {f"{k}{j}" for k in ("q", "qd", "qdd", "tau") for j in range(1, n + 1)}
+    extra = [h for h in header if h not in known]
+    if extra:
+        raise DataError(f"{p}: unexpected column {extra[0]} (expected t, q1..q{n}, tau1..tau{n}, "
+                        f"optional qd1..qd{n}, qdd1..qdd{n})")
+    return out
+
+
+_NPZ_KEYS = {"times": "t", "positions": "q", "velocities": "qd", "accelerations": "qdd",
+             "torques": "tau"}
+
+
+def _npz_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
+    if "times" in cols or "positions" in cols:
+        cols = {_NPZ_KEYS.get(k, k): v for k, v in cols.items()}
+    for key in ("t", "q", "tau"):
+        if key not in cols:
+            raise DataError(f"{p}: array '{key}' missing (expected t, q, tau [, qd, qdd] or "
+                            "FloBaRoID's times, positions, torques)")
+    out = {"t": np.asarray(cols["t"], dtype=float).reshape(-1)}
+    for key in ("q", "qd", "qdd", "tau"):
+        if key not in cols:
+            continue
+        a = np.asarray(cols[key], dtype=float)
+        if a.ndim != 2:
+            raise DataError(f"{p}: array '{key}' must be samples × joints, got shape {a.shape}")
+        if a.shape[1] != n:
+            raise DataError(f"{p}: array '{key}' has {a.shape[1]} joints, the robot has {n}")
+        out[key] = a
+    return out
+
+
+# ----------------------------------------------------------------------------- checks
+
+
+def _check_and_grid(p: Path, cols: dict[str, np.ndarray], n: int, fs: float | None) -> Log:
+    cols = _csv_columns(p, cols, n) if "__csv__" in cols else _npz_columns(p, cols, n)
+    t = cols["t"]
+    nsamp = t.shape[0]
+    for key, a in cols.items():
+        if a.shape[0] != nsamp:
+            raise DataError(f"{p}: '{key}' has {a.shape[0]} samples, t has {nsamp}")
+        bad = ~np.isfinite(a)
+        if bad.any():
+            row = int(np.argwhere(bad)[0][0])
+            col = key if a.ndim == 1 else f"{key}{int(np.argwhere(bad)[0][1]) + 1}"
+            kind = "NaN" if np.isnan(a[bad]).any() else "inf"
+            raise DataError(f"{p}: column {col} has {kind} at sample {row + 1}")
+    if nsamp < 10:
+        raise DataError(f"{p}: only {nsamp} samples")
+    dt = np.diff(t)
+    if np.any(dt == 0):
+        k = int(np.argmax(dt == 0))
+        raise DataError(f"{p}: duplicate time stamp {t[k]:.6g} s at samples {k + 1} and {k + 2}")
+    if np.any(dt < 0):
+        k = int(np.argmax(dt < 0))
+        raise DataError(f"{p}: time goes backwards at sample {k + 2} "
+                        f"({t[k]:.6g} → {t[k + 1]:.6g} s)")
+    notes: list[str] = []
+    h = float(np.median(dt))
+    gaps = np.flatnonzero(dt > GAP_FACTOR * h)
+    bounds = [0, *(gaps + 1).tolist(), nsamp]
+    pieces = [(bounds[i], bounds[i + 1]) for i in range(len(bounds) - 1)]
+    if len(gaps):
+        notes.append(f"{p.name}: {len(gaps)} gap(s) in the time stamps (longest "
+                     f"{dt[gaps].max():.3g} s); the log is split into {len(pieces)} segments")
+        warnings.warn(notes[-1], DataWarning, stacklevel=3)
+    jitter = float(np.max(np.abs(dt[dt <= GAP_FACTOR * h] - h)) / h)
+    keys = [k for k in ("q", "qd", "qdd", "tau") if k in cols]
+    if jitter > JITTER_TOL:
+        notes.append(f"{p.name}: time step varies by up to {100 * jitter:.0f} % around "
+                     f"{1e3 * h:.3g} ms; resampled onto a uniform grid")
+        warnings.warn(notes[-1], DataWarning, stacklevel=3)
+        out = {k: [] for k in ["t", *keys]}
+        segs: list[slice] = []
+        start = 0
+        for a, b in pieces:
+            tt = t[a:b]
+            grid = tt[0] + h * np.arange(int(np.floor((tt[-1] - tt[0]) / h + 1e-9)) + 1)
+            out["t"].append(grid)
+            for k in keys:
+                out[k].append(_interp(grid, tt, cols[k][a:b], cubic=(k == "q")))
+            segs.append(slice(start, start + grid.size))
+            start += grid.size
+        arrays = {k: np.concatenate(v) for k, v in out.items()}
+    else:
+        arrays = {"t": t, **{k: cols[k] for k in keys}}
+        segs = [slice(a, b) for a, b in pieces]
+    return Log(path=str(p), t=arrays["t"], q=arrays["q"], tau=arrays["tau"],
+               qd=arrays.get("qd"), qdd=arrays.get("qdd"), segments=segs, notes=notes)
+
+
+def _interp(grid: np.ndarray, t: np.ndarray, y: np.ndarray, cubic: bool) -> np.ndarray:
+    if cubic and t.size >= 4:
+        from scipy.interpolate import CubicSpline
+
+        return np.asarray(CubicSpline(t, y, axis=0)(grid))
+    return np.stack([np.interp(grid, t, y[:, j]) for j in range(y.shape[1])], axis=1)
+
+
+def write_log_csv(path: str | Path, t: np.ndarray, q: np.ndarray, tau: np.ndarray,
+                  qd: np.ndarray | None = None, qdd: np.ndarray | None = None) -> None:
+    """Write a log in the CSV layout of DESIGN.md (t, q…, [qd…, qdd…,] tau…)."""
+    n = q.shape[1]
+    names = ["t"] + [f"q{j}" for j in range(1, n + 1)]
+    blocks = [t[:, None], q]
+    for key, a in (("qd", qd), ("qdd", qdd)):
+        if a is not None:
+            names += [f"{key}{j}" for j in range(1, n + 1)]
+            blocks.append(a)
+    names += [f"tau{j}" for j in range(1, n + 1)]
+    blocks.append(tau)
+    np.savetxt(path, np.hstack(blocks), delimiter=",", header=",".join(names), comments="",
+               fmt="%.10g")

@@ -1,0 +1,318 @@
+"""The effect catalog: each physical effect is a block of regressor columns, and a model is a list.
+
+Effects with nonlinear hyper-parameters declare them with a search range; the estimator
+profiles them when the model does not fix them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+import yaml
+
+from robid_link.exceptions import ModelError
+from robid_link.ident.regressor import rigid_regressor
+from robid_link.ident.robot import Robot, standard_parameter_names
+
+__all__ = [
+    "States",
+    "Effect",
+    "Hyper",
+    "EffectSpec",
+    "Block",
+    "Model",
+    "REGISTRY",
+    "register",
+    "DEFAULT_MODEL",
+    "parse_effect",
+    "load_model",
+]
+
+
+@dataclass
+class States:
+    """Joint states (N, n) on which regressor columns are evaluated."""
+
+    q: np.ndarray
+    qd: np.ndarray
+    qdd: np.ndarray
+    t: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.q.shape[0])
+
+
+@dataclass(frozen=True)
+class Hyper:
+    """A nonlinear hyper-parameter: profiled over ``grid`` when the model does not set it."""
+
+    default: float
+    grid: tuple[float, ...]
+    doc: str = ""
+
+
+class Effect:
+    """One physical effect; subclasses fill regressor columns.
+
+    ``per_joint`` effects act on one joint each (``viscous@3``; bare ``viscous`` means all
+    joints); global ones (``rigid_body``) act on the robot as a whole.
+    """
+
+    name: ClassVar[str]
+    per_joint: ClassVar[bool] = True
+    hypers: ClassVar[dict[str, Hyper]] = {}
+    options: ClassVar[frozenset[str]] = frozenset()
+    #: per-joint effects this one replaces on its joint (declared overlaps)
+    replaces: ClassVar[tuple[str, ...]] = ()
+    doc: ClassVar[str] = ""
+
+    def param_names(self, robot: Robot, joint: int | None, opts: dict[str, Any]) -> list[str]:
+        raise NotImplementedError
+
+    def columns(self, robot: Robot, st: States, joint: int | None,
+                opts: dict[str, Any]) -> np.ndarray:
+        """(N, n, k) block; for a per-joint effect only row ``joint`` is non-zero."""
+        raise NotImplementedError
+
+
+REGISTRY: dict[str, Effect] = {}
+
+
+def register(cls: type[Effect]) -> type[Effect]:
+    REGISTRY[cls.name] = cls()
+    return cls
+
+
+def _row(st: States, n: int, joint: int, cols: Sequence[np.ndarray]) -> np.ndarray:
+    out = np.zeros((len(st), n, len(cols)))
+    for k, c in enumerate(cols):
+        out[:, joint, k] = c
+    return out
+
+
+@register
+class RigidBody(Effect):
+    name = "rigid_body"
+    per_joint = False
+    doc = "inertia, Coriolis/centrifugal and gravity torques (10 standard parameters per link)"
+
+    def param_names(self, robot, joint, opts):
+        return standard_parameter_names(robot.n)
+
+    def columns(self, robot, st, joint, opts):
+        return rigid_regressor(robot, st.q, st.qd, st.qdd)
+
+
+@register
+class Viscous(Effect):
+    name = "viscous"
+    doc = "viscous friction fv·q̇"
+
+    def param_names(self, robot, joint, opts):
+        return [f"fv_{joint + 1}"]
+
+    def columns(self, robot, st, joint, opts):
+        return _row(st, robot.n, joint, [st.qd[:, joint]])
+
+
+@register
+class Coulomb(Effect):
+    name = "coulomb"
+    doc = "Coulomb friction fc·sign(q̇)"
+
+    def param_names(self, robot, joint, opts):
+        return [f"fc_{joint + 1}"]
+
+    def columns(self, robot, st, joint, opts):
+        return _row(st, robot.n, joint, [np.sign(st.qd[:, joint])])
+
+
+@register
+class Offset(Effect):
+    name = "offset"
+    doc = "constant torque offset (sensor bias, unmodelled static load)"
+
+    def param_names(self, robot, joint, opts):
+        return [f"off_{joint + 1}"]
+
+    def columns(self, robot, st, joint, opts):
+        return _row(st, robot.n, joint, [np.ones(len(st))])
+
+
+@register
+class FrictionPower(Effect):
+    name = "friction_power"
+    doc = "FDURoID's friction (Fc + Fv·|q̇|^α)·sign(q̇) + B"
+    hypers = {"alpha": Hyper(0.5, (0.2, 0.35, 0.5, 0.65, 0.8, 1.0, 1.25, 1.5),
+                             "exponent of the velocity term")}
+    options = frozenset({"alpha"})
+    replaces = ("viscous", "coulomb", "offset")
+
+    def param_names(self, robot, joint, opts):
+        j = joint + 1
+        return [f"fpc_{j}", f"fpv_{j}", f"fpb_{j}"]
+
+    def columns(self, robot, st, joint, opts):
+        v = st.qd[:, joint]
+        alpha = float(opts.get("alpha", self.hypers["alpha"].default))
+        sgn = np.sign(v)
+        return _row(st, robot.n, joint, [sgn, np.abs(v) ** alpha * sgn, np.ones(len(st))])
+
+
+# ----------------------------------------------------------------------------- model
+
+
+@dataclass(frozen=True)
+class EffectSpec:
+    """One model entry: ``NAME``, ``NAME@J`` or a mapping with options (J from 1)."""
+
+    name: str
+    joint: int | None = None  # 1-based, None = all joints (per-joint) or global
+    options: tuple[tuple[str, Any], ...] = ()
+
+    @property
+    def opts(self) -> dict[str, Any]:
+        return dict(self.options)
+
+    def label(self) -> str:
+        return self.name if self.joint is None else f"{self.name}@{self.joint}"
+
+    def to_yaml(self) -> str | dict[str, Any]:
+        if not self.options:
+            return self.label()
+        out: dict[str, Any] = {"name": self.name}
+        if self.joint is not None:
+            out["joint"] = self.joint
+        out.update(self.opts)
+        return out
+
+
+@dataclass(frozen=True)
+class Block:
+    """A resolved effect instance: one effect on one joint (or global), with its columns."""
+
+    effect: Effect
+    joint: int | None  # 0-based
+    opts: dict[str, Any] = field(default_factory=dict, hash=False, compare=False)
+
+    @property
+    def key(self) -> str:
+        return self.effect.name if self.joint is None else f"{self.effect.name}@{self.joint + 1}"
+
+    def free_hypers(self) -> list[str]:
+        return [h for h in self.effect.hypers if h not in self.opts]
+
+
+def parse_effect(entry: Any, where: str = "effect") -> EffectSpec:
+    if isinstance(entry, str):
+        name, _, joint = entry.strip().partition("@")
+        spec_joint = None
+        if joint:
+            if not joint.isdigit() or int(joint) < 1:
+                raise ModelError(f"{where}: '{entry}': joint must be a number from 1")
+            spec_joint = int(joint)
+        return _checked(EffectSpec(name, spec_joint), where)
+    if isinstance(entry, dict):
+        if "name" not in entry:
+            raise ModelError(f"{where}: a mapping entry needs 'name'")
+        opts = {k: v for k, v in entry.items() if k not in ("name", "joint")}
+        joint = entry.get("joint")
+        if joint is not None and (isinstance(joint, bool) or not isinstance(joint, int)
+                                  or joint < 1):
+            raise ModelError(f"{where}.joint: expected a joint number from 1, got {joint!r}")
+        return _checked(EffectSpec(str(entry["name"]), joint, tuple(sorted(opts.items()))), where)
+    raise ModelError(f"{where}: expected NAME, NAME@J or a mapping, got {entry!r}")
+
+
+def _checked(spec: EffectSpec, where: str) -> EffectSpec:
+    if spec.name not in REGISTRY:
+        known = ", ".join(sorted(REGISTRY))
+        raise ModelError(f"{where}: unknown effect '{spec.name}' (known: {known})")
+    eff = REGISTRY[spec.name]
+    if not eff.per_joint and spec.joint is not None:
+        raise ModelError(f"{where}: '{spec.name}' is global and takes no joint")
+    bad = set(spec.opts) - set(eff.options)
+    if bad:
+        raise ModelError(f"{where}: '{spec.name}' has no option '{sorted(bad)[0]}'")
+    for key, val in spec.opts.items():
+        if isinstance(val, bool) or not isinstance(val, int | float) or not np.isfinite(val):
+            raise ModelError(f"{where}: '{spec.name}' option {key}: expected a number")
+    return spec
+
+
+@dataclass(frozen=True)
+class Model:
+    """An ordered list of effect entries."""
+
+    specs: tuple[EffectSpec, ...]
+
+    @classmethod
+    def parse(cls, entries: Sequence[Any], where: str = "effects") -> Model:
+        specs = tuple(parse_effect(e, f"{where}[{i}]") for i, e in enumerate(entries))
+        return cls(specs)
+
+    def labels(self) -> list[str]:
+        return [s.label() for s in self.specs]
+
+    def with_added(self, spec: EffectSpec) -> Model:
+        kept = [s for s in self.specs if not (s.name == spec.name and s.joint == spec.joint)]
+        return Model((*kept, spec))
+
+    def blocks(self, robot: Robot) -> list[Block]:
+        """Resolve entries to per-joint blocks; declared replacements drop overlapping blocks."""
+        chosen: dict[tuple[str, int | None], Block] = {}
+        for s in self.specs:
+            eff = REGISTRY[s.name]
+            if s.joint is not None and s.joint > robot.n:
+                raise ModelError(f"effect {s.label()}: the robot has {robot.n} joints")
+            joints: list[int | None]
+            if not eff.per_joint:
+                joints = [None]
+            elif s.joint is None:
+                joints = list(range(robot.n))
+            else:
+                joints = [s.joint - 1]
+            for j in joints:
+                prev = chosen.get((s.name, j))
+                opts = dict(prev.opts) if prev is not None else {}
+                if s.joint is not None or prev is None or not prev.opts:
+                    opts.update(s.opts)
+                chosen[(s.name, j)] = Block(eff, j, opts)
+        for (_name, j), blk in list(chosen.items()):
+            for other in blk.effect.replaces:
+                chosen.pop((other, j), None)
+        if ("rigid_body", None) in chosen:  # rigid body first: it reads best in tables
+            rb = chosen.pop(("rigid_body", None))
+            return [rb, *chosen.values()]
+        return list(chosen.values())
+
+
+DEFAULT_MODEL = Model.parse(["rigid_body", "viscous", "coulomb"])
+
+
+def load_model(path: str | Path | None) -> Model:
+    """Read a model file (YAML with ``effects:``); the default model when path is None."""
+    if path is None:
+        return DEFAULT_MODEL
+    p = Path(path)
+    if not p.is_file():
+        raise ModelError(f"{p}: model file not found")
+    try:
+        doc = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as err:
+        raise ModelError(f"{p}: invalid YAML") from err
+    if not isinstance(doc, dict) or not isinstance(doc.get("effects"), list):
+        raise ModelError(f"{p}: expected a mapping with a list 'effects'")
+    try:
+        return Model.parse(doc["effects"], "effects")
+    except ModelError as err:
+        raise ModelError(f"{p}: {err}") from err
+
+
+def save_model(path: str | Path, model: Model) -> None:
+    doc = {"effects": [s.to_yaml() for s in model.specs]}
+    Path(path).write_text(yaml.safe_dump(doc, sort_keys=False))

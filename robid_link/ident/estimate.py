@@ -1,0 +1,230 @@
+"""Least-squares estimators (OLS, WLS, robust IRLS) on streamed, parallel-filtered rows.
+
+Rows are reduced to per-joint, per-time-block Gram matrices in one pass; covariances carry a
+per-joint long-run-variance factor, honest when filtering correlates neighbouring residuals.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from robid_link.exceptions import ConditioningWarning, EstimationError
+from robid_link.ident.effects import Block
+from robid_link.ident.preprocess import Piece, design_chunks
+from robid_link.ident.robot import Robot
+
+__all__ = ["WEIGHTS", "TUNING", "Grams", "accumulate", "solve", "Fit", "fit"]
+
+#: Robust weight functions of r = residual / (tuning · robust scale), as in MATLAB's
+#: robustfit; the tuning constants give 95 % efficiency at Gaussian noise.
+TUNING = {"andrews": 1.339, "bisquare": 4.685, "cauchy": 2.385, "fair": 1.400,
+          "huber": 1.345, "logistic": 1.205, "talwar": 2.795, "welsch": 2.985}
+
+
+def _safe_ratio(f: Callable[[np.ndarray], np.ndarray]) -> Callable[[np.ndarray], np.ndarray]:
+    def w(r: np.ndarray) -> np.ndarray:
+        r = np.where(np.abs(r) < 1e-12, 1e-12, r)
+        return f(r) / r
+    return w
+
+
+WEIGHTS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
+    "andrews": lambda r: np.where(np.abs(r) < math.pi, _safe_ratio(np.sin)(r), 0.0),
+    "bisquare": lambda r: np.where(np.abs(r) < 1.0, (1.0 - r * r) ** 2, 0.0),
+    "cauchy": lambda r: 1.0 / (1.0 + r * r),
+    "fair": lambda r: 1.0 / (1.0 + np.abs(r)),
+    "huber": lambda r: 1.0 / np.maximum(1.0, np.abs(r)),
+    "logistic": _safe_ratio(np.tanh),
+    "talwar": lambda r: (np.abs(r) < 1.0).astype(float),
+    "welsch": lambda r: np.exp(-r * r),
+}
+
+RowWeight = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+
+
+@dataclass
+class Grams:
+    """Per joint j and time block b: G[j, b] = Σ [x, y, 1]ᵀ[x, y, 1] over that block's rows."""
+
+    g: np.ndarray  # (n, K, p + 2, p + 2)
+    n_rows: np.ndarray  # (n,) rows per joint (samples)
+
+    @property
+    def p(self) -> int:
+        return self.g.shape[2] - 2
+
+    def total(self) -> np.ndarray:
+        return self.g.sum(axis=1)  # (n, p+2, p+2)
+
+
+def _n_rows(piece: Piece, interval: int) -> int:
+    first = piece.lo + (-(piece.lo - piece.ctx_lo) % interval)
+    return max(0, len(range(first, piece.hi, interval)))
+
+
+def accumulate(robot: Robot, blocks: Sequence[Block], cols: np.ndarray, pieces: Sequence[Piece],
+               interval: int, block_len: int, row_weight: RowWeight | None = None,
+               max_blocks: int = 128) -> Grams:
+    """One pass over the training rows; ``cols`` picks the base columns."""
+    total = sum(_n_rows(pc, interval) for pc in pieces)
+    k_blocks = int(min(max_blocks, max(2, total // max(1, block_len))))
+    p = len(cols)
+    n = robot.n
+    g = np.zeros((n, k_blocks, p + 2, p + 2))
+    seen = 0
+    for pc in pieces:
+        for w, y, idx in design_chunks(robot, blocks, pc, interval=interval, filtered=True):
+            m = w.shape[0]
+            bid = (np.arange(seen, seen + m) * k_blocks) // total
+            seen += m
+            aug = np.empty((m, n, p + 2))
+            aug[:, :, :p] = w[:, :, cols]
+            aug[:, :, p] = y
+            aug[:, :, p + 1] = 1.0
+            if row_weight is not None:
+                aug *= np.sqrt(row_weight(w[:, :, cols], y, idx))[:, :, None]
+            for b in np.unique(bid):
+                sel = aug[bid == b]
+                for j in range(n):
+                    x = sel[:, j, :]
+                    g[j, b] += x.T @ x
+    return Grams(g, np.full(n, total))
+
+
+def solve(a: np.ndarray, b: np.ndarray, names: Sequence[str] | None = None,
+          warn: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
+    """Solve the normal equations with column equilibration; returns θ, A⁻¹, cond(scaled X)."""
+    d = np.sqrt(np.clip(np.diag(a), 1e-300, None))
+    zero = np.diag(a) <= 0
+    if zero.any():
+        nm = names[int(np.argmax(zero))] if names is not None else str(int(np.argmax(zero)))
+        raise EstimationError(f"parameter {nm} has an all-zero regressor column: not excited")
+    s = a / np.outer(d, d)
+    evals, evecs = np.linalg.eigh(s)
+    cond = math.sqrt(max(evals[-1], 0.0) / max(evals[0], 1e-300))
+    keep = evals > evals[-1] * 1e-14
+    if not keep.all() and warn:
+        warnings.warn(f"regressor is numerically rank deficient ({int((~keep).sum())} "
+                      "directions dropped); some parameters are not identifiable from this log",
+                      ConditioningWarning, stacklevel=3)
+    inv = (evecs[:, keep] / evals[keep]) @ evecs[:, keep].T
+    theta = (inv @ (b / d)) / d
+    return theta, inv / np.outer(d, d), cond
+
+
+@dataclass
+class Fit:
+    theta: np.ndarray
+    cov: np.ndarray
+    cond: float
+    rss: np.ndarray  # per joint, weighted rows for IRLS
+    mean_res: np.ndarray  # per joint
+    n_rows: np.ndarray
+    joint_weights: np.ndarray
+    method: str
+    iterations: int = 1
+
+
+def _joint_stats(tot: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-joint RSS and mean residual from augmented Grams at θ."""
+    p = theta.size
+    v = np.concatenate((-theta, [1.0]))
+    rss = np.einsum("i,jik,k->j", v, tot[:, : p + 1, : p + 1], v)
+    sum_e = tot[:, p + 1, p] - tot[:, p + 1, :p] @ theta
+    return np.maximum(rss, 0.0), sum_e / np.maximum(tot[:, p + 1, p + 1], 1.0)
+
+
+def _weighted_solve(grams: Grams, wj: np.ndarray, names: Sequence[str] | None, warn: bool
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    tot = grams.total()
+    p = grams.p
+    a = np.einsum("j,jik->ik", wj, tot[:, :p, :p])
+    b = np.einsum("j,ji->i", wj, tot[:, :p, p])
+    theta, a_inv, cond = solve(a, b, names, warn)
+    kappa, var = _long_run_factor(grams, theta)
+    meat = np.einsum("j,jik->ik", wj * wj * kappa * var, tot[:, :p, :p])
+    cov = a_inv @ meat @ a_inv
+    return theta, cov, a_inv, cond
+
+
+def _long_run_factor(grams: Grams, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per joint: κ = long-run variance / variance of the residual, and the variance.
+
+    Filtering correlates neighbouring residuals, so σ²(XᵀX)⁻¹ would be too optimistic.
+    The long-run variance comes from batch means over the time blocks (the block sums of
+    residuals are in the augmented Grams); with regressor columns that are smooth over the
+    residual's correlation time, Cov = A⁻¹ (Σ_j w_j² κ_j σ_j² G_j) A⁻¹.
+    """
+    p = grams.p
+    gb = grams.g
+    sums = gb[:, :, p + 1, p] - gb[:, :, p + 1, :p] @ theta  # (n, K)
+    counts = gb[:, :, p + 1, p + 1]
+    rss, mean = _joint_stats(grams.total(), theta)
+    n = np.maximum(counts.sum(axis=1), 1.0)
+    var = rss / n - mean**2
+    lrv = ((sums - counts * mean[:, None]) ** 2).sum(axis=1) / n
+    kappa = np.where(var > 0, lrv / np.maximum(var, 1e-300), 1.0)
+    return np.maximum(kappa, 1.0), np.maximum(var, 0.0)
+
+
+def fit(robot: Robot, blocks: Sequence[Block], cols: np.ndarray, pieces: Sequence[Piece],
+        interval: int, block_len: int, method: str = "ols", weight: str = "bisquare",
+        names: Sequence[str] | None = None, grams: Grams | None = None, warn: bool = True,
+        max_iter: int = 30) -> tuple[Fit, Grams]:
+    """OLS, WLS (Gautier's two steps: per-joint noise variance) or IRLS."""
+    if method not in ("ols", "wls", "irls"):
+        raise EstimationError(f"unknown method '{method}' (ols, wls, irls)")
+    if grams is None:
+        grams = accumulate(robot, blocks, cols, pieces, interval, block_len)
+    n = robot.n
+    wj = np.ones(n)
+    theta, cov, _, cond = _weighted_solve(grams, wj, names, warn)
+    tot = grams.total()
+    rss, mean_e = _joint_stats(tot, theta)
+    if method == "wls":
+        dof = np.maximum(grams.n_rows - len(cols) / n, 1.0)
+        var = rss / dof
+        wj = 1.0 / np.maximum(var, 1e-12 * max(var.max(), 1e-300))
+        wj = wj / wj.max()
+        theta, cov, _, cond = _weighted_solve(grams, wj, names, warn)
+        rss, mean_e = _joint_stats(tot, theta)
+    iterations = 1
+    if method == "irls":
+        if weight not in WEIGHTS:
+            raise EstimationError(f"unknown weight function '{weight}' ({', '.join(WEIGHTS)})")
+        wfun, tune = WEIGHTS[weight], TUNING[weight]
+        for iterations in range(2, max_iter + 1):  # noqa: B007
+            scale = _robust_scale(robot, blocks, cols, pieces, interval, theta)
+
+            def row_weight(x: np.ndarray, y: np.ndarray, idx: np.ndarray, th=theta,
+                           sc=scale) -> np.ndarray:
+                r = (y - x @ th) / (tune * sc)
+                return wfun(r)
+
+            wgrams = accumulate(robot, blocks, cols, pieces, interval, block_len, row_weight)
+            new, cov, _, cond = _weighted_solve(wgrams, wj, names, warn)
+            step = np.max(np.abs(new - theta) / (np.abs(theta) + 1e-9 * np.abs(theta).max()))
+            theta = new
+            if step < 1e-6:
+                break
+        rss, mean_e = _joint_stats(tot, theta)
+    return Fit(theta, cov, cond, rss, mean_e, grams.n_rows, wj, method, iterations), grams
+
+
+def _robust_scale(robot: Robot, blocks: Sequence[Block], cols: np.ndarray,
+                  pieces: Sequence[Piece], interval: int, theta: np.ndarray) -> np.ndarray:
+    """Per-joint robust residual scale: 1.4826 · MAD (joint torques differ by 60×)."""
+    res = [
+        y - w[:, :, cols] @ theta
+        for pc in pieces
+        for w, y, _ in design_chunks(robot, blocks, pc, interval=interval, filtered=True)
+    ]
+    r = np.concatenate(res, axis=0)
+    med = np.median(r, axis=0)
+    mad = 1.4826 * np.median(np.abs(r - med), axis=0)
+    return np.maximum(mad, 1e-9 * max(float(np.abs(r).max()), 1e-12))

@@ -1,0 +1,334 @@
+"""The identification pipeline: logs + robot + model → IdentResult.
+
+Orchestrates preprocess → regressor/effects → base set → estimate → validation → checks.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from robid_link.exceptions import ConditioningWarning, DataError, DataWarning, ExcitationWarning
+from robid_link.ident.data import Log, file_sha256, load_log
+from robid_link.ident.effects import Block, Model, States
+from robid_link.ident.estimate import Grams, accumulate, fit
+from robid_link.ident.preprocess import (
+    Piece,
+    Prepared,
+    block_columns,
+    check_counts,
+    design_chunks,
+    prepare,
+    split,
+)
+from robid_link.ident.regressor import (
+    BaseSet,
+    preference_order,
+    rigid_regressor,
+    structural_base_set,
+)
+from robid_link.ident.results import ErrorStats, IdentResult, Parameter, StatsAccumulator
+from robid_link.ident.robot import Robot
+
+__all__ = ["Problem", "build_problem", "identify", "load_logs", "base_set_for"]
+
+#: condition number of the column-scaled base regressor above which excitation is poor
+POOR_EXCITATION_COND = 1e3
+#: max samples per validation trace kept for plots
+TRACE_SAMPLES = 20000
+
+
+def load_logs(robot: Robot, paths: Sequence[str | Path], fs: float | None = None,
+              motor_side: bool = False) -> list[Log]:
+    logs = []
+    for p in paths:
+        log = load_log(p, robot.n, fs)
+        if motor_side:
+            log.q, log.qd, log.qdd, log.tau = robot.to_joint_side(log.q, log.qd, log.qdd, log.tau)
+        logs.append(log)
+    return logs
+
+
+def _random_states(robot: Robot, rng: np.random.Generator, n: int) -> States:
+    lo = np.where(np.isfinite(robot.limits.q_min), robot.limits.q_min, -math.pi)
+    hi = np.where(np.isfinite(robot.limits.q_max), robot.limits.q_max, math.pi)
+    q = rng.uniform(lo, hi, (n, robot.n))
+    return States(q, rng.normal(size=(n, robot.n)), rng.normal(size=(n, robot.n)),
+                  np.linspace(0.0, 1.0, n))
+
+
+def base_set_for(robot: Robot, blocks: Sequence[Block]) -> tuple[BaseSet, list[str]]:
+    """The structural base set of a robot and effect list (random states, fixed seed)."""
+    names = [nm for b in blocks for nm in b.effect.param_names(robot, b.joint, b.opts)]
+
+    def sample(rng: np.random.Generator, n: int) -> np.ndarray:
+        w = block_columns(robot, blocks, _random_states(robot, rng, n))
+        return w.reshape(-1, w.shape[2])
+
+    rigid = blocks and blocks[0].effect.name == "rigid_body"
+    pref = preference_order(robot.n, len(names) - 10 * robot.n) if rigid else None
+    return structural_base_set(names, sample, n_samples=max(200, 4 * len(names)),
+                               preference=pref), names
+
+
+@dataclass
+class Problem:
+    """Everything the estimators and the diagnosis share for one set of inputs."""
+
+    robot: Robot
+    model: Model
+    blocks: list[Block]
+    train: list[Piece]
+    valid: list[Piece]
+    preps: list[Prepared]
+    vpreps: list[Prepared]
+    interval: int
+    block_len: int
+    validation_source: str
+    notes: list[str]
+
+
+def build_problem(robot: Robot, data: Sequence[Log], model: Model, *,
+                  validate: Sequence[Log] | None = None, cutoff_hz: float | None = None,
+                  interval: int = 1) -> Problem:
+    if interval < 1:
+        raise DataError(f"--interval must be at least 1, got {interval}")
+    preps = [prepare(lg, cutoff_hz, interval) for lg in data]
+    vpreps = [prepare(lg, cutoff_hz, 1) for lg in validate or ()]
+    train, valid = split(preps, vpreps or None)
+    notes = [n for lg in [*data, *(validate or ())] for n in lg.notes]
+    fs = preps[0].filt.fs
+    fc = preps[0].filt.cutoff_hz
+    block_len = max(1, math.ceil(2.0 * fs / interval / fc))
+    if validate:
+        source = "files " + ", ".join(Path(v.path).name for v in validate)
+    else:
+        source = "last 20 % of each data file (gap of the filter's length)"
+    if len(data) > 1 and not validate:
+        notes.append("validation holds out the end of each file; use --validate with a "
+                     "different motion for an honest check of generalisation")
+    return Problem(robot, model, model.blocks(robot), train, valid, preps, vpreps, interval,
+                   block_len, source, notes)
+
+
+def _profile_hypers(pb: Problem) -> dict[str, dict[str, float]]:
+    """Choose free hyper-parameters by training RSS over each effect's grid."""
+    chosen: dict[str, dict[str, float]] = {}
+    free = [(k, b, h) for k, b in enumerate(pb.blocks) for h in b.free_hypers()]
+    if not free:
+        return chosen
+    names = sorted({(b.effect.name, h) for _, b, h in free})
+    for eff_name, hyper in names:
+        targets = [(k, b) for k, b, h in free if b.effect.name == eff_name and h == hyper]
+        grid = targets[0][1].effect.hypers[hyper].grid
+        scores = np.full((len(grid), pb.robot.n), np.inf)
+        for gi, val in enumerate(grid):
+            trial = list(pb.blocks)
+            for k, b in targets:
+                trial[k] = Block(b.effect, b.joint, {**b.opts, hyper: val})
+            base, _ = base_set_for(pb.robot, trial)
+            cols = np.array(base.independent)
+            f, _ = fit(pb.robot, trial, cols, pb.train, pb.interval, pb.block_len, warn=False)
+            scores[gi] = f.rss
+        for k, b in targets:
+            best = float(grid[int(np.argmin(scores[:, b.joint]))])
+            pb.blocks[k] = Block(b.effect, b.joint, {**b.opts, hyper: best})
+            chosen.setdefault(pb.blocks[k].key, {})[hyper] = best
+    return chosen
+
+
+def identify(robot: Robot, data: Sequence[Log], model: Model, *,
+             validate: Sequence[Log] | None = None, cutoff_hz: float | None = None,
+             interval: int = 1, method: str = "ols", weight: str = "bisquare") -> IdentResult:
+    """Identify the model's base parameters from the logs and validate on held-out data."""
+    pb = build_problem(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
+                       interval=interval)
+    hypers = _profile_hypers(pb)
+    base, names = base_set_for(robot, pb.blocks)
+    cols = np.array(base.independent)
+    grams = accumulate(robot, pb.blocks, cols, pb.train, pb.interval, pb.block_len)
+    check_counts(int(grams.n_rows.sum()), len(cols), Path(data[0].path).name)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        f, grams = fit(robot, pb.blocks, cols, pb.train, pb.interval, pb.block_len, method,
+                       weight, base.base_names, grams)
+    notes = list(pb.notes)
+    for w in caught:
+        notes.append(str(w.message))
+        warnings.warn(str(w.message), w.category, stacklevel=2)
+    nominal_beta = _nominal_base(robot, base, names)
+    std = np.sqrt(np.clip(np.diag(f.cov), 0.0, None))
+    params = [Parameter(nm, float(v), float(s), base.expression(k),
+                        None if nominal_beta is None else nominal_beta[k])
+              for k, (nm, v, s) in enumerate(zip(base.base_names, f.theta, std, strict=True))]
+    least = _least_excited(grams, base)
+    if f.cond > POOR_EXCITATION_COND:
+        msg = (f"condition number {f.cond:.3g}: poor excitation; least excited: "
+               f"{', '.join(least[:3])}")
+        notes.append(msg)
+        warnings.warn(msg, ConditioningWarning, stacklevel=2)
+    n_rows = grams.n_rows
+    ms = f.rss / np.maximum(n_rows, 1)
+    var = np.maximum(ms - f.mean_res**2, 0.0)
+    fit_err = ErrorStats(np.sqrt(ms), np.sqrt(var), var, int(n_rows[0]))
+    val, nom, traces = _validate(pb, cols, f.theta)
+    notes += _sanity_checks(pb, nominal=robot.nominal is not None)
+    if pb.valid:
+        notes += _extrapolation(pb)
+    return IdentResult(
+        robot=robot.name,
+        joints=robot.mapping(),
+        effects=pb.model.labels(),
+        method=method,
+        parameters=params,
+        n_samples=int(n_rows[0]),
+        condition_number=f.cond,
+        fit=fit_err,
+        validation=val,
+        nominal=nom,
+        cutoff_hz=pb.preps[0].filt.cutoff_hz,
+        fs_hz=pb.preps[0].filt.fs,
+        interval=pb.interval,
+        rank=base.rank,
+        n_standard=len(names),
+        least_excited=least,
+        hypers=hypers,
+        data_files=[{"path": lg.path, "sha256": file_sha256(lg.path), "role": role}
+                    for role, logs in (("data", data), ("validate", validate or ()))
+                    for lg in logs],
+        validation_source=pb.validation_source,
+        notes=notes,
+        traces=traces,
+        theta=f.theta,
+        cov=f.cov,
+    )
+
+
+def _nominal_base(robot: Robot, base: BaseSet, names: list[str]) -> list[float | None] | None:
+    if robot.nominal is None:
+        return None
+    full = np.zeros(len(names))
+    full[: 10 * robot.n] = robot.nominal  # effects: unknown a priori, taken as 0
+    out: list[float | None] = []
+    for k in range(base.rank):
+        row = base.combination[k]
+        rigid_only = not np.any(row[10 * robot.n:])
+        out.append(float(row @ full) if rigid_only else None)
+    return out
+
+
+def _least_excited(grams: Grams, base: BaseSet) -> list[str]:
+    p = grams.p
+    a = grams.total()[:, :p, :p].sum(axis=0)
+    d = np.sqrt(np.clip(np.diag(a), 1e-300, None))
+    evals, evecs = np.linalg.eigh(a / np.outer(d, d))
+    v = np.abs(evecs[:, 0])
+    order = np.argsort(v)[::-1]
+    return [base.base_names[i] for i in order[:5] if v[i] > 0.2]
+
+
+def _validate(pb: Problem, cols: np.ndarray, theta: np.ndarray):
+    robot = pb.robot
+    if not pb.valid:
+        return None, None, []
+    acc = StatsAccumulator(robot.n)
+    nom = StatsAccumulator(robot.n) if robot.nominal is not None else None
+    traces: dict[str, dict[str, list[np.ndarray]]] = {}
+    for pc in pb.valid:
+        for w, tau, idx in design_chunks(robot, pb.blocks, pc, filtered=False):
+            pred = w[:, :, cols] @ theta
+            acc.add(tau - pred, tau)
+            tr = traces.setdefault(pc.prep.log.path, {"t": [], "tau": [], "pred": []})
+            tr["t"].append(pc.prep.log.t[idx])
+            tr["tau"].append(tau)
+            tr["pred"].append(pred)
+            if nom is not None:
+                st = pc.prep.states(int(idx[0]), int(idx[-1]) + 1)
+                pred_nom = rigid_regressor(robot, st.q, st.qd, st.qdd) @ robot.nominal
+                nom.add(tau - pred_nom, tau)
+    out = []
+    for path, tr in traces.items():
+        t = np.concatenate(tr["t"])
+        step = max(1, t.size // TRACE_SAMPLES)
+        out.append({"file": path, "t": t[::step], "tau": np.concatenate(tr["tau"])[::step],
+                    "pred": np.concatenate(tr["pred"])[::step]})
+    return acc.stats(), None if nom is None else nom.stats(), out
+
+
+def _ranges(pieces: Sequence[Piece]) -> np.ndarray:
+    lo = np.full((3, pieces[0].prep.q.shape[1]), np.inf)
+    hi = -lo
+    for pc in pieces:
+        for k, arr in enumerate((pc.prep.q, pc.prep.qd, pc.prep.qdd)):
+            a = arr[pc.lo: pc.hi]
+            lo[k] = np.minimum(lo[k], a.min(axis=0))
+            hi[k] = np.maximum(hi[k], a.max(axis=0))
+    return np.stack((lo, hi))
+
+
+def _extrapolation(pb: Problem) -> list[str]:
+    tr, va = _ranges(pb.train), _ranges(pb.valid)
+    span = np.maximum(tr[1] - tr[0], 1e-9)
+    out = []
+    for k, qty in enumerate(("q", "qd", "qdd")):
+        excess = np.maximum(va[1][k] - tr[1][k], tr[0][k] - va[0][k]) / span[k]
+        for j in np.flatnonzero(excess > 0.05):
+            out.append(f"validation leaves the training range of {qty}{j + 1} by "
+                       f"{100 * excess[j]:.0f} % of its span: the model extrapolates there")
+    for msg in out:
+        warnings.warn(msg, ExcitationWarning, stacklevel=3)
+    return out
+
+
+def _sanity_checks(pb: Problem, nominal: bool) -> list[str]:
+    """Torque saturation, and sign/scale of each joint against the a-priori model."""
+    robot = pb.robot
+    out = []
+    for prep in pb.preps:
+        tau = prep.log.tau
+        name = Path(prep.log.path).name
+        peak = np.abs(tau).max(axis=0)
+        flat = max(5, int(0.05 * prep.filt.fs))  # a clipped signal sits flat at its peak
+        for j in range(robot.n):
+            at_peak = np.abs(tau[:, j]) >= peak[j] - 1e-9 * max(peak[j], 1.0)
+            limit = robot.limits.tau_max[j]
+            if peak[j] > 0 and _longest_run(at_peak) >= flat:
+                out.append(f"{name}: tau{j + 1} sits flat at {peak[j]:.3g} N·m "
+                           f"({100 * at_peak.mean():.1f} % of samples): saturation?")
+            elif np.isfinite(limit) and peak[j] >= 0.98 * limit:
+                out.append(f"{name}: tau{j + 1} reaches {peak[j]:.3g} N·m, at or above its "
+                           f"limit {limit:.3g} N·m: saturation or a wrong limit?")
+        if nominal:
+            step = max(1, len(prep.log) // 4000)
+            trim = prep.filt.settle
+            sl = slice(trim, len(prep.log) - trim, step)
+            pred = rigid_regressor(robot, prep.q[sl], prep.qd[sl], prep.qdd[sl]) @ robot.nominal
+            meas = prep.tau_f[sl]
+            for j in range(robot.n):
+                sp, sm = pred[:, j].std(), meas[:, j].std()
+                if sp < 1e-9 or sm < 1e-9:
+                    continue
+                r = np.corrcoef(pred[:, j], meas[:, j])[0, 1]
+                ratio = sm / sp
+                if r < -0.5:
+                    out.append(f"{name}: tau{j + 1} has the opposite sign of the a-priori model "
+                               f"(correlation {r:.2f}): sign convention?")
+                elif r > 0.5 and not 1 / 3 < ratio < 3:
+                    out.append(f"{name}: tau{j + 1} is {ratio:.3g}× the a-priori model's "
+                               "torque: gear ratio or units (motor side)?")
+    for msg in out:
+        warnings.warn(msg, DataWarning, stacklevel=3)
+    return out
+
+
+def _longest_run(mask: np.ndarray) -> int:
+    if not mask.any():
+        return 0
+    edges = np.diff(np.concatenate(([0], mask.astype(np.int8), [0])))
+    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    return int((stops - starts).max())

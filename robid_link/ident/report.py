@@ -1,0 +1,130 @@
+"""Report files: measured vs predicted torque per joint, parameter tables, robot drawings."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from robid_link.ident.results import IdentResult
+from robid_link.ident.robot import Robot
+
+__all__ = ["write_report", "draw_robot", "write_json"]
+
+
+def _pyplot() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def write_json(path: str | Path, doc: dict[str, Any]) -> None:
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(p.name + ".tmp")
+    tmp.write_text(json.dumps(doc, indent=2, allow_nan=False))
+    tmp.replace(p)
+
+
+def write_report(res: IdentResult, out_dir: str | Path) -> list[Path]:
+    """Per-joint torque figures, parameters.csv, parameters.yaml, summary.txt."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = [out / "summary.txt", out / "parameters.csv", out / "parameters.yaml"]
+    written[0].write_text(res.summary() + "\n")
+    with open(written[1], "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["name", "value", "std", "rel_std_pct", "nominal", "expression"])
+        for p in res.parameters:
+            w.writerow([p.name, f"{p.value:.10g}", f"{p.std:.6g}", f"{p.rel_std_pct:.4g}",
+                        "" if p.nominal is None else f"{p.nominal:.10g}", p.expression])
+    doc = {
+        "robot": res.robot,
+        "effects": res.effects,
+        "hyper_parameters": res.hypers,
+        "joints": res.joints,
+        "base_parameters": {p.name: {"value": p.value, "std": p.std, "expression": p.expression}
+                            for p in res.parameters},
+    }
+    written[2].write_text(yaml.safe_dump(doc, sort_keys=False, allow_unicode=True))
+    written += _torque_figures(res, out)
+    return written
+
+
+def _torque_figures(res: IdentResult, out: Path) -> list[Path]:
+    if not res.traces:
+        return []
+    plt = _pyplot()
+    paths = []
+    for j, jt in enumerate(res.joints):
+        fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(10, 5.5),
+                                       gridspec_kw={"height_ratios": [2, 1]})
+        for tr in res.traces:
+            t = tr["t"] - tr["t"][0]
+            ax1.plot(t, tr["tau"][:, j], lw=0.8, color="0.3", label="measured")
+            ax1.plot(t, tr["pred"][:, j], lw=0.9, color="tab:blue", label="model")
+            ax2.plot(t, tr["tau"][:, j] - tr["pred"][:, j], lw=0.6, color="tab:red")
+        rmse = res.rmse[j]
+        ax1.set_title(f"joint {jt['joint']} ({jt['name']}): validation, RMSE {rmse:.3g} N·m")
+        ax1.set_ylabel("torque [N·m]")
+        handles, labels = ax1.get_legend_handles_labels()
+        ax1.legend(handles[:2], labels[:2], loc="upper right")
+        ax2.axhline(0.0, color="0.6", lw=0.5)
+        ax2.set_ylabel("residual [N·m]")
+        ax2.set_xlabel("time [s]")
+        fig.tight_layout()
+        path = out / f"torque_joint{jt['joint']}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def draw_robot(robot: Robot, q: np.ndarray, path: str | Path) -> Path:
+    """The kinematic chain at pose q: joint origins, links, and each joint's axis."""
+    import pinocchio as pin
+
+    plt = _pyplot()
+    data = robot.model.createData()
+    pin.forwardKinematics(robot.model, data, robot.pin_q(np.asarray(q, dtype=float)))
+    pts = [np.zeros(3)]
+    axes = []
+    for j in range(robot.n):
+        m = data.oMi[j + 1]
+        pts.append(np.array(m.translation))
+        axes.append(np.array(m.rotation) @ robot.axes[j])
+    pts_a = np.array(pts)
+    span = float(np.ptp(pts_a, axis=0).max()) or 1.0
+    fig = plt.figure(figsize=(7, 7))
+    ax = fig.add_subplot(projection="3d")
+    parents = [-1, *robot.parents]
+    for k in range(1, len(pts)):
+        a = pts_a[parents[k] + 1] if parents[k] >= 0 else pts_a[0]
+        b = pts_a[k]
+        ax.plot(*zip(a, b, strict=True), color="tab:gray", lw=3)
+    for j in range(robot.n):
+        o, u = pts_a[j + 1], axes[j] * 0.12 * span
+        color = "tab:red" if robot.joint_types[j] == "revolute" else "tab:green"
+        ax.quiver(*o, *u, color=color, arrow_length_ratio=0.25)
+        ax.text(*(o + 0.03 * span), f"{j + 1}:{robot.joint_names[j]}", fontsize=8)
+    ax.scatter(*pts_a.T, color="k", s=12)
+    c = pts_a.mean(axis=0)
+    for setter, k in ((ax.set_xlim, 0), (ax.set_ylim, 1), (ax.set_zlim, 2)):
+        setter(c[k] - 0.6 * span, c[k] + 0.6 * span)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+    qs = ", ".join(f"{v:.3g}" for v in np.asarray(q))
+    ax.set_title(f"{robot.name} at q = [{qs}] (arrows: joint axes)")
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    return p

@@ -1,0 +1,194 @@
+"""The identification result: figures, parameters, notes; a terminal summary and JSON."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+__all__ = ["ErrorStats", "Parameter", "IdentResult"]
+
+
+@dataclass
+class ErrorStats:
+    """Per-joint residual statistics (N·m) plus FloBaRoID's relative error."""
+
+    rmse: np.ndarray
+    std: np.ndarray
+    var: np.ndarray
+    n_samples: int
+    relative_error: float | None = None  # mean‖e(t)‖ / mean‖τ(t)‖
+    abs_error: float | None = None  # mean‖e(t)‖
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "rmse": _list(self.rmse),
+            "std": _list(self.std),
+            "var": _list(self.var),
+            "n_samples": self.n_samples,
+            "relative_error": _num(self.relative_error),
+            "abs_error": _num(self.abs_error),
+        }
+
+
+class StatsAccumulator:
+    """Streams residuals e and measured τ (m, n) into ErrorStats."""
+
+    def __init__(self, n: int) -> None:
+        self.s1 = np.zeros(n)
+        self.s2 = np.zeros(n)
+        self.count = 0
+        self.norm_e = 0.0
+        self.norm_tau = 0.0
+
+    def add(self, e: np.ndarray, tau: np.ndarray) -> None:
+        self.s1 += e.sum(axis=0)
+        self.s2 += (e * e).sum(axis=0)
+        self.count += e.shape[0]
+        self.norm_e += float(np.linalg.norm(e, axis=1).sum())
+        self.norm_tau += float(np.linalg.norm(tau, axis=1).sum())
+
+    def stats(self) -> ErrorStats | None:
+        if self.count == 0:
+            return None
+        mean = self.s1 / self.count
+        ms = self.s2 / self.count
+        var = np.maximum(ms - mean * mean, 0.0)
+        rel = self.norm_e / self.norm_tau if self.norm_tau > 0 else None
+        return ErrorStats(np.sqrt(ms), np.sqrt(var), var, self.count, rel,
+                          self.norm_e / self.count)
+
+
+@dataclass
+class Parameter:
+    name: str
+    value: float
+    std: float
+    expression: str
+    nominal: float | None = None
+
+    @property
+    def rel_std_pct(self) -> float:
+        return 100.0 * self.std / abs(self.value) if self.value != 0 else math.inf
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "value": self.value, "std": self.std,
+                "rel_std_pct": _num(self.rel_std_pct), "expression": self.expression,
+                "nominal": self.nominal}
+
+
+@dataclass
+class IdentResult:
+    """What ``identify`` returns; ``summary()`` for people, ``to_dict()`` for JSON."""
+
+    robot: str
+    joints: list[dict[str, Any]]
+    effects: list[str]
+    method: str
+    parameters: list[Parameter]
+    n_samples: int
+    condition_number: float
+    fit: ErrorStats
+    validation: ErrorStats | None
+    nominal: ErrorStats | None
+    cutoff_hz: float
+    fs_hz: float
+    interval: int
+    rank: int
+    n_standard: int
+    least_excited: list[str]
+    hypers: dict[str, dict[str, float]]
+    data_files: list[dict[str, str]]
+    validation_source: str
+    notes: list[str] = field(default_factory=list)
+    traces: list[dict[str, Any]] = field(default_factory=list, repr=False)
+    theta: np.ndarray | None = field(default=None, repr=False)
+    cov: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def rmse(self) -> np.ndarray:
+        """Validation RMSE per joint (N·m) against the measured torques."""
+        return (self.validation or self.fit).rmse
+
+    def to_dict(self) -> dict[str, Any]:
+        val = self.validation
+        return {
+            "robot": self.robot,
+            "joints": self.joints,
+            "effects": self.effects,
+            "method": self.method,
+            "n_samples": self.n_samples,
+            "condition_number": _num(self.condition_number),
+            "rank": self.rank,
+            "rmse": _list(self.rmse),
+            "rmse_fit": _list(self.fit.rmse),
+            "rmse_nominal": None if self.nominal is None else _list(self.nominal.rmse),
+            "relative_error": None if val is None else _num(val.relative_error),
+            "relative_error_nominal": None if self.nominal is None
+            else _num(self.nominal.relative_error),
+            "validation": None if val is None else val.as_dict(),
+            "validation_source": self.validation_source,
+            "fit": self.fit.as_dict(),
+            "nominal": None if self.nominal is None else self.nominal.as_dict(),
+            "parameters": [p.as_dict() for p in self.parameters],
+            "hyper_parameters": self.hypers,
+            "least_excited": self.least_excited,
+            "preprocessing": {"cutoff_hz": self.cutoff_hz, "fs_hz": self.fs_hz,
+                              "interval": self.interval},
+            "data_files": self.data_files,
+            "notes": self.notes,
+        }
+
+    def summary(self) -> str:
+        """Compact terminal summary: per-joint errors, parameters with std %, notes."""
+        lines = [f"robid identify — {self.robot}: {len(self.joints)} joints, model "
+                 f"[{', '.join(self.effects)}], {self.method.upper()}",
+                 f"  {self.n_samples} training samples at {self.fs_hz / self.interval:.4g} Hz "
+                 f"(cutoff {self.cutoff_hz:.3g} Hz); {self.rank} base parameters of "
+                 f"{self.n_standard}; condition number {self.condition_number:.3g}",
+                 f"  validation: {self.validation_source}", ""]
+        head = f"  {'joint':<16}{'RMSE val':>10}{'STD val':>10}{'RMSE fit':>10}"
+        if self.nominal is not None:
+            head += f"{'RMSE CAD':>10}"
+        lines.append(head + "   [N·m]")
+        val = self.validation
+        for j, jt in enumerate(self.joints):
+            row = f"  {jt['joint']:>2} {jt['name'][:12]:<13}"
+            row += f"{_f(val.rmse[j]) if val else '—':>10}{_f(val.std[j]) if val else '—':>10}"
+            row += f"{_f(self.fit.rmse[j]):>10}"
+            if self.nominal is not None:
+                row += f"{_f(self.nominal.rmse[j]):>10}"
+            lines.append(row)
+        if val is not None and val.relative_error is not None:
+            rel = f"  relative error {100 * val.relative_error:.2f} % (mean ‖e‖ {val.abs_error:.3g}"
+            rel += " N·m)"
+            if self.nominal is not None and self.nominal.relative_error is not None:
+                rel += f"; CAD model {100 * self.nominal.relative_error:.2f} %"
+            lines.append(rel)
+        lines += ["", f"  {'parameter':<12}{'value':>12}{'std':>11}{'std %':>8}  stands for"]
+        for p in self.parameters:
+            pct = p.rel_std_pct
+            pct_s = f"{pct:7.1f}" if pct < 1e4 else "   >1e4"
+            expr = p.expression if len(p.expression) <= 60 else p.expression[:57] + "..."
+            lines.append(f"  {p.name:<12}{p.value:>12.5g}{p.std:>11.3g}{pct_s:>8}  {expr}")
+        if self.notes:
+            lines.append("")
+            lines += [f"  [{i}] {n}" for i, n in enumerate(self.notes, 1)]
+        return "\n".join(lines)
+
+
+def _f(x: float) -> str:
+    return f"{x:.4g}"
+
+
+def _num(x: float | None) -> float | None:
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _list(a: np.ndarray) -> list[float]:
+    return [float(v) for v in np.asarray(a)]

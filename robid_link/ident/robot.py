@@ -1,0 +1,380 @@
+"""Robot descriptions (modified-DH YAML or URDF) turned into one Pinocchio model.
+
+Owns joint numbering and naming, limits, nominal inertials and the motor↔joint transmission.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+import yaml
+
+from robid_link.exceptions import RobotError
+
+__all__ = ["Robot", "Limits", "load_robot", "STANDARD_NAMES", "standard_parameter_names"]
+
+#: Pinocchio's order of the ten standard inertial parameters of one link.
+STANDARD_NAMES = ("m", "mx", "my", "mz", "xx", "xy", "yy", "xz", "yz", "zz")
+
+_REVOLUTE = {"RX": (1.0, 0.0, 0.0), "RY": (0.0, 1.0, 0.0), "RZ": (0.0, 0.0, 1.0)}
+_PRISMATIC = {"PX": (1.0, 0.0, 0.0), "PY": (0.0, 1.0, 0.0), "PZ": (0.0, 0.0, 1.0)}
+
+
+def standard_parameter_names(n_joints: int) -> list[str]:
+    """``m_1, mx_1, …, zz_n`` in Pinocchio's order (joints numbered from 1)."""
+    return [f"{p}_{j + 1}" for j in range(n_joints) for p in STANDARD_NAMES]
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Joint limits in SI units (rad or m, /s, /s², N·m or N); ``inf`` where unknown."""
+
+    q_min: np.ndarray
+    q_max: np.ndarray
+    qd_max: np.ndarray
+    qdd_max: np.ndarray
+    tau_max: np.ndarray
+
+
+@dataclass(frozen=True)
+class Robot:
+    """A serial or tree robot with 1-DoF revolute/prismatic joints, as one Pinocchio model."""
+
+    name: str
+    model: pin.Model
+    joint_names: tuple[str, ...]
+    joint_types: tuple[str, ...]  # "revolute" | "prismatic"
+    axes: np.ndarray  # (n, 3) joint axis in its own frame
+    parents: tuple[int, ...]  # parent joint index (0-based), -1 for the base
+    placements: tuple[pin.SE3, ...]  # parent joint frame -> joint frame at q = 0
+    unbounded: tuple[bool, ...]  # Pinocchio stores (cos, sin) for these
+    limits: Limits
+    nominal: np.ndarray | None  # standard parameters (10 n) when inertials were given
+    transmission: np.ndarray | None = None  # T with q_m = T q
+    source: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def gravity(self) -> np.ndarray:
+        return np.array(self.model.gravity.linear, dtype=float)
+
+    @property
+    def parameter_names(self) -> list[str]:
+        return standard_parameter_names(self.n)
+
+    def pin_q(self, q: np.ndarray) -> np.ndarray:
+        """Joint angles (…, n) → Pinocchio configuration (…, nq)."""
+        q = np.asarray(q, dtype=float)
+        if not any(self.unbounded):
+            return q
+        cols = []
+        for j, ub in enumerate(self.unbounded):
+            if ub:
+                cols += [np.cos(q[..., j]), np.sin(q[..., j])]
+            else:
+                cols.append(q[..., j])
+        return np.stack(cols, axis=-1)
+
+    def rnea(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
+        """Rigid-body inverse dynamics with the model's inertias (one sample)."""
+        data = self.model.createData()
+        return np.array(pin.rnea(self.model, data, self.pin_q(q), qd, qdd))
+
+    def to_joint_side(
+        self, q: np.ndarray, qd: np.ndarray | None, qdd: np.ndarray | None, tau: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray]:
+        """Motor-side log (samples × n) → joint side: q = T⁻¹ q_m, τ = Tᵀ τ_m."""
+        if self.transmission is None:
+            raise RobotError(f"{self.source}: --motor-side needs a 'transmission' section")
+        t_inv_t = np.linalg.inv(self.transmission).T
+        conv = [None if x is None else x @ t_inv_t for x in (q, qd, qdd)]
+        return conv[0], conv[1], conv[2], tau @ self.transmission  # type: ignore[return-value]
+
+    def to_motor_side(self, q: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Joint side → motor side: q_m = T q, τ_m = T⁻ᵀ τ."""
+        if self.transmission is None:
+            raise RobotError(f"{self.source}: no 'transmission' section")
+        return q @ self.transmission.T, tau @ np.linalg.inv(self.transmission)
+
+    def mapping(self) -> list[dict[str, Any]]:
+        """The joint number ↔ name mapping printed in summaries and JSON."""
+        return [
+            {"joint": j + 1, "name": nm, "type": tp}
+            for j, (nm, tp) in enumerate(zip(self.joint_names, self.joint_types, strict=True))
+        ]
+
+
+# ----------------------------------------------------------------------------- loading
+
+
+def load_robot(path: str | Path, lock: Sequence[str] = ()) -> Robot:
+    """Load an MDH YAML (``.yaml``/``.yml``) or a URDF (``.urdf``) robot description."""
+    p = Path(path)
+    if not p.is_file():
+        raise RobotError(f"{p}: robot description not found")
+    suffix = p.suffix.lower()
+    if suffix in (".yaml", ".yml"):
+        if lock:
+            raise RobotError(f"{p}: --lock applies to URDF robots only")
+        return _load_mdh(p)
+    if suffix == ".urdf":
+        return _load_urdf(p, lock)
+    raise RobotError(f"{p}: unknown robot format '{suffix}' (expected .yaml, .yml or .urdf)")
+
+
+def _num(x: Any, where: str, src: Path) -> float:
+    if isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x):
+        raise RobotError(f"{src}: {where}: expected a finite number, got {x!r}")
+    return float(x)
+
+
+def _vec(x: Any, size: int, where: str, src: Path) -> np.ndarray:
+    if not isinstance(x, list) or len(x) != size:
+        raise RobotError(f"{src}: {where}: expected a list of {size} numbers, got {x!r}")
+    return np.array([_num(v, f"{where}[{i}]", src) for i, v in enumerate(x)])
+
+
+def _read_yaml(p: Path) -> Any:
+    try:
+        return yaml.safe_load(p.read_text())
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise RobotError(f"{p}: invalid YAML{where}") from err
+
+
+_JOINT_KEYS = {"name", "type", "alpha", "a", "theta", "d", "limits", "inertial"}
+
+
+def _load_mdh(p: Path) -> Robot:
+    doc = _read_yaml(p)
+    if not isinstance(doc, dict):
+        raise RobotError(f"{p}: expected a mapping with 'joints'")
+    unknown = set(doc) - {"name", "gravity", "joints", "transmission", "description"}
+    if unknown:
+        raise RobotError(f"{p}: unknown key '{sorted(unknown)[0]}'")
+    rows = doc.get("joints")
+    if not isinstance(rows, list) or not rows:
+        raise RobotError(f"{p}: joints: expected a non-empty list")
+    gravity = _vec(doc.get("gravity", [0, 0, -9.81]), 3, "gravity", p)
+    model = pin.Model()
+    model.name = str(doc.get("name", p.stem))
+    model.gravity = pin.Motion(gravity, np.zeros(3))
+    names: list[str] = []
+    types: list[str] = []
+    lim = {k: [] for k in ("q_min", "q_max", "qd_max", "qdd_max", "tau_max")}
+    inertials: list[np.ndarray | None] = []
+    parent = 0
+    for i, row in enumerate(rows):
+        where = f"joints[{i}]"
+        if not isinstance(row, dict):
+            raise RobotError(f"{p}: {where}: expected a mapping")
+        bad = set(row) - _JOINT_KEYS
+        if bad:
+            raise RobotError(f"{p}: {where}: unknown key '{sorted(bad)[0]}'")
+        for key in ("alpha", "a", "theta", "d"):
+            if key not in row:
+                raise RobotError(f"{p}: {where}.{key}: missing")
+        name = str(row.get("name", f"j{i + 1}"))
+        if name in names:
+            raise RobotError(f"{p}: {where}.name: duplicate joint name '{name}'")
+        jtype = row.get("type", "revolute")
+        if jtype not in ("revolute", "prismatic"):
+            raise RobotError(f"{p}: {where}.type: expected revolute or prismatic, got {jtype!r}")
+        alpha = math.radians(_num(row["alpha"], f"{where}.alpha", p))
+        a = _num(row["a"], f"{where}.a", p)
+        theta = math.radians(_num(row["theta"], f"{where}.theta", p))
+        d = _num(row["d"], f"{where}.d", p)
+        # Craig: T = RotX(alpha) TransX(a) RotZ(theta) TransZ(d); q adds to theta or d.
+        placement = (
+            pin.SE3(_rotx(alpha), np.zeros(3))
+            * pin.SE3(np.eye(3), np.array([a, 0.0, 0.0]))
+            * pin.SE3(_rotz(theta), np.array([0.0, 0.0, d]))
+        )
+        jm = pin.JointModelRZ() if jtype == "revolute" else pin.JointModelPZ()
+        jid = model.addJoint(parent, jm, placement, name)
+        inertial = _mdh_inertial(row.get("inertial"), f"{where}.inertial", p)
+        inertials.append(inertial)
+        inertia = (
+            pin.Inertia.FromDynamicParameters(inertial)
+            if inertial is not None
+            else pin.Inertia(1e-3, np.zeros(3), 1e-6 * np.eye(3))
+        )
+        model.appendBodyToJoint(jid, inertia, pin.SE3.Identity())
+        _mdh_limits(row.get("limits"), jtype, f"{where}.limits", p, lim)
+        names.append(name)
+        types.append(jtype)
+        parent = jid
+    n = len(names)
+    nominal = None
+    if all(x is not None for x in inertials):
+        nominal = np.concatenate(inertials)  # type: ignore[arg-type]
+    limits = Limits(**{k: np.array(v, dtype=float) for k, v in lim.items()})
+    model.lowerPositionLimit = limits.q_min.copy()
+    model.upperPositionLimit = limits.q_max.copy()
+    transmission = _transmission(doc.get("transmission"), n, p)
+    return Robot(
+        name=model.name,
+        model=model,
+        joint_names=tuple(names),
+        joint_types=tuple(types),
+        axes=np.tile([0.0, 0.0, 1.0], (n, 1)),
+        parents=tuple(range(-1, n - 1)),
+        placements=tuple(model.jointPlacements[j + 1] for j in range(n)),
+        unbounded=(False,) * n,
+        limits=limits,
+        nominal=nominal,
+        transmission=transmission,
+        source=str(p),
+    )
+
+
+def _rotx(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def _rotz(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _mdh_inertial(x: Any, where: str, p: Path) -> np.ndarray | None:
+    """``{m, com, I}`` with I about the centre of mass, link-frame axes → 10 parameters."""
+    if x is None:
+        return None
+    if not isinstance(x, dict) or set(x) - {"m", "com", "I"} or "m" not in x:
+        raise RobotError(f"{p}: {where}: expected {{m, com: [x,y,z], I: [xx,xy,yy,xz,yz,zz]}}")
+    m = _num(x["m"], f"{where}.m", p)
+    if m < 0:
+        raise RobotError(f"{p}: {where}.m: mass must not be negative")
+    com = _vec(x.get("com", [0, 0, 0]), 3, f"{where}.com", p)
+    ii = _vec(x.get("I", [0, 0, 0, 0, 0, 0]), 6, f"{where}.I", p)
+    i_c = np.array([[ii[0], ii[1], ii[3]], [ii[1], ii[2], ii[4]], [ii[3], ii[4], ii[5]]])
+    return np.array(pin.Inertia(m, com, i_c).toDynamicParameters())
+
+
+def _mdh_limits(x: Any, jtype: str, where: str, p: Path, out: dict[str, list[float]]) -> None:
+    x = x or {}
+    if not isinstance(x, dict) or set(x) - {"q", "qd", "qdd", "tau"}:
+        raise RobotError(f"{p}: {where}: expected keys among q, qd, qdd, tau")
+    scale = math.radians(1.0) if jtype == "revolute" else 1.0
+    if "q" in x:
+        lo, hi = _vec(x["q"], 2, f"{where}.q", p)
+        if lo >= hi:
+            raise RobotError(f"{p}: {where}.q: lower limit {lo} not below upper {hi}")
+        out["q_min"].append(lo * scale)
+        out["q_max"].append(hi * scale)
+    else:
+        out["q_min"].append(-math.inf)
+        out["q_max"].append(math.inf)
+    for key in ("qd", "qdd"):
+        v = _num(x[key], f"{where}.{key}", p) * scale if key in x else math.inf
+        if v <= 0:
+            raise RobotError(f"{p}: {where}.{key}: must be positive")
+        out[f"{key}_max"].append(v)
+    out["tau_max"].append(_num(x["tau"], f"{where}.tau", p) if "tau" in x else math.inf)
+
+
+def _transmission(x: Any, n: int, p: Path) -> np.ndarray | None:
+    if x is None:
+        return None
+    if not isinstance(x, dict) or "ratios" not in x or set(x) - {"ratios", "coupling"}:
+        raise RobotError(f"{p}: transmission: expected {{ratios: [...], coupling: [...]}}")
+    ratios = _vec(x["ratios"], n, "transmission.ratios", p)
+    if np.any(ratios == 0):
+        raise RobotError(f"{p}: transmission.ratios: a gear ratio of 0 is not invertible")
+    c = np.eye(n)
+    for k, entry in enumerate(x.get("coupling") or []):
+        where = f"transmission.coupling[{k}]"
+        if not isinstance(entry, list) or len(entry) != 3:
+            raise RobotError(f"{p}: {where}: expected [joint, motor, factor]")
+        src, dst = int(entry[0]), int(entry[1])
+        if not (1 <= src <= n and 1 <= dst <= n) or src == dst:
+            raise RobotError(f"{p}: {where}: joints must be distinct numbers in 1..{n}")
+        c[dst - 1, src - 1] = _num(entry[2], f"{where}[2]", p)
+    t = np.diag(ratios) @ c
+    if abs(np.linalg.det(t)) < 1e-12:
+        raise RobotError(f"{p}: transmission: the coupling matrix is singular")
+    return t
+
+
+def _load_urdf(p: Path, lock: Sequence[str]) -> Robot:
+    try:
+        full = pin.buildModelFromUrdf(str(p))
+    except (RuntimeError, ValueError) as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise RobotError(f"{p}: cannot parse URDF: {first}") from err
+    if lock:
+        ids = []
+        for nm in lock:
+            if not full.existJointName(nm):
+                raise RobotError(f"{p}: --lock {nm}: no joint of that name")
+            ids.append(full.getJointId(nm))
+        full = pin.buildReducedModel(full, ids, pin.neutral(full))
+    names, types, axes, unbounded = [], [], [], []
+    for jid in range(1, full.njoints):
+        jm = full.joints[jid]
+        kind = jm.shortname().removeprefix("JointModel")
+        name = full.names[jid]
+        if jm.nv != 1:
+            raise RobotError(f"{p}: joint '{name}' ({kind}) has {jm.nv} DoF; only 1-DoF "
+                             "revolute/prismatic joints are supported (lock it with --lock)")
+        ub = kind.startswith("RUB") or kind == "RevoluteUnboundedUnaligned"
+        kind = kind.replace("RUB", "R").replace("RevoluteUnbounded", "Revolute")
+        if kind in _REVOLUTE:
+            types.append("revolute")
+            axes.append(_REVOLUTE[kind])
+        elif kind in _PRISMATIC:
+            types.append("prismatic")
+            axes.append(_PRISMATIC[kind])
+        elif kind in ("RevoluteUnaligned", "PrismaticUnaligned"):
+            types.append("revolute" if kind.startswith("R") else "prismatic")
+            axes.append(tuple(np.array(jm.extract().axis, dtype=float)))
+        else:
+            raise RobotError(f"{p}: joint '{name}' of type {kind} is not supported")
+        names.append(name)
+        unbounded.append(ub)
+    n = len(names)
+    if n == 0:
+        raise RobotError(f"{p}: the URDF has no movable joint")
+    inf = np.full(n, math.inf)
+    lo = np.array(full.lowerPositionLimit, dtype=float)
+    hi = np.array(full.upperPositionLimit, dtype=float)
+    if any(unbounded):  # Pinocchio's (cos, sin) slots carry no angle limit
+        lo, hi = inf * -1, inf.copy()
+    vel = np.array(full.velocityLimit, dtype=float)
+    eff = np.array(full.effortLimit, dtype=float)
+    limits = Limits(
+        q_min=np.where(np.isfinite(lo) & (lo < hi), lo, -math.inf),
+        q_max=np.where(np.isfinite(hi) & (lo < hi), hi, math.inf),
+        qd_max=np.where(vel > 0, vel, math.inf),
+        qdd_max=inf.copy(),
+        tau_max=np.where(eff > 0, eff, math.inf),
+    )
+    nominal = np.concatenate([full.inertias[j].toDynamicParameters() for j in range(1, n + 1)])
+    parents = tuple(int(full.parents[j]) - 1 for j in range(1, n + 1))
+    return Robot(
+        name=full.name or p.stem,
+        model=full,
+        joint_names=tuple(names),
+        joint_types=tuple(types),
+        axes=np.array(axes, dtype=float),
+        parents=parents,
+        placements=tuple(full.jointPlacements[j] for j in range(1, n + 1)),
+        unbounded=tuple(unbounded),
+        limits=limits,
+        nominal=nominal,
+        transmission=None,
+        source=str(p),
+    )

@@ -1,0 +1,103 @@
+"""Shared fixtures: robots, simulated logs with known truth, the real KUKA data."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from fakes.plant import Plant, Truth, perturbed_inertials
+from robid_link.ident.data import write_log_csv
+from robid_link.ident.effects import Model
+from robid_link.ident.excitation import random_fourier
+from robid_link.ident.identify import base_set_for
+from robid_link.ident.robot import Robot, load_robot
+
+ROOT = Path(__file__).resolve().parent.parent
+ROBOTS = ROOT / "examples" / "robots"
+KUKA = ROOT.parent / "shared" / "data" / "kuka_lwr4"
+
+
+@pytest.fixture(scope="session")
+def arm3() -> Robot:
+    return load_robot(ROBOTS / "arm3.yaml")
+
+
+@pytest.fixture(scope="session")
+def industrial6() -> Robot:
+    return load_robot(ROBOTS / "industrial6.yaml")
+
+
+@pytest.fixture(scope="session")
+def kuka_dir() -> Path:
+    if not (KUKA / "kuka_lwr4.urdf").is_file():
+        pytest.skip("real KUKA LWR4+ data not found in ../shared/data/kuka_lwr4")
+    return KUKA
+
+
+@dataclass
+class SimLog:
+    path: Path
+    truth: Truth
+    data: dict[str, np.ndarray]
+
+    def true_base(self, robot: Robot, model: Model) -> np.ndarray:
+        """β = K·θ_true for the model's structural base set (friction from the truth)."""
+        base, names = base_set_for(robot, model.blocks(robot))
+        full = np.zeros(len(names))
+        full[: 10 * robot.n] = self.truth.inertials
+        for eff in self.truth.effects:
+            key = {"viscous": ("fv_", "fv"), "coulomb": ("fc_", "fc"), "offset": ("off_", "b")}
+            prefix, field = key[eff["name"]]
+            for j in range(robot.n):
+                if eff.get("joint") in (None, j + 1) and f"{prefix}{j + 1}" in names:
+                    full[names.index(f"{prefix}{j + 1}")] = eff[field]
+        return base.combination @ full
+
+
+def simulate(robot: Robot, path: Path, *, duration: float = 30.0, rate: float = 500.0,
+             noise: float = 0.5, effects: tuple = ({"name": "viscous", "fv": 2.0},
+                                                   {"name": "coulomb", "fc": 1.5}),
+             seed: int = 0, derivatives: bool = True, q_resolution: float = 0.0,
+             inertials: np.ndarray | None = None) -> SimLog:
+    """A CSV log of the inverse-dynamics plant following a random Fourier trajectory."""
+    traj = random_fourier(robot, harmonics=5, base_hz=0.1, seed=seed)
+    t = np.arange(0.0, duration, 1.0 / rate)
+    q, qd, qdd = traj.evaluate(t)
+    truth = Truth(perturbed_inertials(robot, seed + 100) if inertials is None else inertials,
+                  effects=tuple(effects), noise_tau=noise, q_resolution=q_resolution)
+    log = Plant(robot, truth).run(t, q, qd, qdd, seed=seed + 200)
+    write_log_csv(path, log["t"], log["q"], log["tau"], log["qd"] if derivatives else None,
+                  log["qdd"] if derivatives else None)
+    return SimLog(path, truth, log)
+
+
+def mdh_to_urdf(robot: Robot) -> str:
+    """An equivalent URDF of a serial MDH robot (same placements, axes and inertials)."""
+    parts = [f'<robot name="{robot.name}_urdf">', '<link name="base"/>']
+    parent = "base"
+    for j in range(robot.n):
+        pl = robot.placements[j]
+        xyz = " ".join(f"{v:.17g}" for v in np.array(pl.translation))
+        rpy = " ".join(f"{v:.17g}" for v in pin.rpy.matrixToRpy(np.array(pl.rotation)))
+        inert = pin.Inertia.FromDynamicParameters(robot.nominal[10 * j: 10 * j + 10])
+        c = np.array(inert.lever)
+        ic = np.array(inert.inertia)
+        kind = "revolute" if robot.joint_types[j] == "revolute" else "prismatic"
+        link = f"l{j + 1}"
+        parts.append(
+            f'<joint name="{robot.joint_names[j]}" type="{kind}"><parent link="{parent}"/>'
+            f'<child link="{link}"/><origin xyz="{xyz}" rpy="{rpy}"/><axis xyz="0 0 1"/>'
+            f'<limit lower="{-math.pi}" upper="{math.pi}" effort="5000" velocity="3"/></joint>')
+        parts.append(
+            f'<link name="{link}"><inertial><origin xyz="{c[0]:.17g} {c[1]:.17g} {c[2]:.17g}"/>'
+            f'<mass value="{inert.mass:.17g}"/><inertia ixx="{ic[0, 0]:.17g}" '
+            f'ixy="{ic[0, 1]:.17g}" ixz="{ic[0, 2]:.17g}" iyy="{ic[1, 1]:.17g}" '
+            f'iyz="{ic[1, 2]:.17g}" izz="{ic[2, 2]:.17g}"/></inertial></link>')
+        parent = link
+    parts.append("</robot>")
+    return "\n".join(parts)

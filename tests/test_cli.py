@@ -1,0 +1,98 @@
+"""The robid command: JSON fields, report files, and one-line errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from robid_link.cli import main
+
+from .conftest import ROBOTS, simulate
+
+
+@pytest.fixture
+def arm3_log(arm3, tmp_path):
+    return simulate(arm3, tmp_path / "log.csv", seed=21, duration=20.0).path
+
+
+def test_identify_json_and_report(arm3_log, tmp_path, capsys):
+    out_json, out_dir = tmp_path / "r.json", tmp_path / "rep"
+    rc = main(["identify", "--robot", str(ROBOTS / "arm3.yaml"), "--data", str(arm3_log),
+               "--add", "offset", "--json", str(out_json), "--out", str(out_dir)])
+    assert rc == 0
+    doc = json.loads(out_json.read_text())
+    for key in ("joints", "effects", "n_samples", "condition_number", "rmse", "rmse_fit",
+                "rmse_nominal", "relative_error", "parameters"):
+        assert key in doc, key
+    assert doc["effects"] == ["rigid_body", "viscous", "coulomb", "offset"]
+    assert [j["joint"] for j in doc["joints"]] == [1, 2, 3]
+    assert len(doc["rmse"]) == 3 and 0 < doc["relative_error"] < 0.2
+    p = doc["parameters"][0]
+    assert set(p) >= {"name", "value", "std", "expression"}
+    assert any(q["expression"] == "zz_2 + 0.16·m_3" for q in doc["parameters"])
+    assert {f.name for f in out_dir.iterdir()} >= {
+        "summary.txt", "parameters.csv", "parameters.yaml", "torque_joint1.png"}
+    text = capsys.readouterr().out
+    assert "relative error" in text and "zz_2 + 0.16·m_3" in text
+
+
+@pytest.mark.parametrize("method", ["wls", "irls"])
+def test_identify_methods(arm3_log, method, capsys):
+    rc = main(["identify", "--robot", str(ROBOTS / "arm3.yaml"), "--data", str(arm3_log),
+               "--method", method, "--weight", "huber"])
+    assert rc == 0
+    assert method.upper() in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--data", "missing.csv"], "robid: error: missing.csv: log file not found"),
+        (["--add", "warp_drive"], "robid: error: --add warp_drive: unknown effect 'warp_drive'"),
+        (["--add", "viscous@9"], "robid: error: effect viscous@9: the robot has 3 joints"),
+        (["--interval", "0"], "robid: error: --interval must be at least 1, got 0"),
+        (["--cutoff", "-3"], "robid: error: --cutoff must be positive, got -3.0"),
+        (["--method", "irls", "--weight", "nope"], "robid: error: unknown weight function 'nope'"),
+    ],
+)
+def test_identify_errors_are_one_line(arm3_log, argv, message, capsys):
+    base = ["identify", "--robot", str(ROBOTS / "arm3.yaml")]
+    if "--data" not in argv:
+        base += ["--data", str(arm3_log)]
+    rc = main(base + argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2
+    assert err[-1].startswith(message)
+    assert "Traceback" not in "\n".join(err)
+
+
+def test_wrong_joint_count_is_one_line(arm3_log, capsys):
+    rc = main(["identify", "--robot", str(ROBOTS / "industrial6.yaml"), "--data", str(arm3_log)])
+    assert rc == 2
+    assert capsys.readouterr().err.strip() == (
+        f"robid: error: {arm3_log}: the log has 3 joints (q1..q3), the robot has 6")
+
+
+def test_show_robot(tmp_path, capsys):
+    png = tmp_path / "r.png"
+    assert main(["show-robot", "--robot", str(ROBOTS / "industrial6.yaml"), "--q", "0", "-30",
+                 "30", "0", "45", "0", "--out", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "1  a1  (revolute)" in capsys.readouterr().out
+    assert main(["show-robot", "--robot", str(ROBOTS / "arm3.yaml"), "--q", "0",
+                 "--out", str(png)]) == 2
+    assert "--q: 1 values given, the robot has 3 joints" in capsys.readouterr().err
+
+
+def test_model_add(tmp_path, capsys):
+    m = tmp_path / "model.yaml"
+    assert main(["model", "add", str(m), "offset@2"]) == 0
+    assert main(["model", "add", str(m), "friction_power@3"]) == 0
+    text = m.read_text()
+    assert "offset@2" in text and "viscous" in text
+    assert main(["model", "add", str(m), "flux"]) == 2
+    assert "unknown effect 'flux'" in capsys.readouterr().err
+    m.write_text("effects: [rigid_body, {name: viscous, joint: zero}]")
+    assert main(["model", "add", str(m), "offset"]) == 2
+    assert "effects[1].joint: expected a joint number from 1" in capsys.readouterr().err
