@@ -14,9 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from robid_link.exceptions import ConditioningWarning, EstimationError
-from robid_link.ident.effects import Block
-from robid_link.ident.preprocess import Piece, design_chunks
-from robid_link.ident.robot import Robot
+from robid_link.ident.preprocess import Design, Piece, design_chunks
 
 __all__ = ["WEIGHTS", "TUNING", "Grams", "accumulate", "solve", "Fit", "fit"]
 
@@ -67,32 +65,41 @@ def _n_rows(piece: Piece, interval: int) -> int:
     return max(0, len(range(first, piece.hi, interval)))
 
 
-def accumulate(robot: Robot, blocks: Sequence[Block], cols: np.ndarray, pieces: Sequence[Piece],
-               interval: int, block_len: int, row_weight: RowWeight | None = None,
-               max_blocks: int = 128) -> Grams:
-    """One pass over the training rows; ``cols`` picks the base columns."""
+def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len: int,
+               row_weight: RowWeight | None = None, max_blocks: int = 128) -> Grams:
+    """One pass over the training rows into per-joint, per-time-block augmented Grams.
+
+    Joint j's rows are non-zero only in its structural columns, so its Gram is built on
+    those alone (a large saving for the outer joints of a serial robot).
+    """
     total = sum(_n_rows(pc, interval) for pc in pieces)
     k_blocks = int(min(max_blocks, max(2, total // max(1, block_len))))
-    p = len(cols)
-    n = robot.n
+    p, n = design.p, design.robot.n
     g = np.zeros((n, k_blocks, p + 2, p + 2))
+    support = [np.concatenate((design.support[j], [p, p + 1])) for j in range(n)]
     seen = 0
     for pc in pieces:
-        for w, y, idx in design_chunks(robot, blocks, pc, interval=interval, filtered=True):
-            m = w.shape[0]
+        for c, y, idx in design_chunks(design, pc, interval=interval, filtered=True):
+            m = c.shape[0]
             bid = (np.arange(seen, seen + m) * k_blocks) // total
             seen += m
-            aug = np.empty((m, n, p + 2))
-            aug[:, :, :p] = w[:, :, cols]
-            aug[:, :, p] = y
-            aug[:, :, p + 1] = 1.0
-            if row_weight is not None:
-                aug *= np.sqrt(row_weight(w[:, :, cols], y, idx))[:, :, None]
-            for b in np.unique(bid):
-                sel = aug[bid == b]
-                for j in range(n):
-                    x = sel[:, j, :]
-                    g[j, b] += x.T @ x
+            sw = np.sqrt(row_weight(c, y, idx)) if row_weight is not None else None
+            edges = np.flatnonzero(np.diff(bid)) + 1
+            for j in range(n):
+                sup = support[j]
+                cj, yj = c[:, design.joint_slice(j)], y[:, j]
+                if sw is not None:
+                    cj, yj = cj * sw[:, j, None], yj * sw[:, j]
+                ones = np.ones(m) if sw is None else sw[:, j]
+                for lo, hi in zip(np.r_[0, edges], np.r_[edges, m], strict=True):
+                    xb, yb, ob = cj[lo:hi], yj[lo:hi], ones[lo:hi]
+                    gb = np.empty((sup.size, sup.size))
+                    gb[:-2, :-2] = xb.T @ xb
+                    gb[:-2, -2] = gb[-2, :-2] = yb @ xb
+                    gb[:-2, -1] = gb[-1, :-2] = ob @ xb
+                    gb[-2, -2], gb[-2, -1] = yb @ yb, yb @ ob
+                    gb[-1, -2], gb[-1, -1] = gb[-2, -1], ob @ ob
+                    g[j, bid[lo]][np.ix_(sup, sup)] += gb
     return Grams(g, np.full(n, total))
 
 
@@ -172,22 +179,22 @@ def _long_run_factor(grams: Grams, theta: np.ndarray) -> tuple[np.ndarray, np.nd
     return np.maximum(kappa, 1.0), np.maximum(var, 0.0)
 
 
-def fit(robot: Robot, blocks: Sequence[Block], cols: np.ndarray, pieces: Sequence[Piece],
-        interval: int, block_len: int, method: str = "ols", weight: str = "bisquare",
+def fit(design: Design, pieces: Sequence[Piece], interval: int, block_len: int,
+        method: str = "ols", weight: str = "bisquare",
         names: Sequence[str] | None = None, grams: Grams | None = None, warn: bool = True,
         max_iter: int = 30) -> tuple[Fit, Grams]:
     """OLS, WLS (Gautier's two steps: per-joint noise variance) or IRLS."""
     if method not in ("ols", "wls", "irls"):
         raise EstimationError(f"unknown method '{method}' (ols, wls, irls)")
     if grams is None:
-        grams = accumulate(robot, blocks, cols, pieces, interval, block_len)
-    n = robot.n
+        grams = accumulate(design, pieces, interval, block_len)
+    n = design.robot.n
     wj = np.ones(n)
     theta, cov, _, cond = _weighted_solve(grams, wj, names, warn)
     tot = grams.total()
     rss, mean_e = _joint_stats(tot, theta)
     if method == "wls":
-        dof = np.maximum(grams.n_rows - len(cols) / n, 1.0)
+        dof = np.maximum(grams.n_rows - design.p / n, 1.0)
         var = rss / dof
         wj = 1.0 / np.maximum(var, 1e-12 * max(var.max(), 1e-300))
         wj = wj / wj.max()
@@ -199,14 +206,14 @@ def fit(robot: Robot, blocks: Sequence[Block], cols: np.ndarray, pieces: Sequenc
             raise EstimationError(f"unknown weight function '{weight}' ({', '.join(WEIGHTS)})")
         wfun, tune = WEIGHTS[weight], TUNING[weight]
         for iterations in range(2, max_iter + 1):  # noqa: B007
-            scale = _robust_scale(robot, blocks, cols, pieces, interval, theta)
+            scale = _robust_scale(design, pieces, interval, theta)
 
-            def row_weight(x: np.ndarray, y: np.ndarray, idx: np.ndarray, th=theta,
+            def row_weight(c: np.ndarray, y: np.ndarray, idx: np.ndarray, th=theta,
                            sc=scale) -> np.ndarray:
-                r = (y - x @ th) / (tune * sc)
+                r = (y - design.predict(c, th)) / (tune * sc)
                 return wfun(r)
 
-            wgrams = accumulate(robot, blocks, cols, pieces, interval, block_len, row_weight)
+            wgrams = accumulate(design, pieces, interval, block_len, row_weight)
             new, cov, _, cond = _weighted_solve(wgrams, wj, names, warn)
             step = np.max(np.abs(new - theta) / (np.abs(theta) + 1e-9 * np.abs(theta).max()))
             theta = new
@@ -216,13 +223,13 @@ def fit(robot: Robot, blocks: Sequence[Block], cols: np.ndarray, pieces: Sequenc
     return Fit(theta, cov, cond, rss, mean_e, grams.n_rows, wj, method, iterations), grams
 
 
-def _robust_scale(robot: Robot, blocks: Sequence[Block], cols: np.ndarray,
-                  pieces: Sequence[Piece], interval: int, theta: np.ndarray) -> np.ndarray:
+def _robust_scale(design: Design, pieces: Sequence[Piece], interval: int,
+                  theta: np.ndarray) -> np.ndarray:
     """Per-joint robust residual scale: 1.4826 · MAD (joint torques differ by 60×)."""
     res = [
-        y - w[:, :, cols] @ theta
+        y - design.predict(c, theta)
         for pc in pieces
-        for w, y, _ in design_chunks(robot, blocks, pc, interval=interval, filtered=True)
+        for c, y, _ in design_chunks(design, pc, interval=interval, filtered=True)
     ]
     r = np.concatenate(res, axis=0)
     med = np.median(r, axis=0)

@@ -18,6 +18,7 @@ from robid_link.ident.data import Log, file_sha256, load_log
 from robid_link.ident.effects import Block, Model, States
 from robid_link.ident.estimate import Grams, accumulate, fit
 from robid_link.ident.preprocess import (
+    Design,
     Piece,
     Prepared,
     block_columns,
@@ -35,7 +36,7 @@ from robid_link.ident.regressor import (
 from robid_link.ident.results import ErrorStats, IdentResult, Parameter, StatsAccumulator
 from robid_link.ident.robot import Robot
 
-__all__ = ["Problem", "build_problem", "identify", "load_logs", "base_set_for"]
+__all__ = ["Problem", "build_problem", "identify", "load_logs", "base_set_for", "make_design"]
 
 #: condition number of the column-scaled base regressor above which excitation is poor
 POOR_EXCITATION_COND = 1e3
@@ -60,6 +61,15 @@ def _random_states(robot: Robot, rng: np.random.Generator, n: int) -> States:
     q = rng.uniform(lo, hi, (n, robot.n))
     return States(q, rng.normal(size=(n, robot.n)), rng.normal(size=(n, robot.n)),
                   np.linspace(0.0, 1.0, n))
+
+
+def make_design(robot: Robot, blocks: Sequence[Block]) -> tuple[Design, BaseSet, list[str]]:
+    """Base set plus the structural sparsity of the base columns (random states)."""
+    base, names = base_set_for(robot, blocks)
+    cols = np.array(base.independent)
+    w = block_columns(robot, blocks, _random_states(robot, np.random.default_rng(7), 64))
+    mask = np.abs(w[:, :, cols]).max(axis=0) > 0
+    return Design(robot, tuple(blocks), cols, mask), base, names
 
 
 def base_set_for(robot: Robot, blocks: Sequence[Block]) -> tuple[BaseSet, list[str]]:
@@ -131,9 +141,8 @@ def _profile_hypers(pb: Problem) -> dict[str, dict[str, float]]:
             trial = list(pb.blocks)
             for k, b in targets:
                 trial[k] = Block(b.effect, b.joint, {**b.opts, hyper: val})
-            base, _ = base_set_for(pb.robot, trial)
-            cols = np.array(base.independent)
-            f, _ = fit(pb.robot, trial, cols, pb.train, pb.interval, pb.block_len, warn=False)
+            design, _, _ = make_design(pb.robot, trial)
+            f, _ = fit(design, pb.train, pb.interval, pb.block_len, warn=False)
             scores[gi] = f.rss
         for k, b in targets:
             best = float(grid[int(np.argmin(scores[:, b.joint]))])
@@ -149,14 +158,13 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
     pb = build_problem(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
                        interval=interval)
     hypers = _profile_hypers(pb)
-    base, names = base_set_for(robot, pb.blocks)
-    cols = np.array(base.independent)
-    grams = accumulate(robot, pb.blocks, cols, pb.train, pb.interval, pb.block_len)
-    check_counts(int(grams.n_rows.sum()), len(cols), Path(data[0].path).name)
+    design, base, names = make_design(robot, pb.blocks)
+    grams = accumulate(design, pb.train, pb.interval, pb.block_len)
+    check_counts(int(grams.n_rows.sum()), design.p, Path(data[0].path).name)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        f, grams = fit(robot, pb.blocks, cols, pb.train, pb.interval, pb.block_len, method,
-                       weight, base.base_names, grams)
+        f, grams = fit(design, pb.train, pb.interval, pb.block_len, method, weight,
+                       base.base_names, grams)
     notes = list(pb.notes)
     for w in caught:
         notes.append(str(w.message))
@@ -176,7 +184,7 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
     ms = f.rss / np.maximum(n_rows, 1)
     var = np.maximum(ms - f.mean_res**2, 0.0)
     fit_err = ErrorStats(np.sqrt(ms), np.sqrt(var), var, int(n_rows[0]))
-    val, nom, traces = _validate(pb, cols, f.theta)
+    val, nom, traces = _validate(pb, design, f.theta)
     notes += _sanity_checks(pb, nominal=robot.nominal is not None)
     if pb.valid:
         notes += _extrapolation(pb)
@@ -232,7 +240,7 @@ def _least_excited(grams: Grams, base: BaseSet) -> list[str]:
     return [base.base_names[i] for i in order[:5] if v[i] > 0.2]
 
 
-def _validate(pb: Problem, cols: np.ndarray, theta: np.ndarray):
+def _validate(pb: Problem, design: Design, theta: np.ndarray):
     robot = pb.robot
     if not pb.valid:
         return None, None, []
@@ -240,8 +248,8 @@ def _validate(pb: Problem, cols: np.ndarray, theta: np.ndarray):
     nom = StatsAccumulator(robot.n) if robot.nominal is not None else None
     traces: dict[str, dict[str, list[np.ndarray]]] = {}
     for pc in pb.valid:
-        for w, tau, idx in design_chunks(robot, pb.blocks, pc, filtered=False):
-            pred = w[:, :, cols] @ theta
+        for c, tau, idx in design_chunks(design, pc, filtered=False):
+            pred = design.predict(c, theta)
             acc.add(tau - pred, tau)
             tr = traces.setdefault(pc.prep.log.path, {"t": [], "tau": [], "pred": []})
             tr["t"].append(pc.prep.log.t[idx])

@@ -11,12 +11,13 @@ import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
+import numba
 import numpy as np
-import scipy.signal as sig
 
 from robid_link.exceptions import DataError, DataWarning
 from robid_link.ident.data import Log
 from robid_link.ident.effects import Block, States
+from robid_link.ident.regressor import rigid_regressor
 from robid_link.ident.robot import Robot
 
 __all__ = [
@@ -28,6 +29,9 @@ __all__ = [
     "split",
     "design_chunks",
     "block_columns",
+    "Design",
+    "butter_lowpass_sos",
+    "sos_steady_state",
 ]
 
 #: Default low-pass cutoff. Excitation trajectories live below ~2 Hz (Fourier base 0.05–0.2 Hz,
@@ -35,7 +39,7 @@ __all__ = [
 #: the noise that double differentiation amplifies. Capped at 40 % of the Nyquist rate.
 DEFAULT_CUTOFF_HZ = 10.0
 FILTER_ORDER = 4
-CHUNK = 4096  # samples per chunk when building design rows
+CHUNK = 65536  # samples per chunk when building design rows
 
 
 @dataclass(frozen=True)
@@ -52,19 +56,118 @@ class ZeroPhaseFilter:
 
     @property
     def sos(self) -> np.ndarray:
-        return sig.butter(self.order, self.cutoff_hz, fs=self.fs, output="sos")
+        return butter_lowpass_sos(self.order, self.cutoff_hz, self.fs)
 
     @property
     def settle(self) -> int:
         """Samples after which the (doubled) impulse response has died out: 3 / fc."""
         return int(math.ceil(3.0 * self.fs / self.cutoff_hz)) if self.active else 1
 
-    def apply(self, x: np.ndarray, axis: int = 0) -> np.ndarray:
+    def apply(self, x: np.ndarray, edges: bool = True) -> np.ndarray:
+        """Filter along axis 0 (samples); exactly scipy's sosfiltfilt with odd padding.
+
+        ``edges=False`` skips the odd extension, for windows whose ends are discarded.
+        """
+        x = np.asarray(x, dtype=float)
         if not self.active:
-            return np.array(x, dtype=float, copy=True)
-        n = x.shape[axis]
-        padlen = min(3 * self.settle, n - 1)
-        return sig.sosfiltfilt(self.sos, x, axis=axis, padtype="odd", padlen=padlen)
+            return x.copy()
+        flat = np.ascontiguousarray(x.reshape(x.shape[0], -1))
+        padlen = min(3 * self.settle, flat.shape[0] - 1) if edges else 0
+        sos = np.ascontiguousarray(self.sos)
+        zi = np.ascontiguousarray(sos_steady_state(sos))
+        return _sosfiltfilt(sos, zi, flat, padlen, numba.get_num_threads()).reshape(x.shape)
+
+
+def butter_lowpass_sos(order: int, cutoff_hz: float, fs: float) -> np.ndarray:
+    """Digital Butterworth low-pass as second-order sections (bilinear, pre-warped).
+
+    The same design as scipy.signal.butter(order, cutoff, fs=fs, output="sos"), written out
+    so the worker does not pay scipy.signal's import time (≈1 s) on every run.
+    """
+    warped = 2.0 * fs * math.tan(math.pi * cutoff_hz / fs)
+    k = np.arange(1, order + 1)
+    poles_a = warped * np.exp(1j * math.pi * (2 * k + order - 1) / (2 * order))
+    poles = (2.0 * fs + poles_a) / (2.0 * fs - poles_a)
+    gain = float(np.real(warped**order / np.prod(2.0 * fs - poles_a)))
+    upper = sorted((p for p in poles if p.imag > 1e-12), key=lambda p: -abs(1 - abs(p)))
+    sections = [[1.0, 2.0, 1.0, 1.0, -2.0 * p.real, abs(p) ** 2] for p in upper]
+    real = [p.real for p in poles if abs(p.imag) <= 1e-12]
+    if real:
+        sections.insert(0, [1.0, 1.0, 0.0, 1.0, -real[0], 0.0])
+    sos = np.array(sections)
+    sos[0, :3] *= gain
+    return sos
+
+
+def sos_steady_state(sos: np.ndarray) -> np.ndarray:
+    """Initial states (ns, 2) of a unit step's steady state (scipy.signal.sosfilt_zi)."""
+    zi = np.empty((sos.shape[0], 2))
+    scale = 1.0
+    for s, (b0, b1, b2, _a0, a1, a2) in enumerate(sos):
+        lhs = np.array([[1.0 + a1, -1.0], [a2, 1.0]])
+        zi[s] = scale * np.linalg.solve(lhs, np.array([b1 - a1 * b0, b2 - a2 * b0]))
+        scale *= (b0 + b1 + b2) / (1.0 + a1 + a2)
+    return zi
+
+
+@numba.njit(cache=True, nogil=True)
+def _biquads(sos: np.ndarray, z: np.ndarray, row: np.ndarray, out: np.ndarray) -> None:
+    """One sample through the cascade for every column (direct form II transposed)."""
+    for s in range(sos.shape[0]):
+        b0, b1, b2, a1, a2 = sos[s, 0], sos[s, 1], sos[s, 2], sos[s, 4], sos[s, 5]
+        z0, z1 = z[s, 0], z[s, 1]
+        for c in range(row.shape[0]):
+            v = row[c]
+            y = b0 * v + z0[c]
+            z0[c] = b1 * v - a1 * y + z1[c]
+            z1[c] = b2 * v - a2 * y
+            out[c] = y
+        row = out
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _sosfiltfilt(sos: np.ndarray, zi: np.ndarray, x: np.ndarray, padlen: int,
+                 n_threads: int) -> np.ndarray:
+    """Zero-phase second-order-section filter of every column of x (N, m) along axis 0.
+
+    Exactly scipy's sosfiltfilt(padtype="odd"): odd extension, steady-state initial
+    conditions for the first sample of each pass. Sample-major, so the inner loop runs over
+    contiguous columns; column groups go to threads.
+    """
+    n, m = x.shape
+    total = n + 2 * padlen
+    ns = sos.shape[0]
+    out = np.empty((n, m))
+    n_par = max(1, min(m // 8, n_threads))
+    for part in numba.prange(n_par):
+        c0 = part * m // n_par
+        c1 = (part + 1) * m // n_par
+        w = c1 - c0
+        buf = np.empty((total, w))
+        for k in range(padlen):  # odd extension at both ends
+            for c in range(w):
+                buf[k, c] = 2.0 * x[0, c0 + c] - x[padlen - k, c0 + c]
+                buf[padlen + n + k, c] = 2.0 * x[n - 1, c0 + c] - x[n - 2 - k, c0 + c]
+        for k in range(n):
+            for c in range(w):
+                buf[padlen + k, c] = x[k, c0 + c]
+        z = np.empty((ns, 2, w))
+        for direction in range(2):
+            start = 0 if direction == 0 else total - 1
+            for s in range(ns):
+                for c in range(w):
+                    z[s, 0, c] = zi[s, 0] * buf[start, c]
+                    z[s, 1, c] = zi[s, 1] * buf[start, c]
+            if direction == 0:
+                for k in range(total):
+                    _biquads(sos, z, buf[k], buf[k])
+            else:
+                for k in range(total - 1, -1, -1):
+                    _biquads(sos, z, buf[k], buf[k])
+        for k in range(n):
+            for c in range(w):
+                out[k, c0 + c] = buf[k + padlen, c]
+    return out
 
 
 @dataclass
@@ -161,10 +264,85 @@ def block_columns(robot: Robot, blocks: Sequence[Block], st: States) -> np.ndarr
     return np.concatenate([b.effect.columns(robot, st, b.joint, b.opts) for b in blocks], axis=2)
 
 
-def design_chunks(robot: Robot, blocks: Sequence[Block], piece: Piece, interval: int = 1,
-                  filtered: bool = True, chunk: int = CHUNK
-                  ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Yield (W (m, n, P), τ (m, n), sample index (m,)) for a piece, in chunks.
+class Design:
+    """The model's base columns, evaluated compactly.
+
+    Joint j's torque row is non-zero only in some base columns (its support); the compact
+    matrix holds, joint after joint, just those entries: (N, nnz) instead of (N, n, p).
+    """
+
+    def __init__(self, robot: Robot, blocks: Sequence[Block], cols: np.ndarray,
+                 mask: np.ndarray) -> None:
+        self.robot = robot
+        self.blocks = tuple(blocks)
+        self.cols = np.asarray(cols)
+        self.mask = np.asarray(mask, dtype=bool)  # (n, p)
+        self.support = [np.flatnonzero(self.mask[j]) for j in range(robot.n)]
+        sizes = [s.size for s in self.support]
+        self.offsets = np.concatenate(([0], np.cumsum(sizes))).astype(int)
+        self._gathers = self._plan()
+
+    @property
+    def p(self) -> int:
+        return int(self.cols.size)
+
+    @property
+    def nnz(self) -> int:
+        return int(self.offsets[-1])
+
+    def joint_slice(self, j: int) -> slice:
+        return slice(int(self.offsets[j]), int(self.offsets[j + 1]))
+
+    def _plan(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per block: (compact destination columns, flat source index in that block)."""
+        widths = [len(b.effect.param_names(self.robot, b.joint, b.opts)) for b in self.blocks]
+        starts = np.concatenate(([0], np.cumsum(widths))).astype(int)
+        plan = []
+        for bi, width in enumerate(widths):
+            dst, src = [], []
+            for j in range(self.robot.n):
+                for pos, k in enumerate(self.support[j]):
+                    c = int(self.cols[k])
+                    if starts[bi] <= c < starts[bi] + width:
+                        dst.append(self.offsets[j] + pos)
+                        src.append(j * width + c - starts[bi])
+            plan.append((np.array(dst, dtype=int), np.array(src, dtype=int)))
+        return plan
+
+    def compact(self, st: States) -> np.ndarray:
+        """(N, nnz) base-column entries of every joint row, joint after joint."""
+        n_samp = len(st)
+        out = np.empty((n_samp, self.nnz))
+        n = self.robot.n
+        for blk, (dst, src) in zip(self.blocks, self._gathers, strict=True):
+            if dst.size == 0:
+                continue
+            if blk.effect.name == "rigid_body":  # the kernel writes straight into place
+                dest = np.full(n * 10 * n, -1, dtype=np.int64)
+                dest[src] = dst
+                rigid_regressor(self.robot, st.q, st.qd, st.qdd, out=out,
+                                dest=dest.reshape(n, 10 * n))
+            else:
+                vals = blk.effect.columns(self.robot, st, blk.joint, blk.opts)
+                out[:, dst] = vals.reshape(n_samp, -1)[:, src]
+        return out
+
+    def predict(self, c: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """Torques (N, n) from compact columns and base parameters."""
+        return np.stack([c[:, self.joint_slice(j)] @ theta[self.support[j]]
+                         for j in range(self.robot.n)], axis=1)
+
+    def expand(self, c: np.ndarray) -> np.ndarray:
+        """(N, n, p) dense base regressor from compact columns."""
+        out = np.zeros((c.shape[0], self.robot.n, self.p))
+        for j in range(self.robot.n):
+            out[:, j, self.support[j]] = c[:, self.joint_slice(j)]
+        return out
+
+
+def design_chunks(design: Design, piece: Piece, interval: int = 1, filtered: bool = True,
+                  chunk: int = CHUNK) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Yield (compact columns (m, nnz), τ (m, n), sample index (m,)) for a piece, in chunks.
 
     With ``filtered`` the columns and the torque are parallel-filtered and decimated by
     ``interval`` (training rows); otherwise columns come from the filtered states at the
@@ -177,15 +355,13 @@ def design_chunks(robot: Robot, blocks: Sequence[Block], piece: Piece, interval:
     for a in range(first, piece.hi, chunk * step):
         b = min(a + chunk * step, piece.hi)
         if not filtered:
-            w = block_columns(robot, blocks, prep.states(a, b))
-            yield w, prep.tau[a:b], np.arange(a, b)
+            yield design.compact(prep.states(a, b)), prep.tau[a:b], np.arange(a, b)
             continue
         ca, cb = max(piece.ctx_lo, a - pad), min(piece.ctx_hi, b + pad)
-        w = block_columns(robot, blocks, prep.states(ca, cb))
-        shape = w.shape
-        w = prep.filt.apply(w.reshape(shape[0], -1), axis=0).reshape(shape)
-        idx = np.arange(a, b, step)
-        yield w[idx - ca], prep.tau_f[idx], idx
+        at_edge = ca == piece.ctx_lo or cb == piece.ctx_hi  # only there as in τ's filtering
+        c = prep.filt.apply(design.compact(prep.states(ca, cb)), edges=at_edge)
+        rows = slice(a - ca, b - ca, step)
+        yield c[rows], prep.tau_f[a:b:step], np.arange(a, b, step)
 
 
 def check_counts(n_rows: int, n_params: int, where: str) -> None:

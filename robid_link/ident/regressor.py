@@ -19,21 +19,34 @@ from robid_link.ident.robot import Robot
 __all__ = ["rigid_regressor", "reference_regressor", "BaseSet", "structural_base_set"]
 
 
-@numba.njit(cache=True, fastmath=False, nogil=True)
-def _regressor_kernel(q, qd, qdd, r0s, p0s, axes, revolute, parents, anc, gravity, out):  # noqa: C901
-    """Newton–Euler regressor per sample, written into out (N, n, 10 n).
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _regressor_kernel(q, qd, qdd, r0s, p0s, axes, revolute, parents, anc, gravity, dest, out,
+                      n_threads):
+    """Split the samples over threads; each part has its own scratch space."""
+    nsamp = q.shape[1]
+    n_par = max(1, min(n_threads, nsamp // 256))
+    for part in numba.prange(n_par):
+        _regressor_part(q, qd, qdd, r0s, p0s, axes, revolute, parents, anc, gravity, dest, out,
+                        part * nsamp // n_par, (part + 1) * nsamp // n_par)
+
+
+@numba.njit(cache=True, nogil=True)
+def _regressor_part(q, qd, qdd, r0s, p0s, axes, revolute, parents, anc, gravity, dest,  # noqa: C901
+                    out, k0, k1):
+    """Newton–Euler regressor for samples [k0, k1): entry (row i, column c) of a sample goes
+    to out[k, dest[i, c]] (skipped where dest is −1).
 
     Each body carries, with its velocity and acceleration, the axes of its ancestor joints
     expressed in its own frame; row i of body j's block is s_iᵀ·A_j(v_j, a_j).
     """
-    n, nsamp = q.shape
+    n = q.shape[0]
     vel = np.zeros((n, 6))
     acc = np.zeros((n, 6))
     s_ax = np.zeros((n, n, 6))
     rot = np.zeros((3, 3))
     body = np.zeros((6, 10))
     src = np.zeros(6)
-    for k in range(nsamp):
+    for k in range(k0, k1):
         for j in range(n):
             u0, u1, u2 = axes[j, 0], axes[j, 1], axes[j, 2]
             par = parents[j]
@@ -154,16 +167,17 @@ def _regressor_kernel(q, qd, qdd, r0s, p0s, axes, revolute, parents, anc, gravit
             body[5, 7] = a0 - w1 * w2
             body[5, 8] = a1 + w0 * w2
             body[5, 9] = a2
-            for i in range(n):
-                if i > j or not anc[j, i]:
-                    for col in range(10):
-                        out[k, i, 10 * j + col] = 0.0
+            for i in range(j + 1):
+                if not anc[j, i]:
                     continue
                 for col in range(10):
+                    d = dest[i, 10 * j + col]
+                    if d < 0:
+                        continue
                     acc_v = 0.0
                     for a in range(6):
                         acc_v += s_ax[j, i, a] * body[a, col]
-                    out[k, i, 10 * j + col] = acc_v
+                    out[k, d] = acc_v
 
 
 def _robot_arrays(robot: Robot) -> tuple[np.ndarray, ...]:
@@ -183,17 +197,30 @@ def _robot_arrays(robot: Robot) -> tuple[np.ndarray, ...]:
 
 
 def rigid_regressor(
-    robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, out: np.ndarray | None = None
+    robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, out: np.ndarray | None = None,
+    dest: np.ndarray | None = None,
 ) -> np.ndarray:
     """Joint-torque regressor Y (N, n, 10 n) with τ = Y · π (standard parameters).
 
-    States are (N, n) arrays; ``out`` may be a preallocated (N, n, 10 n) float64 array.
+    States are (N, n) arrays; ``out`` may be a preallocated float64 array. With ``dest``
+    (n, 10 n) of column indices (−1 = skip), entries go to ``out`` (N, m) instead: a compact
+    layout that only computes what the caller needs.
     """
     q, qd, qdd = (np.ascontiguousarray(np.atleast_2d(x), dtype=float).T for x in (q, qd, qdd))
     n, nsamp = q.shape
-    if out is None:
-        out = np.empty((nsamp, n, 10 * n))
-    _regressor_kernel(q, qd, qdd, *_robot_arrays(robot), out)
+    if dest is None:
+        dest = np.arange(n * 10 * n, dtype=np.int64).reshape(n, 10 * n)
+        if out is None:
+            out = np.zeros((nsamp, n, 10 * n))
+        else:
+            out[...] = 0.0
+        flat = out.reshape(nsamp, n * 10 * n)
+    else:
+        if out is None:
+            raise ValueError("rigid_regressor: a compact dest needs an out array")
+        flat = out
+    _regressor_kernel(q, qd, qdd, *_robot_arrays(robot), np.ascontiguousarray(dest, np.int64),
+                      flat, numba.get_num_threads())
     return out
 
 
