@@ -128,7 +128,8 @@ def _identify(args: argparse.Namespace) -> int:
     data = load_logs(robot, args.data, args.fs, args.motor_side)
     valid = load_logs(robot, args.validate, args.fs, args.motor_side) if args.validate else None
     res = identify(robot, data, model, validate=valid, cutoff_hz=args.cutoff,
-                   interval=args.interval, method=args.method, weight=args.weight)
+                   interval=args.interval, method=args.method, weight=args.weight,
+                   motor_side=args.motor_side)
     print(res.summary())
     if args.json:
         write_json(args.json, res.to_dict())

@@ -41,9 +41,17 @@ class States:
     qd: np.ndarray
     qdd: np.ndarray
     t: np.ndarray | None = None
+    #: T (q_m = T q) when friction acts on the motors (motor-side logs), else None
+    transmission: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.q.shape[0])
+
+    def motor_velocity(self, joint: int) -> np.ndarray:
+        """Velocity of motor ``joint`` (the joint's own velocity without a transmission)."""
+        if self.transmission is None:
+            return self.qd[:, joint]
+        return self.qd @ self.transmission[joint]
 
 
 @dataclass(frozen=True)
@@ -94,6 +102,21 @@ def _row(st: States, n: int, joint: int, cols: Sequence[np.ndarray]) -> np.ndarr
     return out
 
 
+def _motor_row(st: States, n: int, motor: int, cols: Sequence[np.ndarray]) -> np.ndarray:
+    """Torques acting on one motor, seen on the joints: τ_joint = Tᵀ τ_motor.
+
+    Without a transmission this is the joint's own row; with a wrist coupling a motor's
+    friction also loads the joints it turns with.
+    """
+    if st.transmission is None:
+        return _row(st, n, motor, cols)
+    out = np.zeros((len(st), n, len(cols)))
+    for i in np.flatnonzero(st.transmission[motor]):
+        for k, c in enumerate(cols):
+            out[:, i, k] = st.transmission[motor, i] * c
+    return out
+
+
 @register
 class RigidBody(Effect):
     name = "rigid_body"
@@ -110,13 +133,13 @@ class RigidBody(Effect):
 @register
 class Viscous(Effect):
     name = "viscous"
-    doc = "viscous friction fv·q̇"
+    doc = "viscous friction fv·q̇ (of the motor's velocity for motor-side logs)"
 
     def param_names(self, robot, joint, opts):
         return [f"fv_{joint + 1}"]
 
     def columns(self, robot, st, joint, opts):
-        return _row(st, robot.n, joint, [st.qd[:, joint]])
+        return _motor_row(st, robot.n, joint, [st.motor_velocity(joint)])
 
 
 @register
@@ -128,7 +151,7 @@ class Coulomb(Effect):
         return [f"fc_{joint + 1}"]
 
     def columns(self, robot, st, joint, opts):
-        return _row(st, robot.n, joint, [np.sign(st.qd[:, joint])])
+        return _motor_row(st, robot.n, joint, [np.sign(st.motor_velocity(joint))])
 
 
 @register
@@ -140,7 +163,7 @@ class Offset(Effect):
         return [f"off_{joint + 1}"]
 
     def columns(self, robot, st, joint, opts):
-        return _row(st, robot.n, joint, [np.ones(len(st))])
+        return _motor_row(st, robot.n, joint, [np.ones(len(st))])
 
 
 @register
@@ -157,10 +180,10 @@ class FrictionPower(Effect):
         return [f"fpc_{j}", f"fpv_{j}", f"fpb_{j}"]
 
     def columns(self, robot, st, joint, opts):
-        v = st.qd[:, joint]
+        v = st.motor_velocity(joint)
         alpha = float(opts.get("alpha", self.hypers["alpha"].default))
         sgn = np.sign(v)
-        return _row(st, robot.n, joint, [sgn, np.abs(v) ** alpha * sgn, np.ones(len(st))])
+        return _motor_row(st, robot.n, joint, [sgn, np.abs(v) ** alpha * sgn, np.ones(len(st))])
 
 
 # ----------------------------------------------------------------------------- model

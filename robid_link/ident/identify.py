@@ -55,29 +55,33 @@ def load_logs(robot: Robot, paths: Sequence[str | Path], fs: float | None = None
     return logs
 
 
-def _random_states(robot: Robot, rng: np.random.Generator, n: int) -> States:
+def _random_states(robot: Robot, rng: np.random.Generator, n: int,
+                   transmission: np.ndarray | None = None) -> States:
     lo = np.where(np.isfinite(robot.limits.q_min), robot.limits.q_min, -math.pi)
     hi = np.where(np.isfinite(robot.limits.q_max), robot.limits.q_max, math.pi)
     q = rng.uniform(lo, hi, (n, robot.n))
     return States(q, rng.normal(size=(n, robot.n)), rng.normal(size=(n, robot.n)),
-                  np.linspace(0.0, 1.0, n))
+                  np.linspace(0.0, 1.0, n), transmission)
 
 
-def make_design(robot: Robot, blocks: Sequence[Block]) -> tuple[Design, BaseSet, list[str]]:
+def make_design(robot: Robot, blocks: Sequence[Block], transmission: np.ndarray | None = None
+                ) -> tuple[Design, BaseSet, list[str]]:
     """Base set plus the structural sparsity of the base columns (random states)."""
-    base, names = base_set_for(robot, blocks)
+    base, names = base_set_for(robot, blocks, transmission)
     cols = np.array(base.independent)
-    w = block_columns(robot, blocks, _random_states(robot, np.random.default_rng(7), 64))
+    w = block_columns(robot, blocks,
+                      _random_states(robot, np.random.default_rng(7), 64, transmission))
     mask = np.abs(w[:, :, cols]).max(axis=0) > 0
     return Design(robot, tuple(blocks), cols, mask), base, names
 
 
-def base_set_for(robot: Robot, blocks: Sequence[Block]) -> tuple[BaseSet, list[str]]:
+def base_set_for(robot: Robot, blocks: Sequence[Block], transmission: np.ndarray | None = None
+                 ) -> tuple[BaseSet, list[str]]:
     """The structural base set of a robot and effect list (random states, fixed seed)."""
     names = [nm for b in blocks for nm in b.effect.param_names(robot, b.joint, b.opts)]
 
     def sample(rng: np.random.Generator, n: int) -> np.ndarray:
-        w = block_columns(robot, blocks, _random_states(robot, rng, n))
+        w = block_columns(robot, blocks, _random_states(robot, rng, n, transmission))
         return w.reshape(-1, w.shape[2])
 
     rigid = blocks and blocks[0].effect.name == "rigid_body"
@@ -101,15 +105,19 @@ class Problem:
     block_len: int
     validation_source: str
     notes: list[str]
+    transmission: np.ndarray | None = None
 
 
 def build_problem(robot: Robot, data: Sequence[Log], model: Model, *,
                   validate: Sequence[Log] | None = None, cutoff_hz: float | None = None,
-                  interval: int = 1) -> Problem:
+                  interval: int = 1, motor_side: bool = False) -> Problem:
     if interval < 1:
         raise DataError(f"--interval must be at least 1, got {interval}")
+    transmission = robot.transmission if motor_side else None
     preps = [prepare(lg, cutoff_hz, interval) for lg in data]
     vpreps = [prepare(lg, cutoff_hz, 1) for lg in validate or ()]
+    for prep in (*preps, *vpreps):
+        prep.transmission = transmission
     train, valid = split(preps, vpreps or None)
     notes = [n for lg in [*data, *(validate or ())] for n in lg.notes]
     fs = preps[0].filt.fs
@@ -123,7 +131,7 @@ def build_problem(robot: Robot, data: Sequence[Log], model: Model, *,
         notes.append("validation holds out the end of each file; use --validate with a "
                      "different motion for an honest check of generalisation")
     return Problem(robot, model, model.blocks(robot), train, valid, preps, vpreps, interval,
-                   block_len, source, notes)
+                   block_len, source, notes, transmission)
 
 
 def _profile_hypers(pb: Problem) -> dict[str, dict[str, float]]:
@@ -141,7 +149,7 @@ def _profile_hypers(pb: Problem) -> dict[str, dict[str, float]]:
             trial = list(pb.blocks)
             for k, b in targets:
                 trial[k] = Block(b.effect, b.joint, {**b.opts, hyper: val})
-            design, _, _ = make_design(pb.robot, trial)
+            design, _, _ = make_design(pb.robot, trial, pb.transmission)
             f, _ = fit(design, pb.train, pb.interval, pb.block_len, warn=False)
             scores[gi] = f.rss
         for k, b in targets:
@@ -153,12 +161,17 @@ def _profile_hypers(pb: Problem) -> dict[str, dict[str, float]]:
 
 def identify(robot: Robot, data: Sequence[Log], model: Model, *,
              validate: Sequence[Log] | None = None, cutoff_hz: float | None = None,
-             interval: int = 1, method: str = "ols", weight: str = "bisquare") -> IdentResult:
-    """Identify the model's base parameters from the logs and validate on held-out data."""
+             interval: int = 1, method: str = "ols", weight: str = "bisquare",
+             motor_side: bool = False) -> IdentResult:
+    """Identify the model's base parameters from the logs and validate on held-out data.
+
+    With ``motor_side`` the logs were converted to the joint side through the robot's
+    transmission, and friction-type effects act on the motors' velocities.
+    """
     pb = build_problem(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
-                       interval=interval)
+                       interval=interval, motor_side=motor_side)
     hypers = _profile_hypers(pb)
-    design, base, names = make_design(robot, pb.blocks)
+    design, base, names = make_design(robot, pb.blocks, pb.transmission)
     grams = accumulate(design, pb.train, pb.interval, pb.block_len)
     check_counts(int(grams.n_rows.sum()), design.p, Path(data[0].path).name)
     with warnings.catch_warnings(record=True) as caught:

@@ -180,13 +180,15 @@ class Prepared:
     qdd: np.ndarray
     tau_f: np.ndarray
     filt: ZeroPhaseFilter
+    transmission: np.ndarray | None = None  # set for motor-side logs
 
     @property
     def tau(self) -> np.ndarray:
         return self.log.tau
 
     def states(self, lo: int, hi: int) -> States:
-        return States(self.q[lo:hi], self.qd[lo:hi], self.qdd[lo:hi], self.log.t[lo:hi])
+        return States(self.q[lo:hi], self.qd[lo:hi], self.qdd[lo:hi], self.log.t[lo:hi],
+                      self.transmission)
 
 
 @dataclass(frozen=True)

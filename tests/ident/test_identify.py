@@ -176,3 +176,31 @@ def test_too_few_samples_for_the_parameters(arm3, tmp_path):
     with pytest.raises(DataError, match="short.csv: .* training samples×joints for 21 "
                                         "parameters; need at least 105"):
         identify(arm3, load_logs(arm3, [sim.path]), DEFAULT_MODEL, cutoff_hz=100.0)
+
+
+def test_motor_side_logs_with_wrist_coupling(industrial6, tmp_path):
+    """Motor 6 turns with joints 5 and 6: its friction acts on its own (motor) velocity."""
+    robot = industrial6
+    t_mat = robot.transmission
+    sim = simulate(robot, tmp_path / "joint.csv", seed=13, noise=0.0, effects=())
+    d = sim.data
+    qd_m = d["qd"] @ t_mat.T
+    fv_m, fc_m = 0.004, 0.05  # motor-side friction, N·m at the motor
+    tau_joint = d["tau_true"] + (fv_m * qd_m + fc_m * np.sign(qd_m)) @ t_mat
+    q_m, tau_m = robot.to_motor_side(d["q"], tau_joint)
+    sigma_m = 0.002
+    tau_m = tau_m + np.random.default_rng(2).normal(size=tau_m.shape) * sigma_m
+    path = tmp_path / "motor.csv"
+    write_log_csv(path, d["t"], q_m, tau_m, qd_m, d["qdd"] @ t_mat.T)
+    res = identify(robot, load_logs(robot, [path], motor_side=True), DEFAULT_MODEL,
+                   motor_side=True)
+    expected = sigma_m * np.sqrt((t_mat**2).sum(axis=0))  # noise seen on the joint side
+    np.testing.assert_allclose(res.rmse, expected, rtol=0.10)
+    values = {p.name: p.value for p in res.parameters}
+    assert values["fv_6"] == pytest.approx(fv_m, rel=0.02)
+    assert values["fc_6"] == pytest.approx(fc_m, rel=0.02)
+    # modelling the same friction on joint velocities misses motor 6 on joint 5
+    joint_log = tmp_path / "jointside.csv"
+    write_log_csv(joint_log, d["t"], d["q"], tau_m @ t_mat, d["qd"], d["qdd"])
+    plain = identify(robot, load_logs(robot, [joint_log]), DEFAULT_MODEL)
+    assert plain.rmse[4] > 1.5 * res.rmse[4]

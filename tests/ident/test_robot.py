@@ -31,7 +31,7 @@ def test_mdh_limits_and_names(industrial6):
     assert industrial6.joint_names[:2] == ("a1", "a2")
     np.testing.assert_allclose(np.degrees(industrial6.limits.q_min[1]), -90)
     np.testing.assert_allclose(np.degrees(industrial6.limits.qd_max[0]), 150)
-    assert industrial6.limits.tau_max[5] == 30
+    assert industrial6.limits.tau_max[5] == 80
     assert standard_parameter_names(2)[:3] == ["m_1", "mx_1", "my_1"]
     assert industrial6.mapping()[0] == {"joint": 1, "name": "a1", "type": "revolute"}
 
