@@ -6,33 +6,61 @@ columns), so a bug in the model cannot hide behind the same bug in the plant.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pinocchio as pin
+import yaml
 
+from robid_link.exceptions import ConfigError
 from robid_link.ident.robot import Robot
 
-__all__ = ["Truth", "Plant", "perturbed_inertials"]
+__all__ = ["Truth", "Plant", "perturbed_inertials", "load_truth", "EFFECT_PARAMS"]
+
+#: physical parameters of each plant effect (required, optional with defaults)
+EFFECT_PARAMS: dict[str, tuple[tuple[str, ...], dict[str, float]]] = {
+    "viscous": (("fv",), {}),
+    "coulomb": (("fc",), {}),
+    "coulomb_asymmetric": (("fc_pos", "fc_neg"), {}),
+    "offset": (("b",), {}),
+    "friction_power": (("fc", "fv", "alpha"), {"b": 0.0}),
+    "stribeck": (("fs", "fc", "vs"), {"shape": 2.0, "fv": 0.0}),
+    "armature": (("ia",), {}),
+    "spring": (("k", "a", "b", "l0"), {"phi": 0.0}),
+    "ripple": (("amplitude", "period"), {"phase": 0.0}),
+    "friction_drift": (("fc", "fv", "change", "tau_s"), {}),
+    "load_friction": (("mu",), {}),
+    "delay": (("seconds",), {}),
+    "payload": (("mass",), {"com": 0.0}),
+    "elasticity": (("k", "d", "jm"), {}),
+}
+GLOBAL_EFFECTS = {"delay", "payload"}
+CLOSED_LOOP_ONLY = {"elasticity"}
 
 
 @dataclass(frozen=True)
 class Truth:
     """Physical truth of a simulated robot."""
 
-    inertials: np.ndarray  # standard parameters (10 n)
+    inertials: np.ndarray  # standard parameters (10 n), joint frames
     effects: tuple[dict[str, Any], ...] = ()  # {"name", "joint" (from 1), params…}
     noise_tau: float | Sequence[float] = 0.0  # N·m, std of white torque noise (per joint)
     q_resolution: float = 0.0  # rad per encoder count (0 = none)
+    rate_hz: float = 1000.0
+    mode: str = "inverse"  # inverse | closed_loop
+    side: str = "joint"  # joint | motor (log through the robot's transmission)
+    controller: dict[str, Any] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
 
 
 def perturbed_inertials(robot: Robot, seed: int, spread: float = 0.2) -> np.ndarray:
     """The nominal inertials with mass, COM and inertia perturbed (physically consistent)."""
     if robot.nominal is None:
-        raise ValueError(f"{robot.source}: no nominal inertials to perturb")
+        raise ConfigError(f"{robot.source}: no nominal inertials to perturb")
     rng = np.random.default_rng(seed)
     out = []
     for j in range(robot.n):
@@ -44,8 +72,196 @@ def perturbed_inertials(robot: Robot, seed: int, spread: float = 0.2) -> np.ndar
     return np.concatenate(out)
 
 
+# ----------------------------------------------------------------------------- truth file
+
+
+def _check_effects(entries: Any, n: int, where: str) -> tuple[dict[str, Any], ...]:
+    if not isinstance(entries, list):
+        raise ConfigError(f"{where}: expected a list")
+    out = []
+    for i, e in enumerate(entries):
+        w = f"{where}[{i}]"
+        if not isinstance(e, dict) or "name" not in e:
+            raise ConfigError(f"{w}: expected a mapping with 'name'")
+        name = e["name"]
+        if name not in EFFECT_PARAMS:
+            raise ConfigError(f"{w}: unknown plant effect '{name}' "
+                              f"(known: {', '.join(sorted(EFFECT_PARAMS))})")
+        req, opt = EFFECT_PARAMS[name]
+        joint = e.get("joint")
+        if joint is not None:
+            if name in GLOBAL_EFFECTS:
+                raise ConfigError(f"{w}: '{name}' is global and takes no joint")
+            if isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= n:
+                raise ConfigError(f"{w}.joint: expected a joint number in 1..{n}")
+        for key in req:
+            if key not in e:
+                raise ConfigError(f"{w}.{key}: missing (a '{name}' needs {', '.join(req)})")
+        bad = set(e) - {"name", "joint", *req, *opt}
+        if bad:
+            raise ConfigError(f"{w}: '{name}' has no parameter '{sorted(bad)[0]}'")
+        for key in (*req, *opt):
+            v = e.get(key, opt.get(key))
+            if key == "com" and isinstance(v, list):
+                continue
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise ConfigError(f"{w}.{key}: expected a finite number")
+        out.append({**opt, **e})
+    return tuple(out)
+
+
+def load_truth(path: str | Path, robot: Robot) -> Truth:
+    """Read a truth file; every error names the key path."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"{p}: truth file not found")
+    try:
+        doc = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{p}: invalid YAML") from err
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{p}: expected a mapping")
+    known = {"robot", "inertials", "perturb", "effects", "noise", "rate_hz", "mode", "side",
+             "controller"}
+    bad = set(doc) - known
+    if bad:
+        raise ConfigError(f"{p}: unknown key '{sorted(bad)[0]}'")
+    try:
+        return _truth_from_doc(doc, robot)
+    except ConfigError as err:
+        raise ConfigError(f"{p}: {err}") from err
+
+
+def _truth_from_doc(doc: dict[str, Any], robot: Robot) -> Truth:
+    n = robot.n
+    if "inertials" in doc:
+        arr = np.asarray(doc["inertials"], dtype=float)
+        if arr.shape != (n, 10):
+            raise ConfigError(f"inertials: expected {n} rows of 10 standard parameters")
+        inertials = arr.reshape(-1)
+    elif "perturb" in doc:
+        pert = doc["perturb"] or {}
+        inertials = perturbed_inertials(robot, int(pert.get("seed", 0)),
+                                        float(pert.get("spread", 0.2)))
+    elif robot.nominal is not None:
+        inertials = robot.nominal.copy()
+    else:
+        raise ConfigError("inertials: missing (and the robot has no nominal inertials)")
+    noise = doc.get("noise") or {}
+    if not isinstance(noise, dict) or set(noise) - {"tau", "q_resolution"}:
+        raise ConfigError("noise: expected {tau, q_resolution}")
+    mode = doc.get("mode", "inverse")
+    if mode not in ("inverse", "closed_loop"):
+        raise ConfigError(f"mode: expected inverse or closed_loop, got {mode!r}")
+    side = doc.get("side", "joint")
+    if side not in ("joint", "motor"):
+        raise ConfigError(f"side: expected joint or motor, got {side!r}")
+    effects = _check_effects(doc.get("effects") or [], n, "effects")
+    if mode == "inverse" and any(e["name"] in CLOSED_LOOP_ONLY for e in effects):
+        raise ConfigError("effects: 'elasticity' needs mode: closed_loop")
+    rate = doc.get("rate_hz", 1000.0)
+    if isinstance(rate, bool) or not isinstance(rate, int | float) or rate <= 0:
+        raise ConfigError(f"rate_hz: expected a positive number, got {rate!r}")
+    return Truth(inertials, effects, noise.get("tau", 0.0), float(noise.get("q_resolution", 0.0)),
+                 float(rate), mode, side, dict(doc.get("controller") or {}))
+
+
+# ----------------------------------------------------------------------------- effects
+
+EffectFn = Callable[[dict[str, Any], "Signals", int], np.ndarray]
+
+
+@dataclass
+class Signals:
+    """What an effect may depend on, for all samples."""
+
+    t: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    qdd: np.ndarray
+    tau_rigid: np.ndarray
+
+
+def _viscous(e, s, j):
+    return e["fv"] * s.qd[:, j]
+
+
+def _coulomb(e, s, j):
+    return e["fc"] * np.sign(s.qd[:, j])
+
+
+def _coulomb_asym(e, s, j):
+    v = s.qd[:, j]
+    return np.where(v > 0, e["fc_pos"], np.where(v < 0, -e["fc_neg"], 0.0))
+
+
+def _offset(e, s, j):
+    return np.full(s.t.shape, float(e["b"]))
+
+
+def _friction_power(e, s, j):
+    v = s.qd[:, j]
+    return (e["fc"] + e["fv"] * np.abs(v) ** e["alpha"]) * np.sign(v) + e["b"]
+
+
+def _stribeck(e, s, j):
+    """Static friction fs falling to Coulomb fc over the Stribeck velocity vs."""
+    v = s.qd[:, j]
+    decay = np.exp(-np.abs(v / e["vs"]) ** e["shape"])
+    return (e["fc"] + (e["fs"] - e["fc"]) * decay) * np.sign(v) + e["fv"] * v
+
+
+def _armature(e, s, j):
+    """Rotor inertia seen on the joint (J_m·r²)."""
+    return e["ia"] * s.qdd[:, j]
+
+
+def spring_torque(k: float, a: float, b: float, l0: float, phi: float, q: np.ndarray
+                  ) -> np.ndarray:
+    """Gravity-balancing spring between a base point at distance b and a link point at
+    distance a from the axis: l = √(a² + b² − 2ab·cos(q + φ)), τ = −k (l − l0)·ab·sin(q + φ)/l."""
+    psi = q + phi
+    length = np.sqrt(a * a + b * b - 2 * a * b * np.cos(psi))
+    return -k * (length - l0) * a * b * np.sin(psi) / np.maximum(length, 1e-9)
+
+
+def _spring(e, s, j):
+    return spring_torque(e["k"], e["a"], e["b"], e["l0"], e["phi"], s.q[:, j])
+
+
+def _ripple(e, s, j):
+    return e["amplitude"] * np.sin(2 * np.pi * s.q[:, j] / e["period"] + e["phase"])
+
+
+def _friction_drift(e, s, j):
+    """A joint warming up: friction starts (1 + change)× higher and relaxes with tau_s."""
+    scale = 1.0 + e["change"] * np.exp(-(s.t - s.t[0]) / e["tau_s"])
+    v = s.qd[:, j]
+    return scale * (e["fc"] * np.sign(v) + e["fv"] * v)
+
+
+def _load_friction(e, s, j):
+    """Gear friction growing with the transmitted load torque."""
+    return e["mu"] * np.abs(s.tau_rigid[:, j]) * np.sign(s.qd[:, j])
+
+
+EFFECTS: dict[str, EffectFn] = {
+    "viscous": _viscous, "coulomb": _coulomb, "coulomb_asymmetric": _coulomb_asym,
+    "offset": _offset, "friction_power": _friction_power, "stribeck": _stribeck,
+    "armature": _armature, "spring": _spring, "ripple": _ripple,
+    "friction_drift": _friction_drift, "load_friction": _load_friction,
+}
+#: effects the closed-loop integrator treats as (set-valued) Coulomb friction
+_COULOMB_LIKE = {"coulomb", "coulomb_asymmetric", "stribeck", "friction_power",
+                 "friction_drift", "load_friction"}
+
+
+# ----------------------------------------------------------------------------- plant
+
+
 class Plant:
-    """Inverse-dynamics plant: positions follow the command exactly; torques are physics."""
+    """The simulated robot: inverse dynamics (positions follow the command exactly) or
+    closed loop (forward dynamics under a computed-torque controller)."""
 
     def __init__(self, robot: Robot, truth: Truth) -> None:
         self.robot = robot
@@ -54,7 +270,25 @@ class Plant:
         for j in range(robot.n):
             self.model.inertias[j + 1] = pin.Inertia.FromDynamicParameters(
                 truth.inertials[10 * j: 10 * j + 10])
+        for e in truth.effects:
+            if e["name"] == "payload":  # a point mass at the flange (last joint frame)
+                com = e["com"] if isinstance(e["com"], list) else [0.0, 0.0, float(e["com"])]
+                self.model.inertias[robot.n] += pin.Inertia(
+                    e["mass"], np.asarray(com, dtype=float), np.zeros((3, 3)))
         self.data = self.model.createData()
+
+    # -- helpers
+    def _per_joint(self) -> list[tuple[dict[str, Any], int]]:
+        out = []
+        for e in self.truth.effects:
+            if e["name"] in GLOBAL_EFFECTS or e["name"] in CLOSED_LOOP_ONLY:
+                continue
+            joints = [e["joint"] - 1] if e.get("joint") else range(self.robot.n)
+            out += [(e, j) for j in joints]
+        return out
+
+    def _delay(self) -> float:
+        return sum(e["seconds"] for e in self.truth.effects if e["name"] == "delay")
 
     def rigid_torque(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
         pq = self.robot.pin_q(q)
@@ -63,43 +297,163 @@ class Plant:
             out[k] = pin.rnea(self.model, self.data, pq[k], qd[k], qdd[k])
         return out
 
-    def effect_torque(self, t: np.ndarray, q: np.ndarray, qd: np.ndarray,
-                      qdd: np.ndarray) -> np.ndarray:
+    def effect_torque(self, t: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
+                      tau_rigid: np.ndarray | None = None) -> np.ndarray:
+        if tau_rigid is None:
+            tau_rigid = self.rigid_torque(q, qd, qdd)
+        sig = Signals(t, q, qd, qdd, tau_rigid)
         tau = np.zeros_like(qd)
-        for eff in self.truth.effects:
-            name = eff["name"]
-            joints = [eff["joint"] - 1] if eff.get("joint") else range(self.robot.n)
-            for j in joints:
-                tau[:, j] += _EFFECTS[name](eff, t, q[:, j], qd[:, j], qdd[:, j])
+        for e, j in self._per_joint():
+            tau[:, j] += EFFECTS[e["name"]](e, sig, j)
         return tau
 
-    def run(self, t: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
-            seed: int = 0) -> dict[str, np.ndarray]:
-        """Log of a commanded motion: t, quantized q, noisy τ (and the noise-free τ)."""
+    def _finish(self, t: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
+                tau_true: np.ndarray, seed: int) -> dict[str, np.ndarray]:
         rng = np.random.default_rng(seed)
-        tau_true = self.rigid_torque(q, qd, qdd) + self.effect_torque(t, q, qd, qdd)
+        delay = self._delay()
+        if delay:  # the torque log lags the positions: τ_log(t) = τ(t − delay)
+            tau_true = np.stack([np.interp(t - delay, t, tau_true[:, j])
+                                 for j in range(tau_true.shape[1])], axis=1)
         noise = np.broadcast_to(np.asarray(self.truth.noise_tau, dtype=float), (self.robot.n,))
         tau = tau_true + rng.normal(size=tau_true.shape) * noise
         res = self.truth.q_resolution
         q_meas = np.round(q / res) * res if res > 0 else q.copy()
-        return {"t": t, "q": q_meas, "qd": qd, "qdd": qdd, "tau": tau, "tau_true": tau_true}
+        out = {"t": t, "q": q_meas, "qd": qd, "qdd": qdd, "tau": tau, "tau_true": tau_true}
+        if self.truth.side == "motor":
+            out["q"], out["tau"] = self.robot.to_motor_side(out["q"], out["tau"])
+            t_mat = self.robot.transmission
+            out["qd"], out["qdd"] = qd @ t_mat.T, qdd @ t_mat.T
+        return out
+
+    # -- inverse dynamics
+    def run(self, t: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
+            seed: int = 0) -> dict[str, np.ndarray]:
+        """Log of a commanded motion: t, quantized q, noisy τ (and the noise-free τ)."""
+        if self.truth.mode == "closed_loop":
+            return self.run_closed_loop(t, q, qd, qdd, seed)
+        tau_rigid = self.rigid_torque(q, qd, qdd)
+        tau_true = tau_rigid + self.effect_torque(t, q, qd, qdd, tau_rigid)
+        return self._finish(t, q, qd, qdd, tau_true, seed)
+
+    # -- closed loop
+    def run_closed_loop(self, t: np.ndarray, q_ref: np.ndarray, qd_ref: np.ndarray,
+                        qdd_ref: np.ndarray, seed: int = 0) -> dict[str, np.ndarray]:
+        """Forward dynamics tracking the reference with a computed-torque PID on the a-priori
+        model (what a real controller has), integrated at ≥ 1 kHz (``controller.rate_hz``).
+
+        Coulomb-like friction is handled by a time-stepping stick-slip step (no smoothing):
+        the friction impulse of each step is solved with the full M⁻¹ on an active set, a
+        joint whose velocity would cross zero sticks while its static bound holds, so the
+        integration stays stable and non-stiff at the control rate.
+        """
+        ctrl = self.truth.controller
+        n = self.robot.n
+        wn = float(ctrl.get("bandwidth_hz", 8.0)) * 2 * math.pi
+        kp, kd, ki = 3 * wn * wn, 3 * wn, wn**3  # PID with a triple pole at the bandwidth
+        nominal = self.robot.model.copy()
+        if self.robot.nominal is not None:
+            for j in range(n):
+                nominal.inertias[j + 1] = pin.Inertia.FromDynamicParameters(
+                    self.robot.nominal[10 * j: 10 * j + 10])
+        ndata = nominal.createData()
+        integral = np.zeros(n)
+
+        def command(k: int, h: float, q_meas: np.ndarray, qd_meas: np.ndarray) -> np.ndarray:
+            err = q_ref[k] - q_meas
+            integral[:] += h * err
+            acc = qdd_ref[k] + kp * err + kd * (qd_ref[k] - qd_meas) + ki * integral
+            return np.array(pin.rnea(nominal, ndata, self.robot.pin_q(q_meas), qd_meas, acc))
+
+        out = self._integrate(t, command, q_ref[0], qd_ref[0])
+        return self._finish(t, *out, seed)
+
+    def run_open_loop(self, t: np.ndarray, tau_motor: np.ndarray, q0: np.ndarray,
+                      seed: int = 0) -> dict[str, np.ndarray]:
+        """Forward dynamics under given motor torques (no controller)."""
+        out = self._integrate(t, lambda k, h, q, qd: tau_motor[k], q0, np.zeros_like(q0))
+        return self._finish(t, *out, seed)
+
+    def _integrate(self, t: np.ndarray, command: Callable[..., np.ndarray], q0: np.ndarray,
+                   v0: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Semi-implicit Euler at ``controller.rate_hz`` (≥ the log rate); logs, per sample,
+        the measured state each logged torque was computed at."""
+        n = self.robot.n
+        h_log = float(t[1] - t[0])
+        rate = max(float(self.truth.controller.get("rate_hz", 1000.0)), 1.0 / h_log)
+        sub = max(1, int(math.ceil(h_log * rate - 1e-9)))
+        h = h_log / sub
+        elastic = {e["joint"] - 1 if e.get("joint") else None: e
+                   for e in self.truth.effects if e["name"] == "elasticity"}
+        if None in elastic:
+            elastic = {j: elastic[None] for j in range(n)}
+        is_elastic = np.array([j in elastic for j in range(n)])
+        per_joint = self._per_joint()
+        smooth = [(e, j) for e, j in per_joint if e["name"] not in _COULOMB_LIKE]
+        sticky = [(e, j) for e, j in per_joint if e["name"] in _COULOMB_LIKE]
+        q, v = np.array(q0, dtype=float), np.array(v0, dtype=float)
+        th, thd = q.copy(), v.copy()  # motor side of elastic joints (joint units)
+        logs = [np.empty((t.size, n)) for _ in range(4)]  # q, qd, qdd, tau
+        one = np.zeros(1)
+        for k in range(t.size):
+            for step in range(sub):
+                q_meas = np.where(is_elastic, th, q)
+                qd_meas = np.where(is_elastic, thd, v)
+                tau_cmd = command(k, h, q_meas, qd_meas)
+                tau_arm = np.array(tau_cmd, dtype=float)
+                for j, e in elastic.items():  # the arm feels the spring, the motor drives it
+                    tau_arm[j] = e["k"] * (th[j] - q[j]) + e["d"] * (thd[j] - v[j])
+                sig = Signals(one + t[k], q[None], v[None], np.zeros((1, n)), tau_cmd[None])
+                f_smooth = np.zeros(n)
+                for e, j in smooth:
+                    f_smooth[j] += EFFECTS[e["name"]](e, sig, j)[0]
+                pq = self.robot.pin_q(q)
+                a = pin.aba(self.model, self.data, pq, v, tau_arm - f_smooth)
+                v_free = v + h * a
+                bound = np.zeros(n)
+                for e, j in sticky:
+                    probe = Signals(one + t[k], q[None], v_free[None], np.zeros((1, n)),
+                                    tau_cmd[None])
+                    bound[j] += abs(EFFECTS[e["name"]](e, probe, j)[0])
+                v_new = v_free
+                if bound.any():
+                    minv = pin.computeMinverse(self.model, self.data, pq)
+                    v_new = _stick_slip(v_free, bound, np.triu(minv) + np.triu(minv, 1).T, h)
+                for j, e in elastic.items():
+                    thd[j] += h * (tau_cmd[j] - tau_arm[j]) / e["jm"]
+                    th[j] += h * thd[j]
+                if step == 0:
+                    logs[0][k], logs[1][k] = q_meas, qd_meas
+                    logs[2][k] = (v_new - v) / h
+                    logs[3][k] = tau_cmd
+                v = v_new
+                q = q + h * v
+        return tuple(logs)
+
+    def with_truth(self, **changes: Any) -> Plant:
+        return Plant(self.robot, replace(self.truth, **changes))
 
 
-def _viscous(e, t, q, qd, qdd):
-    return e["fv"] * qd
+def _stick_slip(v_free: np.ndarray, bound: np.ndarray, minv: np.ndarray, h: float
+                ) -> np.ndarray:
+    """Velocity after one step of Coulomb-like friction with bounds F (≥ 0) per joint.
 
-
-def _coulomb(e, t, q, qd, qdd):
-    return e["fc"] * np.sign(qd)
-
-
-def _offset(e, t, q, qd, qdd):
-    return e["b"] * np.ones_like(q)
-
-
-def _friction_power(e, t, q, qd, qdd):
-    return (e["fc"] + e["fv"] * np.abs(qd) ** e["alpha"]) * np.sign(qd) + e.get("b", 0.0)
-
-
-_EFFECTS = {"viscous": _viscous, "coulomb": _coulomb, "offset": _offset,
-            "friction_power": _friction_power}
+    Slipping joints get −F·sign(v); sticking ones (active set) the generalized force that
+    holds them at rest, if within ±F. A few active-set sweeps settle it.
+    """
+    stick = np.zeros(v_free.size, dtype=bool)
+    direction = -np.sign(v_free)
+    for _ in range(2 * v_free.size + 2):
+        force = np.where(stick, 0.0, direction * bound)
+        if stick.any():
+            s_idx = np.flatnonzero(stick)
+            rhs = -(v_free + h * minv @ force)[s_idx] / h
+            force[s_idx] = np.linalg.solve(minv[np.ix_(s_idx, s_idx)], rhs)
+        v_new = v_free + h * minv @ force
+        crossed = ~stick & (bound > 0) & (np.sign(v_new) != np.sign(v_free)) & (v_free != 0)
+        crossed |= ~stick & (bound > 0) & (v_free == 0)
+        released = stick & (np.abs(force) > bound * (1 + 1e-9))
+        if not crossed.any() and not released.any():
+            return np.where(stick, 0.0, v_new)
+        stick = (stick | crossed) & ~released
+        direction = np.where(released, -np.sign(force), direction)
+    return np.where(stick, 0.0, v_new)

@@ -1,4 +1,5 @@
-"""Excitation trajectories: finite Fourier series per joint (Swevers et al.), scaled into limits.
+"""Excitation trajectories: optimized finite Fourier series (Swevers et al.), sweeps, stepped
+sines; the trajectory file (CSV + YAML header) and the limit check every program passes.
 
 q_j(t) = q0_j + Σ_l a_jl/(l ω) sin(l ω t) − b_jl/(l ω) cos(l ω t), with analytic derivatives.
 """
@@ -6,13 +7,31 @@ q_j(t) = q0_j + Σ_l a_jl/(l ω) sin(l ω t) − b_jl/(l ω) cos(l ω t), with a
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import numpy as np
+import yaml
 
+from robid_link.exceptions import ConfigError
+from robid_link.ident.effects import DEFAULT_MODEL, Model, States
 from robid_link.ident.robot import Robot
 
-__all__ = ["FourierTrajectory", "random_fourier"]
+__all__ = [
+    "FourierTrajectory",
+    "Trajectory",
+    "random_fourier",
+    "optimize_fourier",
+    "excitation_condition",
+    "constant_velocity_sweeps",
+    "stepped_sine",
+    "check_limits",
+    "write_trajectory",
+    "read_trajectory",
+    "trajectory_states",
+]
 
 #: fraction of each limit a scaled trajectory may use
 LIMIT_MARGIN = 0.9
@@ -44,31 +63,313 @@ class FourierTrajectory:
     def scaled(self, k: float) -> FourierTrajectory:
         return FourierTrajectory(self.base_hz, self.q0, self.a * k, self.b * k)
 
+    def at_rest(self) -> FourierTrajectory:
+        """Coefficients projected so that q̇(0) = q̈(0) = 0 (and so at the end of each period):
+        Σ_l a_l = 0 and Σ_l l·b_l = 0, by adjusting the first harmonic."""
+        a, b = self.a.copy(), self.b.copy()
+        harm = np.arange(1, a.shape[1] + 1)
+        a[:, 0] = -a[:, 1:].sum(axis=1)
+        b[:, 0] = -(b[:, 1:] * harm[1:]).sum(axis=1)
+        return FourierTrajectory(self.base_hz, self.q0, a, b)
 
-def _fit_limits(robot: Robot, traj: FourierTrajectory, margin: float) -> FourierTrajectory:
-    """Largest uniform scaling of the harmonics that keeps q, q̇, q̈ inside the limits."""
-    t = np.linspace(0.0, traj.period_s, 2000)
+    def start(self) -> np.ndarray:
+        return self.evaluate(np.zeros(1))[0][0]
+
+
+@dataclass
+class Trajectory:
+    """A sampled joint trajectory with its header (the trajectory file of DESIGN.md)."""
+
+    t: np.ndarray
+    q: np.ndarray
+    rate_hz: float
+    kind: str
+    robot: str
+    header: dict[str, Any] = field(default_factory=dict)
+
+    def derivatives(self) -> tuple[np.ndarray, np.ndarray]:
+        h = 1.0 / self.rate_hz
+        qd = np.gradient(self.q, h, axis=0)
+        return qd, np.gradient(qd, h, axis=0)
+
+
+# ----------------------------------------------------------------------------- limits
+
+
+def _q_bounds(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
+    lim = robot.limits
+    return (np.where(np.isfinite(lim.q_min), lim.q_min, -math.pi),
+            np.where(np.isfinite(lim.q_max), lim.q_max, math.pi))
+
+
+def check_limits(robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
+                 tau: np.ndarray | None = None, where: str = "trajectory") -> None:
+    """Raise ConfigError naming the first joint and quantity outside the robot's limits."""
+    lim = robot.limits
+    deg = np.array([180 / math.pi if t == "revolute" else 1.0 for t in robot.joint_types])
+    checks = [("q", q, lim.q_min, lim.q_max, "deg"), ("qd", np.abs(qd), None, lim.qd_max, "deg/s"),
+              ("qdd", np.abs(qdd), None, lim.qdd_max, "deg/s²")]
+    for name, x, lo, hi, unit in checks:
+        over = x > hi * (1 + 1e-9)
+        under = x < lo * (1 + 1e-9) - 1e-12 if lo is not None else np.zeros_like(over)
+        bad = over | under
+        if bad.any():
+            k, j = np.argwhere(bad)[0]
+            bound = hi[j] if over[k, j] else lo[j]
+            raise ConfigError(f"{where}: {name}{j + 1} = {x[k, j] * deg[j]:.4g} {unit} at sample "
+                              f"{k + 1} exceeds the limit {bound * deg[j]:.4g} {unit}")
+    if tau is not None:
+        over = np.abs(tau) > lim.tau_max * (1 + 1e-9)
+        if over.any():
+            k, j = np.argwhere(over)[0]
+            raise ConfigError(f"{where}: the a-priori model needs tau{j + 1} = {tau[k, j]:.4g} N·m "
+                              f"at sample {k + 1}, above the limit {lim.tau_max[j]:.4g} N·m")
+
+
+def _nominal_torque(robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
+                    ) -> np.ndarray | None:
+    if robot.nominal is None or not np.isfinite(robot.limits.tau_max).any():
+        return None
+    from robid_link.ident.regressor import rigid_regressor
+
+    return rigid_regressor(robot, q, qd, qdd) @ robot.nominal
+
+
+def fit_limits(robot: Robot, traj: FourierTrajectory, margin: float = LIMIT_MARGIN,
+               n_check: int = 1000) -> FourierTrajectory:
+    """Largest uniform scaling of the harmonics that keeps q, q̇, q̈ (and the a-priori torque)
+    inside the limits."""
+    t = np.linspace(0.0, traj.period_s, n_check)
     q, qd, qdd = traj.evaluate(t)
     lim = robot.limits
-    dev = np.abs(q - traj.q0).max(axis=0)
-    room = np.minimum(traj.q0 - np.where(np.isfinite(lim.q_min), lim.q_min, -math.pi),
-                      np.where(np.isfinite(lim.q_max), lim.q_max, math.pi) - traj.q0)
-    ratios = [room / np.maximum(dev, 1e-12)]
+    lo, hi = _q_bounds(robot)
+    dev_hi = (q - traj.q0).max(axis=0)
+    dev_lo = (traj.q0 - q).max(axis=0)
+    ratios = [np.where(dev_hi > 1e-12, (hi - traj.q0) / np.maximum(dev_hi, 1e-12), np.inf),
+              np.where(dev_lo > 1e-12, (traj.q0 - lo) / np.maximum(dev_lo, 1e-12), np.inf)]
     for x, cap in ((qd, lim.qd_max), (qdd, lim.qdd_max)):
         peak = np.abs(x).max(axis=0)
         ratios.append(np.where(np.isfinite(cap), cap / np.maximum(peak, 1e-12), np.inf))
     k = margin * float(np.min(np.concatenate(ratios)))
-    return traj.scaled(k)
+    out = traj.scaled(k)
+    for _ in range(20):  # torque limits are not linear in the scale (gravity): shrink
+        qs, qds, qdds = out.evaluate(t)
+        tau = _nominal_torque(robot, qs, qds, qdds)
+        if tau is None or np.all(np.abs(tau) <= margin * lim.tau_max):
+            break
+        out = out.scaled(0.9)
+    return out
+
+
+# ----------------------------------------------------------------------------- design
+
+
+def excitation_condition(robot: Robot, traj: FourierTrajectory, model: Model = DEFAULT_MODEL,
+                         n_samples: int = 200) -> float:
+    """Condition number of the column-scaled base regressor over one period."""
+    from robid_link.ident.identify import make_design
+
+    design = _design_cache(robot, model, make_design)
+    t = np.linspace(0.0, traj.period_s, n_samples, endpoint=False)
+    q, qd, qdd = traj.evaluate(t)
+    w = design.expand(design.compact(States(q, qd, qdd, t))).reshape(-1, design.p)
+    norms = np.linalg.norm(w, axis=0)
+    if np.any(norms < 1e-12):
+        return float("inf")
+    sv = np.linalg.svd(w / norms, compute_uv=False)
+    return float(sv[0] / max(sv[-1], 1e-300))
+
+
+_DESIGNS: dict[tuple[int, tuple[str, ...]], Any] = {}
+
+
+def _design_cache(robot: Robot, model: Model, make: Any) -> Any:
+    key = (id(robot), tuple(model.labels()))
+    if key not in _DESIGNS:
+        _DESIGNS[key] = make(robot, model.blocks(robot))[0]
+    return _DESIGNS[key]
 
 
 def random_fourier(robot: Robot, *, harmonics: int = 5, base_hz: float = 0.1,
-                   seed: int = 0, margin: float = LIMIT_MARGIN) -> FourierTrajectory:
+                   seed: int = 0, margin: float = LIMIT_MARGIN, at_rest: bool = True
+                   ) -> FourierTrajectory:
     """A Fourier trajectory with random coefficients, scaled into the robot's limits."""
     rng = np.random.default_rng(seed)
-    lim = robot.limits
-    lo = np.where(np.isfinite(lim.q_min), lim.q_min, -math.pi)
-    hi = np.where(np.isfinite(lim.q_max), lim.q_max, math.pi)
+    lo, hi = _q_bounds(robot)
     q0 = 0.5 * (lo + hi)
-    a = rng.normal(size=(robot.n, harmonics))
-    b = rng.normal(size=(robot.n, harmonics))
-    return _fit_limits(robot, FourierTrajectory(base_hz, q0, a, b), margin)
+    traj = FourierTrajectory(base_hz, q0, rng.normal(size=(robot.n, harmonics)),
+                             rng.normal(size=(robot.n, harmonics)))
+    return fit_limits(robot, traj.at_rest() if at_rest else traj, margin)
+
+
+def optimize_fourier(robot: Robot, *, harmonics: int = 5, base_hz: float = 0.1,
+                     model: Model = DEFAULT_MODEL, seed: int = 0, evaluations: int = 1500
+                     ) -> tuple[FourierTrajectory, float]:
+    """Minimise the condition number of the column-scaled base regressor (Swevers), within
+    the limits, starting and ending at rest. Returns the trajectory and its condition number.
+
+    A (1+1) evolution strategy with the 1/5 success rule: the limit scaling makes the
+    objective non-smooth, where gradient methods stall. Torque limits of the a-priori model
+    are enforced once on the result (they shrink the amplitude, gravity stays).
+    """
+    n, L = robot.n, harmonics
+    lo, hi = _q_bounds(robot)
+    rng = np.random.default_rng(seed)
+
+    def unpack(x: np.ndarray) -> FourierTrajectory:
+        a = x[: n * L].reshape(n, L)
+        b = x[n * L: 2 * n * L].reshape(n, L)
+        q0 = lo + (hi - lo) * (0.5 + 0.3 * np.tanh(x[2 * n * L:]))
+        traj = FourierTrajectory(base_hz, q0, a, b).at_rest()
+        return _fit_kinematic(robot, traj)
+
+    def cost(x: np.ndarray) -> float:
+        c = excitation_condition(robot, unpack(x), model, n_samples=120)
+        return math.log(c) if math.isfinite(c) else 1e3
+
+    x = np.concatenate((rng.normal(size=2 * n * L), np.zeros(n)))
+    fx = cost(x)
+    sigma = 0.3
+    for _ in range(evaluations):
+        y = x + sigma * rng.normal(size=x.size)
+        fy = cost(y)
+        if fy < fx:
+            x, fx = y, fy
+            sigma *= 1.5
+        else:
+            sigma *= 1.5 ** (-0.25)
+        sigma = min(max(sigma, 1e-3), 2.0)
+    traj = fit_limits(robot, unpack(x).scaled(1.0 / LIMIT_MARGIN))
+    return traj, excitation_condition(robot, traj, model)
+
+
+def _fit_kinematic(robot: Robot, traj: FourierTrajectory) -> FourierTrajectory:
+    """fit_limits without the torque check (fast, used inside the optimizer)."""
+    lim = robot.limits
+    saved = lim.tau_max
+    object.__setattr__(lim, "tau_max", np.full_like(saved, np.inf))
+    try:
+        return fit_limits(robot, traj, n_check=300)
+    finally:
+        object.__setattr__(lim, "tau_max", saved)
+
+
+def constant_velocity_sweeps(robot: Robot, joint: int, speeds: Sequence[float],
+                             rate_hz: float, accel_fraction: float = 0.5) -> np.ndarray:
+    """Friction-curve experiment for one joint (0-based): back and forth across its range at
+    each speed (rad/s), trapezoidal velocity, the other joints at mid-range. (N, n) q."""
+    lo, hi = _q_bounds(robot)
+    span_lo = lo[joint] + 0.1 * (hi[joint] - lo[joint])
+    span_hi = hi[joint] - 0.1 * (hi[joint] - lo[joint])
+    acc = accel_fraction * robot.limits.qdd_max[joint]
+    acc = acc if np.isfinite(acc) else 2.0
+    rows = []
+    pos = span_lo
+    h = 1.0 / rate_hz
+    for v in speeds:
+        for target in (span_hi, span_lo):
+            dist = abs(target - pos)
+            direction = math.copysign(1.0, target - pos)
+            t_acc = v / acc
+            if acc * t_acc**2 > dist:  # triangle profile
+                t_acc = math.sqrt(dist / acc)
+            v_peak = acc * t_acc
+            t_flat = max(0.0, (dist - acc * t_acc**2) / max(v_peak, 1e-12))
+            t_total = 2 * t_acc + t_flat
+            tt = np.arange(0.0, t_total, h)
+            s = np.where(tt < t_acc, 0.5 * acc * tt**2,
+                         np.where(tt < t_acc + t_flat,
+                                  0.5 * acc * t_acc**2 + v_peak * (tt - t_acc),
+                                  dist - 0.5 * acc * np.maximum(t_total - tt, 0.0) ** 2))
+            rows.append(pos + direction * s)
+            pos = target
+            rows.append(np.full(int(0.5 * rate_hz), pos))  # settle
+    path = np.concatenate(rows)
+    q = np.tile(0.5 * (lo + hi), (path.size, 1))
+    q[:, joint] = path
+    return q
+
+
+def stepped_sine(robot: Robot, joint: int, pose: np.ndarray, freqs_hz: Sequence[float],
+                 amplitude: float, rate_hz: float, cycles: int = 10) -> np.ndarray:
+    """Small sine bursts around a pose at each frequency (elasticity tests). (N, n) q."""
+    segments = []
+    for f in freqs_hz:
+        tt = np.arange(0.0, cycles / f, 1.0 / rate_hz)
+        env = np.sin(math.pi * tt / tt[-1]) ** 2  # smooth start and end
+        seg = np.tile(pose, (tt.size, 1))
+        seg[:, joint] += amplitude * env * np.sin(2 * math.pi * f * tt)
+        segments.append(seg)
+    return np.concatenate(segments)
+
+
+# ----------------------------------------------------------------------------- files
+
+
+def write_trajectory(path: str | Path, traj: Trajectory) -> tuple[Path, Path]:
+    """CSV ``t,q1..qn`` at the controller's rate plus a YAML header beside it."""
+    p = Path(path)
+    n = traj.q.shape[1]
+    header = ",".join(["t"] + [f"q{j}" for j in range(1, n + 1)])
+    np.savetxt(p, np.column_stack((traj.t, traj.q)), delimiter=",", header=header, comments="",
+               fmt="%.10g")
+    meta = {"robot": traj.robot, "rate_hz": traj.rate_hz, "kind": traj.kind,
+            "samples": int(traj.t.size), **traj.header}
+    y = p.with_suffix(".yaml")
+    y.write_text(yaml.safe_dump(meta, sort_keys=False))
+    return p, y
+
+
+def read_trajectory(path: str | Path) -> Trajectory:
+    p = Path(path)
+    y = p.with_suffix(".yaml")
+    if not p.is_file():
+        raise ConfigError(f"{p}: trajectory file not found")
+    if not y.is_file():
+        raise ConfigError(f"{p}: header file {y.name} not found")
+    try:
+        meta = yaml.safe_load(y.read_text())
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{y}: invalid YAML") from err
+    if not isinstance(meta, dict):
+        raise ConfigError(f"{y}: expected a mapping")
+    for key in ("rate_hz", "kind"):
+        if key not in meta:
+            raise ConfigError(f"{y}: {key}: missing")
+    if meta["kind"] not in ("fourier", "sweep", "stepped_sine", "custom"):
+        raise ConfigError(f"{y}: kind: expected fourier, sweep, stepped_sine or custom")
+    try:
+        arr = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
+    except ValueError as err:
+        raise ConfigError(f"{p}: not a numeric CSV t,q1..qn") from err
+    if arr.shape[1] < 2 or not np.all(np.isfinite(arr)):
+        raise ConfigError(f"{p}: expected finite columns t,q1..qn")
+    rate = float(meta["rate_hz"])
+    if np.any(np.abs(np.diff(arr[:, 0]) - 1.0 / rate) > 1e-6 + 1e-3 / rate):
+        raise ConfigError(f"{p}: time column is not uniform at rate_hz {rate}")
+    return Trajectory(arr[:, 0], arr[:, 1:], rate, str(meta["kind"]), str(meta.get("robot", "")),
+                      {k: v for k, v in meta.items()
+                       if k not in ("rate_hz", "kind", "robot", "samples")})
+
+
+def fourier_header(traj: FourierTrajectory, cond: float) -> dict[str, Any]:
+    return {"base_hz": traj.base_hz, "harmonics": int(traj.a.shape[1]),
+            "q0": traj.q0.tolist(), "a": traj.a.tolist(), "b": traj.b.tolist(),
+            "condition_number": cond, "limits_checked": True}
+
+
+def trajectory_states(traj: Trajectory, rate_hz: float
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """t, q, q̇, q̈ at ``rate_hz``: analytic for Fourier trajectories, else a cubic spline
+    through the file's samples."""
+    t = np.arange(traj.t[0], traj.t[-1] + 1e-12, 1.0 / rate_hz)
+    h = traj.header
+    if traj.kind == "fourier" and {"base_hz", "q0", "a", "b"} <= set(h):
+        four = FourierTrajectory(float(h["base_hz"]), np.asarray(h["q0"], dtype=float),
+                                 np.asarray(h["a"], dtype=float), np.asarray(h["b"], dtype=float))
+        q, qd, qdd = four.evaluate(t)
+        return t, q, qd, qdd
+    from scipy.interpolate import CubicSpline
+
+    spline = CubicSpline(traj.t, traj.q, axis=0)
+    return t, spline(t), spline(t, 1), spline(t, 2)
