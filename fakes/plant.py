@@ -388,12 +388,29 @@ class Plant:
             elastic = {j: elastic[None] for j in range(n)}
         is_elastic = np.array([j in elastic for j in range(n)])
         per_joint = self._per_joint()
-        smooth = [(e, j) for e, j in per_joint if e["name"] not in _COULOMB_LIKE]
-        sticky = [(e, j) for e, j in per_joint if e["name"] in _COULOMB_LIKE]
+        # viscous and Coulomb as vectors (the common case); other effects one by one
+        fv = np.zeros(n)
+        fc = np.zeros(n)
+        for e, j in per_joint:
+            if e["name"] == "viscous":
+                fv[j] += e["fv"]
+            elif e["name"] == "coulomb":
+                fc[j] += e["fc"]
+        rest = [(e, j) for e, j in per_joint if e["name"] not in ("viscous", "coulomb")]
+        smooth = [(e, j) for e, j in rest if e["name"] not in _COULOMB_LIKE]
+        sticky = [(e, j) for e, j in rest if e["name"] in _COULOMB_LIKE]
         q, v = np.array(q0, dtype=float), np.array(v0, dtype=float)
         th, thd = q.copy(), v.copy()  # motor side of elastic joints (joint units)
         logs = [np.empty((t.size, n)) for _ in range(4)]  # q, qd, qdd, tau
         one = np.zeros(1)
+
+        def bounds(vel: np.ndarray, tau_cmd: np.ndarray, k: int) -> np.ndarray:
+            out = fc.copy()
+            for e, j in sticky:
+                probe = Signals(one + t[k], q[None], vel[None], np.zeros((1, n)), tau_cmd[None])
+                out[j] += abs(EFFECTS[e["name"]](e, probe, j)[0])
+            return out
+
         for k in range(t.size):
             for step in range(sub):
                 q_meas = np.where(is_elastic, th, q)
@@ -402,22 +419,23 @@ class Plant:
                 tau_arm = np.array(tau_cmd, dtype=float)
                 for j, e in elastic.items():  # the arm feels the spring, the motor drives it
                     tau_arm[j] = e["k"] * (th[j] - q[j]) + e["d"] * (thd[j] - v[j])
-                sig = Signals(one + t[k], q[None], v[None], np.zeros((1, n)), tau_cmd[None])
-                f_smooth = np.zeros(n)
-                for e, j in smooth:
-                    f_smooth[j] += EFFECTS[e["name"]](e, sig, j)[0]
+                f_smooth = fv * v
+                if smooth:
+                    sig = Signals(one + t[k], q[None], v[None], np.zeros((1, n)), tau_cmd[None])
+                    for e, j in smooth:
+                        f_smooth[j] += EFFECTS[e["name"]](e, sig, j)[0]
                 pq = self.robot.pin_q(q)
-                a = pin.aba(self.model, self.data, pq, v, tau_arm - f_smooth)
-                v_free = v + h * a
-                bound = np.zeros(n)
-                for e, j in sticky:
-                    probe = Signals(one + t[k], q[None], v_free[None], np.zeros((1, n)),
-                                    tau_cmd[None])
-                    bound[j] += abs(EFFECTS[e["name"]](e, probe, j)[0])
-                v_new = v_free
-                if bound.any():
+                bound = bounds(v, tau_cmd, k)
+                # fast path: every joint keeps slipping the way it moves
+                a = pin.aba(self.model, self.data, pq, v, tau_arm - f_smooth - bound * np.sign(v))
+                v_new = v + h * a
+                crossing = (bound > 0) & ((v == 0) | (np.sign(v_new) != np.sign(v)))
+                if crossing.any():  # exact step: active set with the full M⁻¹
+                    a = pin.aba(self.model, self.data, pq, v, tau_arm - f_smooth)
+                    v_free = v + h * a
                     minv = pin.computeMinverse(self.model, self.data, pq)
-                    v_new = _stick_slip(v_free, bound, np.triu(minv) + np.triu(minv, 1).T, h)
+                    v_new = _stick_slip(v_free, bounds(v_free, tau_cmd, k),
+                                        np.triu(minv) + np.triu(minv, 1).T, h)
                 for j, e in elastic.items():
                     thd[j] += h * (tau_cmd[j] - tau_arm[j]) / e["jm"]
                     th[j] += h * thd[j]

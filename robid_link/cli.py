@@ -74,12 +74,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="TRAJ", help="trajectory CSV (+ .yaml header)")
     p.add_argument("--duration", type=float, default=20.0, metavar="S",
                    help="length in seconds, whole periods (default 20)")
-    p.add_argument("--harmonics", type=int, default=5, metavar="K")
+    p.add_argument("--harmonics", type=int, default=8, metavar="K")
     p.add_argument("--base-hz", type=float, default=0.1, help="Fourier base frequency")
     p.add_argument("--rate", type=float, default=250.0, metavar="HZ",
                    help="controller rate of the trajectory file (default 250)")
     p.add_argument("--model", help="model file whose base set is excited (default model)")
-    p.add_argument("--evaluations", type=int, default=1500, help="optimizer budget")
+    p.add_argument("--evaluations", type=int, default=2500,
+                   help="optimizer budget per restart (3 restarts)")
     p.add_argument("--seed", type=int, default=0)
 
     p = sub.add_parser("simulate", help="run a trajectory on the simulated robot, write a log")

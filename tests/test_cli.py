@@ -96,3 +96,31 @@ def test_model_add(tmp_path, capsys):
     m.write_text("effects: [rigid_body, {name: viscous, joint: zero}]")
     assert main(["model", "add", str(m), "offset"]) == 2
     assert "effects[1].joint: expected a joint number from 1" in capsys.readouterr().err
+
+
+def test_excite_simulate_identify_chain(tmp_path, capsys):
+    traj = tmp_path / "exc.csv"
+    assert main(["excite", "--robot", str(ROBOTS / "arm3.yaml"), "--out", str(traj),
+                 "--duration", "20", "--harmonics", "5", "--evaluations", "150"]) == 0
+    out = capsys.readouterr().out
+    assert "median of 20 random trajectories" in out and traj.with_suffix(".yaml").is_file()
+    truth = tmp_path / "truth.yaml"
+    truth.write_text("perturb: {seed: 1, spread: 0.1}\neffects: [{name: viscous, fv: 2.0}, "
+                     "{name: coulomb, fc: 1.0}]\nnoise: {tau: 0.2}\nrate_hz: 500\n")
+    log = tmp_path / "log.csv"
+    assert main(["simulate", "--robot", str(ROBOTS / "arm3.yaml"), "--truth", str(truth),
+                 "--trajectory", str(traj), "--out", str(log)]) == 0
+    out_json = tmp_path / "r.json"
+    assert main(["identify", "--robot", str(ROBOTS / "arm3.yaml"), "--data", str(log),
+                 "--json", str(out_json)]) == 0
+    doc = json.loads(out_json.read_text())
+    assert all(abs(r - 0.2) < 0.03 for r in doc["rmse"])
+
+
+def test_simulate_errors(tmp_path, capsys):
+    truth = tmp_path / "truth.yaml"
+    truth.write_text("effects: [{name: viscous}]\n")
+    rc = main(["simulate", "--robot", str(ROBOTS / "arm3.yaml"), "--truth", str(truth),
+               "--trajectory", str(tmp_path / "none.csv"), "--out", str(tmp_path / "l.csv")])
+    assert rc == 2
+    assert "effects[0].fv: missing" in capsys.readouterr().err
