@@ -55,6 +55,15 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--json", metavar="FILE", help="write the result as JSON")
     p.add_argument("--out", metavar="DIR", help="write figures, parameter table and YAML")
 
+    p = sub.add_parser("diagnose", help="find where the model fails and which effect is missing")
+    _shared_inputs(p)
+    p.add_argument("--json", metavar="FILE", help="write the diagnosis as JSON")
+    p.add_argument("--out", metavar="DIR", help="write residual figures per joint")
+
+    p = sub.add_parser("history", help="the error ladder of a model file")
+    p.add_argument("model_file")
+    p.add_argument("--out", metavar="PNG", help="plot per-joint RMSE per model version")
+
     p = sub.add_parser("show-robot", help="draw the kinematic chain at a pose (PNG)")
     p.add_argument("--robot", required=True)
     p.add_argument("--lock", action="append", default=[], metavar="NAME")
@@ -129,6 +138,10 @@ def _dispatch(args: argparse.Namespace) -> int:
         return _model_add(args)
     if args.cmd == "demo":
         return _demo(args)
+    if args.cmd == "diagnose":
+        return _diagnose(args)
+    if args.cmd == "history":
+        return _history(args)
     if args.cmd == "excite":
         return _excite(args)
     if args.cmd == "simulate":
@@ -137,8 +150,11 @@ def _dispatch(args: argparse.Namespace) -> int:
 
 
 def _load_model(args: argparse.Namespace):
-    from robid_link.ident.effects import load_model, parse_effect
+    from robid_link.ident.effects import DEFAULT_MODEL, load_model, parse_effect, save_model
 
+    if args.model and not Path(args.model).exists():
+        save_model(args.model, DEFAULT_MODEL)  # the error ladder starts at the default model
+        print(f"created {args.model} with the default model [{', '.join(DEFAULT_MODEL.labels())}]")
     model = load_model(args.model)
     for entry in args.add:
         model = model.with_added(parse_effect(entry, f"--add {entry}"))
@@ -158,11 +174,63 @@ def _identify(args: argparse.Namespace) -> int:
                    interval=args.interval, method=args.method, weight=args.weight,
                    motor_side=args.motor_side)
     print(res.summary())
+    doc = res.to_dict()
     if args.json:
-        write_json(args.json, res.to_dict())
+        write_json(args.json, doc)
     if args.out:
         paths = write_report(res, args.out)
         print(f"\n  wrote {len(paths)} files to {args.out}")
+    _record(args, "identify", doc)
+    return 0
+
+
+def _record(args: argparse.Namespace, kind: str, doc: dict[str, Any]) -> None:
+    if args.model:
+        from robid_link.ident.history import append_record, result_record
+
+        append_record(args.model, result_record(kind, doc))
+
+
+def _diagnose(args: argparse.Namespace) -> int:
+    from robid_link.ident.diagnose import diagnose
+    from robid_link.ident.identify import load_logs
+    from robid_link.ident.report import residual_figures, write_json
+    from robid_link.ident.robot import load_robot
+
+    robot = load_robot(args.robot, args.lock)
+    model = _load_model(args)
+    data = load_logs(robot, args.data, args.fs, args.motor_side)
+    valid = load_logs(robot, args.validate, args.fs, args.motor_side) if args.validate else None
+    dg = diagnose(robot, data, model, validate=valid, cutoff_hz=args.cutoff,
+                  interval=args.interval, motor_side=args.motor_side)
+    print(dg.summary())
+    doc = dg.to_dict()
+    doc["data_files"] = dg.result.to_dict()["data_files"]
+    if args.json:
+        write_json(args.json, doc)
+    if args.out:
+        paths = residual_figures(dg.residuals, dg.result.joints, args.out)
+        print(f"  wrote {len(paths)} figures to {args.out}")
+    if dg.suggestions and args.model:
+        s = dg.suggestions[0]
+        print(f"  next: robid model add {args.model} {s.label()}")
+    _record(args, "diagnose", doc)
+    return 0
+
+
+def _history(args: argparse.Namespace) -> int:
+    from robid_link.ident.history import read_history
+    from robid_link.ident.report import history_figure
+
+    records = read_history(args.model_file)
+    print(f"{args.model_file}: {len(records)} run(s)")
+    for k, r in enumerate(records, 1):
+        rmse = " ".join(f"{x:8.4g}" for x in r.get("rmse") or [])
+        extra = f"  {r['verdict']}" if r.get("verdict") else ""
+        print(f" {k:>3} {r.get('time', '')[:19]} {r.get('kind', ''):<9} "
+              f"[{', '.join(r.get('effects') or [])}]\n      RMSE {rmse}{extra}")
+    if args.out:
+        print(f"wrote {history_figure(records, args.out)}")
     return 0
 
 
@@ -185,11 +253,26 @@ def _show_robot(args: argparse.Namespace) -> int:
 
 
 def _model_add(args: argparse.Namespace) -> int:
-    from robid_link.ident.effects import DEFAULT_MODEL, load_model, parse_effect, save_model
+    from robid_link.ident.effects import (
+        DEFAULT_MODEL,
+        REGISTRY,
+        EffectSpec,
+        load_model,
+        parse_effect,
+        save_model,
+    )
+    from robid_link.ident.history import latest_hypers
 
     path = Path(args.model_file)
     model = load_model(path) if path.exists() else DEFAULT_MODEL
     spec = parse_effect(args.effect, args.effect)
+    chosen = latest_hypers(path, spec.name, spec.joint)
+    allowed = REGISTRY[spec.name].options
+    chosen = {k: v for k, v in chosen.items() if k in allowed and k not in spec.opts}
+    if chosen:
+        spec = EffectSpec(spec.name, spec.joint, tuple(sorted({**spec.opts, **chosen}.items())))
+        print(f"  with {', '.join(f'{k} = {v:.4g}' for k, v in chosen.items())} "
+              "(chosen by the latest diagnosis)")
     model = model.with_added(spec)
     save_model(path, model)
     print(f"{path}: effects [{', '.join(model.labels())}]")

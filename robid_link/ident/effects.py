@@ -43,6 +43,9 @@ class States:
     t: np.ndarray | None = None
     #: T (q_m = T q) when friction acts on the motors (motor-side logs), else None
     transmission: np.ndarray | None = None
+    #: the current model's rigid-body torque and torque rate (load_friction, delay)
+    tau_rigid: np.ndarray | None = None
+    tau_rate: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.q.shape[0])
@@ -184,6 +187,140 @@ class FrictionPower(Effect):
         alpha = float(opts.get("alpha", self.hypers["alpha"].default))
         sgn = np.sign(v)
         return _motor_row(st, robot.n, joint, [sgn, np.abs(v) ** alpha * sgn, np.ones(len(st))])
+
+
+@register
+class CoulombAsymmetric(Effect):
+    name = "coulomb_asymmetric"
+    doc = "Coulomb friction with different levels in the two directions"
+    replaces = ("coulomb", "offset")
+
+    def param_names(self, robot, joint, opts):
+        return [f"fcp_{joint + 1}", f"fcn_{joint + 1}"]
+
+    def columns(self, robot, st, joint, opts):
+        v = st.motor_velocity(joint)
+        return _motor_row(st, robot.n, joint, [(v > 0).astype(float), -(v < 0).astype(float)])
+
+
+@register
+class Stribeck(Effect):
+    name = "stribeck"
+    doc = "breakaway friction above Coulomb, decaying as exp(−|q̇/vs|^δ)"
+    hypers = {"vs": Hyper(0.05, (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.4),
+                          "Stribeck velocity, rad/s")}
+    options = frozenset({"vs", "shape"})
+
+    def param_names(self, robot, joint, opts):
+        return [f"fst_{joint + 1}"]
+
+    def columns(self, robot, st, joint, opts):
+        v = st.motor_velocity(joint)
+        vs = float(opts.get("vs", self.hypers["vs"].default))
+        shape = float(opts.get("shape", 2.0))
+        return _motor_row(st, robot.n, joint, [np.exp(-np.abs(v / vs) ** shape) * np.sign(v)])
+
+
+@register
+class Armature(Effect):
+    name = "armature"
+    doc = "rotor inertia through the gear (J_m·r² on the joint side)"
+
+    def param_names(self, robot, joint, opts):
+        return [f"ia_{joint + 1}"]
+
+    def columns(self, robot, st, joint, opts):
+        acc = st.qdd[:, joint] if st.transmission is None else st.qdd @ st.transmission[joint]
+        return _motor_row(st, robot.n, joint, [acc])
+
+
+@register
+class Spring(Effect):
+    name = "spring"
+    doc = "a torque that is a smooth function of the joint angle (Fourier series in q)"
+    options = frozenset({"order"})
+
+    def param_names(self, robot, joint, opts):
+        order = int(opts.get("order", 3))
+        return [f"spr{k}{c}_{joint + 1}" for k in range(1, order + 1) for c in ("s", "c")]
+
+    def columns(self, robot, st, joint, opts):
+        q = st.q[:, joint]
+        order = int(opts.get("order", 3))
+        cols = [f(k * q) for k in range(1, order + 1) for f in (np.sin, np.cos)]
+        return _row(st, robot.n, joint, cols)
+
+
+@register
+class Ripple(Effect):
+    name = "ripple"
+    doc = "position-periodic torque (cogging, gear meshing) with period P in the joint angle"
+    hypers = {"period": Hyper(0.1, tuple(float(x) for x in np.geomspace(0.01, 1.0, 41)),
+                              "period in rad (found from the residual)")}
+    options = frozenset({"period"})
+
+    def param_names(self, robot, joint, opts):
+        return [f"rps_{joint + 1}", f"rpc_{joint + 1}"]
+
+    def columns(self, robot, st, joint, opts):
+        period = float(opts.get("period", self.hypers["period"].default))
+        ph = 2 * np.pi * st.q[:, joint] / period
+        return _row(st, robot.n, joint, [np.sin(ph), np.cos(ph)])
+
+
+@register
+class FrictionDrift(Effect):
+    name = "friction_drift"
+    doc = "friction changing over the log's time (a joint warming up): exp(−t/τ) terms"
+    hypers = {"tau_s": Hyper(60.0, (5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 1e6),
+                             "time constant of the change, s")}
+    options = frozenset({"tau_s"})
+
+    def param_names(self, robot, joint, opts):
+        return [f"dfc_{joint + 1}", f"dfv_{joint + 1}"]
+
+    def columns(self, robot, st, joint, opts):
+        tau_s = float(opts.get("tau_s", self.hypers["tau_s"].default))
+        t = st.t if st.t is not None else np.zeros(len(st))
+        g = np.exp(-(t - t[0]) / tau_s) if tau_s < 1e5 else (t - t[0]) / max(t[-1] - t[0], 1.0)
+        v = st.motor_velocity(joint)
+        return _motor_row(st, robot.n, joint, [g * np.sign(v), g * v])
+
+
+@register
+class LoadFriction(Effect):
+    name = "load_friction"
+    doc = "friction growing with the transmitted load: μ·|τ_load|·sign(q̇)"
+
+    def param_names(self, robot, joint, opts):
+        return [f"mu_{joint + 1}"]
+
+    def columns(self, robot, st, joint, opts):
+        load = st.tau_rigid[:, joint] if st.tau_rigid is not None else np.zeros(len(st))
+        return _row(st, robot.n, joint, [np.abs(load) * np.sign(st.qd[:, joint])])
+
+
+@register
+class Delay(Effect):
+    """A time shift between the torque and position logs; applied to the data on identify.
+
+    As a candidate its column is the model's torque rate (τ(t − d) ≈ τ(t) − d·τ̇): the
+    coefficient estimates −d.
+    """
+
+    name = "delay"
+    per_joint = False
+    doc = "time shift between torque and position logs"
+    options = frozenset({"seconds"})
+
+    def param_names(self, robot, joint, opts):
+        return [] if "seconds" in opts else ["delay_s"]
+
+    def columns(self, robot, st, joint, opts):
+        if "seconds" in opts:
+            return np.zeros((len(st), robot.n, 0))
+        rate = st.tau_rate if st.tau_rate is not None else np.zeros((len(st), robot.n))
+        return -rate[:, :, None]
 
 
 # ----------------------------------------------------------------------------- model

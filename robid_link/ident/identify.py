@@ -61,7 +61,8 @@ def _random_states(robot: Robot, rng: np.random.Generator, n: int,
     hi = np.where(np.isfinite(robot.limits.q_max), robot.limits.q_max, math.pi)
     q = rng.uniform(lo, hi, (n, robot.n))
     return States(q, rng.normal(size=(n, robot.n)), rng.normal(size=(n, robot.n)),
-                  np.linspace(0.0, 1.0, n), transmission)
+                  np.sort(rng.uniform(0.0, 100.0, n)), transmission,
+                  rng.normal(size=(n, robot.n)), rng.normal(size=(n, robot.n)))
 
 
 def make_design(robot: Robot, blocks: Sequence[Block], transmission: np.ndarray | None = None
@@ -114,6 +115,10 @@ def build_problem(robot: Robot, data: Sequence[Log], model: Model, *,
     if interval < 1:
         raise DataError(f"--interval must be at least 1, got {interval}")
     transmission = robot.transmission if motor_side else None
+    shift = sum(float(s.opts.get("seconds", 0.0)) for s in model.specs if s.name == "delay")
+    if shift:
+        data = [_shift_torque(lg, shift) for lg in data]
+        validate = [_shift_torque(lg, shift) for lg in validate or ()] or None
     preps = [prepare(lg, cutoff_hz, interval) for lg in data]
     vpreps = [prepare(lg, cutoff_hz, 1) for lg in validate or ()]
     for prep in (*preps, *vpreps):
@@ -170,6 +175,7 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
     """
     pb = build_problem(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
                        interval=interval, motor_side=motor_side)
+    _model_torque_inputs(pb)
     hypers = _profile_hypers(pb)
     design, base, names = make_design(robot, pb.blocks, pb.transmission)
     grams = accumulate(design, pb.train, pb.interval, pb.block_len)
@@ -353,3 +359,30 @@ def _longest_run(mask: np.ndarray) -> int:
     edges = np.diff(np.concatenate(([0], mask.astype(np.int8), [0])))
     starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
     return int((stops - starts).max())
+
+
+def _shift_torque(log: Log, seconds: float) -> Log:
+    """Undo a torque log that lags the positions by ``seconds``: τ'(t) = τ(t + seconds)."""
+    from dataclasses import replace
+
+    tau = np.stack([np.interp(log.t + seconds, log.t, log.tau[:, j])
+                    for j in range(log.tau.shape[1])], axis=1)
+    return replace(log, tau=tau, notes=[*log.notes,
+                                        f"torque log shifted by {1e3 * seconds:.3g} ms (delay)"])
+
+
+_NEEDS_MODEL_TORQUE = ("load_friction", "delay")
+
+
+def _model_torque_inputs(pb: Problem) -> None:
+    """Effects whose columns depend on the model's own torque (load friction, an estimated
+    delay) get it from a first fit without them."""
+    if not any(b.effect.name in _NEEDS_MODEL_TORQUE and b.effect.param_names(pb.robot, b.joint,
+               b.opts) for b in pb.blocks):
+        return
+    from robid_link.ident.diagnose import attach_predictions
+
+    first = [b for b in pb.blocks if b.effect.name not in _NEEDS_MODEL_TORQUE]
+    design, _, _ = make_design(pb.robot, first, pb.transmission)
+    f, _ = fit(design, pb.train, pb.interval, pb.block_len, warn=False)
+    attach_predictions(pb.robot, [*pb.preps, *pb.vpreps], design, f.theta)

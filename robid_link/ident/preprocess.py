@@ -181,6 +181,8 @@ class Prepared:
     tau_f: np.ndarray
     filt: ZeroPhaseFilter
     transmission: np.ndarray | None = None  # set for motor-side logs
+    tau_rigid: np.ndarray | None = None  # the current model's rigid torque (diagnosis)
+    tau_rate: np.ndarray | None = None  # … and its torque rate
 
     @property
     def tau(self) -> np.ndarray:
@@ -188,7 +190,9 @@ class Prepared:
 
     def states(self, lo: int, hi: int) -> States:
         return States(self.q[lo:hi], self.qd[lo:hi], self.qdd[lo:hi], self.log.t[lo:hi],
-                      self.transmission)
+                      self.transmission,
+                      None if self.tau_rigid is None else self.tau_rigid[lo:hi],
+                      None if self.tau_rate is None else self.tau_rate[lo:hi])
 
 
 @dataclass(frozen=True)

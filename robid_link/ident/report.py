@@ -13,7 +13,7 @@ import yaml
 from robid_link.ident.results import IdentResult
 from robid_link.ident.robot import Robot
 
-__all__ = ["write_report", "draw_robot", "write_json"]
+__all__ = ["write_report", "draw_robot", "write_json", "residual_figures", "history_figure"]
 
 
 def _pyplot() -> Any:
@@ -125,6 +125,66 @@ def draw_robot(robot: Robot, q: np.ndarray, path: str | Path) -> Path:
     ax.set_title(f"{robot.name} at q = [{qs}] (arrows: joint axes)")
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    return p
+
+
+def residual_figures(res: dict[str, np.ndarray], joints: list[dict[str, Any]], out_dir: str | Path
+                     ) -> list[Path]:
+    """Per joint: residual against time, q, q̇, q̈ and its spectrum; the worst region marked."""
+    import scipy.signal as sig
+
+    plt = _pyplot()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    r = res["r"]
+    for j, jt in enumerate(joints):
+        fig, axes = plt.subplots(1, 5, figsize=(17, 3.2))
+        rj = r[:, j]
+        worst = int(np.argmax(np.convolve(rj**2, np.ones(50) / 50, mode="same")))
+        for ax, key, label in zip(axes[:4], ("t", "q", "qd", "qdd"),
+                                  ("time [s]", "q [rad]", "q̇ [rad/s]", "q̈ [rad/s²]"),
+                                  strict=True):
+            x = res[key] if key == "t" else res[key][:, j]
+            ax.plot(x, rj, ".", ms=1.0, alpha=0.4, color="tab:blue")
+            ax.plot(x[worst], rj[worst], "o", color="tab:red", ms=6, label="worst region")
+            ax.set_xlabel(label)
+        axes[0].set_ylabel(f"joint {jt['joint']} residual [N·m]")
+        axes[0].legend(loc="upper right", fontsize=7)
+        fs = float(res["fs"])
+        nper = int(min(len(rj) // 4, 4 * fs)) or len(rj)
+        f, pxx = sig.welch(rj, fs=fs, nperseg=max(nper, 8))
+        axes[4].semilogy(f[1:], pxx[1:])
+        axes[4].set_xlabel("frequency [Hz]")
+        axes[4].set_ylabel("PSD")
+        fig.suptitle(f"joint {jt['joint']} ({jt['name']}): where the model fails")
+        fig.tight_layout()
+        p = out / f"residual_joint{jt['joint']}.png"
+        fig.savefig(p, dpi=90)
+        plt.close(fig)
+        paths.append(p)
+    return paths
+
+
+def history_figure(records: list[dict[str, Any]], path: str | Path) -> Path:
+    """The error ladder: per-joint validation RMSE per model version."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(8, 4))
+    rmse = np.array([r["rmse"] for r in records if r.get("rmse")], dtype=float)
+    labels = [", ".join(r.get("effects") or [])[-40:] for r in records if r.get("rmse")]
+    for j in range(rmse.shape[1]):
+        ax.plot(range(1, len(rmse) + 1), rmse[:, j], "o-", label=f"joint {j + 1}")
+    ax.set_xticks(range(1, len(rmse) + 1))
+    ax.set_xticklabels([str(k) for k in range(1, len(rmse) + 1)])
+    ax.set_xlabel("run (model version)")
+    ax.set_ylabel("validation RMSE [N·m]")
+    ax.set_yscale("log")
+    ax.legend(fontsize=7)
+    ax.set_title("error ladder: " + (labels[-1] if labels else ""))
+    fig.tight_layout()
+    p = Path(path)
     fig.savefig(p, dpi=100)
     plt.close(fig)
     return p
