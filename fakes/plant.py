@@ -265,7 +265,8 @@ class Plant:
 
     def __init__(self, robot: Robot, truth: Truth) -> None:
         self.robot = robot
-        self.truth = truth
+        defaults = [{**EFFECT_PARAMS.get(e["name"], ((), {}))[1], **e} for e in truth.effects]
+        self.truth = truth = replace(truth, effects=tuple(defaults))
         self.model = robot.model.copy()
         for j in range(robot.n):
             self.model.inertias[j + 1] = pin.Inertia.FromDynamicParameters(

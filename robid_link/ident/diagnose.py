@@ -16,7 +16,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from robid_link.ident.data import Log
-from robid_link.ident.effects import REGISTRY, Block, Model
+from robid_link.ident.effects import REGISTRY, Block, Model, States
 from robid_link.ident.estimate import Grams, accumulate, solve
 from robid_link.ident.identify import base_set_for, build_problem, identify, make_design
 from robid_link.ident.preprocess import Design, Piece, design_chunks, split
@@ -121,37 +121,23 @@ def _candidates(robot: Robot, model: Model) -> list[Block]:
     return out
 
 
-def _residual_rows(pb: Any, design: Design, theta: np.ndarray, extra: Design,
-                   pieces: Sequence[Piece], interval: int) -> tuple[np.ndarray, np.ndarray]:
-    """Residual (filtered) and the extra design's compact columns on the same rows."""
-    res, cols = [], []
-    for pc in pieces:
-        for (c, y, _), (e, _, _) in zip(design_chunks(design, pc, interval),
-                                        design_chunks(extra, pc, interval), strict=True):
-            res.append(y - design.predict(c, theta))
-            cols.append(e)
-    return np.concatenate(res), np.concatenate(cols)
-
-
-def _profile(pb: Any, design: Design, theta: np.ndarray, blk: Block, pieces: Sequence[Piece]
-             ) -> Block:
-    """Choose a candidate's free hyper-parameters by how much of the residual they explain."""
+def _profile(robot: Robot, blk: Block, resid: np.ndarray, st: States) -> Block:
+    """Choose a candidate's free hyper-parameter by how much of the current residual its
+    columns explain (on decimated rows, without refitting the model)."""
     free = blk.free_hypers()
     if not free:
         return blk
     hyper = free[0]
-    grid = blk.effect.hypers[hyper].grid
-    step = max(1, sum(len(p) for p in pieces) // 20000)
-    best, best_val = -1.0, grid[0]
-    for val in grid:
-        trial = Block(blk.effect, blk.joint, {**blk.opts, hyper: val})
-        extra, _, _ = make_design(pb.robot, [trial], pb.transmission)
-        r, e = _residual_rows(pb, design, theta, extra, pieces, step)
-        j = blk.joint if blk.joint is not None else slice(None)
-        x = extra.expand(e)[:, j, :].reshape(-1, extra.p)
-        y = r[:, j].reshape(-1)
+    rows = blk.joint if blk.joint is not None else slice(None)
+    y = resid[:, rows].reshape(-1)
+    best, best_val = -np.inf, blk.effect.hypers[hyper].grid[0]
+    for val in blk.effect.hypers[hyper].grid:
+        opts = {**blk.opts, hyper: val}
+        x = blk.effect.columns(robot, st, blk.joint, opts)[:, rows, :]
+        x = x.reshape(-1, x.shape[-1])
+        x = np.column_stack((x, np.ones(len(x))))  # the level is the model's business
         coef, *_ = np.linalg.lstsq(x, y, rcond=None)
-        explained = 1.0 - np.sum((y - x @ coef) ** 2) / max(np.sum(y * y), 1e-300)
+        explained = 1.0 - np.sum((y - x @ coef) ** 2) / max(np.sum((y - y.mean()) ** 2), 1e-300)
         if explained > best:
             best, best_val = explained, val
     return Block(blk.effect, blk.joint, {**blk.opts, hyper: float(best_val)})
@@ -281,12 +267,14 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     if len(logs) == 1 or all(_same_motion(logs[0], lg) for lg in logs[1:]):
         notes.append("all data is one motion: candidates are scored by blocked "
                       f"cross-validation over the log ({FOLDS} folds), not on a new motion")
-    # profile hypers on the residual, check absorption against the model's columns
+    # residual of the current model on decimated rows: evidence and hyper profiling
+    step = max(1, sum(len(p) for p in pieces) // 20000)
+    resid, states = _residual_with_states(design, theta0, pieces, step)
     absorbed: list[dict[str, Any]] = []
     kept: list[Block] = []
     for blk in _candidates(robot, model):
         if blk.free_hypers():
-            blk = _profile(pb, design, theta0, blk, pieces)
+            blk = _profile(robot, blk, resid, states)
         trial = [*pb.blocks, blk]
         bset, names = base_set_for(robot, trial, pb.transmission)
         width = len(blk.effect.param_names(robot, blk.joint, blk.opts))
@@ -321,9 +309,6 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     folds = _fold_masks(grams.g.shape[1], FOLDS)
     base_sub = np.arange(len(model_cols))
     rmse0 = _cv(grams, base_sub, folds)
-    # residual of the current model (filtered rows) for the evidence correlations
-    step = max(1, sum(len(p) for p in pieces) // 40000)
-    resid, states = _residual_with_states(design, theta0, pieces, step)
     good, bad = [], []
     pos = len(model_cols)
     for blk, cc in zip(kept, cand_cols, strict=True):
@@ -340,9 +325,9 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
             j = blk.joint
             gain = 1.0 - float(rmse1[j] / max(rmse0[j], 1e-300))
             before, after = float(rmse0[j]), float(rmse1[j])
-            r2 = {"r2_q": _r2_binned(states[0][:, j], resid[:, j]),
-                  "r2_qd": _r2_binned(states[1][:, j], resid[:, j]),
-                  "r2_qdd": _r2_binned(states[2][:, j], resid[:, j])}
+            r2 = {"r2_q": _r2_binned(states.q[:, j], resid[:, j]),
+                  "r2_qd": _r2_binned(states.qd[:, j], resid[:, j]),
+                  "r2_qdd": _r2_binned(states.qdd[:, j], resid[:, j])}
         text, fields = _evidence(blk, [], before, after, gain, r2, theta[len(base_sub):])
         sug = Suggestion(blk.effect.name, None if blk.joint is None else blk.joint + 1,
                          [float(x) for x in rmse1], float(gain), p_value, text,
@@ -354,21 +339,26 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     bad.sort(key=lambda s: -s.gain)
     return Diagnosis(result, model.labels(), [float(x) for x in rmse0], good, bad[:10],
                      absorbed, _unexplained(pb, design, theta0), notes,
-                     {"r": resid, "q": states[0], "qd": states[1], "qdd": states[2],
-                      "t": states[3], "fs": np.array(pb.preps[0].filt.fs / step)})
+                     {"r": resid, "q": states.q, "qd": states.qd, "qdd": states.qdd,
+                      "t": states.t, "fs": np.array(pb.preps[0].filt.fs / step)})
 
 
 def _prefer_simpler(good: list[Suggestion]) -> list[Suggestion]:
     """Among near-equal explanations on one joint, the one with fewer parameters first."""
     order = {"offset": 1, "viscous": 1, "coulomb": 1, "armature": 1, "load_friction": 1,
              "stribeck": 1, "coulomb_asymmetric": 2, "ripple": 2, "friction_drift": 2,
-             "friction_power": 3, "spring": 6, "delay": 1}
+             "friction_power": 3, "spring": 9, "delay": 1}
     out = list(good)
-    for i in range(len(out) - 1):
-        a, b = out[i], out[i + 1]
-        if a.joint == b.joint and a.gain - b.gain < 0.02 and \
-                order.get(b.effect, 9) < order.get(a.effect, 9):
-            out[i], out[i + 1] = b, a
+    swapped = True
+    while swapped:  # bubble until stable: equivalents may come in any order
+        swapped = False
+        for i in range(len(out) - 1):
+            a, b = out[i], out[i + 1]
+            close = abs(a.fields["rmse_after"] - b.fields["rmse_after"]) <= 0.01 * max(
+                a.fields["rmse_after"], 1e-12)  # equivalent: the same error left, within 1 %
+            if a.joint == b.joint and close and order.get(b.effect, 9) < order.get(a.effect, 9):
+                out[i], out[i + 1] = b, a
+                swapped = True
     return out
 
 
@@ -398,16 +388,25 @@ def attach_predictions(robot: Robot, preps: Sequence[Any], design: Design,
 
 
 def _residual_with_states(design: Design, theta: np.ndarray, pieces: Sequence[Piece],
-                          step: int) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
-    res, qs, qds, qdds, ts = [], [], [], [], []
+                          step: int) -> tuple[np.ndarray, States]:
+    """The model's residual on decimated (filtered) rows, with the states of those rows."""
+    res: list[np.ndarray] = []
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("q", "qd", "qdd", "t", "tr", "rate")}
     for pc in pieces:
+        prep = pc.prep
         for c, y, idx in design_chunks(design, pc, step):
             res.append(y - design.predict(c, theta))
-            qs.append(pc.prep.q[idx])
-            qds.append(pc.prep.qd[idx])
-            qdds.append(pc.prep.qdd[idx])
-            ts.append(pc.prep.log.t[idx])
-    return np.concatenate(res), tuple(np.concatenate(x) for x in (qs, qds, qdds, ts))
+            parts["q"].append(prep.q[idx])
+            parts["qd"].append(prep.qd[idx])
+            parts["qdd"].append(prep.qdd[idx])
+            parts["t"].append(prep.log.t[idx])
+            if prep.tau_rigid is not None and prep.tau_rate is not None:
+                parts["tr"].append(prep.tau_rigid[idx])
+                parts["rate"].append(prep.tau_rate[idx])
+    cat = {k: np.concatenate(v) if v else None for k, v in parts.items()}
+    st = States(cat["q"], cat["qd"], cat["qdd"], cat["t"], pieces[0].prep.transmission,
+                cat["tr"], cat["rate"])
+    return np.concatenate(res), st
 
 
 def _unexplained(pb: Any, design: Design, theta: np.ndarray) -> list[dict[str, Any]]:

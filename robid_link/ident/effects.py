@@ -237,17 +237,19 @@ class Armature(Effect):
 @register
 class Spring(Effect):
     name = "spring"
-    doc = "a torque that is a smooth function of the joint angle (Fourier series in q)"
+    doc = "a smooth function of the joint angle (Fourier series in q, with its mean)"
     options = frozenset({"order"})
 
     def param_names(self, robot, joint, opts):
-        order = int(opts.get("order", 3))
-        return [f"spr{k}{c}_{joint + 1}" for k in range(1, order + 1) for c in ("s", "c")]
+        order = int(opts.get("order", 4))
+        return [f"spr0_{joint + 1}"] + [f"spr{k}{c}_{joint + 1}" for k in range(1, order + 1)
+                                        for c in ("s", "c")]
 
     def columns(self, robot, st, joint, opts):
         q = st.q[:, joint]
-        order = int(opts.get("order", 3))
-        cols = [f(k * q) for k in range(1, order + 1) for f in (np.sin, np.cos)]
+        order = int(opts.get("order", 4))
+        cols = [np.ones_like(q)] + [f(k * q) for k in range(1, order + 1)
+                                    for f in (np.sin, np.cos)]
         return _row(st, robot.n, joint, cols)
 
 
