@@ -112,10 +112,35 @@ def bench_closed_loop(seconds: float) -> dict[str, float]:
     return {"seconds": seconds, "wall_s": time.perf_counter() - t0}
 
 
+def bench_diagnose(seconds: float) -> dict[str, float]:
+    """diagnose against one identify on the same 6-axis log (60 s at 1 kHz), in-process."""
+    import warnings
+
+    from robid_link.ident.diagnose import diagnose
+    from robid_link.ident.effects import DEFAULT_MODEL
+    from robid_link.ident.identify import identify, load_logs
+
+    with tempfile.TemporaryDirectory() as tmp:
+        data = Path(tmp) / "diag.npz"
+        _make_npz(data, int(seconds * 1000), 1000.0)
+        robot = load_robot(ROBOT)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            logs = load_logs(robot, [data])
+            identify(robot, logs, DEFAULT_MODEL, interval=20)  # warm caches
+            t0 = time.perf_counter()
+            identify(robot, logs, DEFAULT_MODEL)
+            t_id = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            diagnose(robot, logs, DEFAULT_MODEL)
+            t_dg = time.perf_counter() - t0
+    return {"identify_s": t_id, "diagnose_s": t_dg, "ratio": t_dg / t_id}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--samples", type=int, default=1_000_000)
-    ap.add_argument("--only", choices=("identify", "regressor", "plant"))
+    ap.add_argument("--only", choices=("identify", "regressor", "plant", "diagnose"))
     args = ap.parse_args()
     print("robid_link benchmarks (2-core machine; ratios are against baselines run here)\n")
     if args.only in (None, "regressor"):
@@ -128,6 +153,10 @@ def main() -> int:
         print(f"plant, closed loop with Coulomb friction, 6 axes, 60 s at 1 kHz: "
               f"{r['wall_s']:.1f} s wall (target ≤ 20 s; {r['seconds'] / r['wall_s']:.1f}× "
               "real time)")
+    if args.only in (None, "diagnose"):
+        r = bench_diagnose(60.0)
+        print(f"diagnose, 6 axes, 60 s at 1 kHz: {r['diagnose_s']:.1f} s vs one identify "
+              f"{r['identify_s']:.1f} s → {r['ratio']:.1f}× (target ≤ 3×)")
     if args.only in (None, "identify"):
         r = bench_identify(args.samples)
         print(f"identify end to end, {r['samples']:,} samples at 1 kHz, 6 axes, no decimation: "

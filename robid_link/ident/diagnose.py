@@ -18,8 +18,8 @@ from scipy.stats import chi2
 from robid_link.ident.data import Log
 from robid_link.ident.effects import REGISTRY, Block, Model, States
 from robid_link.ident.estimate import Grams, accumulate, solve
-from robid_link.ident.identify import base_set_for, build_problem, identify, make_design
-from robid_link.ident.preprocess import Design, Piece, design_chunks, split
+from robid_link.ident.identify import build_problem, identify, make_design
+from robid_link.ident.preprocess import Design, Piece, block_columns, design_chunks, split
 from robid_link.ident.results import IdentResult
 from robid_link.ident.robot import Robot
 
@@ -121,26 +121,124 @@ def _candidates(robot: Robot, model: Model) -> list[Block]:
     return out
 
 
-def _profile(robot: Robot, blk: Block, resid: np.ndarray, st: States) -> Block:
-    """Choose a candidate's free hyper-parameter by how much of the current residual its
-    columns explain (on decimated rows, without refitting the model)."""
-    free = blk.free_hypers()
-    if not free:
-        return blk
-    hyper = free[0]
-    rows = blk.joint if blk.joint is not None else slice(None)
-    y = resid[:, rows].reshape(-1)
-    best, best_val = -np.inf, blk.effect.hypers[hyper].grid[0]
-    for val in blk.effect.hypers[hyper].grid:
-        opts = {**blk.opts, hyper: val}
-        x = blk.effect.columns(robot, st, blk.joint, opts)[:, rows, :]
-        x = x.reshape(-1, x.shape[-1])
-        x = np.column_stack((x, np.ones(len(x))))  # the level is the model's business
-        coef, *_ = np.linalg.lstsq(x, y, rcond=None)
-        explained = 1.0 - np.sum((y - x @ coef) ** 2) / max(np.sum((y - y.mean()) ** 2), 1e-300)
-        if explained > best:
-            best, best_val = explained, val
-    return Block(blk.effect, blk.joint, {**blk.opts, hyper: float(best_val)})
+def _profile_effect(robot: Robot, blocks: list[Block], resid: np.ndarray,
+                    pieces: Sequence[Piece], step: int, transmission: np.ndarray | None
+                    ) -> list[Block]:
+    """Choose the free hyper-parameter of one effect on all its candidate joints.
+
+    For each grid value the candidate's columns, with the joint's own viscous, Coulomb and
+    offset columns, are parallel-filtered like the residual (one pass for all joints); the
+    value that explains most of each joint's residual wins.
+    """
+    eff = blocks[0].effect
+    hyper = blocks[0].free_hypers()[0]
+    full_grid = eff.hypers[hyper].grid
+    if len(full_grid) > 12:  # coarse pass, then the neighbours of each joint's best
+        coarse = list(full_grid[::4])
+        first = _profile_effect_grid(robot, blocks, resid, pieces, step, transmission, hyper,
+                                     coarse)
+        picks = {full_grid.index(b.opts[hyper]) for b in first}
+        grid = sorted({full_grid[k] for p in picks for k in range(max(0, p - 3),
+                                                                  min(len(full_grid), p + 4))})
+        return _profile_effect_grid(robot, blocks, resid, pieces, step, transmission, hyper,
+                                    grid)
+    return _profile_effect_grid(robot, blocks, resid, pieces, step, transmission, hyper,
+                                list(full_grid))
+
+
+def _profile_subset(pieces: Sequence[Piece], resid: np.ndarray, step: int,
+                    max_samples: int = 15000) -> tuple[list[Piece], np.ndarray]:
+    """Leading pieces worth at most ``max_samples`` samples, and their residual rows."""
+    out: list[Piece] = []
+    rows = 0
+    total = 0
+    for pc in pieces:
+        if total >= max_samples:
+            break
+        take = min(len(pc), max_samples - total)
+        sub = Piece(pc.prep, pc.lo, pc.lo + take, pc.ctx_lo, pc.ctx_hi)
+        out.append(sub)
+        total += take
+        rows += len(range(pc.lo + (-(pc.lo - pc.ctx_lo) % step), sub.hi, step))
+    return out, resid[:rows]
+
+
+def _profile_effect_grid(robot: Robot, blocks: list[Block], resid: np.ndarray,
+                         pieces: Sequence[Piece], step: int, transmission: np.ndarray | None,
+                         hyper: str, grid: list[float]) -> list[Block]:
+    eff = blocks[0].effect
+    joints = [b.joint for b in blocks]
+    score = np.full((len(grid), len(blocks)), -np.inf)
+    helpers = [Block(REGISTRY[name], j, {}) for j in joints if j is not None
+               for name in ("viscous", "coulomb", "offset")]
+    for gi, val in enumerate(grid):
+        trial = [Block(eff, b.joint, {**b.opts, hyper: val}) for b in blocks]
+        names = [nm for b in [*trial, *helpers] for nm in
+                 b.effect.param_names(robot, b.joint, b.opts)]
+        mask = np.zeros((robot.n, len(names)), dtype=bool)
+        col = 0
+        for b in [*trial, *helpers]:
+            width = len(b.effect.param_names(robot, b.joint, b.opts))
+            rows = [b.joint] if b.joint is not None else list(range(robot.n))
+            if transmission is not None and b.joint is not None:
+                rows = list(np.flatnonzero(transmission[b.joint]))
+            mask[np.ix_(rows, range(col, col + width))] = True
+            col += width
+        extra = Design(robot, [*trial, *helpers], np.arange(len(names)), mask)
+        cols = np.concatenate([e for pc in pieces for e, _, _ in design_chunks(extra, pc, step)])
+        dense = extra.expand(cols)
+        for bi, b in enumerate(trial):
+            rows = [b.joint] if b.joint is not None else list(range(robot.n))
+            x = dense[:, rows, :].reshape(-1, dense.shape[2])
+            x = x[:, np.abs(x).max(axis=0) > 0]
+            y = resid[:, rows].reshape(-1)
+            xtx, xty = x.T @ x, x.T @ y
+            coef = np.linalg.lstsq(xtx, xty, rcond=None)[0]
+            score[gi, bi] = float(xty @ coef) / max(float(y @ y), 1e-300)
+    best = np.argmax(score, axis=0)
+    return [Block(b.effect, b.joint, {**b.opts, hyper: float(grid[best[bi]])})
+            for bi, b in enumerate(blocks)]
+
+
+class _Novelty:
+    """Which of a candidate's columns add column space to the model (structurally, on the
+    same random states as the base set), and which model parameters absorb the rest."""
+
+    def __init__(self, robot: Robot, blocks: Sequence[Block], base: Any,
+                 transmission: np.ndarray | None) -> None:
+        from robid_link.ident.identify import _random_states
+
+        self.robot = robot
+        self.names = list(base.names)
+        self.base_names = base.base_names
+        n_states = max(200, 4 * len(self.names))
+        self.states = _random_states(robot, np.random.default_rng(20260), n_states, transmission)
+        w = block_columns(robot, blocks, self.states).reshape(-1, len(self.names))
+        w = w[:, list(base.independent)]
+        self.scale = np.linalg.norm(w, axis=0)
+        self.w = w / self.scale
+        self.q, _ = np.linalg.qr(self.w)
+
+    def check(self, blk: Block) -> tuple[list[int], list[str]]:
+        wc = blk.effect.columns(self.robot, self.states, blk.joint, blk.opts)
+        wc = wc.reshape(-1, wc.shape[-1])
+        norms = np.linalg.norm(wc, axis=0)
+        new: list[int] = []
+        basis = self.q
+        for i in range(wc.shape[1]):
+            if norms[i] <= 1e-12:
+                continue
+            v = wc[:, i] / norms[i]
+            r = v - basis @ (basis.T @ v)
+            if np.linalg.norm(r) > 1e-7:
+                new.append(i)
+                basis = np.column_stack((basis, r / np.linalg.norm(r)))
+        by: list[str] = []
+        if not new:
+            coef, *_ = np.linalg.lstsq(self.w, wc / np.maximum(norms, 1e-300), rcond=None)
+            big = np.abs(coef).max(axis=1) > 1e-6
+            by = [self.base_names[k] for k in np.flatnonzero(big)]
+        return new, by
 
 
 # ----------------------------------------------------------------------------- scoring
@@ -159,22 +257,48 @@ def _fold_masks(k_blocks: int, folds: int) -> list[tuple[np.ndarray, np.ndarray]
     return out
 
 
-def _cv(grams: Grams, sub: np.ndarray, folds: list[tuple[np.ndarray, np.ndarray]]
-        ) -> np.ndarray:
-    """Per-joint held-out RMSE of the sub-model ``sub`` (column indices of the union)."""
-    p = grams.p
-    idx = np.concatenate((sub, [p]))
-    g = grams.g[:, :, idx[:, None], idx[None, :]]  # (n, K, s+1, s+1)
-    sse = np.zeros(g.shape[0])
-    cnt = np.zeros(g.shape[0])
-    counts = grams.g[:, :, p + 1, p + 1]
-    for held, train in folds:
-        tr = g[:, train].sum(axis=(0, 1))
-        theta, _, _ = solve(tr[:-1, :-1], tr[:-1, -1], warn=False)
-        v = np.concatenate((-theta, [1.0]))
-        sse += np.einsum("i,jik,k->j", v, g[:, held].sum(axis=1), v)
-        cnt += counts[:, held].sum(axis=1)
-    return np.sqrt(np.maximum(sse, 0.0) / np.maximum(cnt, 1.0))
+class _FoldCV:
+    """Blocked cross-validation on sub-blocks of the union Grams.
+
+    Per fold the model's block is factored once (column-scaled); a candidate's columns are
+    added through the Schur complement, so scoring it costs O(p·k) instead of a refit.
+    """
+
+    def __init__(self, grams: Grams, n_model: int, folds: list[tuple[np.ndarray, np.ndarray]]
+                 ) -> None:
+        p = grams.p
+        self.p, self.n_model = p, n_model
+        self.train = [grams.g[:, tr].sum(axis=(0, 1)) for _, tr in folds]  # (p+2, p+2)
+        self.held = [grams.g[:, held].sum(axis=1) for held, _ in folds]  # (n, p+2, p+2)
+        self.counts = sum(h[:, p + 1, p + 1] for h in self.held)
+        self.fact = []
+        m = np.arange(n_model)
+        for a in self.train:
+            amm = a[np.ix_(m, m)]
+            d = 1.0 / np.sqrt(np.clip(np.diag(amm), 1e-300, None))
+            evals, evecs = np.linalg.eigh(amm * np.outer(d, d))
+            keep = evals > evals[-1] * 1e-14
+            inv = (evecs[:, keep] / evals[keep]) @ evecs[:, keep].T * np.outer(d, d)
+            self.fact.append(inv)
+
+    def rmse(self, cand: np.ndarray) -> np.ndarray:
+        """Per-joint held-out RMSE of the model plus the union columns ``cand``."""
+        p, m = self.p, np.arange(self.n_model)
+        sse = np.zeros(self.held[0].shape[0])
+        for a, g_held, inv in zip(self.train, self.held, self.fact, strict=True):
+            b_m = a[m, p]
+            if cand.size:
+                a_mc = a[np.ix_(m, cand)]
+                s = a[np.ix_(cand, cand)] - a_mc.T @ inv @ a_mc
+                rhs = a[cand, p] - a_mc.T @ (inv @ b_m)
+                theta_c = np.linalg.lstsq(s, rhs, rcond=None)[0]
+                theta_m = inv @ (b_m - a_mc @ theta_c)
+            else:
+                theta_c, theta_m = np.zeros(0), inv @ b_m
+            idx = np.concatenate((m, cand, [p]))
+            v = np.concatenate((-theta_m, -theta_c, [1.0]))
+            sse += np.einsum("i,jik,k->j", v, g_held[:, idx[:, None], idx[None, :]], v)
+        return np.sqrt(np.maximum(sse, 0.0) / np.maximum(self.counts, 1.0))
 
 
 def _wald(grams: Grams, sub: np.ndarray, cand: np.ndarray) -> tuple[float, np.ndarray]:
@@ -258,64 +382,62 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                        motor_side=motor_side)
     pieces, _ = split(pb.preps, None, holdout=0.0)
     design, base, _ = make_design(robot, pb.blocks, pb.transmission)
-    g0 = accumulate(design, pieces, pb.interval, pb.block_len, max_blocks=BLOCKS)
-    tot = g0.total()
-    theta0, _, _ = solve(tot[:, :design.p, :design.p].sum(0), tot[:, :design.p, design.p].sum(0),
-                         warn=False)
+    theta0 = np.asarray(result.theta)  # same model, same base set: identify's estimate
     attach_predictions(robot, pb.preps, design, theta0)
     notes: list[str] = []
     if len(logs) == 1 or all(_same_motion(logs[0], lg) for lg in logs[1:]):
         notes.append("all data is one motion: candidates are scored by blocked "
                       f"cross-validation over the log ({FOLDS} folds), not on a new motion")
     # residual of the current model on decimated rows: evidence and hyper profiling
-    step = max(1, sum(len(p) for p in pieces) // 20000)
+    step = max(1, sum(len(p) for p in pieces) // 12000)
     resid, states = _residual_with_states(design, theta0, pieces, step)
     absorbed: list[dict[str, Any]] = []
     kept: list[Block] = []
-    for blk in _candidates(robot, model):
-        if blk.free_hypers():
-            blk = _profile(robot, blk, resid, states)
-        trial = [*pb.blocks, blk]
-        bset, names = base_set_for(robot, trial, pb.transmission)
-        width = len(blk.effect.param_names(robot, blk.joint, blk.opts))
-        new = [i for i in range(len(names) - width, len(names)) if i in bset.independent]
+    cand_cols: list[list[int]] = []
+    novelty = _Novelty(robot, pb.blocks, base, pb.transmission)
+    n_model = len(novelty.names)
+    start = n_model
+    candidates = _candidates(robot, model)
+    sub_pieces, sub_resid = _profile_subset(pieces, resid, step)
+    for name in {b.effect.name for b in candidates if b.free_hypers()}:
+        group = [b for b in candidates if b.effect.name == name]
+        chosen = dict(zip(map(id, group), _profile_effect(
+            robot, group, sub_resid, sub_pieces, step, pb.transmission), strict=True))
+        candidates = [chosen.get(id(b), b) for b in candidates]
+    for blk in candidates:
+        new, by = novelty.check(blk)
         if not new:
-            by = sorted({bset.names[bset.independent[k]] for i in range(len(names) - width,
-                         len(names)) for k in bset.absorbed.get(i, ())})
             absorbed.append({"effect": blk.key, "by": by})
             continue
         kept.append(blk)
-    union_blocks = [*pb.blocks, *kept]
-    ubase, unames = base_set_for(robot, union_blocks, pb.transmission)
-    n_model = sum(len(b.effect.param_names(robot, b.joint, b.opts)) for b in pb.blocks)
-    model_cols = list(base.independent)
-    cand_cols: list[list[int]] = []
-    start = n_model
-    for blk in kept:
         width = len(blk.effect.param_names(robot, blk.joint, blk.opts))
-        trial_base, _ = base_set_for(robot, [*pb.blocks, blk], pb.transmission)
-        cand_cols.append([start + i - n_model for i in range(n_model, n_model + width)
-                          if i in trial_base.independent])
+        cand_cols.append([start + i for i in new])
         start += width
+    union_blocks = [*pb.blocks, *kept]
+    model_cols = list(base.independent)
     cols = np.array(model_cols + [c for cc in cand_cols for c in cc])
-    from robid_link.ident.identify import _random_states  # structural mask on these columns
-    from robid_link.ident.preprocess import block_columns
+    from robid_link.ident.identify import _random_states
 
     w = block_columns(robot, union_blocks,
                       _random_states(robot, np.random.default_rng(7), 64, pb.transmission))
     mask = np.abs(w[:, :, cols]).max(axis=0) > 0
     union = Design(robot, union_blocks, cols, mask)
-    grams = accumulate(union, pieces, pb.interval, pb.block_len, max_blocks=BLOCKS)
+    fs, fc = pb.preps[0].filt.fs, pb.preps[0].filt.cutoff_hz
+    keep = max(pb.interval, int(fs / (8.0 * fc)))  # rows after the anti-alias filter suffice
+    grams = accumulate(union, pieces, keep, max(1, pb.block_len * pb.interval // keep),
+                       max_blocks=BLOCKS)
     folds = _fold_masks(grams.g.shape[1], FOLDS)
     base_sub = np.arange(len(model_cols))
-    rmse0 = _cv(grams, base_sub, folds)
+    cv = _FoldCV(grams, len(model_cols), folds)
+    rmse0 = cv.rmse(np.zeros(0, dtype=int))
+    r2_cache: dict[int, dict[str, float]] = {}
     good, bad = [], []
     pos = len(model_cols)
     for blk, cc in zip(kept, cand_cols, strict=True):
         cand = np.arange(pos, pos + len(cc))
         pos += len(cc)
         sub = np.concatenate((base_sub, cand))
-        rmse1 = _cv(grams, sub, folds)
+        rmse1 = cv.rmse(cand)
         p_value, theta = _wald(grams, sub, cand)
         if blk.joint is None:
             gain = 1.0 - math.sqrt(np.mean(rmse1**2) / max(np.mean(rmse0**2), 1e-300))
@@ -325,9 +447,11 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
             j = blk.joint
             gain = 1.0 - float(rmse1[j] / max(rmse0[j], 1e-300))
             before, after = float(rmse0[j]), float(rmse1[j])
-            r2 = {"r2_q": _r2_binned(states.q[:, j], resid[:, j]),
-                  "r2_qd": _r2_binned(states.qd[:, j], resid[:, j]),
-                  "r2_qdd": _r2_binned(states.qdd[:, j], resid[:, j])}
+            if j not in r2_cache:
+                r2_cache[j] = {"r2_q": _r2_binned(states.q[:, j], resid[:, j]),
+                               "r2_qd": _r2_binned(states.qd[:, j], resid[:, j]),
+                               "r2_qdd": _r2_binned(states.qdd[:, j], resid[:, j])}
+            r2 = r2_cache[j]
         text, fields = _evidence(blk, [], before, after, gain, r2, theta[len(base_sub):])
         sug = Suggestion(blk.effect.name, None if blk.joint is None else blk.joint + 1,
                          [float(x) for x in rmse1], float(gain), p_value, text,
@@ -423,18 +547,32 @@ def _unexplained(pb: Any, design: Design, theta: np.ndarray) -> list[dict[str, A
     if nper < 64:
         return out
     f, pxx = sig.welch(r, fs=fs, nperseg=nper, axis=0)
-    band = (f > 2.0) & (f < 0.45 * fs)
+    motion_hz = _motion_bandwidth(prep.q[:n], fs)
+    band = (f > max(2.0, 3.0 * motion_hz)) & (f < 0.45 * fs)
+    idx = np.flatnonzero(band)
     for j in range(pb.robot.n):
-        spec = pxx[band, j]
-        if spec.size < 20:
+        if idx.size < 20:
+            break
+        spec = pxx[:, j]
+        k = idx[int(np.argmax(spec[idx]))]
+        lo_f, hi_f = f[k] / 1.5, f[k] * 1.5
+        near = (f >= lo_f) & (f <= hi_f) & (np.abs(np.arange(f.size) - k) > 2)
+        if k in (idx[0], idx[-1]) or not near.any():
             continue
-        k = int(np.argmax(spec))
-        floor = float(np.median(spec))
-        if spec[k] > 30 * floor:
-            fr = float(f[band][k])
+        prominence = float(spec[k] / np.median(spec[near]))
+        if prominence > 20:
+            fr = float(f[k])
             out.append({"joint": j + 1, "kind": "resonance", "frequency_hz": round(fr, 3),
-                        "peak_over_floor": round(float(spec[k] / floor), 1),
+                        "peak_over_floor": round(prominence, 1),
                         "text": f"joint {j + 1} residual has a resonance at {fr:.3g} Hz "
-                                f"({spec[k] / floor:.3g}× the spectral floor): joint "
-                                "elasticity? Run a stepped-sine experiment around a pose"})
+                                f"({prominence:.3g}× its neighbourhood): joint elasticity? "
+                                "Run a stepped-sine experiment around a pose"})
     return out
+
+
+def _motion_bandwidth(q: np.ndarray, fs: float) -> float:
+    """Frequency below which 99 % of the positions' variation lies."""
+    spec = np.abs(np.fft.rfft(q - q.mean(axis=0), axis=0)) ** 2
+    cum = np.cumsum(spec.sum(axis=1))
+    k = int(np.searchsorted(cum, 0.99 * cum[-1]))
+    return float(k * fs / q.shape[0])

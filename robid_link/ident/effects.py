@@ -40,7 +40,7 @@ class States:
     q: np.ndarray
     qd: np.ndarray
     qdd: np.ndarray
-    t: np.ndarray | None = None
+    t: np.ndarray | None = None  # seconds since the start of the log
     #: T (q_m = T q) when friction acts on the motors (motor-side logs), else None
     transmission: np.ndarray | None = None
     #: the current model's rigid-body torque and torque rate (load_friction, delay)
@@ -283,8 +283,8 @@ class FrictionDrift(Effect):
 
     def columns(self, robot, st, joint, opts):
         tau_s = float(opts.get("tau_s", self.hypers["tau_s"].default))
-        t = st.t if st.t is not None else np.zeros(len(st))
-        g = np.exp(-(t - t[0]) / tau_s) if tau_s < 1e5 else (t - t[0]) / max(t[-1] - t[0], 1.0)
+        t = st.t if st.t is not None else np.zeros(len(st))  # seconds since the log's start
+        g = np.exp(-t / tau_s) if tau_s < 1e5 else t / 100.0  # "1e6": a linear drift
         v = st.motor_velocity(joint)
         return _motor_row(st, robot.n, joint, [g * np.sign(v), g * v])
 

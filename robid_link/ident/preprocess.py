@@ -189,7 +189,9 @@ class Prepared:
         return self.log.tau
 
     def states(self, lo: int, hi: int) -> States:
-        return States(self.q[lo:hi], self.qd[lo:hi], self.qdd[lo:hi], self.log.t[lo:hi],
+        # time since the log's start: effects that change over the log (friction drift)
+        return States(self.q[lo:hi], self.qd[lo:hi], self.qdd[lo:hi],
+                      self.log.t[lo:hi] - self.log.t[0],
                       self.transmission,
                       None if self.tau_rigid is None else self.tau_rigid[lo:hi],
                       None if self.tau_rate is None else self.tau_rate[lo:hi])
