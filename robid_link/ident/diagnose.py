@@ -122,8 +122,8 @@ def _candidates(robot: Robot, model: Model) -> list[Block]:
 
 
 def _profile_effect(robot: Robot, blocks: list[Block], resid: np.ndarray,
-                    pieces: Sequence[Piece], step: int, transmission: np.ndarray | None
-                    ) -> list[Block]:
+                    pieces: Sequence[Piece], step: int, transmission: np.ndarray | None,
+                    q: np.ndarray | None = None) -> list[Block]:
     """Choose the free hyper-parameter of one effect on all its candidate joints.
 
     For each grid value the candidate's columns, with the joint's own viscous, Coulomb and
@@ -133,17 +133,47 @@ def _profile_effect(robot: Robot, blocks: list[Block], resid: np.ndarray,
     eff = blocks[0].effect
     hyper = blocks[0].free_hypers()[0]
     full_grid = eff.hypers[hyper].grid
+    args = (robot, blocks, resid, pieces, step, transmission, hyper)
+    if eff.name == "ripple" and q is not None:  # the period from the residual's spectrum in q
+        chosen = [Block(b.effect, b.joint, {**b.opts, hyper: _period_from_residual(
+            q[: len(resid), b.joint], resid[:, b.joint], full_grid)}) for b in blocks]
+        width = np.full(len(blocks), 1.03)
+        return _refine(args, chosen, hyper, width)
     if len(full_grid) > 12:  # coarse pass, then the neighbours of each joint's best
-        coarse = list(full_grid[::4])
-        first = _profile_effect_grid(robot, blocks, resid, pieces, step, transmission, hyper,
-                                     coarse)
-        picks = {full_grid.index(b.opts[hyper]) for b in first}
-        grid = sorted({full_grid[k] for p in picks for k in range(max(0, p - 3),
-                                                                  min(len(full_grid), p + 4))})
-        return _profile_effect_grid(robot, blocks, resid, pieces, step, transmission, hyper,
-                                    grid)
-    return _profile_effect_grid(robot, blocks, resid, pieces, step, transmission, hyper,
-                                list(full_grid))
+        first = _profile_effect_grid(*args, np.tile(np.array(full_grid[::4])[:, None],
+                                                    (1, len(blocks))))
+        picks = [full_grid.index(b.opts[hyper]) for b in first]
+        values = np.array([[full_grid[min(max(p + k, 0), len(full_grid) - 1)] for p in picks]
+                           for k in range(-4, 5)])
+        chosen = _profile_effect_grid(*args, values)
+    else:
+        chosen = _profile_effect_grid(*args, np.tile(np.array(full_grid)[:, None],
+                                                     (1, len(blocks))))
+    # fine passes around each joint's best, narrowing (a ripple's period must be exact)
+    grid = np.array(full_grid)
+    width = np.array([grid[min(int(np.argmin(np.abs(grid - b.opts[hyper]))) + 1, grid.size - 1)]
+                      / grid[int(np.argmin(np.abs(grid - b.opts[hyper])))] for b in chosen])
+    return _refine(args, chosen, hyper, np.maximum(width, 1.02))
+
+
+def _refine(args: tuple[Any, ...], chosen: list[Block], hyper: str, width: np.ndarray
+            ) -> list[Block]:
+    """Narrowing passes of 11 values around each joint's current best."""
+    for _ in range(3):
+        centre = np.array([b.opts[hyper] for b in chosen])
+        fine = centre[None, :] * width[None, :] ** np.linspace(-1.0, 1.0, 11)[:, None]
+        chosen = _profile_effect_grid(*args, fine)
+        width = width ** 0.2
+    return chosen
+
+
+def _period_from_residual(q: np.ndarray, r: np.ndarray, grid: Sequence[float]) -> float:
+    """Peak of the Lomb–Scargle periodogram of the residual against the joint angle."""
+    from scipy.signal import lombscargle
+
+    periods = np.geomspace(min(grid), max(grid), 4000)
+    power = lombscargle(q, r - r.mean(), 2 * np.pi / periods)
+    return float(periods[int(np.argmax(power))])
 
 
 def _profile_subset(pieces: Sequence[Piece], resid: np.ndarray, step: int,
@@ -165,14 +195,16 @@ def _profile_subset(pieces: Sequence[Piece], resid: np.ndarray, step: int,
 
 def _profile_effect_grid(robot: Robot, blocks: list[Block], resid: np.ndarray,
                          pieces: Sequence[Piece], step: int, transmission: np.ndarray | None,
-                         hyper: str, grid: list[float]) -> list[Block]:
+                         hyper: str, values: np.ndarray) -> list[Block]:
+    """Score ``values`` (G × blocks: each joint its own candidates) in G passes."""
     eff = blocks[0].effect
     joints = [b.joint for b in blocks]
-    score = np.full((len(grid), len(blocks)), -np.inf)
+    score = np.full(values.shape, -np.inf)
     helpers = [Block(REGISTRY[name], j, {}) for j in joints if j is not None
                for name in ("viscous", "coulomb", "offset")]
-    for gi, val in enumerate(grid):
-        trial = [Block(eff, b.joint, {**b.opts, hyper: val}) for b in blocks]
+    for gi, row in enumerate(values):
+        trial = [Block(eff, b.joint, {**b.opts, hyper: float(v)})
+                 for b, v in zip(blocks, row, strict=True)]
         names = [nm for b in [*trial, *helpers] for nm in
                  b.effect.param_names(robot, b.joint, b.opts)]
         mask = np.zeros((robot.n, len(names)), dtype=bool)
@@ -196,7 +228,7 @@ def _profile_effect_grid(robot: Robot, blocks: list[Block], resid: np.ndarray,
             coef = np.linalg.lstsq(xtx, xty, rcond=None)[0]
             score[gi, bi] = float(xty @ coef) / max(float(y @ y), 1e-300)
     best = np.argmax(score, axis=0)
-    return [Block(b.effect, b.joint, {**b.opts, hyper: float(grid[best[bi]])})
+    return [Block(b.effect, b.joint, {**b.opts, hyper: float(values[best[bi], bi])})
             for bi, b in enumerate(blocks)]
 
 
@@ -317,11 +349,14 @@ def _wald(grams: Grams, sub: np.ndarray, cand: np.ndarray) -> tuple[float, np.nd
         np.array([int(np.flatnonzero(sub == c)[0]) for c in cand])
     beta = theta[pos]
     c_cc = cov[np.ix_(pos, pos)]
-    try:
-        stat = float(beta @ np.linalg.solve(c_cc, beta))
-    except np.linalg.LinAlgError:
+    # rank-revealing: directions the data cannot tell apart carry no degrees of freedom
+    evals, evecs = np.linalg.eigh((c_cc + c_cc.T) / 2)
+    keep = evals > max(evals.max(), 0.0) * 1e-10
+    if not keep.any():
         return 1.0, theta
-    return float(chi2.sf(stat, pos.size)), theta
+    z = evecs[:, keep].T @ beta
+    stat = float(np.sum(z * z / evals[keep]))
+    return float(chi2.sf(stat, int(keep.sum()))), theta
 
 
 # ----------------------------------------------------------------------------- evidence
@@ -402,8 +437,11 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     for name in {b.effect.name for b in candidates if b.free_hypers()}:
         group = [b for b in candidates if b.effect.name == name]
         chosen = dict(zip(map(id, group), _profile_effect(
-            robot, group, sub_resid, sub_pieces, step, pb.transmission), strict=True))
+            robot, group, sub_resid, sub_pieces, step, pb.transmission, states.q), strict=True))
         candidates = [chosen.get(id(b), b) for b in candidates]
+    span = np.ptp(states.q, axis=0)
+    candidates = [b for b in candidates if not (  # a "ripple" as slow as the motion: spring
+        b.effect.name == "ripple" and b.opts.get("period", 0.0) > span[b.joint] / 2)]
     for blk in candidates:
         new, by = novelty.check(blk)
         if not new:

@@ -257,7 +257,8 @@ class Spring(Effect):
 class Ripple(Effect):
     name = "ripple"
     doc = "position-periodic torque (cogging, gear meshing) with period P in the joint angle"
-    hypers = {"period": Hyper(0.1, tuple(float(x) for x in np.geomspace(0.01, 1.0, 41)),
+    # cogging and gear meshing repeat within a few degrees; a slower q-dependence is a spring
+    hypers = {"period": Hyper(0.1, tuple(float(x) for x in np.geomspace(0.01, 0.5, 41)),
                               "period in rad (found from the residual)")}
     options = frozenset({"period"})
 
