@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 import pinocchio as pin
-import yaml
 
+from robid_link.config import read_yaml_mapping
 from robid_link.exceptions import ConfigError
 from robid_link.ident.robot import Robot
 
@@ -113,14 +113,7 @@ def _check_effects(entries: Any, n: int, where: str) -> tuple[dict[str, Any], ..
 def load_truth(path: str | Path, robot: Robot) -> Truth:
     """Read a truth file; every error names the key path."""
     p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"{p}: truth file not found")
-    try:
-        doc = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as err:
-        raise ConfigError(f"{p}: invalid YAML") from err
-    if not isinstance(doc, dict):
-        raise ConfigError(f"{p}: expected a mapping")
+    doc = read_yaml_mapping(p, "truth file")
     known = {"robot", "inertials", "perturb", "effects", "noise", "rate_hz", "mode", "side",
              "controller"}
     bad = set(doc) - known

@@ -161,15 +161,23 @@ def _load_model(args: argparse.Namespace):
     return model
 
 
-def _identify(args: argparse.Namespace) -> int:
-    from robid_link.ident.identify import identify, load_logs
-    from robid_link.ident.report import write_json, write_report
+def _inputs(args: argparse.Namespace):
+    """The shared inputs of identify and diagnose: robot, model, data and validation logs."""
+    from robid_link.ident.identify import load_logs
     from robid_link.ident.robot import load_robot
 
     robot = load_robot(args.robot, args.lock)
     model = _load_model(args)
     data = load_logs(robot, args.data, args.fs, args.motor_side)
     valid = load_logs(robot, args.validate, args.fs, args.motor_side) if args.validate else None
+    return robot, model, data, valid
+
+
+def _identify(args: argparse.Namespace) -> int:
+    from robid_link.ident.identify import identify
+    from robid_link.ident.report import write_json, write_report
+
+    robot, model, data, valid = _inputs(args)
     res = identify(robot, data, model, validate=valid, cutoff_hz=args.cutoff,
                    interval=args.interval, method=args.method, weight=args.weight,
                    motor_side=args.motor_side)
@@ -193,14 +201,9 @@ def _record(args: argparse.Namespace, kind: str, doc: dict[str, Any]) -> None:
 
 def _diagnose(args: argparse.Namespace) -> int:
     from robid_link.ident.diagnose import diagnose
-    from robid_link.ident.identify import load_logs
     from robid_link.ident.report import residual_figures, write_json
-    from robid_link.ident.robot import load_robot
 
-    robot = load_robot(args.robot, args.lock)
-    model = _load_model(args)
-    data = load_logs(robot, args.data, args.fs, args.motor_side)
-    valid = load_logs(robot, args.validate, args.fs, args.motor_side) if args.validate else None
+    robot, model, data, valid = _inputs(args)
     dg = diagnose(robot, data, model, validate=valid, cutoff_hz=args.cutoff,
                   interval=args.interval, motor_side=args.motor_side)
     print(dg.summary())

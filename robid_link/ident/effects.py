@@ -14,6 +14,7 @@ from typing import Any, ClassVar
 import numpy as np
 import yaml
 
+from robid_link.config import read_yaml_mapping
 from robid_link.exceptions import ModelError
 from robid_link.ident.regressor import rigid_regressor
 from robid_link.ident.robot import Robot, standard_parameter_names
@@ -462,13 +463,8 @@ def load_model(path: str | Path | None) -> Model:
     if path is None:
         return DEFAULT_MODEL
     p = Path(path)
-    if not p.is_file():
-        raise ModelError(f"{p}: model file not found")
-    try:
-        doc = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as err:
-        raise ModelError(f"{p}: invalid YAML") from err
-    if not isinstance(doc, dict) or not isinstance(doc.get("effects"), list):
+    doc = read_yaml_mapping(p, "model file", ModelError)
+    if not isinstance(doc.get("effects"), list):
         raise ModelError(f"{p}: expected a mapping with a list 'effects'")
     try:
         return Model.parse(doc["effects"], "effects")

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from robid_link.config import read_yaml_mapping
 from robid_link.exceptions import ConfigError
 from robid_link.ident.effects import DEFAULT_MODEL, Model, States
 from robid_link.ident.robot import Robot
@@ -330,12 +331,7 @@ def read_trajectory(path: str | Path) -> Trajectory:
         raise ConfigError(f"{p}: trajectory file not found")
     if not y.is_file():
         raise ConfigError(f"{p}: header file {y.name} not found")
-    try:
-        meta = yaml.safe_load(y.read_text())
-    except yaml.YAMLError as err:
-        raise ConfigError(f"{y}: invalid YAML") from err
-    if not isinstance(meta, dict):
-        raise ConfigError(f"{y}: expected a mapping")
+    meta = read_yaml_mapping(y, "trajectory header")
     for key in ("rate_hz", "kind"):
         if key not in meta:
             raise ConfigError(f"{y}: {key}: missing")

@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 import pinocchio as pin
-import yaml
 
+from robid_link.config import read_yaml_mapping
 from robid_link.exceptions import RobotError
 
 __all__ = ["Robot", "Limits", "load_robot", "STANDARD_NAMES", "standard_parameter_names"]
@@ -144,22 +144,11 @@ def _vec(x: Any, size: int, where: str, src: Path) -> np.ndarray:
     return np.array([_num(v, f"{where}[{i}]", src) for i, v in enumerate(x)])
 
 
-def _read_yaml(p: Path) -> Any:
-    try:
-        return yaml.safe_load(p.read_text())
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise RobotError(f"{p}: invalid YAML{where}") from err
-
-
 _JOINT_KEYS = {"name", "type", "alpha", "a", "theta", "d", "limits", "inertial"}
 
 
 def _load_mdh(p: Path) -> Robot:
-    doc = _read_yaml(p)
-    if not isinstance(doc, dict):
-        raise RobotError(f"{p}: expected a mapping with 'joints'")
+    doc = read_yaml_mapping(p, "robot description", RobotError)
     unknown = set(doc) - {"name", "gravity", "joints", "transmission", "description"}
     if unknown:
         raise RobotError(f"{p}: unknown key '{sorted(unknown)[0]}'")
