@@ -252,6 +252,14 @@ _COULOMB_LIKE = {"coulomb", "coulomb_asymmetric", "stribeck", "friction_power",
 # ----------------------------------------------------------------------------- plant
 
 
+def _with_inertials(model: pin.Model, params: np.ndarray) -> pin.Model:
+    """A copy of the model whose links carry these standard parameters (10 per link)."""
+    out = model.copy()
+    for j in range(len(params) // 10):
+        out.inertias[j + 1] = pin.Inertia.FromDynamicParameters(params[10 * j: 10 * j + 10])
+    return out
+
+
 class Plant:
     """The simulated robot: inverse dynamics (positions follow the command exactly) or
     closed loop (forward dynamics under a computed-torque controller)."""
@@ -260,10 +268,7 @@ class Plant:
         self.robot = robot
         defaults = [{**EFFECT_PARAMS.get(e["name"], ((), {}))[1], **e} for e in truth.effects]
         self.truth = truth = replace(truth, effects=tuple(defaults))
-        self.model = robot.model.copy()
-        for j in range(robot.n):
-            self.model.inertias[j + 1] = pin.Inertia.FromDynamicParameters(
-                truth.inertials[10 * j: 10 * j + 10])
+        self.model = _with_inertials(robot.model, truth.inertials)
         for e in truth.effects:
             if e["name"] == "payload":  # a point mass at the flange (last joint frame)
                 com = e["com"] if isinstance(e["com"], list) else [0.0, 0.0, float(e["com"])]
@@ -344,11 +349,8 @@ class Plant:
         n = self.robot.n
         wn = float(ctrl.get("bandwidth_hz", 8.0)) * 2 * math.pi
         kp, kd, ki = 3 * wn * wn, 3 * wn, wn**3  # PID with a triple pole at the bandwidth
-        nominal = self.robot.model.copy()
-        if self.robot.nominal is not None:
-            for j in range(n):
-                nominal.inertias[j + 1] = pin.Inertia.FromDynamicParameters(
-                    self.robot.nominal[10 * j: 10 * j + 10])
+        nominal = (self.robot.model.copy() if self.robot.nominal is None
+                   else _with_inertials(self.robot.model, self.robot.nominal))
         ndata = nominal.createData()
         integral = np.zeros(n)
 

@@ -18,7 +18,7 @@ from scipy.stats import chi2
 from robid_link.ident.data import Log
 from robid_link.ident.effects import REGISTRY, Block, Model, States
 from robid_link.ident.estimate import Grams, accumulate, solve
-from robid_link.ident.identify import build_problem, identify, make_design
+from robid_link.ident.identify import build_problem, identify, make_design, structural_mask
 from robid_link.ident.preprocess import Design, Piece, block_columns, design_chunks, split
 from robid_link.ident.results import IdentResult
 from robid_link.ident.robot import Robot
@@ -209,18 +209,10 @@ def _profile_effect_grid(robot: Robot, blocks: list[Block], resid: np.ndarray,
     for gi, row in enumerate(values):
         trial = [Block(eff, b.joint, {**b.opts, hyper: float(v)})
                  for b, v in zip(blocks, row, strict=True)]
-        names = [nm for b in [*trial, *helpers] for nm in
-                 b.effect.param_names(robot, b.joint, b.opts)]
-        mask = np.zeros((robot.n, len(names)), dtype=bool)
-        col = 0
-        for b in [*trial, *helpers]:
-            width = len(b.effect.param_names(robot, b.joint, b.opts))
-            rows = [b.joint] if b.joint is not None else list(range(robot.n))
-            if transmission is not None and b.joint is not None:
-                rows = list(np.flatnonzero(transmission[b.joint]))
-            mask[np.ix_(rows, range(col, col + width))] = True
-            col += width
-        extra = Design(robot, [*trial, *helpers], np.arange(len(names)), mask)
+        width = sum(len(b.effect.param_names(robot, b.joint, b.opts)) for b in [*trial, *helpers])
+        every = np.arange(width)
+        extra = Design(robot, [*trial, *helpers], every,
+                       structural_mask(robot, [*trial, *helpers], every, transmission))
         cols = np.concatenate([e for pc in pieces for e, _, _ in design_chunks(extra, pc, step)])
         dense = extra.expand(cols)
         for bi, b in enumerate(trial):
@@ -378,8 +370,8 @@ def _r2_binned(x: np.ndarray, r: np.ndarray, bins: int = 30) -> float:
     return float(1.0 - np.sum((r - fitted) ** 2) / max(np.sum((r - r.mean()) ** 2), 1e-300))
 
 
-def _evidence(blk: Block, j_rows: Sequence[int], before: float, after: float, gain: float,
-              r2: dict[str, float], coef: np.ndarray) -> tuple[str, dict[str, float]]:
+def _evidence(blk: Block, before: float, after: float, r2: dict[str, float],
+              coef: np.ndarray) -> tuple[str, dict[str, float]]:
     name = blk.effect.name
     fields = {"rmse_before": round(before, 4), "rmse_after": round(after, 4)}
     drop = (f"cross-validated RMSE of the filtered torque {fields['rmse_before']:.4g} → "
@@ -458,12 +450,8 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     union_blocks = [*pb.blocks, *kept]
     model_cols = list(base.independent)
     cols = np.array(model_cols + [c for cc in cand_cols for c in cc])
-    from robid_link.ident.identify import _random_states
-
-    w = block_columns(robot, union_blocks,
-                      _random_states(robot, np.random.default_rng(7), 64, pb.transmission))
-    mask = np.abs(w[:, :, cols]).max(axis=0) > 0
-    union = Design(robot, union_blocks, cols, mask)
+    union = Design(robot, union_blocks, cols,
+                   structural_mask(robot, union_blocks, cols, pb.transmission))
     fs, fc = pb.preps[0].filt.fs, pb.preps[0].filt.cutoff_hz
     keep = max(pb.interval, int(fs / (8.0 * fc)))  # rows after the anti-alias filter suffice
     grams = accumulate(union, pieces, keep, max(1, pb.block_len * pb.interval // keep),
@@ -494,7 +482,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                                "r2_qd": _r2_binned(states.qd[:, j], resid[:, j]),
                                "r2_qdd": _r2_binned(states.qdd[:, j], resid[:, j])}
             r2 = r2_cache[j]
-        text, fields = _evidence(blk, [], before, after, gain, r2, theta[len(base_sub):])
+        text, fields = _evidence(blk, before, after, r2, theta[len(base_sub):])
         sug = Suggestion(blk.effect.name, None if blk.joint is None else blk.joint + 1,
                          [float(x) for x in rmse1], float(gain), p_value, text,
                          {"gain": round(float(gain), 4), **fields},

@@ -36,7 +36,8 @@ from robid_link.ident.regressor import (
 from robid_link.ident.results import ErrorStats, IdentResult, Parameter, StatsAccumulator
 from robid_link.ident.robot import Robot
 
-__all__ = ["Problem", "build_problem", "identify", "load_logs", "base_set_for", "make_design"]
+__all__ = ["Problem", "build_problem", "identify", "load_logs", "base_set_for", "make_design",
+           "structural_mask"]
 
 #: condition number of the column-scaled base regressor above which excitation is poor
 POOR_EXCITATION_COND = 1e3
@@ -70,10 +71,16 @@ def make_design(robot: Robot, blocks: Sequence[Block], transmission: np.ndarray 
     """Base set plus the structural sparsity of the base columns (random states)."""
     base, names = base_set_for(robot, blocks, transmission)
     cols = np.array(base.independent)
+    mask = structural_mask(robot, blocks, cols, transmission)
+    return Design(robot, tuple(blocks), cols, mask), base, names
+
+
+def structural_mask(robot: Robot, blocks: Sequence[Block], cols: np.ndarray,
+                    transmission: np.ndarray | None = None) -> np.ndarray:
+    """(n, len(cols)): where joint j's row of each column can be non-zero (random states)."""
     w = block_columns(robot, blocks,
                       _random_states(robot, np.random.default_rng(7), 64, transmission))
-    mask = np.abs(w[:, :, cols]).max(axis=0) > 0
-    return Design(robot, tuple(blocks), cols, mask), base, names
+    return np.abs(w[:, :, cols]).max(axis=0) > 0
 
 
 def base_set_for(robot: Robot, blocks: Sequence[Block], transmission: np.ndarray | None = None
