@@ -100,10 +100,56 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="LOG")
     p.add_argument("--seed", type=int, default=0)
 
-    p = sub.add_parser("demo", help="identify a simulated robot end to end and write a report")
-    p.add_argument("--json", metavar="FILE")
+    p = sub.add_parser("demo", help="the whole job on a simulated cell: fake controller, "
+                       "daemon, campaign, identification, diagnosis, report")
+    p.add_argument("--json", metavar="FILE", help="write the run's result as JSON")
     p.add_argument("--out", metavar="DIR", default="demo-out")
+
+    _link_parsers(sub)
     return ap
+
+
+def _link_parsers(sub: Any) -> None:
+    p = sub.add_parser("daemon", help="run the link daemon in the foreground (systemd unit)")
+    p.add_argument("--config", required=True, metavar="C")
+
+    p = sub.add_parser("fake-controller", help="the controller side of a driver's protocol "
+                       "over the simulated robot (tests, demos)")
+    p.add_argument("--driver", default="file_share", choices=("file_share",))
+    p.add_argument("--share", required=True, metavar="DIR")
+    p.add_argument("--robot", required=True)
+    p.add_argument("--lock", action="append", default=[], metavar="NAME")
+    p.add_argument("--truth", help="truth file (default: nominal inertials, viscous and "
+                   "Coulomb friction, torque noise)")
+    p.add_argument("--fault", help="never_answer, die, truncated_log, corrupt_log, "
+                   "answer_twice, stale_semaphore, nan_log or fail")
+    p.add_argument("--fault-count", type=int, default=1, metavar="N",
+                   help="how many programs the fault hits (default 1)")
+    p.add_argument("--seed", type=int, default=0)
+
+    p = sub.add_parser("campaign", help="start, list or approve test campaigns")
+    csub = p.add_subparsers(dest="campaign_cmd", required=True)
+    pc = csub.add_parser("start", help="queue a run of a campaign (prints its run_id)")
+    pc.add_argument("name")
+    pc.add_argument("--config", required=True, metavar="C")
+    pc.add_argument("--trigger", choices=("operator", "timer"), default="operator",
+                    help="timer: unattended, runs only approved programs")
+    pc.add_argument("--wait", action="store_true", help="show progress until the run ends")
+    pc.add_argument("--json", metavar="FILE", help="with --wait: write the run and results")
+    pc = csub.add_parser("list", help="the campaigns of the config")
+    pc.add_argument("--config", required=True, metavar="C")
+    pc = csub.add_parser("approve", help="generate, check and approve a campaign's programs "
+                         "for unattended runs")
+    pc.add_argument("name")
+    pc.add_argument("--config", required=True, metavar="C")
+
+    p = sub.add_parser("status", help="runs, their state and progress")
+    p.add_argument("--config", required=True, metavar="C")
+    p.add_argument("--json", metavar="FILE")
+
+    p = sub.add_parser("results", help="identification results across runs and robots")
+    p.add_argument("--config", required=True, metavar="C")
+    p.add_argument("--robot", metavar="NAME")
 
 
 def _one_line_warnings() -> None:
@@ -146,7 +192,9 @@ def _dispatch(args: argparse.Namespace) -> int:
         return _excite(args)
     if args.cmd == "simulate":
         return _simulate(args)
-    raise AssertionError(args.cmd)
+    from robid_link.link.commands import dispatch
+
+    return dispatch(args)
 
 
 def _load_model(args: argparse.Namespace):

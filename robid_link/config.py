@@ -1,10 +1,12 @@
-"""YAML at the edge: read a file into a mapping, with one-line errors that name the file.
+"""YAML at the edge: read a file into a mapping with one-line errors that name the file, and
+the daemon's config parsed once into frozen dataclasses whose errors name the key path.
 
-Callers validate keys and raise their own error class (robot, model, truth, trajectory).
+Robot, model, truth and trajectory files validate their own keys on top of the reader.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -12,7 +14,8 @@ import yaml
 
 from robid_link.exceptions import ConfigError, RobidError
 
-__all__ = ["read_yaml_mapping"]
+__all__ = ["read_yaml_mapping", "load_daemon_config", "DaemonConfig", "CampaignDef",
+           "ExperimentDef"]
 
 
 def read_yaml_mapping(path: str | Path, what: str, error: type[RobidError] = ConfigError,
@@ -34,3 +37,197 @@ def read_yaml_mapping(path: str | Path, what: str, error: type[RobidError] = Con
     if not isinstance(doc, dict):
         raise error(f"{p}: expected a mapping")
     return doc
+
+
+# ----------------------------------------------------------------------------- daemon config
+
+_DAEMON_KEYS = {"robot", "lock", "state_dir", "control_socket", "socket_mode", "driver",
+                "campaigns", "worker_start_method", "log_level"}
+_CAMPAIGN_KEYS = {"experiments", "identify", "diagnose", "model", "add", "method", "retries",
+                  "backoff_s", "timeout_s", "reduced_speed_first", "cutoff_hz", "motor_side",
+                  "upload"}
+
+
+@dataclass(frozen=True)
+class ExperimentDef:
+    """One experiment of a campaign: its id (a file-name-safe word), kind and options."""
+
+    exp_id: str
+    kind: str
+    options: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class CampaignDef:
+    name: str
+    experiments: tuple[ExperimentDef, ...]
+    identify: bool = True
+    diagnose: bool = False
+    model: Path | None = None
+    add: tuple[str, ...] = ()
+    method: str = "ols"
+    retries: int = 2
+    backoff_s: float = 2.0
+    timeout_s: float | None = None  # None: twice the program's duration plus 60 s
+    reduced_speed_first: float | None = None
+    cutoff_hz: float | None = None
+    motor_side: bool = False
+    upload: bool = False
+
+
+@dataclass(frozen=True)
+class DaemonConfig:
+    path: Path
+    robot: Path
+    state_dir: Path
+    control_socket: Path
+    driver: dict[str, Any]
+    campaigns: dict[str, CampaignDef]
+    lock: tuple[str, ...] = ()
+    socket_mode: int = 0o660
+    worker_start_method: str = "forkserver"
+    log_level: str = "info"
+
+    @property
+    def base_dir(self) -> Path:
+        return self.path.parent
+
+
+def _num(doc: dict[str, Any], key: str, where: str, default: Any, *, positive: bool = True,
+         integer: bool = False) -> Any:
+    v = doc.get(key, default)
+    if v is None:
+        return None
+    kinds = int if integer else (int, float)
+    if isinstance(v, bool) or not isinstance(v, kinds) or (v <= 0 if positive else v < 0):
+        sign = "a positive" if positive else "a non-negative"
+        raise ConfigError(f"{where}.{key}: expected {sign} {'integer' if integer else 'number'}"
+                          f", got {v!r}")
+    return v
+
+
+def _path(base: Path, v: Any, where: str) -> Path:
+    if not isinstance(v, str) or not v:
+        raise ConfigError(f"{where}: expected a path")
+    p = Path(v).expanduser()
+    return p if p.is_absolute() else base / p
+
+
+def _experiments(raw: Any, where: str) -> tuple[ExperimentDef, ...]:
+    from robid_link.link.driver import check_name
+    from robid_link.link.program import EXPERIMENT_KINDS, experiment_options
+
+    if not isinstance(raw, list) or not raw:
+        raise ConfigError(f"{where}: expected a non-empty list of experiments")
+    out: list[ExperimentDef] = []
+    for i, entry in enumerate(raw):
+        w = f"{where}[{i}]"
+        if isinstance(entry, str):
+            entry = {"kind": entry}
+        if not isinstance(entry, dict):
+            raise ConfigError(f"{w}: expected an experiment kind or a mapping with 'kind'")
+        opts = dict(entry)
+        kind = opts.pop("kind", None)
+        if kind not in EXPERIMENT_KINDS:
+            raise ConfigError(f"{w}.kind: expected one of {', '.join(EXPERIMENT_KINDS)}, "
+                              f"got {kind!r}")
+        exp_id = opts.pop("id", kind if i == 0 or all(e.kind != kind for e in out)
+                          else f"{kind}-{i + 1}")
+        try:
+            check_name(str(exp_id), "id")
+        except RobidError as err:
+            raise ConfigError(f"{w}.id: {err}") from err
+        if any(e.exp_id == exp_id for e in out):
+            raise ConfigError(f"{w}.id: {exp_id!r} is used twice")
+        out.append(ExperimentDef(str(exp_id), kind, experiment_options(kind, opts, w)))
+    return tuple(out)
+
+
+def _campaign(name: str, raw: Any, base: Path) -> CampaignDef:
+    w = f"campaigns.{name}"
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{w}: expected a mapping with 'experiments'")
+    bad = set(raw) - _CAMPAIGN_KEYS
+    if bad:
+        raise ConfigError(f"{w}.{sorted(bad)[0]}: unknown key")
+    if "experiments" not in raw:
+        raise ConfigError(f"{w}.experiments: missing")
+    method = raw.get("method", "ols")
+    if method not in ("ols", "wls", "irls"):
+        raise ConfigError(f"{w}.method: expected ols, wls or irls, got {method!r}")
+    add = raw.get("add") or []
+    if not isinstance(add, list) or not all(isinstance(a, str) for a in add):
+        raise ConfigError(f"{w}.add: expected a list of EFFECT[@J]")
+    rsf = _num(raw, "reduced_speed_first", w, None)
+    if rsf is not None and rsf >= 1:
+        raise ConfigError(f"{w}.reduced_speed_first: expected a fraction in (0, 1), got {rsf!r}")
+    for key in ("identify", "diagnose", "motor_side", "upload"):
+        if not isinstance(raw.get(key, False), bool):
+            raise ConfigError(f"{w}.{key}: expected true or false")
+    return CampaignDef(
+        name=name, experiments=_experiments(raw["experiments"], f"{w}.experiments"),
+        identify=raw.get("identify", True), diagnose=raw.get("diagnose", False),
+        model=_path(base, raw["model"], f"{w}.model") if raw.get("model") else None,
+        add=tuple(add), method=method,
+        retries=_num(raw, "retries", w, 2, positive=False, integer=True),
+        backoff_s=_num(raw, "backoff_s", w, 2.0, positive=False),
+        timeout_s=_num(raw, "timeout_s", w, None), reduced_speed_first=rsf,
+        cutoff_hz=_num(raw, "cutoff_hz", w, None), motor_side=raw.get("motor_side", False),
+        upload=raw.get("upload", False))
+
+
+def load_daemon_config(path: str | Path) -> DaemonConfig:
+    """Read and validate the daemon's config; every error names the file and key path."""
+    p = Path(path)
+    doc = read_yaml_mapping(p, "daemon config")
+    try:
+        return _daemon_config(p, doc)
+    except ConfigError as err:
+        raise ConfigError(f"{p}: {err}") from err
+
+
+def _daemon_config(p: Path, doc: dict[str, Any]) -> DaemonConfig:
+    import re
+
+    bad = set(doc) - _DAEMON_KEYS
+    if bad:
+        raise ConfigError(f"{sorted(bad)[0]}: unknown key")
+    for key in ("robot", "state_dir", "control_socket", "driver", "campaigns"):
+        if key not in doc:
+            raise ConfigError(f"{key}: missing")
+    base = p.parent
+    driver = doc["driver"]
+    if not isinstance(driver, dict) or not isinstance(driver.get("name"), str):
+        raise ConfigError("driver.name: missing (e.g. driver: {name: file_share, share: DIR})")
+    driver = dict(driver)
+    if isinstance(driver.get("share"), str):
+        driver["share"] = str(_path(base, driver["share"], "driver.share"))
+    camps = doc["campaigns"]
+    if not isinstance(camps, dict) or not camps:
+        raise ConfigError("campaigns: expected a mapping of campaign names")
+    for name in camps:
+        if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9_\-]+", name):
+            raise ConfigError(f"campaigns.{name}: names are letters, digits, '_' and '-'")
+    mode = doc.get("socket_mode", 0o660)
+    if isinstance(mode, str):
+        try:
+            mode = int(mode, 8)
+        except ValueError as err:
+            raise ConfigError(f"socket_mode: expected octal like '0660', got {mode!r}") from err
+    if isinstance(mode, bool) or not isinstance(mode, int) or not 0 <= mode <= 0o777:
+        raise ConfigError(f"socket_mode: expected octal like '0660', got {mode!r}")
+    start = doc.get("worker_start_method", "forkserver")
+    if start not in ("forkserver", "spawn"):
+        raise ConfigError(f"worker_start_method: expected forkserver or spawn, got {start!r}")
+    level = doc.get("log_level", "info")
+    if level not in ("debug", "info", "warning", "error"):
+        raise ConfigError(f"log_level: expected debug, info, warning or error, got {level!r}")
+    lock = doc.get("lock") or []
+    if not isinstance(lock, list) or not all(isinstance(x, str) for x in lock):
+        raise ConfigError("lock: expected a list of URDF joint names")
+    return DaemonConfig(
+        path=p.resolve(), robot=_path(base, doc["robot"], "robot"),
+        state_dir=_path(base, doc["state_dir"], "state_dir"),
+        control_socket=_path(base, doc["control_socket"], "control_socket"),
+        driver=driver, campaigns={n: _campaign(n, c, base) for n, c in camps.items()},
+        lock=tuple(lock), socket_mode=mode, worker_start_method=start, log_level=level)

@@ -2,12 +2,14 @@
 
     RobidError
      ├── ConfigError (ValueError)       bad YAML, unknown key, bad value; names the key path
+     │    └── UnsafeProgramError        a motion program breaks the robot's limits
      ├── RobotError (ValueError)        robot description cannot be turned into a model
      ├── DataError (ValueError)         a log file is missing, malformed or inconsistent
      ├── ModelError (ValueError)        unknown effect, bad effect option
      ├── EstimationError (ArithmeticError)  too few samples, rank deficiency
-     └── DriverError                    the controller link failed
-          └── DriverTimeoutError (TimeoutError)
+     ├── DriverError                    the controller link failed
+     │    └── DriverTimeoutError (TimeoutError)
+     └── ApprovalError                  an unattended run met a program nobody approved
 
     RobidWarning (UserWarning)
      ├── ConditioningWarning            poorly excited / ill-conditioned regressor
@@ -26,6 +28,8 @@ __all__ = [
     "EstimationError",
     "DriverError",
     "DriverTimeoutError",
+    "UnsafeProgramError",
+    "ApprovalError",
     "RobidWarning",
     "ConditioningWarning",
     "ExcitationWarning",
@@ -39,6 +43,14 @@ class RobidError(Exception):
 
 class ConfigError(RobidError, ValueError):
     """A configuration file or option is invalid; the message names the key path."""
+
+
+class UnsafeProgramError(ConfigError):
+    """A motion program breaks the robot's limits; it never reaches the controller."""
+
+
+class ApprovalError(RobidError):
+    """An unattended (timer-started) run met a program no operator approved."""
 
 
 class RobotError(RobidError, ValueError):

@@ -1,0 +1,306 @@
+"""The seed tool's protocol on a shared folder: programs in ``inbox/``, logs in ``outbox/``,
+semaphores ``<id>.<nonce>.ready|done|failed`` in ``sem/`` (DESIGN.md, "File-share protocol").
+
+'done' is taken through watchdog: the inotify observer on local disks, a polling observer on
+network shares (SMB/NFS deliver no remote inotify events), and a canary file that proves
+events still arrive, else the driver falls back to polling.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import os
+import re
+import time
+from pathlib import Path
+from typing import Any
+
+from robid_link.exceptions import ConfigError, DriverError
+from robid_link.link.atomic import atomic_write
+from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver, MotionProgram
+
+__all__ = ["FileShareDriver", "sem_name", "parse_sem", "network_fs", "read_done"]
+
+log = logging.getLogger("robid.driver.file_share")
+
+#: file systems whose remote changes raise no local inotify event
+NETWORK_FS = {"nfs", "nfs4", "cifs", "smb3", "smbfs", "ncpfs", "afs", "9p", "fuse.sshfs",
+              "fuse.glusterfs", "ceph", "glusterfs", "lustre", "davfs"}
+_SEM = re.compile(r"^([A-Za-z0-9][A-Za-z0-9_\-]*)\.([A-Za-z0-9][A-Za-z0-9_\-]*)"
+                  r"\.(ready|done|failed)$")
+_HEX64 = re.compile(r"^[0-9a-f]{64}$")
+
+
+def sem_name(exp_id: str, nonce: str, kind: str) -> str:
+    return f"{exp_id}.{nonce}.{kind}"
+
+
+def parse_sem(name: str) -> tuple[str, str, str] | None:
+    """``(exp_id, nonce, kind)`` of a semaphore file name, None for anything else."""
+    m = _SEM.match(name)
+    return (m.group(1), m.group(2), m.group(3)) if m else None
+
+
+def network_fs(path: Path) -> str | None:
+    """The file-system type of ``path`` when it is a network share, else None."""
+    try:
+        mounts = Path("/proc/mounts").read_text().splitlines()
+    except OSError:
+        return None
+    real = str(path.resolve())
+    best, fstype = "", ""
+    for line in mounts:
+        parts = line.split()
+        if len(parts) < 3:
+            continue
+        mnt = parts[1].replace("\\040", " ")
+        if (real == mnt or real.startswith(mnt.rstrip("/") + "/")) and len(mnt) >= len(best):
+            best, fstype = mnt, parts[2]
+    return fstype if fstype in NETWORK_FS else None
+
+
+def read_done(path: Path, exp_id: str, nonce: str) -> Done | None:
+    """Parse a 'done' semaphore: the log's SHA-256 (hex), optionally ``size=N`` after it.
+    None while the file is still empty (a non-atomic writer); DriverError when malformed."""
+    try:
+        text = path.read_text().strip()
+    except FileNotFoundError:
+        return None
+    except (OSError, UnicodeDecodeError) as err:
+        raise DriverError(f"{path}: unreadable 'done' semaphore ({err})") from err
+    if not text:
+        return None
+    tokens = text.split()
+    sha = tokens[0].lower()
+    if not _HEX64.match(sha):
+        raise DriverError(f"{path}: 'done' semaphore does not start with the log's SHA-256")
+    size = None
+    for tok in tokens[1:]:
+        if tok.startswith("size="):
+            try:
+                size = int(tok[5:])
+            except ValueError as err:
+                raise DriverError(f"{path}: bad size field {tok!r}") from err
+    return Done(exp_id, nonce, sha, size)
+
+
+class _Bridge:
+    """watchdog handler: hands file names from the observer thread to the event loop."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, callback: Any) -> None:
+        self._loop, self._callback = loop, callback
+
+    def dispatch(self, event: Any) -> None:
+        if event.is_directory or event.event_type not in ("created", "moved", "modified",
+                                                            "closed"):
+            return
+        raw = event.dest_path if event.event_type == "moved" else event.src_path
+        name = os.path.basename(os.fsdecode(raw))
+        try:
+            self._loop.call_soon_threadsafe(self._callback, name)
+        except RuntimeError:  # loop closed while the observer stops
+            pass
+
+
+class FileShareDriver(Driver):
+    """Daemon side of the file-share protocol.
+
+    Options: ``share`` (folder), ``observer`` (auto | inotify | polling; auto picks polling on
+    network file systems), ``poll_interval_s`` (polling observer), ``canary_interval_s`` (0 to
+    disable the liveness check), ``canary_timeout_s``.
+    """
+
+    name = "file_share"
+    capabilities = frozenset({CAP_RAPID, CAP_UPLOAD})
+    options = frozenset({"share", "observer", "poll_interval_s", "canary_interval_s",
+                         "canary_timeout_s"})
+
+    def __init__(self, *, share: str | os.PathLike[str] | None = None, observer: str = "auto",
+                 poll_interval_s: float = 0.1, canary_interval_s: float = 30.0,
+                 canary_timeout_s: float = 2.0) -> None:
+        super().__init__()
+        if share is None:
+            raise ConfigError("driver.share: missing (the shared folder)")
+        if observer not in ("auto", "inotify", "polling"):
+            raise ConfigError(f"driver.observer: expected auto, inotify or polling, "
+                              f"got {observer!r}")
+        for key, val in (("poll_interval_s", poll_interval_s),
+                         ("canary_interval_s", canary_interval_s),
+                         ("canary_timeout_s", canary_timeout_s)):
+            if isinstance(val, bool) or not isinstance(val, int | float) or val < 0:
+                raise ConfigError(f"driver.{key}: expected a non-negative number, got {val!r}")
+        self.share = Path(share)
+        self.inbox, self.outbox, self.sem = (self.share / d for d in ("inbox", "outbox", "sem"))
+        self._observer_choice = observer
+        self._poll_s = float(poll_interval_s) or 0.1
+        self._canary_s = float(canary_interval_s)
+        self._canary_timeout_s = float(canary_timeout_s) or 2.0
+        self._observer: Any = None
+        self.observer_kind = ""
+        self._waiters: dict[tuple[str, str], asyncio.Event] = {}
+        self._taken: set[tuple[str, str]] = set()
+        self._canary_seen: asyncio.Event | None = None
+        self._canary_name = ""
+        self._tasks: list[asyncio.Task[None]] = []
+
+    # -- lifecycle
+    async def _open(self) -> None:
+        if not self.share.is_dir():
+            raise DriverError(f"{self.share}: shared folder not found")
+        for d in (self.inbox, self.outbox, self.sem):
+            d.mkdir(exist_ok=True)
+        kind = self._observer_choice
+        if kind == "auto":
+            fs = network_fs(self.share)
+            kind = "polling" if fs else "inotify"
+            if fs:
+                log.info("share=%s fs=%s observer=polling (network file system)", self.share, fs)
+        await self._start_observer(kind)
+        for name in sorted(os.listdir(self.sem)):
+            if parse_sem(name) and not name.endswith(".ready"):
+                log.warning("share=%s stale_semaphore=%s (left from an earlier run; ignored)",
+                            self.share, name)
+        if self.observer_kind == "inotify" and self._canary_s > 0:
+            self._tasks.append(asyncio.create_task(self._liveness_loop(),
+                                                   name="file_share-liveness"))
+
+    async def _start_observer(self, kind: str) -> None:
+        from watchdog.observers import Observer
+        from watchdog.observers.polling import PollingObserver
+
+        if self._observer is not None:
+            await self._stop_observer()
+        obs = PollingObserver(timeout=self._poll_s) if kind == "polling" else Observer()
+        obs.schedule(_Bridge(asyncio.get_running_loop(), self._on_file), str(self.sem),
+                     recursive=False)
+        try:
+            await asyncio.to_thread(obs.start)
+        except OSError as err:  # e.g. inotify watch limit reached
+            if kind == "polling":
+                raise DriverError(f"{self.sem}: cannot watch the folder ({err})") from err
+            log.warning("share=%s inotify unavailable (%s); polling instead", self.share, err)
+            await self._start_observer("polling")
+            return
+        self._observer, self.observer_kind = obs, kind
+        # anything that arrived while no observer ran is picked up by a scan
+        for name in os.listdir(self.sem):
+            self._on_file(name)
+
+    async def _stop_observer(self) -> None:
+        obs, self._observer = self._observer, None
+        if obs is not None:
+            obs.stop()
+            await asyncio.to_thread(obs.join, 5.0)
+
+    async def _close(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._tasks.clear()
+        await self._stop_observer()
+
+    # -- events
+    def _on_file(self, name: str) -> None:
+        if self._canary_seen is not None and name == self._canary_name:
+            self._canary_seen.set()
+            return
+        parsed = parse_sem(name)
+        if parsed is None or parsed[2] == "ready":
+            return
+        exp_id, nonce, _ = parsed
+        event = self._waiters.get((exp_id, nonce))
+        if event is not None:
+            event.set()
+        elif (exp_id, nonce) in self._taken:
+            log.warning("share=%s duplicate_semaphore=%s (already taken; ignored)",
+                        self.share, name)
+        elif any(k[0] == exp_id for k in self._waiters):
+            log.warning("share=%s stale_semaphore=%s (another nonce; ignored)", self.share, name)
+
+    async def _liveness_loop(self) -> None:
+        """Prove inotify still delivers: write a canary and wait for its event."""
+        k = 0
+        while self.observer_kind == "inotify":
+            await asyncio.sleep(self._canary_s)
+            k += 1
+            self._canary_name = f".canary.{os.getpid()}.{k}"
+            self._canary_seen = asyncio.Event()
+            path = self.sem / self._canary_name
+            await asyncio.to_thread(path.write_bytes, b"")
+            try:
+                async with asyncio.timeout(self._canary_timeout_s):
+                    await self._canary_seen.wait()
+            except TimeoutError:
+                log.warning("share=%s inotify delivered no event for the canary within %g s; "
+                            "falling back to polling", self.share, self._canary_timeout_s)
+                await self._start_observer("polling")
+            finally:
+                self._canary_seen = None
+                path.unlink(missing_ok=True)
+
+    # -- the cycle
+    async def _put_program(self, program: MotionProgram) -> None:
+        def write() -> None:
+            for suffix, data in program.files.items():
+                if not re.fullmatch(r"[a-z]+(\.[a-z]+)?", suffix):
+                    raise DriverError(f"program file suffix {suffix!r} is not allowed")
+                atomic_write(self.inbox / f"{program.exp_id}.{suffix}", data)
+
+        await asyncio.to_thread(write)
+
+    async def _give_ready(self, exp_id: str, nonce: str) -> None:
+        path = self.sem / sem_name(exp_id, nonce, "ready")
+        if path.exists():  # given before a restart: giving again must not start it twice
+            return
+        body = json.dumps({"experiment": exp_id, "nonce": nonce, "time": time.time()}).encode()
+        await asyncio.to_thread(atomic_write, path, body + b"\n")
+
+    async def _wait_done(self, exp_id: str, nonce: str) -> Done:
+        key = (exp_id, nonce)
+        event = asyncio.Event()
+        self._waiters[key] = event
+        done_path = self.sem / sem_name(exp_id, nonce, "done")
+        failed_path = self.sem / sem_name(exp_id, nonce, "failed")
+        try:
+            while True:
+                # look right after subscribing, and after every event: an answer written
+                # before the subscription raised no event we could see
+                if failed_path.exists():
+                    reason = failed_path.read_text(errors="replace").strip()[:200]
+                    self._taken.add(key)
+                    raise DriverError(f"controller reports experiment {exp_id} failed: "
+                                      f"{reason or 'no reason given'}")
+                done = read_done(done_path, exp_id, nonce)
+                if done is not None:
+                    self._taken.add(key)
+                    return done
+                await event.wait()
+                event.clear()
+        finally:
+            self._waiters.pop(key, None)
+
+    async def _fetch_logs(self, done: Done) -> bytes:
+        path = self.outbox / f"{done.exp_id}.{done.nonce}.log.csv"
+        try:
+            return await asyncio.to_thread(path.read_bytes)
+        except FileNotFoundError as err:
+            raise DriverError(f"{path}: log missing although 'done' was given") from err
+
+    async def _acknowledge(self, done: Done) -> None:
+        for kind in ("ready", "done"):
+            await asyncio.to_thread((self.sem / sem_name(done.exp_id, done.nonce, kind)).unlink,
+                                    True)
+
+    async def _withdraw(self, exp_id: str, nonce: str) -> None:
+        await asyncio.to_thread((self.sem / sem_name(exp_id, nonce, "ready")).unlink, True)
+
+    async def _upload_parameters(self, doc: Any) -> None:
+        folder = self.share / "params"
+        folder.mkdir(exist_ok=True)
+        stamp = time.strftime("%Y%m%dT%H%M%S")
+        robot = str(doc.get("robot", "robot")) if isinstance(doc, dict) else "robot"
+        safe = re.sub(r"[^A-Za-z0-9_\-]", "_", robot)
+        data = json.dumps(doc, indent=1).encode()
+        await asyncio.to_thread(atomic_write, folder / f"{safe}.{stamp}.json", data)

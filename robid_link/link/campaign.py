@@ -1,0 +1,160 @@
+"""Campaign runs: every experiment's program generated and checked up front (unattended runs
+only with operator-approved programs), then the cycles in order, then identification (and
+diagnosis) in a worker process; results into the store. Runs resume from the journal."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from robid_link.config import CampaignDef, DaemonConfig, ExperimentDef
+from robid_link.exceptions import ApprovalError, ConfigError, RobidError
+from robid_link.link.cycle import CyclePolicy, run_cycle
+from robid_link.link.driver import Driver, MotionProgram
+from robid_link.link.store import Store
+from robid_link.link.worker import check_log, generate_program, identify_run, run_in_worker
+
+__all__ = ["TRIGGERS", "plan", "create_run", "prepare_programs", "execute_run"]
+
+log = logging.getLogger("robid.campaign")
+
+TRIGGERS = ("operator", "timer")
+SLOW_SUFFIX = "-slow"
+
+
+def plan(camp: CampaignDef) -> list[tuple[str, ExperimentDef, float | None]]:
+    """The run's experiments in order: ``(exp_id, definition, reduced speed or None)``."""
+    out: list[tuple[str, ExperimentDef, float | None]] = []
+    for exp in camp.experiments:
+        if camp.reduced_speed_first:
+            out.append((exp.exp_id + SLOW_SUFFIX, exp, camp.reduced_speed_first))
+        out.append((exp.exp_id, exp, None))
+    return out
+
+
+def create_run(cfg: DaemonConfig, store: Store, campaign: str, trigger: str) -> str:
+    if campaign not in cfg.campaigns:
+        raise ConfigError(f"campaign {campaign!r}: not in {cfg.path} "
+                          f"(known: {', '.join(sorted(cfg.campaigns))})")
+    if trigger not in TRIGGERS:
+        raise ConfigError(f"trigger: expected operator or timer, got {trigger!r}")
+    exps = [(exp_id, exp.kind) for exp_id, exp, _ in plan(cfg.campaigns[campaign])]
+    return store.create_run(campaign, trigger, {"campaign": campaign}, exps)
+
+
+def _program_key(cfg: DaemonConfig, exp: ExperimentDef, slow: float | None, exp_id: str) -> str:
+    """Same robot, definition (and custom file) → same key → same cached, approvable program."""
+    h = hashlib.sha256()
+    h.update(cfg.robot.read_bytes())
+    extra = b""
+    if exp.kind == "custom":
+        path = Path(exp.options["trajectory"])
+        path = path if path.is_absolute() else cfg.base_dir / path
+        for p in (path, path.with_suffix(".yaml")):
+            try:
+                extra += hashlib.sha256(p.read_bytes()).digest()
+            except OSError as err:
+                raise ConfigError(f"{p}: custom trajectory unreadable ({err.strerror})") from err
+    h.update(extra)
+    h.update(json.dumps([exp_id, exp.kind, exp.options, slow, list(cfg.lock)],
+                        sort_keys=True, default=str).encode())
+    return h.hexdigest()
+
+
+async def prepare_programs(cfg: DaemonConfig, store: Store, ctx: Any, campaign: str
+                           ) -> list[tuple[str, MotionProgram]]:
+    """Generate (or take from the cache) and limit-check every program of a campaign."""
+    out = []
+    for exp_id, exp, slow in plan(cfg.campaigns[campaign]):
+        key = _program_key(cfg, exp, slow, exp_id)
+        sha = store.program_for(key)
+        if sha is None:
+            prog = await run_in_worker(ctx, generate_program, str(cfg.robot), cfg.lock,
+                                       exp_id, exp.kind, exp.options, str(cfg.base_dir), slow)
+            sha = store.put_program(key, prog)
+            log.info("campaign=%s exp=%s program=%s generated (%.1f s of motion)", campaign,
+                     exp_id, sha[:12], prog.duration_s)
+        out.append((exp_id, store.load_program(sha)))
+    return out
+
+
+async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, run_id: str,
+                      kill_hook: Callable[[str], None] = lambda step: None) -> None:
+    """Run or resume ``run_id`` to completed/failed. Cancellation leaves it resumable."""
+    run = store.run(run_id)
+    camp = cfg.campaigns.get(run["campaign"])
+    if camp is None:
+        store.set_run(run_id, "failed", error=f"campaign {run['campaign']!r} is no longer in "
+                      f"{cfg.path}")
+        return
+    store.set_run(run_id, "running", step="generating programs")
+    try:
+        programs = await _pinned_programs(cfg, store, ctx, run_id, run["campaign"])
+        if run["trigger"] == "timer":
+            missing = [e for e, p in programs if not store.approved(p.sha256)]
+            if missing:
+                raise ApprovalError(f"unattended run refused: program of experiment "
+                                    f"{missing[0]} ({dict(programs)[missing[0]].sha256[:12]}) "
+                                    f"is not approved; run: robid campaign approve "
+                                    f"{run['campaign']} --config {cfg.path}")
+        shas = []
+        for k, (exp_id, program) in enumerate(programs, 1):
+            store.set_run(run_id, "running", step=f"experiment {k}/{len(programs)} {exp_id}")
+            policy = CyclePolicy(camp.timeout_s or 2 * program.duration_s + 60.0, camp.retries,
+                                 camp.backoff_s)
+
+            async def check(path: str) -> dict[str, Any]:
+                return await run_in_worker(ctx, check_log, str(cfg.robot), cfg.lock, path)
+
+            shas.append(await run_cycle(store, driver, run_id, exp_id, program, policy, check,
+                                        kill_hook))
+        if camp.identify:
+            await _identify(cfg, store, driver, ctx, run_id, camp, shas, kill_hook)
+    except RobidError as err:
+        store.set_run(run_id, "failed", error=str(err))
+        log.error("run=%s failed: %s", run_id, err)
+        return
+    store.set_run(run_id, "completed")
+    log.info("run=%s completed", run_id)
+
+
+async def _pinned_programs(cfg: DaemonConfig, store: Store, ctx: Any, run_id: str,
+                           campaign: str) -> list[tuple[str, MotionProgram]]:
+    """Programs of the run; an experiment already handed out keeps the program it was given
+    (a config edited between a crash and the restart cannot change a half-run experiment)."""
+    fresh = dict(await prepare_programs(cfg, store, ctx, campaign))
+    out = []
+    for row in store.experiments(run_id):
+        if row["program_sha"]:
+            out.append((row["exp_id"], store.load_program(row["program_sha"])))
+        elif row["exp_id"] in fresh:
+            out.append((row["exp_id"], fresh[row["exp_id"]]))
+        else:
+            raise ConfigError(f"run {run_id}: experiment {row['exp_id']} is no longer in "
+                              f"campaign {campaign}")
+    return out
+
+
+async def _identify(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, run_id: str,
+                    camp: CampaignDef, shas: list[str], kill_hook: Callable[[str], None]) -> None:
+    store.set_run(run_id, "running", step="identifying" + (" and diagnosing"
+                                                           if camp.diagnose else ""))
+    job = {"run_id": run_id, "robot": str(cfg.robot), "lock": list(cfg.lock),
+           "logs": [str(store.check_log(s)) for s in shas],
+           "model": str(camp.model) if camp.model else None, "add": list(camp.add),
+           "method": camp.method, "diagnose": camp.diagnose, "cutoff_hz": camp.cutoff_hz,
+           "motor_side": camp.motor_side,
+           "report_dir": str(store.dir / "reports" / run_id)}
+    kill_hook("identifying")
+    out = await run_in_worker(ctx, identify_run, job)
+    for kind, rec in out["records"].items():
+        store.add_result(run_id, out["robot"], kind, rec)
+    log.info("run=%s identified: rmse %s", run_id,
+             " ".join(f"{x:.3g}" for x in out["records"]["identify"]["rmse"] or []))
+    if camp.upload:
+        await driver.upload_parameters({"robot": out["robot"], "run_id": run_id,
+                                        "parameters": out["parameters"]})

@@ -1,0 +1,172 @@
+"""The link's sub-commands of ``robid``: daemon, fake-controller, campaign, status, results.
+Operator commands talk to the daemon over its control socket; ``status`` and ``results`` read
+the store directly when no daemon answers."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from robid_link.config import load_daemon_config
+from robid_link.exceptions import RobidError
+from robid_link.link.control import DaemonUnreachable, request
+
+__all__ = ["dispatch", "wait_for_run", "format_runs", "format_results"]
+
+
+def dispatch(args: argparse.Namespace) -> int:
+    if args.cmd == "daemon":
+        from robid_link.link.daemon import run_daemon
+
+        return asyncio.run(run_daemon(load_daemon_config(args.config)))
+    if args.cmd == "fake-controller":
+        return _fake_controller(args)
+    cfg = load_daemon_config(args.config)
+    if args.cmd == "campaign":
+        if args.campaign_cmd == "start":
+            run_id = request(cfg.control_socket, {"cmd": "start", "campaign": args.name,
+                                                  "trigger": args.trigger})["run_id"]
+            print(run_id)
+            if not args.wait:
+                return 0
+            run = wait_for_run(cfg.control_socket, run_id)
+            results = request(cfg.control_socket, {"cmd": "results", "run_id": run_id})
+            if args.json:
+                from robid_link.ident.report import write_json
+
+                write_json(args.json, {"run": run, "results": results["results"]})
+            print(format_results(results["results"]))
+            return 0 if run["state"] == "completed" else 1
+        if args.campaign_cmd == "list":
+            for c in request(cfg.control_socket, {"cmd": "list"})["campaigns"]:
+                exps = ", ".join(f"{e['id']} ({e['kind']})" for e in c["experiments"])
+                print(f"{c['name']}: {exps}; identify {c['identify']}, "
+                      f"diagnose {c['diagnose']}")
+            return 0
+        ans = request(cfg.control_socket, {"cmd": "approve", "campaign": args.name},
+                      timeout_s=600.0)
+        for a in ans["approved"]:
+            print(f"approved {a['experiment']}: {a['sha256'][:16]}… "
+                  f"({a['duration_s']:.1f} s of motion, limits checked)")
+        return 0
+    if args.cmd == "status":
+        try:
+            ans = request(cfg.control_socket, {"cmd": "status"})
+        except DaemonUnreachable as err:
+            print(f"robid: {err}; reading the store", file=sys.stderr)
+            from robid_link.link.store import Store
+
+            with Store(cfg.state_dir, readonly=True) as store:
+                ans = {"runs": store.runs(), "status": "daemon not running"}
+        if args.json:
+            from robid_link.ident.report import write_json
+
+            write_json(args.json, {"runs": ans["runs"], "status": ans["status"]})
+        print(f"daemon: {ans['status']}")
+        print(format_runs(ans["runs"]))
+        return 0
+    if args.cmd == "results":
+        try:
+            res = request(cfg.control_socket, {"cmd": "results", "robot": args.robot})["results"]
+        except DaemonUnreachable:
+            from robid_link.link.store import Store
+
+            with Store(cfg.state_dir, readonly=True) as store:
+                res = store.results(args.robot)
+        print(format_results(res))
+        return 0
+    raise AssertionError(args.cmd)
+
+
+def _progress(run: dict[str, Any]) -> str:
+    p = run["progress"]
+    width = 20
+    filled = int(width * p["stored"] / max(p["total"], 1))
+    return (f"[{'#' * filled}{'.' * (width - filled)}] {p['stored']}/{p['total']} logs  "
+            f"{run['state']}: {run.get('step') or ''}")
+
+
+def wait_for_run(socket_path: Path, run_id: str, poll_s: float = 0.5,
+                 stream: Any = None) -> dict[str, Any]:
+    """Show the run's progress until it ends; return the final run record."""
+    stream = stream or sys.stdout
+    tty = stream.isatty()
+    last = ""
+    while True:
+        run = request(socket_path, {"cmd": "status", "run_id": run_id})["runs"][0]
+        line = _progress(run)
+        if line != last:
+            stream.write(("\r\033[K" if tty else "") + line + ("" if tty else "\n"))
+            stream.flush()
+            last = line
+        if run["state"] in ("completed", "failed"):
+            if tty:
+                stream.write("\n")
+            if run["state"] == "failed":
+                stream.write(f"run {run_id} failed: {run['error']}\n")
+            return run
+        time.sleep(poll_s)
+
+
+def format_runs(runs: list[dict[str, Any]]) -> str:
+    if not runs:
+        return "no runs yet"
+    lines = [f"{'run_id':<24} {'campaign':<12} {'trigger':<8} {'state':<10} progress"]
+    for r in runs:
+        p = r["progress"]
+        tail = r.get("error") if r["state"] == "failed" else (r.get("step") or "")
+        lines.append(f"{r['run_id']:<24} {r['campaign']:<12} {r['trigger']:<8} "
+                     f"{r['state']:<10} {p['stored']}/{p['total']} logs  {tail or ''}")
+    return "\n".join(lines)
+
+
+def format_results(results: list[dict[str, Any]]) -> str:
+    """Per-joint validation RMSE of every result, oldest first: runs and robots side by side."""
+    if not results:
+        return "no results yet"
+    lines = []
+    for r in results:
+        rec = r["record"]
+        rmse = " ".join(f"{x:7.3g}" for x in rec.get("rmse") or [])
+        rel = rec.get("relative_error")
+        extra = f"  {rec['verdict']}" if rec.get("verdict") else ""
+        if rec.get("suggestions"):
+            s = rec["suggestions"][0]
+            extra += f" → {s['effect']}{'@' + str(s['joint']) if s.get('joint') else ''}"
+        lines.append(f"{r['run_id']:<24} {r['robot']:<14} {r['kind']:<9} RMSE [{rmse}] N·m"
+                     + (f"  rel {100 * rel:.2f} %" if rel is not None else "") + extra)
+    return "\n".join(lines)
+
+
+def _fake_controller(args: argparse.Namespace) -> int:
+    import logging
+    import signal
+    import threading
+
+    from fakes.controller import FileShareController, default_truth
+    from fakes.plant import load_truth
+    from robid_link.ident.robot import load_robot
+    from robid_link.link.daemon import setup_logging
+
+    setup_logging("info")
+    robot = load_robot(args.robot, args.lock)
+    truth = load_truth(args.truth, robot) if args.truth else default_truth(robot)
+    if not Path(args.share).is_dir():
+        raise RobidError(f"--share: {args.share}: folder not found")
+    ctrl = FileShareController(args.share, robot, truth, fault=args.fault,
+                               fault_count=args.fault_count, seed=args.seed, exit_on_die=True)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    logging.getLogger("robid.fake_controller").info(
+        "serving share=%s robot=%s fault=%s", args.share, robot.name, args.fault)
+    try:
+        ctrl.serve(stop)
+    except KeyboardInterrupt:
+        pass
+    return 0
+
+

@@ -1,0 +1,112 @@
+"""One experiment's cycle, journaled step by step: give (program + 'ready') → take ('done',
+with a timeout) → fetch → store the raw log → load-check it. A failed attempt is retried a
+bounded number of times with a growing, jittered delay and a fresh nonce, so a late answer of
+an earlier attempt is recognised as stale. Every state is resumable after a crash."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import random
+import secrets
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import Any
+
+from robid_link.exceptions import DataError, DriverError, RobidError
+from robid_link.link.driver import Done, Driver, MotionProgram
+from robid_link.link.store import Store
+
+__all__ = ["CycleError", "CyclePolicy", "run_cycle", "new_nonce"]
+
+log = logging.getLogger("robid.cycle")
+
+#: test hook: ``ROBID_FAULT_KILL_AFTER=step[:n]`` SIGKILLs the daemon right after the n-th
+#: journal entry of that step (proves resumption at every point of the cycle)
+KillHook = Callable[[str], None]
+
+
+class CycleError(RobidError):
+    """An experiment failed after its retries."""
+
+
+@dataclass(frozen=True)
+class CyclePolicy:
+    timeout_s: float
+    retries: int = 2
+    backoff_s: float = 2.0
+
+
+def new_nonce() -> str:
+    return secrets.token_hex(4)
+
+
+async def run_cycle(store: Store, driver: Driver, run_id: str, exp_id: str,
+                    program: MotionProgram, policy: CyclePolicy,
+                    check_log: Callable[[str], Awaitable[dict[str, Any]]],
+                    kill_hook: KillHook = lambda step: None) -> str:
+    """Run (or resume) one experiment; returns the SHA-256 of its stored, checked log."""
+    row = store.experiment(run_id, exp_id)
+    if row["log_sha"]:
+        return str(row["log_sha"])
+    attempt, nonce, state = int(row["attempt"]), row["nonce"], row["state"]
+    if state not in ("giving", "given", "taken"):
+        nonce = None  # pending, or a failed attempt: start a new one
+    while True:
+        try:
+            if nonce is None:
+                attempt += 1
+                nonce = new_nonce()
+                store.step(run_id, exp_id, "giving", attempt=attempt, nonce=nonce,
+                           program_sha=program.sha256)
+                kill_hook("giving")
+                state = "giving"
+            if state == "giving":
+                await driver.put_program(program)
+                await driver.give_ready(exp_id, nonce)
+                store.step(run_id, exp_id, "given")
+                log.info("run=%s exp=%s step=given nonce=%s attempt=%d", run_id, exp_id, nonce,
+                         attempt)
+                kill_hook("given")
+                state = "given"
+            if state == "given":
+                done = await driver.take_done(exp_id, nonce, policy.timeout_s)
+                store.step(run_id, exp_id, "taken", done_sha=done.sha256, done_size=done.size)
+                log.info("run=%s exp=%s step=taken sha256=%s", run_id, exp_id, done.sha256[:12])
+                kill_hook("taken")
+                state = "taken"
+            row = store.experiment(run_id, exp_id)
+            done = Done(exp_id, nonce, row["done_sha"], row["done_size"])
+            data = await driver.fetch_logs(done)
+            sha = store.put_log(data)  # raw bytes are safe before anything can reject them
+            store.note(run_id, exp_id, "raw_stored", log_sha=sha, size=len(data))
+            kill_hook("raw_stored")
+            try:
+                await check_log(str(store.log_path(sha)))
+            except DataError as err:
+                raise DataError(f"log of experiment {exp_id} (kept as {sha[:12]}): "
+                                f"{str(err).split(': ', 1)[-1]}") from err
+            store.step(run_id, exp_id, "stored", log_sha=sha, error=None)
+            log.info("run=%s exp=%s step=stored log=%s bytes=%d", run_id, exp_id, sha[:12],
+                     len(data))
+            kill_hook("stored")
+            try:
+                await driver.acknowledge(done)
+            except (DriverError, OSError) as err:  # cosmetic: the log is already safe
+                log.warning("run=%s exp=%s acknowledge failed: %s", run_id, exp_id, err)
+            return sha
+        except (DriverError, DataError) as err:
+            store.step(run_id, exp_id, "attempt_failed", error=str(err))
+            try:
+                await driver.withdraw(exp_id, nonce)
+            except (DriverError, OSError) as werr:
+                log.warning("run=%s exp=%s withdraw failed: %s", run_id, exp_id, werr)
+            log.warning("run=%s exp=%s attempt=%d failed: %s", run_id, exp_id, attempt, err)
+            if attempt > policy.retries:
+                store.step(run_id, exp_id, "failed", error=str(err))
+                raise CycleError(f"experiment {exp_id}: {err} (after {attempt} attempt"
+                                 f"{'s' if attempt > 1 else ''})") from err
+            delay = policy.backoff_s * 2 ** (attempt - 1) * random.uniform(0.5, 1.5)
+            store.note(run_id, exp_id, "retry", attempt=attempt + 1, delay_s=round(delay, 3))
+            await asyncio.sleep(delay)
+            nonce, state = None, "pending"

@@ -1,0 +1,225 @@
+"""The link daemon: store (locked state dir), driver, control socket, campaign runner and
+systemd notifications in one event loop. SIGTERM stops between journaled steps; a restart
+resumes every unfinished run."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import multiprocessing
+import os
+import signal
+import sys
+import time
+from collections.abc import Mapping
+from typing import Any
+
+from robid_link.config import DaemonConfig
+from robid_link.exceptions import ConfigError
+from robid_link.link import campaign as cp
+from robid_link.link.control import ControlServer
+from robid_link.link.notify import Notifier
+from robid_link.link.registry import make_driver
+from robid_link.link.store import Store
+from robid_link.link.worker import run_in_worker
+
+__all__ = ["Daemon", "setup_logging", "robot_info"]
+
+log = logging.getLogger("robid.daemon")
+
+_PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3,
+             logging.CRITICAL: 2}
+
+
+class _LineFormatter(logging.Formatter):
+    """One line per record, ``key=value`` fields in the message; under journald the line
+    starts with its syslog priority (``<6>``) and journald adds the time."""
+
+    def __init__(self, journald: bool) -> None:
+        super().__init__()
+        self.journald = journald
+
+    def format(self, record: logging.LogRecord) -> str:
+        msg = record.getMessage().replace("\n", " | ")
+        if self.journald:
+            return f"<{_PRIORITY.get(record.levelno, 6)}>{record.name}: {msg}"
+        stamp = time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(record.created))
+        return f"{stamp} {record.levelname.lower():<7} {record.name}: {msg}"
+
+
+def setup_logging(level: str = "info") -> None:
+    root = logging.getLogger("robid")
+    for h in list(root.handlers):
+        root.removeHandler(h)
+    handler = logging.StreamHandler(sys.stdout)
+    handler.setFormatter(_LineFormatter(bool(os.environ.get("JOURNAL_STREAM"))))
+    root.addHandler(handler)
+    root.setLevel(level.upper())
+    root.propagate = False
+
+
+def robot_info(robot_path: str, lock: tuple[str, ...]) -> dict[str, Any]:
+    from robid_link.ident.robot import load_robot
+
+    robot = load_robot(robot_path, lock)
+    return {"name": robot.name, "joints": robot.n}
+
+
+def _kill_hook(spec: str | None) -> Any:
+    """``ROBID_FAULT_KILL_AFTER=step[:n]``: SIGKILL this process after the n-th such step."""
+    if not spec:
+        return lambda step: None
+    step, _, count = spec.partition(":")
+    left = [int(count or 1)]
+
+    def hook(name: str) -> None:
+        if name == step:
+            left[0] -= 1
+            if left[0] == 0:
+                os.kill(os.getpid(), signal.SIGKILL)
+
+    return hook
+
+
+class Daemon:
+    def __init__(self, cfg: DaemonConfig, env: Mapping[str, str] | None = None) -> None:
+        self.cfg = cfg
+        env = os.environ if env is None else env
+        self.notifier = Notifier(env)
+        self._kill = _kill_hook(env.get("ROBID_FAULT_KILL_AFTER"))
+        self.ctx = multiprocessing.get_context(cfg.worker_start_method)
+        if cfg.worker_start_method == "forkserver":
+            # children fork with the numerical stack imported (numba kernels come from cache)
+            self.ctx.set_forkserver_preload(["robid_link.link.worker", "robid_link.link.program",
+                                             "robid_link.ident.identify",
+                                             "robid_link.ident.diagnose"])
+        self.store: Store | None = None
+        self.driver: Any = None
+        self.robot: dict[str, Any] = {}
+        self._queue: asyncio.Queue[str] = asyncio.Queue()
+        self._current: str | None = None
+        self._stop = asyncio.Event()
+        self.ready = asyncio.Event()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    async def serve(self) -> None:
+        cfg = self.cfg
+        self.store = Store(cfg.state_dir)
+        try:
+            self.robot = await run_in_worker(self.ctx, robot_info, str(cfg.robot), cfg.lock)
+            self.driver = make_driver(cfg.driver)
+            loop = asyncio.get_running_loop()
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.add_signal_handler(sig, self.stop)
+            try:
+                async with self.driver, ControlServer(cfg.control_socket, self.handle,
+                                                      cfg.socket_mode):
+                    await self._main()
+            finally:
+                for sig in (signal.SIGTERM, signal.SIGINT):
+                    loop.remove_signal_handler(sig)
+        finally:
+            self.store.close()
+            log.info("daemon stopped")
+
+    async def _main(self) -> None:
+        assert self.store is not None
+        for run_id in self.store.unfinished_runs():
+            log.info("run=%s resuming", run_id)
+            self._queue.put_nowait(run_id)
+        async with asyncio.TaskGroup() as tg:
+            tasks = [tg.create_task(self._runner_loop(), name="robid-runner")]
+            if self.notifier.watchdog_s:
+                tasks.append(tg.create_task(self._watchdog_loop(), name="robid-watchdog"))
+            self.notifier.send(READY=1, STATUS=self._status_line())
+            self.ready.set()
+            log.info("daemon ready robot=%s joints=%d driver=%s socket=%s pid=%d",
+                     self.robot["name"], self.robot["joints"], self.cfg.driver["name"],
+                     self.cfg.control_socket, os.getpid())
+            await self._stop.wait()
+            log.info("stopping: the current step is journaled; an unfinished run resumes "
+                     "at the next start")
+            self.notifier.send(STOPPING=1, STATUS="stopping")
+            for task in tasks:
+                task.cancel()
+
+    async def _runner_loop(self) -> None:
+        assert self.store is not None
+        while True:
+            run_id = await self._queue.get()
+            self._current = run_id
+            self.notifier.send(STATUS=self._status_line())
+            try:
+                await cp.execute_run(self.cfg, self.store, self.driver, self.ctx, run_id,
+                                     self._kill)
+            finally:
+                self._current = None
+                self.notifier.send(STATUS=self._status_line())
+
+    async def _watchdog_loop(self) -> None:
+        assert self.notifier.watchdog_s is not None
+        while True:  # from the event loop: a blocked loop stops the pings, systemd restarts us
+            self.notifier.send(WATCHDOG=1)
+            await asyncio.sleep(self.notifier.watchdog_s)
+
+    def _status_line(self) -> str:
+        if self._current is None:
+            return f"idle, {self._queue.qsize()} run(s) queued"
+        assert self.store is not None
+        run = self.store.run(self._current)
+        return (f"run {self._current} ({run['campaign']}): {run['step'] or run['state']}, "
+                f"{run['progress']['stored']}/{run['progress']['total']} logs")
+
+    # ----------------------------------------------------------------- control requests
+    async def handle(self, req: dict[str, Any]) -> dict[str, Any]:
+        assert self.store is not None
+        cmd = req["cmd"]
+        if cmd == "ping":
+            return {"ok": True, "pid": os.getpid(), "robot": self.robot}
+        if cmd == "start":
+            trigger = req.get("trigger", "operator")
+            run_id = cp.create_run(self.cfg, self.store, str(req.get("campaign")), trigger)
+            self._queue.put_nowait(run_id)
+            log.info("run=%s queued campaign=%s trigger=%s", run_id, req.get("campaign"), trigger)
+            return {"ok": True, "run_id": run_id}
+        if cmd == "status":
+            runs = ([self.store.run(req["run_id"])] if req.get("run_id")
+                    else self.store.runs(int(req.get("limit", 20))))
+            return {"ok": True, "runs": runs, "current": self._current,
+                    "status": self._status_line()}
+        if cmd == "results":
+            return {"ok": True, "results": self.store.results(req.get("robot"),
+                                                              req.get("run_id"))}
+        if cmd == "list":
+            return {"ok": True, "campaigns": self._campaigns()}
+        if cmd == "approve":
+            name = str(req.get("campaign"))
+            if name not in self.cfg.campaigns:
+                raise ConfigError(f"campaign {name!r}: not in {self.cfg.path}")
+            programs = await cp.prepare_programs(self.cfg, self.store, self.ctx, name)
+            for exp_id, prog in programs:
+                self.store.approve(prog.sha256, name, exp_id, str(req.get("by", "operator")))
+            return {"ok": True, "approved": [{"experiment": e, "sha256": p.sha256,
+                                              "duration_s": p.duration_s}
+                                             for e, p in programs]}
+        raise ConfigError(f"unknown command {cmd!r}")
+
+    def _campaigns(self) -> list[dict[str, Any]]:
+        out = []
+        for name, camp in self.cfg.campaigns.items():
+            out.append({"name": name,
+                        "experiments": [{"id": e, "kind": d.kind, "reduced_speed": s}
+                                        for e, d, s in cp.plan(camp)],
+                        "identify": camp.identify, "diagnose": camp.diagnose})
+        return out
+
+
+async def run_daemon(cfg: DaemonConfig) -> int:
+    setup_logging(cfg.log_level)
+    daemon = Daemon(cfg)
+    with contextlib.suppress(asyncio.CancelledError):
+        await daemon.serve()
+    return 0

@@ -1,0 +1,203 @@
+"""The driver contract: one controller link, seen by the daemon as put → give → take → fetch.
+
+The base class owns the public methods (state, timeouts, checks, logging); a driver overrides
+the small ``_hooks``. Drivers are async context managers and ``close()`` is safe twice.
+"""
+
+from __future__ import annotations
+
+import abc
+import asyncio
+import hashlib
+import logging
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Self
+
+from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
+
+__all__ = [
+    "Driver",
+    "MotionProgram",
+    "Done",
+    "check_name",
+    "CAP_UPLOAD",
+    "CAP_RAPID",
+]
+
+log = logging.getLogger("robid.driver")
+
+#: capability names a driver may advertise
+CAP_UPLOAD = "upload_parameters"
+CAP_RAPID = "rapid"
+
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_\-]{0,63}$")
+
+
+def check_name(value: str, what: str) -> str:
+    """Experiment ids and nonces become file names: letters, digits, '_' and '-' only, so no
+    name can escape a folder or collide with the protocol's dots."""
+    if not isinstance(value, str) or not _NAME.match(value):
+        raise DriverError(f"{what} {value!r}: expected 1-64 letters, digits, '_' or '-'")
+    return value
+
+
+@dataclass(frozen=True)
+class MotionProgram:
+    """One experiment's program as it leaves the daemon: files by suffix (``traj.csv``,
+    ``traj.yaml``, ``mod``), already checked against the robot's limits."""
+
+    exp_id: str
+    files: Mapping[str, bytes]
+    duration_s: float
+    meta: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def sha256(self) -> str:
+        """Hash of the program's content (what an operator approves)."""
+        h = hashlib.sha256()
+        for suffix in sorted(self.files):
+            h.update(suffix.encode() + b"\0" + self.files[suffix] + b"\0")
+        return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class Done:
+    """The controller's 'done' for one experiment and nonce: the log's SHA-256 and size."""
+
+    exp_id: str
+    nonce: str
+    sha256: str
+    size: int | None = None
+
+
+class Driver(abc.ABC):
+    """Base of every controller driver (the daemon's side of the link).
+
+    Subclasses set ``name`` and ``capabilities`` and implement ``_open``, ``_close``,
+    ``_put_program``, ``_give_ready``, ``_wait_done``, ``_fetch_logs``; optionally
+    ``_upload_parameters`` and ``_acknowledge``.
+    """
+
+    name: ClassVar[str] = "driver"
+    capabilities: ClassVar[frozenset[str]] = frozenset()
+    #: option names the driver accepts (besides ``name``); others are a ConfigError
+    options: ClassVar[frozenset[str]] = frozenset()
+
+    def __init__(self) -> None:
+        self._opened = False
+        self._closed = False
+
+    # -- lifecycle
+    async def open(self) -> None:
+        if self._closed:
+            raise DriverError(f"{self.name}: driver was closed")
+        if not self._opened:
+            await self._open()
+            self._opened = True
+            log.info("driver=%s opened", self.name)
+
+    async def close(self) -> None:
+        if self._opened and not self._closed:
+            self._closed = True
+            await self._close()
+            log.info("driver=%s closed", self.name)
+        self._closed = True
+
+    async def __aenter__(self) -> Self:
+        await self.open()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    def _require_open(self) -> None:
+        if not self._opened or self._closed:
+            raise DriverError(f"{self.name}: driver is not open")
+
+    # -- the cycle
+    async def put_program(self, program: MotionProgram) -> None:
+        """Hand the motion program to the controller (idempotent for the same program)."""
+        self._require_open()
+        check_name(program.exp_id, "experiment id")
+        await self._put_program(program)
+
+    async def give_ready(self, exp_id: str, nonce: str) -> None:
+        """semGive: tell the controller the program of ``exp_id`` is ready (idempotent)."""
+        self._require_open()
+        await self._give_ready(check_name(exp_id, "experiment id"), check_name(nonce, "nonce"))
+
+    async def take_done(self, exp_id: str, nonce: str, timeout_s: float) -> Done:
+        """semTake with a timeout: wait for this experiment's 'done' of this nonce."""
+        self._require_open()
+        check_name(exp_id, "experiment id")
+        check_name(nonce, "nonce")
+        if not timeout_s > 0:
+            raise ConfigError(f"timeout_s: expected a positive number, got {timeout_s!r}")
+        try:
+            async with asyncio.timeout(timeout_s):
+                return await self._wait_done(exp_id, nonce)
+        except TimeoutError as err:
+            raise DriverTimeoutError(f"{self.name}: no 'done' for experiment {exp_id} "
+                                     f"(nonce {nonce}) within {timeout_s:g} s") from err
+
+    async def fetch_logs(self, done: Done) -> bytes:
+        """The raw log of a finished experiment, checked against the 'done' checksum."""
+        self._require_open()
+        data = await self._fetch_logs(done)
+        if done.size is not None and len(data) != done.size:
+            raise DriverError(f"{self.name}: log of experiment {done.exp_id} has {len(data)} "
+                              f"bytes, 'done' announced {done.size} (truncated log)")
+        got = hashlib.sha256(data).hexdigest()
+        if got != done.sha256:
+            raise DriverError(f"{self.name}: log of experiment {done.exp_id} fails its checksum "
+                              f"(sha256 {got[:12]}…, 'done' says {done.sha256[:12]}…): "
+                              "truncated or corrupt")
+        return data
+
+    async def acknowledge(self, done: Done) -> None:
+        """The log is stored: the controller side may clean up this experiment's semaphores."""
+        self._require_open()
+        await self._acknowledge(done)
+
+    async def withdraw(self, exp_id: str, nonce: str) -> None:
+        """An attempt was given up (timeout, bad log): take back its 'ready' so a controller
+        that wakes up later does not run an obsolete program."""
+        self._require_open()
+        await self._withdraw(exp_id, nonce)
+
+    async def upload_parameters(self, doc: Mapping[str, Any]) -> None:
+        """Send identified parameters to the controller, where the driver can."""
+        self._require_open()
+        if CAP_UPLOAD not in self.capabilities:
+            raise DriverError(f"{self.name}: this driver cannot upload parameters")
+        await self._upload_parameters(doc)
+
+    # -- hooks
+    @abc.abstractmethod
+    async def _open(self) -> None: ...
+
+    @abc.abstractmethod
+    async def _close(self) -> None: ...
+
+    @abc.abstractmethod
+    async def _put_program(self, program: MotionProgram) -> None: ...
+
+    @abc.abstractmethod
+    async def _give_ready(self, exp_id: str, nonce: str) -> None: ...
+
+    @abc.abstractmethod
+    async def _wait_done(self, exp_id: str, nonce: str) -> Done: ...
+
+    @abc.abstractmethod
+    async def _fetch_logs(self, done: Done) -> bytes: ...
+
+    async def _acknowledge(self, done: Done) -> None:
+        return None
+
+    async def _withdraw(self, exp_id: str, nonce: str) -> None:
+        return None
+
+    async def _upload_parameters(self, doc: Mapping[str, Any]) -> None:
+        raise NotImplementedError

@@ -1,0 +1,241 @@
+"""Motion programs: each experiment's trajectory generated from the excitation design, checked
+against the robot's limits before it may leave the daemon, rendered as the neutral trajectory
+file and as an ABB RAPID module."""
+
+from __future__ import annotations
+
+import io
+import math
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from robid_link.exceptions import ConfigError, UnsafeProgramError
+from robid_link.ident import excitation as ex
+from robid_link.ident.robot import Robot
+from robid_link.link.driver import MotionProgram, check_name
+
+__all__ = ["EXPERIMENT_KINDS", "experiment_trajectory", "check_program", "reduced_speed",
+           "render_rapid", "parse_rapid", "make_program", "trajectory_files",
+           "program_trajectory"]
+
+EXPERIMENT_KINDS = ("rigid_body", "friction", "custom")
+RAPID_RATE_HZ = 25.0
+
+_DEFAULTS: dict[str, dict[str, Any]] = {
+    "rigid_body": {"duration_s": 40.0, "harmonics": 8, "base_hz": 0.1, "rate_hz": 250.0,
+                   "evaluations": 600, "restarts": 1, "seed": 0},
+    "friction": {"speeds": [0.05, 0.1, 0.2, 0.4], "joints": None, "rate_hz": 250.0},
+    "custom": {"trajectory": None},
+}
+
+
+def experiment_options(kind: str, opts: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """The experiment's options over its defaults; unknown keys name their path."""
+    if kind not in _DEFAULTS:
+        raise ConfigError(f"{where}.kind: expected one of {', '.join(EXPERIMENT_KINDS)}, "
+                          f"got {kind!r}")
+    bad = set(opts) - set(_DEFAULTS[kind])
+    if bad:
+        raise ConfigError(f"{where}.{sorted(bad)[0]}: unknown option for a {kind} experiment")
+    out = {**_DEFAULTS[kind], **opts}
+    if kind == "custom" and not out["trajectory"]:
+        raise ConfigError(f"{where}.trajectory: missing (a custom experiment needs a file)")
+    for key in ("duration_s", "base_hz", "rate_hz"):
+        if key in out:
+            v = out[key]
+            if isinstance(v, bool) or not isinstance(v, int | float) or v <= 0:
+                raise ConfigError(f"{where}.{key}: expected a positive number, got {v!r}")
+    if kind == "friction":
+        sp = out["speeds"]
+        if (not isinstance(sp, list) or not sp
+                or not all(isinstance(x, int | float) and 0 < x <= 1 for x in sp)):
+            raise ConfigError(f"{where}.speeds: expected fractions of each joint's speed "
+                              "limit in (0, 1]")
+    return out
+
+
+def experiment_trajectory(robot: Robot, kind: str, opts: Mapping[str, Any],
+                          base_dir: Path | None = None) -> ex.Trajectory:
+    """Generate the trajectory of one experiment (numerical work: run it off the event loop)."""
+    if kind == "rigid_body":
+        four, cond = ex.optimize_fourier(robot, harmonics=int(opts["harmonics"]),
+                                         base_hz=float(opts["base_hz"]), seed=int(opts["seed"]),
+                                         evaluations=int(opts["evaluations"]),
+                                         restarts=int(opts["restarts"]))
+        rate = float(opts["rate_hz"])
+        periods = max(1, round(float(opts["duration_s"]) * four.base_hz))
+        t = np.arange(0.0, periods / four.base_hz, 1.0 / rate)
+        q = four.evaluate(t)[0]
+        return ex.Trajectory(t, q, rate, "fourier", robot.name, ex.fourier_header(four, cond))
+    if kind == "friction":
+        rate = float(opts["rate_hz"])
+        joints = opts["joints"] or list(range(1, robot.n + 1))
+        parts = []
+        for j in joints:
+            if not isinstance(j, int) or not 1 <= j <= robot.n:
+                raise ConfigError(f"joints: {j!r} is not a joint of {robot.name} (1..{robot.n})")
+            cap = robot.limits.qd_max[j - 1]
+            cap = cap if np.isfinite(cap) else 1.0
+            parts.append(ex.constant_velocity_sweeps(robot, j - 1,
+                                                     [f * cap for f in opts["speeds"]], rate))
+        q = _joined(parts, rate)
+        t = np.arange(q.shape[0]) / rate
+        return ex.Trajectory(t, q, rate, "sweep", robot.name,
+                             {"joints": joints, "speeds": list(opts["speeds"])})
+    path = Path(opts["trajectory"])
+    if base_dir is not None and not path.is_absolute():
+        path = base_dir / path
+    traj = ex.read_trajectory(path)
+    if traj.q.shape[1] != robot.n:
+        raise ConfigError(f"{path}: {traj.q.shape[1]} joints, the robot has {robot.n}")
+    return ex.Trajectory(traj.t - traj.t[0], traj.q, traj.rate_hz, "custom", robot.name,
+                         {**traj.header, "source": str(path)})
+
+
+def _joined(parts: list[np.ndarray], rate: float) -> np.ndarray:
+    """Concatenate per-joint sweeps with smooth (cosine) transfers between their poses."""
+    out = [parts[0]]
+    for nxt in parts[1:]:
+        a, b = out[-1][-1], nxt[0]
+        steps = max(2, int(rate * 2.0))
+        s = 0.5 - 0.5 * np.cos(np.linspace(0.0, math.pi, steps))[:, None]
+        out.append(a + s * (b - a))
+        out.append(nxt)
+    return np.concatenate(out)
+
+
+def program_trajectory(traj: ex.Trajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """q, q̇, q̈ of a program at its own rate (analytic for Fourier runs)."""
+    if traj.kind == "fourier" and "base_hz" in traj.header:
+        _, q, qd, qdd = ex.trajectory_states(traj, traj.rate_hz)
+        return q, qd, qdd
+    qd, qdd = traj.derivatives()
+    return traj.q, qd, qdd
+
+
+def check_program(robot: Robot, traj: ex.Trajectory, exp_id: str) -> None:
+    """Motion safety: position, velocity, acceleration and (with an a-priori model) torque
+    limits. Raises UnsafeProgramError naming the experiment, joint and quantity."""
+    if traj.q.ndim != 2 or traj.q.shape[1] != robot.n:
+        raise UnsafeProgramError(f"experiment {exp_id}: program has {traj.q.shape[-1]} joints, the "
+                          f"robot has {robot.n}")
+    if not np.all(np.isfinite(traj.q)):
+        raise UnsafeProgramError(f"experiment {exp_id}: program holds non-finite positions")
+    q, qd, qdd = program_trajectory(traj)
+    try:
+        ex.check_limits(robot, q, qd, qdd, ex._nominal_torque(robot, q, qd, qdd),
+                        f"experiment {exp_id}")
+    except ConfigError as err:
+        raise UnsafeProgramError(f"unsafe program refused: {err}") from err
+
+
+def reduced_speed(traj: ex.Trajectory, k: float) -> ex.Trajectory:
+    """The same path at ``k`` of its speed (time stretched by 1/k): q̇·k, q̈·k²."""
+    t = np.arange(0.0, traj.t[-1] / k + 0.5 / traj.rate_hz, 1.0 / traj.rate_hz)
+    h = dict(traj.header)
+    if traj.kind == "fourier":
+        four = ex.FourierTrajectory(float(h["base_hz"]) * k, np.asarray(h["q0"]),
+                                    np.asarray(h["a"]) * k, np.asarray(h["b"]) * k)
+        h.update(base_hz=four.base_hz, a=four.a.tolist(), b=four.b.tolist())
+        q = four.evaluate(t)[0]
+    else:
+        from scipy.interpolate import CubicSpline
+
+        q = CubicSpline(traj.t, traj.q, axis=0)(np.minimum(t * k, traj.t[-1]))
+    h["reduced_speed"] = k
+    return ex.Trajectory(t, q, traj.rate_hz, traj.kind, traj.robot, h)
+
+
+# ----------------------------------------------------------------------------- rendering
+
+
+def trajectory_files(traj: ex.Trajectory) -> dict[str, bytes]:
+    """The neutral trajectory file (CSV t,q1..qn + YAML header) as bytes."""
+    n = traj.q.shape[1]
+    buf = io.StringIO()
+    np.savetxt(buf, np.column_stack((traj.t, traj.q)), delimiter=",", fmt="%.10g",
+               header=",".join(["t"] + [f"q{j}" for j in range(1, n + 1)]), comments="")
+    meta = {"robot": traj.robot, "rate_hz": traj.rate_hz, "kind": traj.kind,
+            "samples": int(traj.t.size), **traj.header}
+    return {"traj.csv": buf.getvalue().encode(),
+            "traj.yaml": yaml.safe_dump(meta, sort_keys=False).encode()}
+
+
+def render_rapid(robot: Robot, traj: ex.Trajectory, exp_id: str,
+                 rate_hz: float = RAPID_RATE_HZ) -> bytes:
+    """An ABB RAPID module that replays the trajectory as timed MoveAbsJ through joint targets
+    (degrees; mm for prismatic axes; a 7th axis goes to eax_a). Logging of q and τ is the cell's
+    own test-signal set-up and not part of the module."""
+    if robot.n > 7:
+        raise ConfigError(f"experiment {exp_id}: RAPID joint targets hold at most 7 axes")
+    step = max(1, round(traj.rate_hz / rate_hz))
+    idx = np.arange(0, traj.t.size, step)
+    if idx[-1] != traj.t.size - 1:
+        idx = np.append(idx, traj.t.size - 1)
+    scale = np.array([180 / math.pi if t == "revolute" else 1000.0 for t in robot.joint_types])
+    pts = traj.q[idx] * scale
+    dts = np.diff(traj.t[idx])
+    module = re.sub(r"[^A-Za-z0-9_]", "_", f"robid_{exp_id}")[:32]
+    rows = []
+    for p in pts:
+        rob = [f"{x:.4f}" for x in p[:6]] + ["0"] * (6 - min(6, robot.n))
+        ext = [f"{p[6]:.4f}" if robot.n == 7 else "9E9"] + ["9E9"] * 5
+        rows.append(f"[[{','.join(rob)}],[{','.join(ext)}]]")
+    body = ",\n        ".join(rows)
+    lines = [
+        f"MODULE {module}",
+        f"    ! robid_link motion program: experiment {exp_id}, robot {robot.name}",
+        f"    ! {traj.kind} trajectory, {traj.t[-1]:.3f} s, {len(idx)} joint targets",
+        f"    CONST num n_points := {len(idx)};",
+        f"    CONST num dt{{{len(dts)}}} := [{', '.join(f'{d:.4f}' for d in dts)}];",
+        f"    CONST jointtarget path{{{len(idx)}}} := [\n        {body}];",
+        "",
+        "    PROC main()",
+        "        MoveAbsJ path{1}, v100, fine, tool0;",
+        "        WaitTime 0.5;",
+        "        FOR i FROM 2 TO n_points DO",
+        "            MoveAbsJ path{i}, v1000 \\T:=dt{i-1}, z1, tool0;",
+        "        ENDFOR",
+        "        MoveAbsJ path{n_points}, v100, fine, tool0;",
+        "    ENDPROC",
+        "ENDMODULE",
+        "",
+    ]
+    return "\n".join(lines).encode()
+
+
+_TARGET = re.compile(r"\[\[([^\]]*)\],\[([^\]]*)\]\]")
+
+
+def parse_rapid(text: str, robot: Robot) -> tuple[np.ndarray, np.ndarray]:
+    """Joint targets (rad / m) and their move times from a module ``render_rapid`` wrote."""
+    m = re.search(r"jointtarget path\{(\d+)\} := \[(.*?)\];", text, re.S)
+    d = re.search(r"CONST num dt\{(\d+)\} := \[(.*?)\];", text, re.S)
+    if m is None or d is None:
+        raise ConfigError("RAPID module: no 'path' joint targets or 'dt' times")
+    targets = []
+    for rob, ext in _TARGET.findall(m.group(2)):
+        vals = [float(x) for x in rob.split(",")][: min(6, robot.n)]
+        if robot.n == 7:
+            vals.append(float(ext.split(",")[0]))
+        targets.append(vals)
+    if len(targets) != int(m.group(1)):
+        raise ConfigError("RAPID module: target count differs from the declared size")
+    scale = np.array([180 / math.pi if t == "revolute" else 1000.0 for t in robot.joint_types])
+    dts = np.array([float(x) for x in d.group(2).split(",")])
+    return np.array(targets) / scale, dts
+
+
+def make_program(robot: Robot, traj: ex.Trajectory, exp_id: str,
+                 meta: Mapping[str, Any] | None = None) -> MotionProgram:
+    """Check the trajectory and package it; nothing unchecked becomes a program."""
+    check_name(exp_id, "experiment id")
+    check_program(robot, traj, exp_id)
+    files = trajectory_files(traj)
+    files["mod"] = render_rapid(robot, traj, exp_id)
+    return MotionProgram(exp_id, files, float(traj.t[-1] - traj.t[0]), dict(meta or {}))

@@ -1,0 +1,147 @@
+"""What the daemon hands to its worker processes: program generation, log checks and the
+identification (+ diagnosis) of a run. Plain functions of picklable arguments, run under a
+forkserver/spawn pool so the event loop never blocks on numerical work."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import Any
+
+from robid_link.link.driver import MotionProgram
+
+__all__ = ["generate_program", "check_log", "identify_run"]
+
+
+def _robot(robot_path: str, lock: tuple[str, ...]) -> Any:
+    from robid_link.ident.robot import load_robot
+
+    return load_robot(robot_path, lock)
+
+
+def generate_program(robot_path: str, lock: tuple[str, ...], exp_id: str, kind: str,
+                     options: dict[str, Any], base_dir: str,
+                     reduced_speed: float | None = None) -> MotionProgram:
+    """Generate, check (limits) and render one experiment's program."""
+    from robid_link.link import program as pg
+
+    robot = _robot(robot_path, lock)
+    traj = pg.experiment_trajectory(robot, kind, options, Path(base_dir))
+    meta: dict[str, Any] = {"kind": kind, "trajectory_kind": traj.kind}
+    if reduced_speed is not None:
+        traj = pg.reduced_speed(traj, reduced_speed)
+        meta["reduced_speed"] = reduced_speed
+    return pg.make_program(robot, traj, exp_id, meta)
+
+
+def check_log(robot_path: str, lock: tuple[str, ...], log_path: str) -> dict[str, Any]:
+    """Load a captured log as the identification will (columns, joint count, NaN, time)."""
+    from robid_link.ident.data import load_log
+
+    robot = _robot(robot_path, lock)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        log = load_log(log_path, robot.n)
+    return {"samples": int(log.t.size), "duration_s": float(log.t[-1] - log.t[0]),
+            "rate_hz": float(log.fs)}
+
+
+def identify_run(job: dict[str, Any]) -> dict[str, Any]:
+    """Identify (and diagnose) a run's logs; write the report; return the result records."""
+    from robid_link.ident.effects import DEFAULT_MODEL, load_model, parse_effect
+    from robid_link.ident.history import append_record, result_record
+    from robid_link.ident.identify import identify, load_logs
+    from robid_link.ident.report import residual_figures, write_json, write_report
+
+    robot = _robot(job["robot"], tuple(job["lock"]))
+    model = load_model(job["model"]) if job.get("model") else DEFAULT_MODEL
+    for entry in job.get("add", ()):
+        model = model.with_added(parse_effect(entry, f"add {entry}"))
+    out = Path(job["report_dir"])
+    out.mkdir(parents=True, exist_ok=True)
+    notes: list[str] = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        data = load_logs(robot, job["logs"], None, job.get("motor_side", False))
+        res = identify(robot, data, model, cutoff_hz=job.get("cutoff_hz"),
+                       method=job.get("method", "ols"), motor_side=job.get("motor_side", False))
+        doc = res.to_dict()
+        records = {"identify": result_record("identify", doc)}
+        summaries = [res.summary()]
+        write_json(out / "identify.json", doc)
+        write_report(res, out)
+        if job.get("diagnose"):
+            from robid_link.ident.diagnose import diagnose
+
+            dg = diagnose(robot, data, model, cutoff_hz=job.get("cutoff_hz"),
+                          motor_side=job.get("motor_side", False))
+            ddoc = dg.to_dict()
+            ddoc["data_files"] = doc["data_files"]
+            records["diagnose"] = result_record("diagnose", ddoc)
+            summaries.append(dg.summary())
+            write_json(out / "diagnose.json", ddoc)
+            residual_figures(dg.residuals, dg.result.joints, out)
+    notes = sorted({f"{w.category.__name__}: {w.message}" for w in caught})
+    if job.get("model"):
+        for kind in ("identify", "diagnose"):
+            if kind in records:
+                append_record(job["model"], records[kind])
+    for rec in records.values():
+        rec["robot"] = robot.name
+        rec["run_id"] = job["run_id"]
+        rec["warnings"] = notes
+    (out / "summary.txt").write_text("\n\n".join(summaries) + "\n")
+    return {"records": records, "summary": "\n\n".join(summaries),
+            "parameters": doc.get("parameters", []), "robot": robot.name}
+
+
+# ----------------------------------------------------------------------------- process runner
+
+
+def _child(conn: Any, func: Any, args: tuple[Any, ...]) -> None:
+    from robid_link.exceptions import RobidError
+
+    try:
+        result: tuple[str, Any, str] = ("ok", func(*args), "")
+    except RobidError as err:
+        result = ("error", type(err).__name__, str(err))
+    except Exception as err:  # a bug: report it with where it happened; the daemon lives on
+        import traceback
+
+        where = traceback.extract_tb(err.__traceback__)[-1]
+        result = ("error", "RobidError", f"worker {func.__name__} crashed: "
+                  f"{type(err).__name__}: {err} ({Path(where.filename).name}:{where.lineno})")
+    conn.send(result)
+    conn.close()
+
+
+async def run_in_worker(ctx: Any, func: Any, *args: Any) -> Any:
+    """Run ``func(*args)`` in a fresh process of the multiprocessing context ``ctx``; a
+    cancelled caller terminates the process. Errors come back as RobidError."""
+    import asyncio
+
+    from robid_link import exceptions
+    from robid_link.exceptions import RobidError
+
+    recv, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_child, args=(send, func, args), name=f"robid-{func.__name__}",
+                       daemon=True)
+    proc.start()
+    send.close()
+    try:
+        try:
+            status, value, message = await asyncio.to_thread(recv.recv)
+        except EOFError:
+            await asyncio.to_thread(proc.join, 5.0)
+            raise RobidError(f"worker process {func.__name__} died (exit code "
+                             f"{proc.exitcode})") from None
+    finally:
+        if proc.is_alive():
+            proc.terminate()
+        await asyncio.to_thread(proc.join, 5.0)
+        recv.close()
+    if status != "ok":
+        cls = getattr(exceptions, value, RobidError)
+        raise (cls if isinstance(cls, type) and issubclass(cls, RobidError) else RobidError)(
+            message)
+    return value

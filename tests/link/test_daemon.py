@@ -1,0 +1,246 @@
+"""The daemon in-process against the fake controller thread: campaigns, every fault mode of the
+controller (a clear error or a bounded retry, no captured log lost), approvals for unattended
+runs, unsafe programs refused before they reach the share, the control socket."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import stat
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from robid_link.config import load_daemon_config
+from robid_link.exceptions import ConfigError
+from robid_link.link.control import request
+from robid_link.link.daemon import Daemon
+
+from .conftest import QUICK, wait_run, write_config
+
+ONE = {"experiments": [QUICK["experiments"][0]], "identify": False, "timeout_s": 4,
+       "backoff_s": 0.05, "retries": 2}
+
+
+def with_daemon(cfg_path: Path, body: Callable[[Daemon], Awaitable[Any]],
+                env: dict[str, str] | None = None) -> Any:
+    async def go() -> Any:
+        daemon = Daemon(load_daemon_config(cfg_path), env=env or {})
+        task = asyncio.create_task(daemon.serve())
+        try:
+            async with asyncio.timeout(60):
+                ready = asyncio.create_task(daemon.ready.wait())
+                await asyncio.wait({task, ready}, return_when=asyncio.FIRST_COMPLETED)
+                if task.done():
+                    ready.cancel()
+                    await task  # raises the start-up error
+            return await body(daemon)
+        finally:
+            daemon.stop()
+            await asyncio.wait_for(task, 30)
+
+    return asyncio.run(go())
+
+
+async def start(daemon: Daemon, campaign: str = "one", trigger: str = "operator") -> dict:
+    ans = await daemon.handle({"cmd": "start", "campaign": campaign, "trigger": trigger})
+    return await wait_run(daemon, ans["run_id"])
+
+
+def test_campaign_runs_to_completion(tmp_path: Path, controller: Any) -> None:
+    cfg = write_config(tmp_path, {"quick": {**QUICK, "diagnose": True}})
+
+    async def body(d: Daemon) -> tuple[dict, list]:
+        run = await start(d, "quick")
+        return run, d.store.results(run_id=run["run_id"])  # type: ignore[union-attr]
+
+    with controller() as ctrl:
+        run, results = with_daemon(cfg, body)
+    assert run["state"] == "completed", run["error"]
+    assert [e["state"] for e in run["experiments"]] == ["stored", "stored"]
+    assert len(ctrl.handled) == 2
+    kinds = {r["kind"]: r["record"] for r in results}
+    assert set(kinds) == {"identify", "diagnose"}
+    rec = kinds["identify"]
+    assert rec["robot"] == "arm3" and len(rec["rmse"]) == 3
+    assert {d["sha256"] for d in rec["data"]} == {e["log_sha"] for e in run["experiments"]}
+    report = tmp_path / "state" / "reports" / run["run_id"]
+    assert (report / "summary.txt").is_file() and (report / "identify.json").is_file()
+
+
+@pytest.mark.parametrize("fault, journal_error", [
+    ("never_answer", "no 'done' for experiment rigid_body"),
+    ("truncated_log", "truncated log"),
+    ("corrupt_log", "fails its checksum"),
+    ("nan_log", "log of experiment rigid_body (kept as "),
+    ("fail", "controller reports experiment rigid_body failed"),
+])
+def test_faults_are_retried_and_lose_nothing(tmp_path: Path, controller: Any, fault: str,
+                                             journal_error: str) -> None:
+    cfg = write_config(tmp_path, {"one": ONE})
+
+    async def body(d: Daemon) -> tuple[dict, list, int]:
+        run = await start(d)
+        store = d.store
+        assert store is not None
+        return run, store.journal(run["run_id"]), store.log_count()
+
+    with controller(fault=fault) as ctrl:
+        run, journal, n_logs = with_daemon(cfg, body)
+    assert run["state"] == "completed", run["error"]
+    failed = [j for j in journal if j["step"] == "attempt_failed"]
+    assert len(failed) == 1 and journal_error in failed[0]["detail"]["error"]
+    assert "\n" not in failed[0]["detail"]["error"]
+    assert [j["step"] for j in journal].count("retry") == 1
+    assert run["experiments"][0]["attempt"] == 2 and len(ctrl.handled) == 2
+    # a log the controller delivered intact is kept even when it was rejected
+    assert n_logs == (2 if fault == "nan_log" else 1)
+    share = tmp_path / "share" / "sem"
+    assert not any(n.endswith(".ready") for n in os.listdir(share))  # withdrawn or acknowledged
+
+
+@pytest.mark.parametrize("fault", ["answer_twice", "stale_semaphore"])
+def test_duplicate_and_stale_answers_are_ignored(tmp_path: Path, controller: Any, fault: str,
+                                                 caplog: pytest.LogCaptureFixture) -> None:
+    cfg = write_config(tmp_path, {"one": ONE})
+
+    async def body(d: Daemon) -> dict:
+        run = await start(d)
+        await asyncio.sleep(0.2)
+        return run
+
+    with caplog.at_level("WARNING", logger="robid"), controller(fault=fault):
+        run = with_daemon(cfg, body)
+    assert run["state"] == "completed" and run["experiments"][0]["attempt"] == 1
+    assert ("duplicate_semaphore" if fault == "answer_twice" else "stale_semaphore") in caplog.text
+
+
+def test_controller_dies_mid_program_then_comes_back(tmp_path: Path, controller: Any) -> None:
+    cfg = write_config(tmp_path, {"one": {**ONE, "timeout_s": 2}})
+
+    async def body(d: Daemon) -> dict:
+        ans = await d.handle({"cmd": "start", "campaign": "one"})
+        first = controller(fault="die")
+        with first as ctrl:
+            while not ctrl.handled and first.thread.is_alive():
+                await asyncio.sleep(0.02)
+            await asyncio.to_thread(first.thread.join, 10)
+        assert not first.thread.is_alive()  # the controller is dead, the daemon waits
+        while not any(j["step"] == "attempt_failed" for j in d.store.journal(ans["run_id"])):
+            await asyncio.sleep(0.05)  # the take times out; the attempt is withdrawn
+        with controller():  # restarted controller; the daemon's retry reaches it
+            return await wait_run(d, ans["run_id"])
+
+    run = with_daemon(cfg, body)
+    assert run["state"] == "completed" and run["experiments"][0]["attempt"] == 2
+    partial = [n for n in os.listdir(tmp_path / "share" / "outbox") if n.endswith(".partial")]
+    assert partial  # the dead controller's half log is never taken for a log
+
+
+def test_bounded_retries_end_in_a_clear_failure(tmp_path: Path, controller: Any) -> None:
+    cfg = write_config(tmp_path, {"one": {**ONE, "retries": 1}})
+
+    async def body(d: Daemon) -> tuple[dict, int]:
+        run = await start(d)
+        return run, d.store.log_count()  # type: ignore[union-attr]
+
+    with controller(fault="corrupt_log", fault_count=10) as ctrl:
+        run, n_logs = with_daemon(cfg, body)
+    assert run["state"] == "failed"
+    assert run["error"].startswith("experiment rigid_body: ")
+    assert "after 2 attempts" in run["error"] and len(ctrl.handled) == 2
+    assert n_logs == 0  # nothing corrupt was stored as a log
+
+
+def test_unsafe_program_never_reaches_the_share(tmp_path: Path, controller: Any) -> None:
+    from robid_link.ident import excitation as ex
+    from robid_link.ident.robot import load_robot
+
+    from .conftest import ARM3
+
+    robot = load_robot(ARM3)
+    t = ex.np.arange(0.0, 2.0, 0.01)
+    q = ex.np.zeros((t.size, 3))
+    q[:, 0] = 2.0 * ex.np.sin(2 * ex.np.pi * 2.0 * t)  # 2 rad at 2 Hz: far beyond 120 deg/s
+    ex.write_trajectory(tmp_path / "wild.csv", ex.Trajectory(t, q, 100.0, "custom", "arm3"))
+    cfg = write_config(tmp_path, {"wild": {"experiments": [
+        {"kind": "custom", "id": "wild", "trajectory": str(tmp_path / "wild.csv")}],
+        "identify": False}})
+
+    async def body(d: Daemon) -> dict:
+        return await start(d, "wild")
+
+    with controller() as ctrl:
+        run = with_daemon(cfg, body)
+    assert run["state"] == "failed"
+    assert run["error"].startswith("unsafe program refused: experiment wild: qd1 = ")
+    assert os.listdir(tmp_path / "share" / "inbox") == [] and ctrl.handled == []
+    assert robot.n == 3
+
+
+def test_unattended_runs_need_approved_programs(tmp_path: Path, controller: Any) -> None:
+    cfg = write_config(tmp_path, {"one": ONE})
+
+    async def body(d: Daemon) -> tuple[dict, dict, dict]:
+        refused = await start(d, trigger="timer")
+        approved = await d.handle({"cmd": "approve", "campaign": "one"})
+        ran = await start(d, trigger="timer")
+        return refused, approved, ran
+
+    with controller() as ctrl:
+        refused, approved, ran = with_daemon(cfg, body)
+    assert refused["state"] == "failed"
+    assert "unattended run refused: program of experiment rigid_body" in refused["error"]
+    assert "robid campaign approve one" in refused["error"]
+    assert approved["approved"][0]["sha256"] == ran["experiments"][0]["program_sha"]
+    assert ran["state"] == "completed" and len(ctrl.handled) == 1
+
+
+def test_reduced_speed_first_run(tmp_path: Path, controller: Any) -> None:
+    cfg = write_config(tmp_path, {"one": {**ONE, "reduced_speed_first": 0.5}})
+
+    async def body(d: Daemon) -> dict:
+        return await start(d)
+
+    with controller() as ctrl:
+        run = with_daemon(cfg, body)
+    assert run["state"] == "completed"
+    assert [e["exp_id"] for e in run["experiments"]] == ["rigid_body-slow", "rigid_body"]
+    assert [h[0] for h in ctrl.handled] == ["rigid_body-slow", "rigid_body"]
+
+
+def test_control_socket_mode_stale_file_and_commands(tmp_path: Path, controller: Any) -> None:
+    cfg = write_config(tmp_path, {"one": ONE})
+    sock = tmp_path / "ctl.sock"
+    import socket
+
+    s = socket.socket(socket.AF_UNIX)  # a socket file left by a dead daemon
+    s.bind(str(sock))
+    s.close()
+
+    async def body(d: Daemon) -> dict[str, Any]:
+        out: dict[str, Any] = {"mode": stat.S_IMODE(os.stat(sock).st_mode)}
+        ping = await asyncio.to_thread(request, sock, {"cmd": "ping"})
+        out["pid"] = ping["pid"]
+        listed = await asyncio.to_thread(request, sock, {"cmd": "list"})
+        out["campaigns"] = [c["name"] for c in listed["campaigns"]]
+        with pytest.raises(Exception, match="campaign 'nope': not in"):
+            await asyncio.to_thread(request, sock, {"cmd": "start", "campaign": "nope"})
+        with pytest.raises(Exception, match="unknown command 'dance'"):
+            await asyncio.to_thread(request, sock, {"cmd": "dance"})
+        with pytest.raises(ConfigError, match="another daemon answers there"):
+            from robid_link.link.control import ControlServer
+
+            async def noop(req: dict) -> dict:
+                return {}
+
+            async with ControlServer(sock, noop):
+                pass
+        return out
+
+    out = with_daemon(cfg, body)
+    assert out["mode"] == 0o660 and out["pid"] == os.getpid()
+    assert out["campaigns"] == ["one"]
+    assert not sock.exists()  # removed on a clean stop
