@@ -1,7 +1,8 @@
 """`make bench`: figures printed as ratios against baselines measured in the same run.
 
-Sections: identify end-to-end on 1,000,000 samples (wall time, peak RSS); the batched
-regressor against a per-sample loop over Pinocchio's computeJointTorqueRegressor.
+Sections: the file-share give→take hand-off (inotify, polling, the original 1 s loop); the
+batched regressor against a per-sample loop over Pinocchio's computeJointTorqueRegressor; the
+closed-loop plant; diagnose against identify; identify end-to-end on 1,000,000 samples.
 """
 
 from __future__ import annotations
@@ -140,9 +141,18 @@ def bench_diagnose(seconds: float) -> dict[str, float]:
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--samples", type=int, default=1_000_000)
-    ap.add_argument("--only", choices=("identify", "regressor", "plant", "diagnose"))
+    ap.add_argument("--only", choices=("identify", "regressor", "plant", "diagnose", "handoff"))
     args = ap.parse_args()
     print("robid_link benchmarks (2-core machine; ratios are against baselines run here)\n")
+    if args.only in (None, "handoff"):
+        from benchmarks.handoff import bench_handoff
+
+        h = bench_handoff()
+        base = h["1 s loop (original)"]["median_ms"]
+        for name, v in h.items():
+            print(f"give→take hand-off, {name:<20}: median {v['median_ms']:8.2f} ms, p99 "
+                  f"{v['p99_ms']:8.2f} ms over {v['n']:.0f} ({base / v['median_ms']:.0f}× faster "
+                  "than the 1 s loop)" + (" (target median ≤ 5 ms)" if name == "inotify" else ""))
     if args.only in (None, "regressor"):
         r = bench_regressor(100_000, 2048)
         print(f"regressor, 6 axes: {r['ours_us_per_sample']:.2f} µs/sample vs per-sample "

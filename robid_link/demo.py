@@ -1,86 +1,157 @@
-"""``robid demo``: the main job on an embedded default.
+"""``robid demo``: the main job on an embedded default, through the real link.
 
-Until the daemon exists (issue 5) this runs the worker's loop on a simulated 6-axis robot
-whose truth holds an effect the default model does not know: excitation → simulated log →
-identify → diagnose → add the suggested effect → identify again → report.
+A temporary share and state dir; the fake controller (a thread) over a simulated 6-axis robot
+whose truth holds an effect the default model does not know; the daemon; one campaign
+(excitation → generate/give/take/load → identification → diagnosis) started over the control
+socket with a progress display; then the suggested effect is added to the model file and the
+stored logs are identified again: the error ladder. Report files go to ``--out``.
 """
 
 from __future__ import annotations
 
-import json
+import asyncio
+import logging
+import shutil
+import threading
 from pathlib import Path
+from typing import Any
 
-import numpy as np
+import yaml
 
-from robid_link.ident.data import write_log_csv
-from robid_link.ident.diagnose import diagnose
-from robid_link.ident.effects import DEFAULT_MODEL, EffectSpec, save_model
-from robid_link.ident.excitation import optimize_fourier
-from robid_link.ident.history import append_record, result_record
-from robid_link.ident.identify import identify, load_logs
-from robid_link.ident.report import history_figure, residual_figures, write_json, write_report
-from robid_link.ident.robot import load_robot
+from robid_link.config import load_daemon_config
+from robid_link.exceptions import RobidError
 
 __all__ = ["run_demo", "DEMO_ROBOT", "HIDDEN"]
 
-DEMO_ROBOT = Path(__file__).resolve().parent.parent / "examples" / "robots" / "industrial6.yaml"
+ROOT = Path(__file__).resolve().parent.parent
+DEMO_ROBOT = ROOT / "examples" / "robots" / "industrial6.yaml"
 #: what the default model does not know: cogging on axis 1 (0.6 N·m, every 0.1 rad)
 HIDDEN = {"name": "ripple", "joint": 1, "amplitude": 0.6, "period": 0.1}
+CAMPAIGN = {"experiments": [{"kind": "rigid_body", "duration_s": 40, "harmonics": 8,
+                             "base_hz": 0.1, "evaluations": 600, "restarts": 1,
+                             "rate_hz": 250}],
+            "diagnose": True, "timeout_s": 120, "retries": 1, "backoff_s": 1.0}
 
 
-def run_demo(work: Path, out: Path, json_path: str | None = None) -> int:
-    from fakes.plant import Plant, Truth, perturbed_inertials
+def _setup(work: Path, out: Path) -> tuple[Path, Path]:
+    share, model = work / "share", out / "model.yaml"
+    share.mkdir(parents=True)
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in (model, model.with_name("model.yaml.history.jsonl")):
+        stale.unlink(missing_ok=True)
+    from robid_link.ident.effects import DEFAULT_MODEL, save_model
+
+    save_model(model, DEFAULT_MODEL)
+    cfg = {"robot": str(DEMO_ROBOT), "state_dir": str(work / "state"),
+           "control_socket": str(work / "control.sock"),
+           "driver": {"name": "file_share", "share": str(share)},
+           "campaigns": {"demo": {**CAMPAIGN, "model": str(model)}}}
+    path = work / "daemon.yaml"
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return path, model
+
+
+def _controller(share: Path) -> tuple[Any, threading.Event, threading.Thread]:
+    from fakes.controller import FileShareController
+    from fakes.plant import Truth, perturbed_inertials
+    from robid_link.ident.robot import load_robot
 
     robot = load_robot(DEMO_ROBOT)
-    print(f"robid demo: {robot.name} ({robot.n} axes), simulated; hidden effect: "
-          f"{HIDDEN['name']}@{HIDDEN['joint']}")
-    print("  [1/5] designing the excitation (Fourier, condition number of the base regressor)")
-    traj, cond = optimize_fourier(robot, harmonics=8, base_hz=0.1, evaluations=600, restarts=1)
-    rate = 250.0
-    t = np.arange(0.0, 40.0, 1.0 / rate)
     truth = Truth(inertials=perturbed_inertials(robot, seed=11, spread=0.2),
                   effects=({"name": "viscous", "fv": 3.0}, {"name": "coulomb", "fc": 2.0},
                            HIDDEN),
-                  noise_tau=0.3, q_resolution=2 * np.pi / 2**20)
-    print(f"  [2/5] running it on the simulated robot (condition number {cond:.3g})")
-    log = Plant(robot, truth).run(t, *traj.evaluate(t), seed=3)
-    path = work / "demo_log.csv"
-    write_log_csv(path, log["t"], log["q"], log["tau"])
-    data = load_logs(robot, [path])
-    model_file = out / "model.yaml"
-    out.mkdir(parents=True, exist_ok=True)
-    for stale in (model_file, model_file.with_name("model.yaml.history.jsonl")):
-        stale.unlink(missing_ok=True)
-    save_model(model_file, DEFAULT_MODEL)
-    print("  [3/5] identifying the default model")
-    first = identify(robot, data, DEFAULT_MODEL)
-    append_record(model_file, result_record("identify", first.to_dict()))
-    print("  [4/5] diagnosing: where does the model fail, which effect is missing?")
-    dg = diagnose(robot, data, DEFAULT_MODEL)
-    doc = dg.to_dict()
-    append_record(model_file, result_record("diagnose", doc))
-    print(dg.summary())
-    model = DEFAULT_MODEL
-    if dg.suggestions:
-        top = dg.suggestions[0]
-        model = model.with_added(EffectSpec(top.effect, top.joint,
-                                            tuple(sorted(top.hypers.items()))))
+                  noise_tau=0.3, q_resolution=2 * 3.141592653589793 / 2**20, rate_hz=250.0)
+    ctrl = FileShareController(share, robot, truth, seed=3)
+    stop = threading.Event()
+    thread = threading.Thread(target=ctrl.serve, args=(stop,), name="fake-controller",
+                              daemon=True)
+    return ctrl, stop, thread
+
+
+async def _campaign(cfg_path: Path, log_file: Path) -> dict[str, Any]:
+    from robid_link.link.commands import wait_for_run
+    from robid_link.link.control import request
+    from robid_link.link.daemon import Daemon, setup_logging
+
+    setup_logging("info")
+    root = logging.getLogger("robid")
+    root.handlers[0].setStream(open(log_file, "a"))  # noqa: SIM115  (closed below)
+    cfg = load_daemon_config(cfg_path)
+    daemon = Daemon(cfg, env={})
+    task = asyncio.create_task(daemon.serve(), name="robid-daemon")
+    try:
+        ready = asyncio.create_task(daemon.ready.wait())
+        await asyncio.wait({task, ready}, return_when=asyncio.FIRST_COMPLETED)
+        if task.done():
+            ready.cancel()
+            await task
+        sock = cfg.control_socket
+        ans = await asyncio.to_thread(request, sock, {"cmd": "start", "campaign": "demo"})
+        print(f"  campaign 'demo' started: run {ans['run_id']}")
+        run = await asyncio.to_thread(wait_for_run, sock, ans["run_id"])
+        res = await asyncio.to_thread(request, sock, {"cmd": "results", "run_id": run["run_id"]})
+        return {"run": run, "results": res["results"]}
+    finally:
+        daemon.stop()
+        await task
+        stream = root.handlers[0].stream  # type: ignore[attr-defined]
+        root.handlers[0].setStream(__import__("sys").stdout)  # type: ignore[attr-defined]
+        stream.close()
+
+
+def run_demo(work: Path, out: Path, json_path: str | None = None) -> int:
+    from robid_link.ident.effects import EffectSpec, load_model, save_model
+    from robid_link.ident.history import append_record, read_history, result_record
+    from robid_link.ident.identify import identify, load_logs
+    from robid_link.ident.report import history_figure, write_json, write_report
+    from robid_link.ident.robot import load_robot
+
+    cfg_path, model_file = _setup(work, out)
+    print(f"robid demo: industrial6 (6 axes), simulated cell; hidden effect: "
+          f"{HIDDEN['name']}@{HIDDEN['joint']} (the default model does not know it)")
+    print("  fake controller on a temporary share, daemon with a temporary state dir; "
+          f"daemon log: {out / 'daemon.log'}")
+    ctrl, stop, thread = _controller(work / "share")
+    thread.start()
+    try:
+        doc = asyncio.run(_campaign(cfg_path, out / "daemon.log"))
+    finally:
+        stop.set()
+        thread.join(10)
+    run = doc["run"]
+    if run["state"] != "completed":
+        raise RobidError(f"demo campaign failed: {run['error']}")
+    report = work / "state" / "reports" / run["run_id"]
+    files = []
+    for f in sorted(report.iterdir()):
+        shutil.copy2(f, out / f.name)
+        files.append(out / f.name)
+    print((report / "summary.txt").read_text())
+    diag = next(r["record"] for r in doc["results"] if r["kind"] == "diagnose")
+    first = next(r["record"] for r in doc["results"] if r["kind"] == "identify")
+    robot = load_robot(DEMO_ROBOT)
+    model = load_model(model_file)
+    final_rmse = first["rmse"]
+    if diag["suggestions"]:
+        top = diag["suggestions"][0]
+        spec = EffectSpec(top["effect"], top["joint"],
+                          tuple(sorted((top.get("hyper_parameters") or {}).items())))
+        model = model.with_added(spec)
         save_model(model_file, model)
-    print(f"  [5/5] identifying again with [{', '.join(model.labels())}]")
-    final = identify(robot, data, model)
-    append_record(model_file, result_record("identify", final.to_dict()))
-    print(final.summary())
-    files = write_report(final, out)
-    files += residual_figures(dg.residuals, dg.result.joints, out)
-    records = [json.loads(x) for x in model_file.with_name("model.yaml.history.jsonl")
-               .read_text().splitlines()]
-    files.append(history_figure(records, out / "error_ladder.png"))
-    before, after = first.rmse, final.rmse
+        print(f"  adding {spec.label()} to {model_file} and identifying the stored logs again")
+        logs = [str(work / "state" / "logs" / e["log_sha"][:2] / f"{e['log_sha']}.csv")
+                for e in run["experiments"]]
+        final = identify(robot, load_logs(robot, logs), model)
+        append_record(model_file, result_record("identify", final.to_dict()))
+        files += write_report(final, out / "final")
+        final_rmse = final.rmse.tolist()
+    files.append(history_figure(read_history(model_file), out / "error_ladder.png"))
     print("\n  error ladder, validation RMSE per joint [N·m]:")
-    print("    default model : " + " ".join(f"{x:7.3f}" for x in before))
-    print(f"    + {model.labels()[-1]:<12}: " + " ".join(f"{x:7.3f}" for x in after))
-    print(f"\nrobid demo: wrote {len(files)} report files to {out}/")
+    print("    default model : " + " ".join(f"{x:7.3f}" for x in first["rmse"]))
+    if diag["suggestions"]:
+        print(f"    + {model.labels()[-1]:<12}: " + " ".join(f"{x:7.3f}" for x in final_rmse))
+    print(f"\nrobid demo: run {run['run_id']} completed; {len(files)} report files in {out}/")
     if json_path:
-        write_json(json_path, {"diagnosis": doc, "final": final.to_dict(),
-                               "hidden": HIDDEN, "model": model.labels()})
+        write_json(json_path, {"run": run, "results": doc["results"], "hidden": HIDDEN,
+                               "model": model.labels(), "final_rmse": final_rmse})
     return 0

@@ -83,6 +83,7 @@ def test_sigkill_at_every_step_then_resume_exactly_once(tmp_path: Path) -> None:
             end = time.monotonic() + 120
             while time.monotonic() < end:
                 st = robid("status", "--config", str(cfg), "--json", str(tmp_path / "s.json"))
+                assert st.returncode == 0, st.stderr
                 runs = json.loads((tmp_path / "s.json").read_text())["runs"]
                 if runs[0]["state"] in ("completed", "failed"):
                     break
