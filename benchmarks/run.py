@@ -128,7 +128,9 @@ def bench_diagnose(seconds: float) -> dict[str, float]:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             logs = load_logs(robot, [data])
-            identify(robot, logs, DEFAULT_MODEL, interval=20)  # warm caches
+            # warm imports, numba caches and memoized base sets of both, once
+            identify(robot, logs, DEFAULT_MODEL, interval=20)
+            diagnose(robot, logs, DEFAULT_MODEL, interval=20)
             t0 = time.perf_counter()
             identify(robot, logs, DEFAULT_MODEL)
             t_id = time.perf_counter() - t0

@@ -19,7 +19,7 @@ from robid_link.ident.data import Log
 from robid_link.ident.effects import REGISTRY, Block, Model, States
 from robid_link.ident.estimate import Grams, accumulate, solve
 from robid_link.ident.identify import build_problem, identify, make_design, structural_mask
-from robid_link.ident.preprocess import Design, Piece, block_columns, design_chunks, split
+from robid_link.ident.preprocess import CHUNK, Design, Piece, block_columns, split
 from robid_link.ident.results import IdentResult
 from robid_link.ident.robot import Robot
 
@@ -31,6 +31,8 @@ GAIN_MIN = 0.05
 P_MAX = 1e-3
 FOLDS = 5
 BLOCKS = 40
+#: rows (spread over the log) on which hyper-parameters are profiled
+PROFILE_ROWS = 4000
 
 
 @dataclass
@@ -121,24 +123,24 @@ def _candidates(robot: Robot, model: Model) -> list[Block]:
     return out
 
 
-def _profile_effect(robot: Robot, blocks: list[Block], resid: np.ndarray,
-                    pieces: Sequence[Piece], step: int, transmission: np.ndarray | None,
-                    q: np.ndarray | None = None) -> list[Block]:
+def _profile_effect(robot: Robot, blocks: list[Block], resid: np.ndarray, states: States,
+                    resid_filtered: np.ndarray | None = None) -> list[Block]:
     """Choose the free hyper-parameter of one effect on all its candidate joints.
 
     For each grid value the candidate's columns, with the joint's own viscous, Coulomb and
-    offset columns, are parallel-filtered like the residual (one pass for all joints); the
-    value that explains most of each joint's residual wins.
+    offset columns, are evaluated on the residual's rows (``resid`` is the raw torque minus the
+    current model, so no column needs filtering); the value that explains most of each joint's
+    residual wins.
     """
     eff = blocks[0].effect
     hyper = blocks[0].free_hypers()[0]
     full_grid = eff.hypers[hyper].grid
-    args = (robot, blocks, resid, pieces, step, transmission, hyper)
-    if eff.name == "ripple" and q is not None:  # the period from the residual's spectrum in q
+    args = (robot, blocks, resid, states, hyper)
+    if eff.name == "ripple":  # the period from the residual's spectrum in q
+        r = resid if resid_filtered is None else resid_filtered
         chosen = [Block(b.effect, b.joint, {**b.opts, hyper: _period_from_residual(
-            q[: len(resid), b.joint], resid[:, b.joint], full_grid)}) for b in blocks]
-        width = np.full(len(blocks), 1.03)
-        return _refine(args, chosen, hyper, width)
+            states.q[:, b.joint], r[:, b.joint], full_grid)}) for b in blocks]
+        return _refine(args, chosen, hyper, np.full(len(blocks), 1.03), passes=3)
     if len(full_grid) > 12:  # coarse pass, then the neighbours of each joint's best
         first = _profile_effect_grid(*args, np.tile(np.array(full_grid[::4])[:, None],
                                                     (1, len(blocks))))
@@ -149,17 +151,17 @@ def _profile_effect(robot: Robot, blocks: list[Block], resid: np.ndarray,
     else:
         chosen = _profile_effect_grid(*args, np.tile(np.array(full_grid)[:, None],
                                                      (1, len(blocks))))
-    # fine passes around each joint's best, narrowing (a ripple's period must be exact)
+    # fine passes around each joint's best, narrowing
     grid = np.array(full_grid)
     width = np.array([grid[min(int(np.argmin(np.abs(grid - b.opts[hyper]))) + 1, grid.size - 1)]
                       / grid[int(np.argmin(np.abs(grid - b.opts[hyper])))] for b in chosen])
     return _refine(args, chosen, hyper, np.maximum(width, 1.02))
 
 
-def _refine(args: tuple[Any, ...], chosen: list[Block], hyper: str, width: np.ndarray
-            ) -> list[Block]:
+def _refine(args: tuple[Any, ...], chosen: list[Block], hyper: str, width: np.ndarray,
+            passes: int = 2) -> list[Block]:
     """Narrowing passes of 11 values around each joint's current best."""
-    for _ in range(3):
+    for _ in range(passes):
         centre = np.array([b.opts[hyper] for b in chosen])
         fine = centre[None, :] * width[None, :] ** np.linspace(-1.0, 1.0, 11)[:, None]
         chosen = _profile_effect_grid(*args, fine)
@@ -168,60 +170,44 @@ def _refine(args: tuple[Any, ...], chosen: list[Block], hyper: str, width: np.nd
 
 
 def _period_from_residual(q: np.ndarray, r: np.ndarray, grid: Sequence[float]) -> float:
-    """Peak of the residual's periodogram against the joint angle, |Σ r·e^(−iωq)|² (q is
-    unevenly sampled, so this is a spectrum in space); the refinement passes finish it."""
-    step = max(1, q.size // 4000)
-    q, r = q[::step], r[::step] - r[::step].mean()
-    periods = np.geomspace(min(grid), max(grid), 2000)
-    power = np.empty(periods.size)
-    for a in range(0, periods.size, 250):
-        w = 2 * np.pi / periods[a: a + 250]
-        power[a: a + 250] = np.abs(np.exp(-1j * np.outer(w, q)) @ r) ** 2
-    return float(periods[int(np.argmax(power))])
-
-
-def _profile_subset(pieces: Sequence[Piece], resid: np.ndarray, step: int,
-                    max_samples: int = 6000) -> tuple[list[Piece], np.ndarray]:
-    """Leading pieces worth at most ``max_samples`` samples, and their residual rows."""
-    out: list[Piece] = []
-    rows = 0
-    total = 0
-    for pc in pieces:
-        if total >= max_samples:
-            break
-        take = min(len(pc), max_samples - total)
-        sub = Piece(pc.prep, pc.lo, pc.lo + take, pc.ctx_lo, pc.ctx_hi)
-        out.append(sub)
-        total += take
-        rows += len(range(pc.lo + (-(pc.lo - pc.ctx_lo) % step), sub.hi, step))
-    return out, resid[:rows]
+    """Peak of the residual's spectrum against the joint angle, |Σ r·e^(−iωq)|²: q is unevenly
+    sampled, so r is summed into bins of q (a twentieth of the shortest period, a phase error
+    under 9°) and Fourier-transformed; the refinement passes finish the period."""
+    pmin, pmax = float(min(grid)), float(max(grid))
+    delta = pmin / 20.0
+    k = np.round((q - q.min()) / delta).astype(np.int64)
+    binned = np.bincount(k, weights=r - r.mean())
+    size = 1 << int(np.ceil(np.log2(max(4 * binned.size, 64.0 * pmax / delta))))
+    power = np.abs(np.fft.rfft(binned, min(size, 1 << 22))) ** 2
+    nfft = 2 * (power.size - 1)
+    idx = np.arange(1, power.size)
+    periods = nfft * delta / idx
+    ok = (periods >= pmin) & (periods <= pmax)
+    if not ok.any():
+        return float(np.sqrt(pmin * pmax))
+    best = idx[ok][int(np.argmax(power[1:][ok]))]
+    return float(nfft * delta / best)
 
 
 def _profile_effect_grid(robot: Robot, blocks: list[Block], resid: np.ndarray,
-                         pieces: Sequence[Piece], step: int, transmission: np.ndarray | None,
-                         hyper: str, values: np.ndarray) -> list[Block]:
+                         states: States, hyper: str, values: np.ndarray) -> list[Block]:
     """Score ``values`` (G × blocks: each joint its own candidates) in G passes."""
     eff = blocks[0].effect
-    joints = [b.joint for b in blocks]
     score = np.full(values.shape, -np.inf)
-    helpers = [Block(REGISTRY[name], j, {}) for j in joints if j is not None
-               for name in ("viscous", "coulomb", "offset")]
+    helpers = {b.joint: np.concatenate([REGISTRY[name].columns(robot, states, b.joint, {})
+                                        [:, b.joint, :] for name in ("viscous", "coulomb",
+                                                                     "offset")], axis=1)
+               for b in blocks if b.joint is not None}
     for gi, row in enumerate(values):
-        trial = [Block(eff, b.joint, {**b.opts, hyper: float(v)})
-                 for b, v in zip(blocks, row, strict=True)]
-        width = sum(len(b.effect.param_names(robot, b.joint, b.opts)) for b in [*trial, *helpers])
-        every = np.arange(width)
-        extra = Design(robot, [*trial, *helpers], every,
-                       structural_mask(robot, [*trial, *helpers], every, transmission))
-        cols = np.concatenate([e for pc in pieces for e, _, _ in design_chunks(extra, pc, step)])
-        dense = extra.expand(cols)
-        for bi, b in enumerate(trial):
-            rows = [b.joint] if b.joint is not None else list(range(robot.n))
-            x = dense[:, rows, :].reshape(-1, dense.shape[2])
-            x = x[:, np.abs(x).max(axis=0) > 0]
-            y = resid[:, rows].reshape(-1)
+        for bi, (b, v) in enumerate(zip(blocks, row, strict=True)):
+            cols = eff.columns(robot, states, b.joint, {**b.opts, hyper: float(v)})
+            if b.joint is not None:
+                x = np.concatenate((cols[:, b.joint, :], helpers[b.joint]), axis=1)
+                y = resid[:, b.joint]
+            else:
+                x, y = cols.reshape(-1, cols.shape[2]), resid.reshape(-1)
             xtx, xty = x.T @ x, x.T @ y
-            coef = np.linalg.lstsq(xtx, xty, rcond=None)[0]
+            coef = np.linalg.lstsq(xtx, xty, rcond=None)[0]  # all-zero columns: min-norm
             score[gi, bi] = float(xty @ coef) / max(float(y @ y), 1e-300)
     best = np.argmax(score, axis=0)
     return [Block(b.effect, b.joint, {**b.opts, hyper: float(values[best[bi], bi])})
@@ -421,7 +407,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                       f"cross-validation over the log ({FOLDS} folds), not on a new motion")
     # residual of the current model on decimated rows: evidence and hyper profiling
     step = max(1, sum(len(p) for p in pieces) // 12000)
-    resid, states = _residual_with_states(design, theta0, pieces, step)
+    resid, raw_resid, states = _residual_with_states(pieces, step)
     absorbed: list[dict[str, Any]] = []
     kept: list[Block] = []
     cand_cols: list[list[int]] = []
@@ -429,11 +415,14 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     n_model = len(novelty.names)
     start = n_model
     candidates = _candidates(robot, model)
-    sub_pieces, sub_resid = _profile_subset(pieces, resid, step)
-    for name in {b.effect.name for b in candidates if b.free_hypers()}:
+    every = max(1, len(states) // PROFILE_ROWS)  # rows spread over the whole log
+    sub_states = States(*(None if a is None else a[::every] for a in (
+        states.q, states.qd, states.qdd, states.t)), states.transmission,
+        *(None if a is None else a[::every] for a in (states.tau_rigid, states.tau_rate)))
+    for name in sorted({b.effect.name for b in candidates if b.free_hypers()}):
         group = [b for b in candidates if b.effect.name == name]
         chosen = dict(zip(map(id, group), _profile_effect(
-            robot, group, sub_resid, sub_pieces, step, pb.transmission, states.q), strict=True))
+            robot, group, raw_resid[::every], sub_states, resid[::every]), strict=True))
         candidates = [chosen.get(id(b), b) for b in candidates]
     span = np.ptp(states.q, axis=0)
     candidates = [b for b in candidates if not (  # a "ripple" as slow as the motion: spring
@@ -538,29 +527,42 @@ def attach_predictions(robot: Robot, preps: Sequence[Any], design: Design,
             full[a:b] = design.predict(c, theta)
             rigid[a:b] = design.predict(c, rigid_theta)
         prep.tau_rigid = rigid
+        prep.tau_model = full
         prep.tau_rate = np.gradient(full, 1.0 / prep.filt.fs, axis=0)
 
 
-def _residual_with_states(design: Design, theta: np.ndarray, pieces: Sequence[Piece],
-                          step: int) -> tuple[np.ndarray, States]:
-    """The model's residual on decimated (filtered) rows, with the states of those rows."""
+def _residual_with_states(pieces: Sequence[Piece], step: int
+                          ) -> tuple[np.ndarray, np.ndarray, States]:
+    """The model's residual on decimated rows, of the filtered and of the raw torque, with
+    the states of those rows. Filtering is linear, so filtering the raw residual (τ − Xθ with
+    the model's prediction from ``attach_predictions``) equals the parallel-filtered residual
+    τ_f − X_f·θ, at the cost of n columns instead of the design's."""
     res: list[np.ndarray] = []
+    raw: list[np.ndarray] = []
     parts: dict[str, list[np.ndarray]] = {k: [] for k in ("q", "qd", "qdd", "t", "tr", "rate")}
     for pc in pieces:
         prep = pc.prep
-        for c, y, idx in design_chunks(design, pc, step):
-            res.append(y - design.predict(c, theta))
+        pad = 3 * prep.filt.settle if prep.filt.active else 0
+        first = pc.lo + (-(pc.lo - pc.ctx_lo) % step)
+        for a in range(first, pc.hi, CHUNK * step):
+            b = min(a + CHUNK * step, pc.hi)
+            ca, cb = max(pc.ctx_lo, a - pad), min(pc.ctx_hi, b + pad)
+            at_edge = ca == pc.ctx_lo or cb == pc.ctx_hi
+            filtered = prep.filt.apply(prep.tau[ca:cb] - prep.tau_model[ca:cb], edges=at_edge)
+            idx = np.arange(a, b, step)
+            res.append(filtered[a - ca: b - ca: step])
+            raw.append(prep.tau[idx] - prep.tau_model[idx])
             parts["q"].append(prep.q[idx])
             parts["qd"].append(prep.qd[idx])
             parts["qdd"].append(prep.qdd[idx])
-            parts["t"].append(prep.log.t[idx])
+            parts["t"].append(prep.log.t[idx] - prep.log.t[0])
             if prep.tau_rigid is not None and prep.tau_rate is not None:
                 parts["tr"].append(prep.tau_rigid[idx])
                 parts["rate"].append(prep.tau_rate[idx])
     cat = {k: np.concatenate(v) if v else None for k, v in parts.items()}
     st = States(cat["q"], cat["qd"], cat["qdd"], cat["t"], pieces[0].prep.transmission,
                 cat["tr"], cat["rate"])
-    return np.concatenate(res), st
+    return np.concatenate(res), np.concatenate(raw), st
 
 
 def _unexplained(pb: Any, design: Design, theta: np.ndarray) -> list[dict[str, Any]]:
@@ -570,8 +572,10 @@ def _unexplained(pb: Any, design: Design, theta: np.ndarray) -> list[dict[str, A
     out: list[dict[str, Any]] = []
     prep = pb.preps[0]
     n = min(len(prep.log), 200_000)
-    c = design.compact(prep.states(0, n))
-    r = prep.tau[:n] - design.predict(c, theta)
+    if getattr(prep, "tau_model", None) is not None:  # attach_predictions computed it
+        r = prep.tau[:n] - prep.tau_model[:n]
+    else:
+        r = prep.tau[:n] - design.predict(design.compact(prep.states(0, n)), theta)
     fs = prep.filt.fs
     nper = int(min(n // 4, 4 * fs))
     if nper < 64:

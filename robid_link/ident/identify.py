@@ -83,9 +83,28 @@ def structural_mask(robot: Robot, blocks: Sequence[Block], cols: np.ndarray,
     return np.abs(w[:, :, cols]).max(axis=0) > 0
 
 
+_BASE_SETS: dict[tuple[Any, ...], tuple[Robot, tuple[BaseSet, list[str]]]] = {}
+
+
 def base_set_for(robot: Robot, blocks: Sequence[Block], transmission: np.ndarray | None = None
                  ) -> tuple[BaseSet, list[str]]:
-    """The structural base set of a robot and effect list (random states, fixed seed)."""
+    """The structural base set of a robot and effect list (random states, fixed seed),
+    memoized per robot object: identify, diagnose and excitation ask for the same ones."""
+    key = (id(robot), tuple((b.effect.name, b.joint, tuple(sorted(b.opts.items())))
+                            for b in blocks),
+           None if transmission is None else transmission.tobytes())
+    hit = _BASE_SETS.get(key)
+    if hit is not None and hit[0] is robot:
+        return hit[1]
+    out = _base_set_for(robot, blocks, transmission)
+    if len(_BASE_SETS) >= 64:
+        _BASE_SETS.pop(next(iter(_BASE_SETS)))
+    _BASE_SETS[key] = (robot, out)  # the reference keeps id(robot) from being reused
+    return out
+
+
+def _base_set_for(robot: Robot, blocks: Sequence[Block], transmission: np.ndarray | None
+                  ) -> tuple[BaseSet, list[str]]:
     names = [nm for b in blocks for nm in b.effect.param_names(robot, b.joint, b.opts)]
 
     def sample(rng: np.random.Generator, n: int) -> np.ndarray:

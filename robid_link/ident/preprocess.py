@@ -183,6 +183,7 @@ class Prepared:
     transmission: np.ndarray | None = None  # set for motor-side logs
     tau_rigid: np.ndarray | None = None  # the current model's rigid torque (diagnosis)
     tau_rate: np.ndarray | None = None  # … and its torque rate
+    tau_model: np.ndarray | None = None  # the current model's torque on every raw sample
 
     @property
     def tau(self) -> np.ndarray:
