@@ -124,7 +124,8 @@ def _candidates(robot: Robot, model: Model) -> list[Block]:
 
 
 def _profile_effect(robot: Robot, blocks: list[Block], resid: np.ndarray, states: States,
-                    resid_filtered: np.ndarray | None = None) -> list[Block]:
+                    resid_filtered: np.ndarray | None = None,
+                    model_cols: np.ndarray | None = None) -> list[Block]:
     """Choose the free hyper-parameter of one effect on all its candidate joints.
 
     For each grid value the candidate's columns, with the joint's own viscous, Coulomb and
@@ -135,7 +136,7 @@ def _profile_effect(robot: Robot, blocks: list[Block], resid: np.ndarray, states
     eff = blocks[0].effect
     hyper = blocks[0].free_hypers()[0]
     full_grid = eff.hypers[hyper].grid
-    args = (robot, blocks, resid, states, hyper)
+    args = (robot, blocks, resid, states, hyper, model_cols)
     if eff.name == "ripple":  # the period from the residual's spectrum in q
         r = resid if resid_filtered is None else resid_filtered
         chosen = [Block(b.effect, b.joint, {**b.opts, hyper: _period_from_residual(
@@ -190,14 +191,23 @@ def _period_from_residual(q: np.ndarray, r: np.ndarray, grid: Sequence[float]) -
 
 
 def _profile_effect_grid(robot: Robot, blocks: list[Block], resid: np.ndarray,
-                         states: States, hyper: str, values: np.ndarray) -> list[Block]:
-    """Score ``values`` (G × blocks: each joint its own candidates) in G passes."""
+                         states: States, hyper: str, model_cols: np.ndarray | None,
+                         values: np.ndarray) -> list[Block]:
+    """Score ``values`` (G × blocks: each joint its own candidates) in G passes. With each
+    candidate the joint's own friction and its row of the model (``model_cols``, dense
+    (N, n, p)) are refitted, so the model's parameters cannot hide what the value explains."""
     eff = blocks[0].effect
     score = np.full(values.shape, -np.inf)
-    helpers = {b.joint: np.concatenate([REGISTRY[name].columns(robot, states, b.joint, {})
-                                        [:, b.joint, :] for name in ("viscous", "coulomb",
-                                                                     "offset")], axis=1)
-               for b in blocks if b.joint is not None}
+    helpers = {}
+    for b in blocks:
+        if b.joint is None:
+            continue
+        parts = [REGISTRY[name].columns(robot, states, b.joint, {})[:, b.joint, :]
+                 for name in ("viscous", "coulomb", "offset")]
+        if model_cols is not None:
+            own = model_cols[:, b.joint, :]
+            parts.append(own[:, np.abs(own).max(axis=0) > 0])
+        helpers[b.joint] = np.concatenate(parts, axis=1)
     for gi, row in enumerate(values):
         for bi, (b, v) in enumerate(zip(blocks, row, strict=True)):
             cols = eff.columns(robot, states, b.joint, {**b.opts, hyper: float(v)})
@@ -419,10 +429,12 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     sub_states = States(*(None if a is None else a[::every] for a in (
         states.q, states.qd, states.qdd, states.t)), states.transmission,
         *(None if a is None else a[::every] for a in (states.tau_rigid, states.tau_rate)))
+    model_dense = design.expand(design.compact(sub_states))
     for name in sorted({b.effect.name for b in candidates if b.free_hypers()}):
         group = [b for b in candidates if b.effect.name == name]
         chosen = dict(zip(map(id, group), _profile_effect(
-            robot, group, raw_resid[::every], sub_states, resid[::every]), strict=True))
+            robot, group, raw_resid[::every], sub_states, resid[::every], model_dense),
+            strict=True))
         candidates = [chosen.get(id(b), b) for b in candidates]
     span = np.ptp(states.q, axis=0)
     candidates = [b for b in candidates if not (  # a "ripple" as slow as the motion: spring

@@ -103,6 +103,10 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
     return Grams(g, np.full(n, total))
 
 
+#: relative eigenvalue floor of a column-scaled Gram (cond(X) up to 1e6 is kept)
+RANK_TOL = 1e-12
+
+
 def solve(a: np.ndarray, b: np.ndarray, names: Sequence[str] | None = None,
           warn: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
     """Solve the normal equations with column equilibration; returns θ, A⁻¹, cond(scaled X)."""
@@ -114,7 +118,9 @@ def solve(a: np.ndarray, b: np.ndarray, names: Sequence[str] | None = None,
     s = a / np.outer(d, d)
     evals, evecs = np.linalg.eigh(s)
     cond = math.sqrt(max(evals[-1], 0.0) / max(evals[0], 1e-300))
-    keep = evals > evals[-1] * 1e-14
+    # a Gram squares the condition number: directions below 1e-12 of the largest eigenvalue
+    # (cond(X) > 1e6) are rounding noise of the accumulated sums, not information
+    keep = evals > evals[-1] * RANK_TOL
     if not keep.all() and warn:
         warnings.warn(f"regressor is numerically rank deficient ({int((~keep).sum())} "
                       "directions dropped); some parameters are not identifiable from this log",

@@ -125,10 +125,12 @@ def format_runs(runs: list[dict[str, Any]]) -> str:
 
 
 def format_results(results: list[dict[str, Any]]) -> str:
-    """Per-joint validation RMSE of every result, oldest first: runs and robots side by side."""
+    """Per-joint validation RMSE of every result, oldest first: runs and robots side by side,
+    each identification compared with the robot's previous one."""
     if not results:
         return "no results yet"
     lines = []
+    previous: dict[str, list[float]] = {}
     for r in results:
         rec = r["record"]
         rmse = " ".join(f"{x:7.3g}" for x in rec.get("rmse") or [])
@@ -137,6 +139,14 @@ def format_results(results: list[dict[str, Any]]) -> str:
         if rec.get("suggestions"):
             s = rec["suggestions"][0]
             extra += f" → {s['effect']}{'@' + str(s['joint']) if s.get('joint') else ''}"
+        if r["kind"] == "identify" and rec.get("rmse"):
+            before = previous.get(r["robot"])
+            if before is not None and len(before) == len(rec["rmse"]):
+                worst = max(range(len(before)), key=lambda j: abs(rec["rmse"][j] - before[j])
+                            / max(before[j], 1e-12))
+                change = (rec["rmse"][worst] - before[worst]) / max(before[worst], 1e-12)
+                extra += f"  vs previous: joint {worst + 1} {100 * change:+.1f} %"
+            previous[r["robot"]] = rec["rmse"]
         lines.append(f"{r['run_id']:<24} {r['robot']:<14} {r['kind']:<9} RMSE [{rmse}] N·m"
                      + (f"  rel {100 * rel:.2f} %" if rel is not None else "") + extra)
     return "\n".join(lines)
