@@ -32,7 +32,10 @@ P_MAX = 1e-3
 FOLDS = 5
 BLOCKS = 40
 #: rows (spread over the log) on which hyper-parameters are profiled
-PROFILE_ROWS = 4000
+PROFILE_ROWS = 3000
+#: a per-joint candidate is scored only if, in-sample on the profiling rows, it explains this
+#: fraction of its joint's filtered residual (≈ half of GAIN_MIN on the RMSE)
+SCREEN_MIN = 1.0 - (1.0 - GAIN_MIN / 2) ** 2
 
 
 @dataclass
@@ -59,7 +62,7 @@ class Suggestion:
 class Diagnosis:
     result: IdentResult
     effects: list[str]
-    rmse_cv: list[float]
+    rmse_cv: list[float] | None  # None: no candidate needed scoring (no union pass)
     suggestions: list[Suggestion]
     rejected: list[Suggestion]
     absorbed: list[dict[str, Any]]
@@ -190,6 +193,46 @@ def _period_from_residual(q: np.ndarray, r: np.ndarray, grid: Sequence[float]) -
     return float(nfft * delta / best)
 
 
+class _Beyond:
+    """What columns explain of ``y`` beyond a fixed helper block: both are projected off the
+    helpers' column space once (SVD), so each trial costs a product with the basis."""
+
+    def __init__(self, basis: np.ndarray, y: np.ndarray) -> None:
+        self.u = basis
+        self.y = y - basis @ (basis.T @ y)
+        self.yy = max(float(y @ y), 1e-300)
+
+    @staticmethod
+    def basis(helpers: np.ndarray) -> np.ndarray:
+        u, sv, _ = np.linalg.svd(helpers, full_matrices=False)
+        return u[:, sv > sv[0] * 1e-10] if sv.size and sv[0] > 0 else u[:, :0]
+
+    def share(self, cols: np.ndarray) -> float:
+        c = cols - self.u @ (self.u.T @ cols)
+        cty = c.T @ self.y
+        coef = np.linalg.lstsq(c.T @ c, cty, rcond=None)[0]
+        return float(cty @ coef) / self.yy
+
+
+_BASES: dict[tuple[int, int, int], np.ndarray] = {}
+
+
+def _joint_helpers(robot: Robot, states: States, j: int, model_cols: np.ndarray | None
+                   ) -> np.ndarray:
+    """Orthonormal basis of the joint's own viscous, Coulomb and offset columns and its row of
+    the model (memoized for the states and model columns of one diagnosis)."""
+    key = (id(states), id(model_cols), j)
+    if key in _BASES:
+        return _BASES[key]
+    parts = [REGISTRY[name].columns(robot, states, j, {})[:, j, :]
+             for name in ("viscous", "coulomb", "offset")]
+    if model_cols is not None:
+        own = model_cols[:, j, :]
+        parts.append(own[:, np.abs(own).max(axis=0) > 0])
+    _BASES[key] = _Beyond.basis(np.concatenate(parts, axis=1))
+    return _BASES[key]
+
+
 def _profile_effect_grid(robot: Robot, blocks: list[Block], resid: np.ndarray,
                          states: States, hyper: str, model_cols: np.ndarray | None,
                          values: np.ndarray) -> list[Block]:
@@ -198,30 +241,41 @@ def _profile_effect_grid(robot: Robot, blocks: list[Block], resid: np.ndarray,
     (N, n, p)) are refitted, so the model's parameters cannot hide what the value explains."""
     eff = blocks[0].effect
     score = np.full(values.shape, -np.inf)
-    helpers = {}
-    for b in blocks:
-        if b.joint is None:
-            continue
-        parts = [REGISTRY[name].columns(robot, states, b.joint, {})[:, b.joint, :]
-                 for name in ("viscous", "coulomb", "offset")]
-        if model_cols is not None:
-            own = model_cols[:, b.joint, :]
-            parts.append(own[:, np.abs(own).max(axis=0) > 0])
-        helpers[b.joint] = np.concatenate(parts, axis=1)
+    beyond = {b.joint: _Beyond(_joint_helpers(robot, states, b.joint, model_cols),
+                               resid[:, b.joint]) for b in blocks if b.joint is not None}
     for gi, row in enumerate(values):
         for bi, (b, v) in enumerate(zip(blocks, row, strict=True)):
             cols = eff.columns(robot, states, b.joint, {**b.opts, hyper: float(v)})
             if b.joint is not None:
-                x = np.concatenate((cols[:, b.joint, :], helpers[b.joint]), axis=1)
-                y = resid[:, b.joint]
+                score[gi, bi] = beyond[b.joint].share(cols[:, b.joint, :])
             else:
-                x, y = cols.reshape(-1, cols.shape[2]), resid.reshape(-1)
-            xtx, xty = x.T @ x, x.T @ y
-            coef = np.linalg.lstsq(xtx, xty, rcond=None)[0]  # all-zero columns: min-norm
-            score[gi, bi] = float(xty @ coef) / max(float(y @ y), 1e-300)
+                score[gi, bi] = _explained(cols.reshape(-1, cols.shape[2]), resid.reshape(-1))
     best = np.argmax(score, axis=0)
     return [Block(b.effect, b.joint, {**b.opts, hyper: float(values[best[bi], bi])})
             for bi, b in enumerate(blocks)]
+
+
+def _explained(x: np.ndarray, y: np.ndarray) -> float:
+    """Fraction of y's sum of squares that least squares on x explains."""
+    xty = x.T @ y
+    coef = np.linalg.lstsq(x.T @ x, xty, rcond=None)[0]
+    return float(xty @ coef) / max(float(y @ y), 1e-300)
+
+
+def _screen(robot: Robot, blk: Block, resid: np.ndarray, states: States,
+            model_basis: np.ndarray) -> float:
+    """In-sample share of the joint's residual (all joints' for a global effect) that the
+    candidate removes when added to the model: its columns projected off the model's column
+    space (``model_basis``, joints stacked) against the residual. Cross-validation can only
+    show less, so a candidate under SCREEN_MIN is not worth a union column."""
+    cols = blk.effect.columns(robot, states, blk.joint, blk.opts)
+    c = cols.reshape(-1, cols.shape[2])
+    c = c - model_basis @ (model_basis.T @ c)
+    y = resid.reshape(-1)
+    cty = c.T @ y
+    drop = float(cty @ np.linalg.lstsq(c.T @ c, cty, rcond=None)[0])
+    own = resid if blk.joint is None else resid[:, blk.joint]
+    return drop / max(float(np.sum(own * own)), 1e-300)
 
 
 class _Novelty:
@@ -430,24 +484,39 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         states.q, states.qd, states.qdd, states.t)), states.transmission,
         *(None if a is None else a[::every] for a in (states.tau_rigid, states.tau_rate)))
     model_dense = design.expand(design.compact(sub_states))
+    _BASES.clear()  # keyed by these arrays' ids: valid for this diagnosis only
     for name in sorted({b.effect.name for b in candidates if b.free_hypers()}):
         group = [b for b in candidates if b.effect.name == name]
         chosen = dict(zip(map(id, group), _profile_effect(
             robot, group, raw_resid[::every], sub_states, resid[::every], model_dense),
             strict=True))
         candidates = [chosen.get(id(b), b) for b in candidates]
+    model_basis = _Beyond.basis(model_dense.reshape(-1, model_dense.shape[2]))
     span = np.ptp(states.q, axis=0)
     candidates = [b for b in candidates if not (  # a "ripple" as slow as the motion: spring
         b.effect.name == "ripple" and b.opts.get("period", 0.0) > span[b.joint] / 2)]
+    screened = 0
     for blk in candidates:
         new, by = novelty.check(blk)
         if not new:
             absorbed.append({"effect": blk.key, "by": by})
             continue
+        if _screen(robot, blk, resid[::every], sub_states, model_basis) < SCREEN_MIN:
+            screened += 1  # cannot reach GAIN_MIN even in-sample: not worth a union column
+            continue
         kept.append(blk)
         width = len(blk.effect.param_names(robot, blk.joint, blk.opts))
         cand_cols.append([start + i for i in new])
         start += width
+    _BASES.clear()
+    del model_basis
+    if screened:
+        notes.append(f"{screened} candidate(s) explain under {100 * SCREEN_MIN:.0f} % of their "
+                     "joint's filtered residual even in-sample and were not scored")
+    if not kept:  # nothing can show a gain: no union pass, the verdict is adequate
+        return Diagnosis(result, model.labels(), None, [], [], absorbed,
+                         _unexplained(pb, design, theta0), notes,
+                         _residual_dict(resid, states, pb.preps[0].filt.fs / step))
     union_blocks = [*pb.blocks, *kept]
     model_cols = list(base.independent)
     cols = np.array(model_cols + [c for cc in cand_cols for c in cc])
@@ -494,8 +563,13 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     bad.sort(key=lambda s: -s.gain)
     return Diagnosis(result, model.labels(), [float(x) for x in rmse0], good, bad[:10],
                      absorbed, _unexplained(pb, design, theta0), notes,
-                     {"r": resid, "q": states.q, "qd": states.qd, "qdd": states.qdd,
-                      "t": states.t, "fs": np.array(pb.preps[0].filt.fs / step)})
+                     _residual_dict(resid, states, pb.preps[0].filt.fs / step))
+
+
+def _residual_dict(resid: np.ndarray, states: States, fs: float) -> dict[str, np.ndarray]:
+    """What the residual figures plot."""
+    return {"r": resid, "q": states.q, "qd": states.qd, "qdd": states.qdd, "t": states.t,
+            "fs": np.array(fs)}
 
 
 def _prefer_simpler(good: list[Suggestion]) -> list[Suggestion]:
