@@ -20,7 +20,7 @@ from robid_link.ident.effects import REGISTRY, Block, Model, States
 from robid_link.ident.estimate import Grams, accumulate, solve
 from robid_link.ident.identify import build_problem, identify, make_design, structural_mask
 from robid_link.ident.preprocess import CHUNK, Design, Piece, block_columns, split
-from robid_link.ident.profile import basis, clear_cache, profile_effect, screen
+from robid_link.ident.profile import basis, clear_cache, profile_effect, refine_effect, screen
 from robid_link.ident.results import IdentResult
 from robid_link.ident.robot import Robot
 
@@ -334,11 +334,12 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         *(None if a is None else a[::every] for a in (states.tau_rigid, states.tau_rate)))
     model_dense = design.expand(design.compact(sub_states))
     clear_cache()  # keyed by these arrays' ids: valid for this diagnosis only
+    profiled = {b.key for b in candidates if b.free_hypers()}
     for name in sorted({b.effect.name for b in candidates if b.free_hypers()}):
         group = [b for b in candidates if b.effect.name == name]
         chosen = dict(zip(map(id, group), profile_effect(
-            robot, group, raw_resid[::every], sub_states, resid[::every], model_dense),
-            strict=True))
+            robot, group, raw_resid[::every], sub_states, resid[::every], model_dense,
+            refine=False), strict=True))
         candidates = [chosen.get(id(b), b) for b in candidates]
     model_basis = basis(model_dense.reshape(-1, model_dense.shape[2]))
     span = np.ptp(states.q, axis=0)
@@ -357,6 +358,11 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         width = len(blk.effect.param_names(robot, blk.joint, blk.opts))
         cand_cols.append([start + i for i in new])
         start += width
+    for name in sorted({b.effect.name for b in kept if b.key in profiled}):  # survivors only
+        group = [b for b in kept if b.effect.name == name and b.key in profiled]
+        fine = dict(zip(map(id, group), refine_effect(
+            robot, group, raw_resid[::every], sub_states, model_dense), strict=True))
+        kept = [fine.get(id(b), b) for b in kept]
     clear_cache()
     del model_basis
     if screened:

@@ -12,18 +12,19 @@ import numpy as np
 from robid_link.ident.effects import REGISTRY, Block, States
 from robid_link.ident.robot import Robot
 
-__all__ = ["profile_effect", "screen", "basis", "clear_cache"]
+__all__ = ["profile_effect", "refine_effect", "screen", "basis", "clear_cache"]
 
 
 def profile_effect(robot: Robot, blocks: list[Block], resid: np.ndarray, states: States,
-                    resid_filtered: np.ndarray | None = None,
-                    model_cols: np.ndarray | None = None) -> list[Block]:
+                   resid_filtered: np.ndarray | None = None,
+                   model_cols: np.ndarray | None = None, refine: bool = True) -> list[Block]:
     """Choose the free hyper-parameter of one effect on all its candidate joints.
 
-    For each grid value the candidate's columns, with the joint's own viscous, Coulomb and
-    offset columns, are evaluated on the residual's rows (``resid`` is the raw torque minus the
-    current model, so no column needs filtering); the value that explains most of each joint's
-    residual wins.
+    For each grid value the candidate's columns are evaluated on the residual's rows
+    (``resid`` is the raw torque minus the current model, so no column needs filtering) beyond
+    the joint's own friction and model row; the value that explains most of each joint's
+    residual wins. ``refine=False`` stops at the grid (``refine_effect`` finishes later, for
+    the candidates that survive the screen).
     """
     eff = blocks[0].effect
     hyper = blocks[0].free_hypers()[0]
@@ -33,7 +34,7 @@ def profile_effect(robot: Robot, blocks: list[Block], resid: np.ndarray, states:
         r = resid if resid_filtered is None else resid_filtered
         chosen = [Block(b.effect, b.joint, {**b.opts, hyper: _period_from_residual(
             states.q[:, b.joint], r[:, b.joint], full_grid)}) for b in blocks]
-        return _refine(args, chosen, hyper, np.full(len(blocks), 1.03), passes=3)
+        return refine_effect(robot, chosen, resid, states, model_cols) if refine else chosen
     if len(full_grid) > 12:  # coarse pass, then the neighbours of each joint's best
         first = _profile_effect_grid(*args, np.tile(np.array(full_grid[::4])[:, None],
                                                     (1, len(blocks))))
@@ -44,8 +45,18 @@ def profile_effect(robot: Robot, blocks: list[Block], resid: np.ndarray, states:
     else:
         chosen = _profile_effect_grid(*args, np.tile(np.array(full_grid)[:, None],
                                                      (1, len(blocks))))
-    # fine passes around each joint's best, narrowing
-    grid = np.array(full_grid)
+    return refine_effect(robot, chosen, resid, states, model_cols) if refine else chosen
+
+
+def refine_effect(robot: Robot, chosen: list[Block], resid: np.ndarray, states: States,
+                  model_cols: np.ndarray | None = None) -> list[Block]:
+    """Narrowing passes around each joint's grid choice (a ripple's period must be exact)."""
+    eff = chosen[0].effect
+    hyper = next(h for h in eff.hypers if h in chosen[0].opts)
+    args = (robot, chosen, resid, states, hyper, model_cols)
+    if eff.name == "ripple":
+        return _refine(args, chosen, hyper, np.full(len(chosen), 1.03), passes=3)
+    grid = np.array(eff.hypers[hyper].grid)
     width = np.array([grid[min(int(np.argmin(np.abs(grid - b.opts[hyper]))) + 1, grid.size - 1)]
                       / grid[int(np.argmin(np.abs(grid - b.opts[hyper])))] for b in chosen])
     return _refine(args, chosen, hyper, np.maximum(width, 1.02))
