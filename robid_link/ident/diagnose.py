@@ -17,7 +17,7 @@ from scipy.stats import chi2
 
 from robid_link.ident.data import Log
 from robid_link.ident.effects import REGISTRY, Block, Model, States
-from robid_link.ident.estimate import Grams, accumulate, solve
+from robid_link.ident.estimate import RANK_TOL, Grams, accumulate, solve
 from robid_link.ident.identify import build_problem, identify, make_design, structural_mask
 from robid_link.ident.preprocess import CHUNK, Design, Piece, block_columns, split
 from robid_link.ident.profile import basis, clear_cache, profile_effect, refine_effect, screen
@@ -204,7 +204,7 @@ class _FoldCV:
             amm = a[np.ix_(m, m)]
             d = 1.0 / np.sqrt(np.clip(np.diag(amm), 1e-300, None))
             evals, evecs = np.linalg.eigh(amm * np.outer(d, d))
-            keep = evals > evals[-1] * 1e-14
+            keep = evals > evals[-1] * RANK_TOL
             inv = (evecs[:, keep] / evals[keep]) @ evecs[:, keep].T * np.outer(d, d)
             self.fact.append(inv)
 

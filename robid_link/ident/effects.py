@@ -34,6 +34,18 @@ __all__ = [
 ]
 
 
+#: below this speed (rad/s, or m/s) a joint counts as at rest: a held pose's velocity, from
+#: filtered positions or a spline through the commanded ones, is rounding noise up to ~1e-6
+#: whose sign would switch Coulomb friction at random; a resting joint's friction is static
+#: (anywhere in ±Fc), so none is predicted. 1e-6 rad/s is 0.2 degrees per hour.
+V_REST = 1e-6
+
+
+def moving_sign(v: np.ndarray) -> np.ndarray:
+    """sign(v) where the joint moves, 0 at rest (|v| ≤ V_REST)."""
+    return np.where(np.abs(v) > V_REST, np.sign(v), 0.0)
+
+
 @dataclass
 class States:
     """Joint states (N, n) on which regressor columns are evaluated."""
@@ -155,7 +167,7 @@ class Coulomb(Effect):
         return [f"fc_{joint + 1}"]
 
     def columns(self, robot, st, joint, opts):
-        return _motor_row(st, robot.n, joint, [np.sign(st.motor_velocity(joint))])
+        return _motor_row(st, robot.n, joint, [moving_sign(st.motor_velocity(joint))])
 
 
 @register
@@ -186,7 +198,7 @@ class FrictionPower(Effect):
     def columns(self, robot, st, joint, opts):
         v = st.motor_velocity(joint)
         alpha = float(opts.get("alpha", self.hypers["alpha"].default))
-        sgn = np.sign(v)
+        sgn = moving_sign(v)
         return _motor_row(st, robot.n, joint, [sgn, np.abs(v) ** alpha * sgn, np.ones(len(st))])
 
 
@@ -201,7 +213,8 @@ class CoulombAsymmetric(Effect):
 
     def columns(self, robot, st, joint, opts):
         v = st.motor_velocity(joint)
-        return _motor_row(st, robot.n, joint, [(v > 0).astype(float), -(v < 0).astype(float)])
+        return _motor_row(st, robot.n, joint, [(v > V_REST).astype(float),
+                                               -(v < -V_REST).astype(float)])
 
 
 @register
@@ -219,7 +232,7 @@ class Stribeck(Effect):
         v = st.motor_velocity(joint)
         vs = float(opts.get("vs", self.hypers["vs"].default))
         shape = float(opts.get("shape", 2.0))
-        return _motor_row(st, robot.n, joint, [np.exp(-np.abs(v / vs) ** shape) * np.sign(v)])
+        return _motor_row(st, robot.n, joint, [np.exp(-np.abs(v / vs) ** shape) * moving_sign(v)])
 
 
 @register
@@ -288,7 +301,7 @@ class FrictionDrift(Effect):
         t = st.t if st.t is not None else np.zeros(len(st))  # seconds since the log's start
         g = np.exp(-t / tau_s) if tau_s < 1e5 else t / 100.0  # "1e6": a linear drift
         v = st.motor_velocity(joint)
-        return _motor_row(st, robot.n, joint, [g * np.sign(v), g * v])
+        return _motor_row(st, robot.n, joint, [g * moving_sign(v), g * v])
 
 
 @register
@@ -301,7 +314,7 @@ class LoadFriction(Effect):
 
     def columns(self, robot, st, joint, opts):
         load = st.tau_rigid[:, joint] if st.tau_rigid is not None else np.zeros(len(st))
-        return _row(st, robot.n, joint, [np.abs(load) * np.sign(st.qd[:, joint])])
+        return _row(st, robot.n, joint, [np.abs(load) * moving_sign(st.qd[:, joint])])
 
 
 @register

@@ -261,7 +261,9 @@ def _evolve(robot: Robot, harmonics: int, base_hz: float, model: Model, seed: in
 def constant_velocity_sweeps(robot: Robot, joint: int, speeds: Sequence[float],
                              rate_hz: float, accel_fraction: float = 0.5) -> np.ndarray:
     """Friction-curve experiment for one joint (0-based): back and forth across its range at
-    each speed (rad/s), trapezoidal velocity, the other joints at mid-range. (N, n) q."""
+    each speed (rad/s), the other joints at mid-range. Ramps are sine-shaped in acceleration
+    (no acceleration steps, so no torque content above the identification filter), peak
+    acceleration ``accel_fraction`` of the limit. (N, n) q."""
     lo, hi = _q_bounds(robot)
     span_lo = lo[joint] + 0.1 * (hi[joint] - lo[joint])
     span_hi = hi[joint] - 0.1 * (hi[joint] - lo[joint])
@@ -274,17 +276,23 @@ def constant_velocity_sweeps(robot: Robot, joint: int, speeds: Sequence[float],
         for target in (span_hi, span_lo):
             dist = abs(target - pos)
             direction = math.copysign(1.0, target - pos)
-            t_acc = v / acc
-            if acc * t_acc**2 > dist:  # triangle profile
-                t_acc = math.sqrt(dist / acc)
-            v_peak = acc * t_acc
-            t_flat = max(0.0, (dist - acc * t_acc**2) / max(v_peak, 1e-12))
+            v_peak = v
+            t_acc = math.pi * v_peak / (2.0 * acc)  # peak of a sine-shaped acceleration
+            if v_peak * t_acc > dist:  # no cruise phase: lower the peak speed
+                v_peak = math.sqrt(2.0 * acc * dist / math.pi)
+                t_acc = math.pi * v_peak / (2.0 * acc)
+            t_flat = max(0.0, (dist - v_peak * t_acc) / max(v_peak, 1e-12))
             t_total = 2 * t_acc + t_flat
-            tt = np.arange(0.0, t_total, h)
-            s = np.where(tt < t_acc, 0.5 * acc * tt**2,
+            tt = np.arange(0.0, t_total + 0.5 * h, h)
+
+            def ramp(x: np.ndarray, v_peak: float = v_peak, t_acc: float = t_acc) -> np.ndarray:
+                x = np.clip(x, 0.0, t_acc)
+                return 0.5 * v_peak * (x - t_acc / math.pi * np.sin(math.pi * x / t_acc))
+
+            s = np.where(tt < t_acc, ramp(tt),
                          np.where(tt < t_acc + t_flat,
-                                  0.5 * acc * t_acc**2 + v_peak * (tt - t_acc),
-                                  dist - 0.5 * acc * np.maximum(t_total - tt, 0.0) ** 2))
+                                  ramp(np.array(t_acc)) + v_peak * (tt - t_acc),
+                                  dist - ramp(np.maximum(t_total - tt, 0.0))))
             rows.append(pos + direction * s)
             pos = target
             rows.append(np.full(int(0.5 * rate_hz), pos))  # settle

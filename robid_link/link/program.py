@@ -83,7 +83,7 @@ def experiment_trajectory(robot: Robot, kind: str, opts: Mapping[str, Any],
             cap = cap if np.isfinite(cap) else 1.0
             parts.append(ex.constant_velocity_sweeps(robot, j - 1,
                                                      [f * cap for f in opts["speeds"]], rate))
-        q = _joined(parts, rate)
+        q = _joined(robot, parts, rate)
         t = np.arange(q.shape[0]) / rate
         return ex.Trajectory(t, q, rate, "sweep", robot.name,
                              {"joints": joints, "speeds": list(opts["speeds"])})
@@ -97,13 +97,21 @@ def experiment_trajectory(robot: Robot, kind: str, opts: Mapping[str, Any],
                          {**traj.header, "source": str(path)})
 
 
-def _joined(parts: list[np.ndarray], rate: float) -> np.ndarray:
-    """Concatenate per-joint sweeps with smooth (cosine) transfers between their poses."""
+def _joined(robot: Robot, parts: list[np.ndarray], rate: float) -> np.ndarray:
+    """Concatenate per-joint sweeps with transfers between their poses that start and end at
+    rest with zero acceleration (quintic smoothstep, at least 2 s, at most half of each joint's
+    velocity and acceleration limits: peaks 1.875·D/T and 5.77·D/T²)."""
+    qd_cap = np.where(np.isfinite(robot.limits.qd_max), robot.limits.qd_max, 1.0)
+    qdd_cap = np.where(np.isfinite(robot.limits.qdd_max), robot.limits.qdd_max, 2.0)
     out = [parts[0]]
     for nxt in parts[1:]:
         a, b = out[-1][-1], nxt[0]
-        steps = max(2, int(rate * 2.0))
-        s = 0.5 - 0.5 * np.cos(np.linspace(0.0, math.pi, steps))[:, None]
+        dist = np.abs(b - a)
+        duration = max(2.0, float(np.max(1.875 * dist / (0.5 * qd_cap))),
+                       float(np.sqrt(np.max(5.774 * dist / (0.5 * qdd_cap)))))
+        steps = max(2, int(rate * duration))
+        x = np.linspace(0.0, 1.0, steps)[:, None]
+        s = x**3 * (10.0 - 15.0 * x + 6.0 * x**2)
         out.append(a + s * (b - a))
         out.append(nxt)
     return np.concatenate(out)

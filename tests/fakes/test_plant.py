@@ -11,6 +11,7 @@ import scipy.signal as sig
 
 from fakes.plant import Plant, Truth, load_truth, spring_torque
 from robid_link.exceptions import ConfigError
+from robid_link.ident.effects import V_REST
 from robid_link.ident.excitation import random_fourier
 from robid_link.ident.robot import load_robot
 
@@ -30,6 +31,11 @@ def _extra(arm3, motion, effect):
     return with_e - base, (t, q, qd, qdd)
 
 
+def _moving(v: np.ndarray) -> np.ndarray:
+    """sign(v) of a moving joint; a resting one (|v| ≤ V_REST) has static friction only."""
+    return np.where(np.abs(v) > V_REST, np.sign(v), 0.0)
+
+
 def test_friction_laws(arm3, motion):
     d, (t, q, qd, qdd) = _extra(arm3, motion, {"name": "viscous", "joint": 2, "fv": 2.5})
     np.testing.assert_allclose(d[:, 1], 2.5 * qd[:, 1], atol=1e-9)
@@ -41,14 +47,15 @@ def test_friction_laws(arm3, motion):
     d, _ = _extra(arm3, motion, {"name": "friction_power", "joint": 3, "fc": 1.0, "fv": 2.0,
                                  "alpha": 0.5, "b": 0.3})
     v = qd[:, 2]
-    np.testing.assert_allclose(d[:, 2], (1 + 2 * np.sqrt(np.abs(v))) * np.sign(v) + 0.3, atol=1e-9)
+    np.testing.assert_allclose(d[:, 2], (1 + 2 * np.sqrt(np.abs(v))) * _moving(v) + 0.3,
+                               atol=1e-9)
 
 
 def test_stribeck_curve(arm3, motion):
     e = {"name": "stribeck", "joint": 1, "fs": 5.0, "fc": 2.0, "vs": 0.05, "shape": 2.0, "fv": 1.0}
     d, (t, q, qd, qdd) = _extra(arm3, motion, e)
     v = qd[:, 0]
-    slow = (np.abs(v) > 0) & (np.abs(v) < 0.002)
+    slow = (np.abs(v) > V_REST) & (np.abs(v) < 0.002)
     fast = np.abs(v) > 0.5
     # near standstill the breakaway level fs, far above vs Coulomb plus viscous
     np.testing.assert_allclose(np.abs(d[slow, 0]), 5.0, rtol=0.01)
@@ -91,7 +98,7 @@ def test_friction_drift_relaxes_with_its_time_constant(arm3, motion):
     e = {"name": "friction_drift", "joint": 1, "fc": 1.0, "fv": 2.0, "change": 0.5, "tau_s": 5.0}
     d, (t, q, qd, qdd) = _extra(arm3, motion, e)
     v = qd[:, 0]
-    base = np.sign(v) + 2.0 * v
+    base = _moving(v) + 2.0 * v
     ok = np.abs(base) > 0.5
     scale = d[ok, 0] / base[ok]
     np.testing.assert_allclose(scale, 1 + 0.5 * np.exp(-t[ok] / 5.0), rtol=1e-9)
@@ -101,7 +108,7 @@ def test_load_friction_grows_with_load(arm3, motion):
     t, q, qd, qdd = motion
     rigid = Plant(arm3, Truth(arm3.nominal)).rigid_torque(q, qd, qdd)
     d, _ = _extra(arm3, motion, {"name": "load_friction", "joint": 2, "mu": 0.05})
-    np.testing.assert_allclose(d[:, 1], 0.05 * np.abs(rigid[:, 1]) * np.sign(qd[:, 1]),
+    np.testing.assert_allclose(d[:, 1], 0.05 * np.abs(rigid[:, 1]) * _moving(qd[:, 1]),
                                atol=1e-9)
 
 
