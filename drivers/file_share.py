@@ -17,6 +17,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from watchdog.events import FileSystemEventHandler
+
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.link.atomic import atomic_write
 from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver, MotionProgram
@@ -86,10 +88,11 @@ def read_done(path: Path, exp_id: str, nonce: str) -> Done | None:
     return Done(exp_id, nonce, sha, size)
 
 
-class _Bridge:
+class _Bridge(FileSystemEventHandler):
     """watchdog handler: hands file names from the observer thread to the event loop."""
 
     def __init__(self, loop: asyncio.AbstractEventLoop, callback: Any) -> None:
+        super().__init__()
         self._loop, self._callback = loop, callback
 
     def dispatch(self, event: Any) -> None:

@@ -307,7 +307,7 @@ class Store:
 
     def results(self, robot: str | None = None, run_id: str | None = None
                 ) -> list[dict[str, Any]]:
-        q, args = "SELECT * FROM results WHERE 1 = 1", []
+        q, args = "SELECT * FROM results WHERE 1 = 1", list[str]()
         if robot:
             q, args = q + " AND robot = ?", [*args, robot]
         if run_id:
