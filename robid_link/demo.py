@@ -106,6 +106,7 @@ def run_demo(work: Path, out: Path, json_path: str | None = None) -> int:
     from robid_link.ident.report import history_figure, write_json, write_report
     from robid_link.ident.robot import load_robot
 
+    out = out.resolve()  # the daemon's config lives elsewhere: paths in it are absolute
     cfg_path, model_file = _setup(work, out)
     print(f"robid demo: industrial6 (6 axes), simulated cell; hidden effect: "
           f"{HIDDEN['name']}@{HIDDEN['joint']} (the default model does not know it)")

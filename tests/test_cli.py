@@ -124,3 +124,24 @@ def test_simulate_errors(tmp_path, capsys):
                "--trajectory", str(tmp_path / "none.csv"), "--out", str(tmp_path / "l.csv")])
     assert rc == 2
     assert "effects[0].fv: missing" in capsys.readouterr().err
+
+
+def test_demo_runs_the_whole_job_through_the_daemon(tmp_path):
+    """`make demo`'s command, from another folder with a relative --out."""
+    import json
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-m", "robid_link.cli", "demo", "--out", "rep",
+                          "--json", "demo.json"], cwd=tmp_path, capture_output=True, text=True,
+                         timeout=600)
+    assert out.returncode == 0, out.stderr + out.stdout
+    assert "[####################] 1/1 logs  completed" in out.stdout
+    doc = json.loads((tmp_path / "demo.json").read_text())
+    assert doc["run"]["state"] == "completed"
+    assert doc["model"][-1] == "ripple@1"  # the hidden effect, found and added
+    before = next(r["record"]["rmse"] for r in doc["results"] if r["kind"] == "identify")
+    assert doc["final_rmse"][0] < 0.7 * before[0]
+    for name in ("summary.txt", "diagnose.json", "error_ladder.png", "daemon.log",
+                 "model.yaml", "residual_joint1.png"):
+        assert (tmp_path / "rep" / name).is_file(), name

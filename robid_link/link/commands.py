@@ -86,8 +86,9 @@ def _progress(run: dict[str, Any]) -> str:
     p = run["progress"]
     width = 20
     filled = int(width * p["stored"] / max(p["total"], 1))
+    step = f": {run['step']}" if run.get("step") else ""
     return (f"[{'#' * filled}{'.' * (width - filled)}] {p['stored']}/{p['total']} logs  "
-            f"{run['state']}: {run.get('step') or ''}")
+            f"{run['state']}{step}")
 
 
 def wait_for_run(socket_path: Path, run_id: str, poll_s: float = 0.5,

@@ -155,6 +155,10 @@ class Daemon:
             try:
                 await cp.execute_run(self.cfg, self.store, self.driver, self.ctx, run_id,
                                      self._kill)
+            except Exception as err:  # a bug must fail its run, not the daemon (or resume loop)
+                log.exception("run=%s internal error", run_id)
+                self.store.set_run(run_id, "failed",
+                                   error=f"internal error: {type(err).__name__}: {err}")
             finally:
                 self._current = None
                 self.notifier.send(STATUS=self._status_line())

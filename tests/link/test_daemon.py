@@ -244,3 +244,25 @@ def test_control_socket_mode_stale_file_and_commands(tmp_path: Path, controller:
     assert out["mode"] == 0o660 and out["pid"] == os.getpid()
     assert out["campaigns"] == ["one"]
     assert not sock.exists()  # removed on a clean stop
+
+
+def test_an_internal_error_fails_the_run_not_the_daemon(tmp_path: Path, controller: Any,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    from robid_link.link import campaign
+
+    cfg = write_config(tmp_path, {"one": ONE})
+
+    async def broken(*args: Any, **kw: Any) -> None:
+        raise ZeroDivisionError("boom")
+
+    async def body(d: Daemon) -> tuple[dict, dict]:
+        with monkeypatch.context() as m:
+            m.setattr(campaign, "execute_run", broken)
+            bad = await start(d)
+        good = await start(d)  # the daemon still serves
+        return bad, good
+
+    with controller():
+        bad, good = with_daemon(cfg, body)
+    assert bad["state"] == "failed" and bad["error"] == "internal error: ZeroDivisionError: boom"
+    assert good["state"] == "completed"
