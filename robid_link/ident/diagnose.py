@@ -31,6 +31,8 @@ GAIN_MIN = 0.05
 #: … and be significant at this level (Wald test with the long-run-variance covariance)
 P_MAX = 1e-3
 FOLDS = 5
+#: suggestions spelled out in the terminal summary (all of them go to the JSON)
+SUMMARY_MAX = 5
 BLOCKS = 40
 #: rows (spread over the log) on which hyper-parameters are profiled
 PROFILE_ROWS = 3000
@@ -94,8 +96,13 @@ class Diagnosis:
                  f"  verdict: {self.verdict}"]
         if self.suggestions:
             lines.append("  suggestions, best first:")
-            for k, s in enumerate(self.suggestions, 1):
+            for k, s in enumerate(self.suggestions[:SUMMARY_MAX], 1):
                 lines.append(f"   {k}. {s.label():<22} gain {100 * s.gain:5.1f} %   {s.evidence}")
+            if len(self.suggestions) > SUMMARY_MAX:
+                rest = self.suggestions[SUMMARY_MAX:]
+                lines.append(f"   … and {len(rest)} more, weaker ("
+                             + ", ".join(s.label() for s in rest[:8])
+                             + (", …" if len(rest) > 8 else "") + "; all in the JSON)")
         for u in self.unexplained:
             lines.append(f"  unexplained: {u['text']}")
         if self.absorbed:
