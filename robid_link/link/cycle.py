@@ -50,6 +50,8 @@ async def run_cycle(store: Store, driver: Driver, run_id: str, exp_id: str,
     if row["log_sha"]:
         return str(row["log_sha"])
     attempt, nonce, state = int(row["attempt"]), row["nonce"], row["state"]
+    if state == "attempt_failed" and nonce:  # killed before the old 'ready' was taken back
+        await driver.withdraw(exp_id, nonce)
     if state not in ("giving", "given", "taken"):
         nonce = None  # pending, or a failed attempt: start a new one
     while True:

@@ -266,3 +266,34 @@ def test_an_internal_error_fails_the_run_not_the_daemon(tmp_path: Path, controll
         bad, good = with_daemon(cfg, body)
     assert bad["state"] == "failed" and bad["error"] == "internal error: ZeroDivisionError: boom"
     assert good["state"] == "completed"
+
+
+def test_resume_after_a_failed_attempt_takes_back_its_ready(tmp_path: Path,
+                                                            controller: Any) -> None:
+    """Killed between journaling a failed attempt and withdrawing it: the restart does it."""
+    from robid_link.link.store import Store
+
+    cfg = write_config(tmp_path, {"one": ONE})
+    with Store(tmp_path / "state") as st:
+        run_id = st.create_run("one", "operator", {"campaign": "one"},
+                               [("rigid_body", "rigid_body")])
+        st.step(run_id, "rigid_body", "giving", attempt=1, nonce="old1", program_sha=None)
+        st.step(run_id, "rigid_body", "attempt_failed", error="no 'done' within 4 s")
+    stale = tmp_path / "share" / "sem" / "rigid_body.old1.ready"
+    stale.parent.mkdir(parents=True)
+    stale.write_text("{}\n")
+
+    async def body(d: Daemon) -> tuple[dict, bool]:
+        store = d.store
+        assert store is not None
+        async with asyncio.timeout(60):
+            while store.experiment(run_id, "rigid_body")["state"] != "given":
+                assert store.run(run_id)["state"] != "failed", store.run(run_id)["error"]
+                await asyncio.sleep(0.02)
+        gone = not stale.exists()  # taken back before the new attempt was given
+        with controller():
+            return await wait_run(d, run_id), gone
+
+    run, gone = with_daemon(cfg, body)
+    assert gone
+    assert run["state"] == "completed" and run["experiments"][0]["attempt"] == 2
