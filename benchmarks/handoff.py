@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.file_share import FileShareDriver
+from drivers.file_share import FileShareDriver, done_text
 from robid_link.link.atomic import fsync_dir
 
 __all__ = ["bench_handoff"]
@@ -25,7 +25,7 @@ def _write_done(sem: Path, name: str, stamp: list[float]) -> None:
     """The controller's side: temp file, fsync, then the rename that makes it visible."""
     tmp = sem / f".{name}.tmp"
     with open(tmp, "wb") as fh:
-        fh.write(f"{SHA} size=0\n".encode())
+        fh.write(done_text(SHA, 0))
         fh.flush()
         os.fsync(fh.fileno())
     stamp.append(time.perf_counter())

@@ -23,7 +23,8 @@ from robid_link.exceptions import ConfigError, DriverError
 from robid_link.link.atomic import atomic_write
 from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver, MotionProgram
 
-__all__ = ["FileShareDriver", "sem_name", "parse_sem", "network_fs", "read_done"]
+__all__ = ["FileShareDriver", "sem_name", "parse_sem", "network_fs", "done_text", "read_done",
+           "log_name"]
 
 log = logging.getLogger("robid.driver.file_share")
 
@@ -37,6 +38,11 @@ _HEX64 = re.compile(r"^[0-9a-f]{64}$")
 
 def sem_name(exp_id: str, nonce: str, kind: str) -> str:
     return f"{exp_id}.{nonce}.{kind}"
+
+
+def log_name(exp_id: str, nonce: str) -> str:
+    """The log a controller writes into ``outbox/`` for one experiment and nonce."""
+    return f"{exp_id}.{nonce}.log.csv"
 
 
 def parse_sem(name: str) -> tuple[str, str, str] | None:
@@ -61,6 +67,11 @@ def network_fs(path: Path) -> str | None:
         if (real == mnt or real.startswith(mnt.rstrip("/") + "/")) and len(mnt) >= len(best):
             best, fstype = mnt, parts[2]
     return fstype if fstype in NETWORK_FS else None
+
+
+def done_text(sha256: str, size: int) -> bytes:
+    """What a controller writes into a 'done' semaphore."""
+    return f"{sha256} size={size}\n".encode()
 
 
 def read_done(path: Path, exp_id: str, nonce: str) -> Done | None:
@@ -285,7 +296,7 @@ class FileShareDriver(Driver):
             self._waiters.pop(key, None)
 
     async def _fetch_logs(self, done: Done) -> bytes:
-        path = self.outbox / f"{done.exp_id}.{done.nonce}.log.csv"
+        path = self.outbox / log_name(done.exp_id, done.nonce)
         try:
             return await asyncio.to_thread(path.read_bytes)
         except FileNotFoundError as err:

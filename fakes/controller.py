@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drivers.file_share import done_text, log_name, parse_sem, sem_name
 from fakes.plant import Plant, Truth
 from robid_link.exceptions import RobidError
 from robid_link.ident.excitation import read_trajectory, trajectory_states
@@ -26,13 +27,6 @@ log = logging.getLogger("robid.fake_controller")
 
 FAULTS = ("never_answer", "die", "truncated_log", "corrupt_log", "answer_twice",
           "stale_semaphore", "nan_log", "fail")
-
-
-def _parse(name: str) -> tuple[str, str, str] | None:
-    parts = name.split(".")
-    if len(parts) != 3 or parts[2] not in ("ready", "done", "failed"):
-        return None
-    return parts[0], parts[1], parts[2]
 
 
 class FileShareController:
@@ -71,10 +65,10 @@ class FileShareController:
         names = set(os.listdir(sem))
         out = []
         for name in sorted(names):
-            p = _parse(name)
+            p = parse_sem(name)
             if p is None or p[2] != "ready" or (p[0], p[1]) in self._seen:
                 continue
-            if f"{p[0]}.{p[1]}.done" in names or f"{p[0]}.{p[1]}.failed" in names:
+            if sem_name(p[0], p[1], "done") in names or sem_name(p[0], p[1], "failed") in names:
                 self._seen.add((p[0], p[1]))  # answered before a restart
                 continue
             out.append((p[0], p[1]))
@@ -107,13 +101,13 @@ class FileShareController:
             self.handled.append((exp_id, nonce))
             return True
         if fault == "fail":
-            atomic_write(sem / f"{exp_id}.{nonce}.failed", b"motion supervision triggered\n")
+            atomic_write(sem / sem_name(exp_id, nonce, "failed"), b"motion supervision triggered\n")
             self.handled.append((exp_id, nonce))
             return True
         try:
             data = self._log_bytes(exp_id, self.seed + len(self.handled))
         except RobidError as err:
-            atomic_write(sem / f"{exp_id}.{nonce}.failed", f"{err}\n".encode())
+            atomic_write(sem / sem_name(exp_id, nonce, "failed"), f"{err}\n".encode())
             self.handled.append((exp_id, nonce))
             return True
         if fault == "nan_log":
@@ -123,9 +117,9 @@ class FileShareController:
             lines[len(lines) // 2] = b",".join(cells)
             data = b"\n".join(lines)
         sha = hashlib.sha256(data).hexdigest()
-        log_path = outbox / f"{exp_id}.{nonce}.log.csv"
+        log_path = outbox / log_name(exp_id, nonce)
         if fault == "die":  # half a log in a temp file, no rename, no 'done'
-            (outbox / f".{exp_id}.{nonce}.log.csv.partial").write_bytes(data[: len(data) // 2])
+            (outbox / f".{log_name(exp_id, nonce)}.partial").write_bytes(data[: len(data) // 2])
             log.info("exp=%s nonce=%s controller dies mid-program", exp_id, nonce)
             if self.exit_on_die:
                 os._exit(70)
@@ -139,12 +133,12 @@ class FileShareController:
         else:
             atomic_write(log_path, data)
         if fault == "stale_semaphore":  # an answer to an attempt that no longer exists
-            atomic_write(sem / f"{exp_id}.0stale0.done", f"{'0' * 64} size=1\n".encode())
-        done = f"{sha} size={len(data)}\n".encode()
-        atomic_write(sem / f"{exp_id}.{nonce}.done", done)
+            atomic_write(sem / sem_name(exp_id, "0stale0", "done"), done_text("0" * 64, 1))
+        done = done_text(sha, len(data))
+        atomic_write(sem / sem_name(exp_id, nonce, "done"), done)
         if fault == "answer_twice":
             time.sleep(0.05)
-            atomic_write(sem / f"{exp_id}.{nonce}.done", done)
+            atomic_write(sem / sem_name(exp_id, nonce, "done"), done)
         self.handled.append((exp_id, nonce))
         return True
 

@@ -17,7 +17,7 @@ import pinocchio as pin
 
 from robid_link.config import read_yaml_mapping
 from robid_link.exceptions import ConfigError
-from robid_link.ident.effects import V_REST, moving_sign
+from robid_link.ident.effects import moving_sign
 from robid_link.ident.robot import Robot
 
 __all__ = ["Truth", "Plant", "perturbed_inertials", "load_truth", "EFFECT_PARAMS"]
@@ -176,22 +176,20 @@ class Signals:
     tau_rigid: np.ndarray
 
 
-# a held pose commanded through a spline has velocities up to ~1e-6 rad/s of rounding: the
-# plant treats a joint as resting as the model does (friction static, none predicted)
-_sgn = moving_sign
-
-
 def _viscous(e, s, j):
     return e["fv"] * s.qd[:, j]
 
 
+# Coulomb-type friction switches with moving_sign: a held pose commanded through a spline has
+# velocities of rounding noise (up to ~1e-6 rad/s); the plant treats such a joint as resting,
+# as the model does (friction static, none predicted)
 def _coulomb(e, s, j):
-    return e["fc"] * _sgn(s.qd[:, j])
+    return e["fc"] * moving_sign(s.qd[:, j])
 
 
 def _coulomb_asym(e, s, j):
-    v = s.qd[:, j]
-    return np.where(v > V_REST, e["fc_pos"], np.where(v < -V_REST, -e["fc_neg"], 0.0))
+    sgn = moving_sign(s.qd[:, j])
+    return np.where(sgn > 0, e["fc_pos"], np.where(sgn < 0, -e["fc_neg"], 0.0))
 
 
 def _offset(e, s, j):
@@ -200,14 +198,14 @@ def _offset(e, s, j):
 
 def _friction_power(e, s, j):
     v = s.qd[:, j]
-    return (e["fc"] + e["fv"] * np.abs(v) ** e["alpha"]) * _sgn(v) + e["b"]
+    return (e["fc"] + e["fv"] * np.abs(v) ** e["alpha"]) * moving_sign(v) + e["b"]
 
 
 def _stribeck(e, s, j):
     """Static friction fs falling to Coulomb fc over the Stribeck velocity vs."""
     v = s.qd[:, j]
     decay = np.exp(-np.abs(v / e["vs"]) ** e["shape"])
-    return (e["fc"] + (e["fs"] - e["fc"]) * decay) * _sgn(v) + e["fv"] * v
+    return (e["fc"] + (e["fs"] - e["fc"]) * decay) * moving_sign(v) + e["fv"] * v
 
 
 def _armature(e, s, j):
@@ -236,12 +234,12 @@ def _friction_drift(e, s, j):
     """A joint warming up: friction starts (1 + change)× higher and relaxes with tau_s."""
     scale = 1.0 + e["change"] * np.exp(-(s.t - s.t[0]) / e["tau_s"])
     v = s.qd[:, j]
-    return scale * (e["fc"] * _sgn(v) + e["fv"] * v)
+    return scale * (e["fc"] * moving_sign(v) + e["fv"] * v)
 
 
 def _load_friction(e, s, j):
     """Gear friction growing with the transmitted load torque."""
-    return e["mu"] * np.abs(s.tau_rigid[:, j]) * _sgn(s.qd[:, j])
+    return e["mu"] * np.abs(s.tau_rigid[:, j]) * moving_sign(s.qd[:, j])
 
 
 EFFECTS: dict[str, EffectFn] = {

@@ -10,7 +10,6 @@ stored logs are identified again: the error ladder. Report files go to ``--out``
 from __future__ import annotations
 
 import asyncio
-import logging
 import shutil
 import threading
 from pathlib import Path
@@ -73,30 +72,26 @@ async def _campaign(cfg_path: Path, log_file: Path) -> dict[str, Any]:
     from robid_link.link.control import request
     from robid_link.link.daemon import Daemon, setup_logging
 
-    setup_logging("info")
-    root = logging.getLogger("robid")
-    root.handlers[0].setStream(open(log_file, "a"))  # noqa: SIM115  (closed below)
     cfg = load_daemon_config(cfg_path)
-    daemon = Daemon(cfg, env={})
-    task = asyncio.create_task(daemon.serve(), name="robid-daemon")
-    try:
-        ready = asyncio.create_task(daemon.ready.wait())
-        await asyncio.wait({task, ready}, return_when=asyncio.FIRST_COMPLETED)
-        if task.done():
-            ready.cancel()
-            await task
-        sock = cfg.control_socket
-        ans = await asyncio.to_thread(request, sock, {"cmd": "start", "campaign": "demo"})
-        print(f"  campaign 'demo' started: run {ans['run_id']}")
-        run = await asyncio.to_thread(wait_for_run, sock, ans["run_id"])
-        res = await asyncio.to_thread(request, sock, {"cmd": "results", "run_id": run["run_id"]})
-        return {"run": run, "results": res["results"]}
-    finally:
-        daemon.stop()
-        await task
-        stream = root.handlers[0].stream  # type: ignore[attr-defined]
-        root.handlers[0].setStream(__import__("sys").stdout)  # type: ignore[attr-defined]
-        stream.close()
+    with open(log_file, "a") as log:
+        setup_logging("info", log)
+        daemon = Daemon(cfg, env={})
+        try:
+            task = await daemon.start()
+            try:
+                sock = cfg.control_socket
+                ans = await asyncio.to_thread(request, sock, {"cmd": "start",
+                                                              "campaign": "demo"})
+                print(f"  campaign 'demo' started: run {ans['run_id']}")
+                run = await asyncio.to_thread(wait_for_run, sock, ans["run_id"])
+                res = await asyncio.to_thread(request, sock, {"cmd": "results",
+                                                              "run_id": run["run_id"]})
+                return {"run": run, "results": res["results"]}
+            finally:
+                daemon.stop()
+                await task
+        finally:
+            setup_logging("info")  # the log file closes with this block
 
 
 def run_demo(work: Path, out: Path, json_path: str | None = None) -> int:

@@ -19,8 +19,8 @@ from robid_link.ident.data import Log
 from robid_link.ident.effects import REGISTRY, Block, Model, States
 from robid_link.ident.estimate import RANK_TOL, Grams, accumulate, solve
 from robid_link.ident.identify import build_problem, identify, make_design, structural_mask
-from robid_link.ident.preprocess import CHUNK, Design, Piece, block_columns, split
-from robid_link.ident.profile import basis, clear_cache, profile_effect, refine_effect, screen
+from robid_link.ident.preprocess import Design, Piece, block_columns, filter_windows, split
+from robid_link.ident.profile import ProfileRows, profile_effect, refine_effect, screen
 from robid_link.ident.results import IdentResult
 from robid_link.ident.robot import Robot
 
@@ -339,16 +339,14 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     sub_states = States(*(None if a is None else a[::every] for a in (
         states.q, states.qd, states.qdd, states.t)), states.transmission,
         *(None if a is None else a[::every] for a in (states.tau_rigid, states.tau_rate)))
-    model_dense = design.expand(design.compact(sub_states))
-    clear_cache()  # keyed by these arrays' ids: valid for this diagnosis only
+    rows = ProfileRows(robot, sub_states, raw_resid[::every], resid[::every],
+                       design.expand(design.compact(sub_states)))
     profiled = {b.key for b in candidates if b.free_hypers()}
     for name in sorted({b.effect.name for b in candidates if b.free_hypers()}):
         group = [b for b in candidates if b.effect.name == name]
-        chosen = dict(zip(map(id, group), profile_effect(
-            robot, group, raw_resid[::every], sub_states, resid[::every], model_dense,
-            refine=False), strict=True))
+        chosen = dict(zip(map(id, group), profile_effect(rows, group, refine=False),
+                          strict=True))
         candidates = [chosen.get(id(b), b) for b in candidates]
-    model_basis = basis(model_dense.reshape(-1, model_dense.shape[2]))
     span = np.ptp(states.q, axis=0)
     candidates = [b for b in candidates if not (  # a "ripple" as slow as the motion: spring
         b.effect.name == "ripple" and b.opts.get("period", 0.0) > span[b.joint] / 2)]
@@ -358,7 +356,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         if not new:
             absorbed.append({"effect": blk.key, "by": by})
             continue
-        if screen(robot, blk, resid[::every], sub_states, model_basis) < SCREEN_MIN:
+        if screen(rows, blk) < SCREEN_MIN:
             screened += 1  # cannot reach GAIN_MIN even in-sample: not worth a union column
             continue
         kept.append(blk)
@@ -367,11 +365,9 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         start += width
     for name in sorted({b.effect.name for b in kept if b.key in profiled}):  # survivors only
         group = [b for b in kept if b.effect.name == name and b.key in profiled]
-        fine = dict(zip(map(id, group), refine_effect(
-            robot, group, raw_resid[::every], sub_states, model_dense), strict=True))
+        fine = dict(zip(map(id, group), refine_effect(rows, group), strict=True))
         kept = [fine.get(id(b), b) for b in kept]
-    clear_cache()
-    del model_basis
+    del rows
     if screened:
         notes.append(f"{screened} candidate(s) explain under {100 * SCREEN_MIN:.0f} % of their "
                      "joint's filtered residual even in-sample and were not scored")
@@ -490,12 +486,7 @@ def _residual_with_states(pieces: Sequence[Piece], step: int
     parts: dict[str, list[np.ndarray]] = {k: [] for k in ("q", "qd", "qdd", "t", "tr", "rate")}
     for pc in pieces:
         prep = pc.prep
-        pad = 3 * prep.filt.settle if prep.filt.active else 0
-        first = pc.lo + (-(pc.lo - pc.ctx_lo) % step)
-        for a in range(first, pc.hi, CHUNK * step):
-            b = min(a + CHUNK * step, pc.hi)
-            ca, cb = max(pc.ctx_lo, a - pad), min(pc.ctx_hi, b + pad)
-            at_edge = ca == pc.ctx_lo or cb == pc.ctx_hi
+        for a, b, ca, cb, at_edge in filter_windows(pc, step):
             filtered = prep.filt.apply(prep.tau[ca:cb] - prep.tau_model[ca:cb], edges=at_edge)
             idx = np.arange(a, b, step)
             res.append(filtered[a - ca: b - ca: step])

@@ -212,9 +212,8 @@ class CoulombAsymmetric(Effect):
         return [f"fcp_{joint + 1}", f"fcn_{joint + 1}"]
 
     def columns(self, robot, st, joint, opts):
-        v = st.motor_velocity(joint)
-        return _motor_row(st, robot.n, joint, [(v > V_REST).astype(float),
-                                               -(v < -V_REST).astype(float)])
+        sgn = moving_sign(st.motor_velocity(joint))
+        return _motor_row(st, robot.n, joint, [(sgn > 0).astype(float), -(sgn < 0).astype(float)])
 
 
 @register

@@ -25,6 +25,7 @@ __all__ = [
     "ZeroPhaseFilter",
     "Prepared",
     "Piece",
+    "filter_windows",
     "prepare",
     "split",
     "design_chunks",
@@ -358,19 +359,28 @@ def design_chunks(design: Design, piece: Piece, interval: int = 1, filtered: boo
     full rate against the raw torques (validation rows).
     """
     prep = piece.prep
-    pad = 3 * prep.filt.settle if filtered and prep.filt.active else 0
-    step = interval if filtered else 1
-    first = piece.lo + (-(piece.lo - piece.ctx_lo) % step) if filtered else piece.lo
-    for a in range(first, piece.hi, chunk * step):
-        b = min(a + chunk * step, piece.hi)
-        if not filtered:
+    if not filtered:
+        for a in range(piece.lo, piece.hi, chunk):
+            b = min(a + chunk, piece.hi)
             yield design.compact(prep.states(a, b)), prep.tau[a:b], np.arange(a, b)
-            continue
-        ca, cb = max(piece.ctx_lo, a - pad), min(piece.ctx_hi, b + pad)
-        at_edge = ca == piece.ctx_lo or cb == piece.ctx_hi  # only there as in τ's filtering
+        return
+    for a, b, ca, cb, at_edge in filter_windows(piece, interval, chunk):
         c = prep.filt.apply(design.compact(prep.states(ca, cb)), edges=at_edge)
-        rows = slice(a - ca, b - ca, step)
-        yield c[rows], prep.tau_f[a:b:step], np.arange(a, b, step)
+        yield c[a - ca: b - ca: interval], prep.tau_f[a:b:interval], np.arange(a, b, interval)
+
+
+def filter_windows(piece: Piece, interval: int = 1, chunk: int = CHUNK
+                   ) -> Iterator[tuple[int, int, int, int, bool]]:
+    """Chunks [a, b) of a piece's rows kept at ``interval`` (on the grid of its filtering
+    segment), each with the window [ca, cb) to filter over — padded so the filter has settled
+    at a and b — and whether the window reaches the segment's edge (odd extension only there,
+    as in τ's filtering)."""
+    pad = 3 * piece.prep.filt.settle if piece.prep.filt.active else 0
+    first = piece.lo + (-(piece.lo - piece.ctx_lo) % interval)
+    for a in range(first, piece.hi, chunk * interval):
+        b = min(a + chunk * interval, piece.hi)
+        ca, cb = max(piece.ctx_lo, a - pad), min(piece.ctx_hi, b + pad)
+        yield a, b, ca, cb, ca == piece.ctx_lo or cb == piece.ctx_hi
 
 
 def check_counts(n_rows: int, n_params: int, where: str) -> None:

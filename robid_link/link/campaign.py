@@ -83,8 +83,10 @@ async def prepare_programs(cfg: DaemonConfig, store: Store, ctx: Any, campaign: 
 
 
 async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, run_id: str,
-                      kill_hook: Callable[[str], None] = lambda step: None) -> None:
-    """Run or resume ``run_id`` to completed/failed. Cancellation leaves it resumable."""
+                      n_joints: int, kill_hook: Callable[[str], None] = lambda step: None
+                      ) -> None:
+    """Run or resume ``run_id`` to completed/failed (logs are checked for ``n_joints``, the
+    robot's). Cancellation leaves it resumable."""
     run = store.run(run_id)
     camp = cfg.campaigns.get(run["campaign"])
     if camp is None:
@@ -101,15 +103,15 @@ async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any,
                                     f"{missing[0]} ({dict(programs)[missing[0]].sha256[:12]}) "
                                     f"is not approved; run: robid campaign approve "
                                     f"{run['campaign']} --config {cfg.path}")
+
+        async def check(path: str) -> dict[str, Any]:
+            return await run_in_worker(ctx, check_log, n_joints, path)
+
         shas = []
         for k, (exp_id, program) in enumerate(programs, 1):
             store.set_run(run_id, "running", step=f"experiment {k}/{len(programs)} {exp_id}")
             policy = CyclePolicy(camp.timeout_s or 2 * program.duration_s + 60.0, camp.retries,
                                  camp.backoff_s)
-
-            async def check(path: str) -> dict[str, Any]:
-                return await run_in_worker(ctx, check_log, str(cfg.robot), cfg.lock, path)
-
             shas.append(await run_cycle(store, driver, run_id, exp_id, program, policy, check,
                                         kill_hook))
         if camp.identify:

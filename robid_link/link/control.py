@@ -33,9 +33,7 @@ def _alive(path: Path) -> bool:
         s.settimeout(1.0)
         try:
             s.connect(str(path))
-        except (ConnectionRefusedError, FileNotFoundError):
-            return False
-        except OSError:
+        except OSError:  # refused, gone, or not a socket: nobody answers there
             return False
     return True
 

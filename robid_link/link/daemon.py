@@ -13,7 +13,7 @@ import signal
 import sys
 import time
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, TextIO
 
 from robid_link.config import DaemonConfig
 from robid_link.exceptions import ConfigError
@@ -48,11 +48,12 @@ class _LineFormatter(logging.Formatter):
         return f"{stamp} {record.levelname.lower():<7} {record.name}: {msg}"
 
 
-def setup_logging(level: str = "info") -> None:
+def setup_logging(level: str = "info", stream: TextIO | None = None) -> None:
+    """robid's log lines to ``stream`` (stdout, for journald), replacing earlier handlers."""
     root = logging.getLogger("robid")
     for h in list(root.handlers):
         root.removeHandler(h)
-    handler = logging.StreamHandler(sys.stdout)
+    handler = logging.StreamHandler(stream or sys.stdout)
     handler.setFormatter(_LineFormatter(bool(os.environ.get("JOURNAL_STREAM"))))
     root.addHandler(handler)
     root.setLevel(level.upper())
@@ -105,6 +106,17 @@ class Daemon:
     def stop(self) -> None:
         self._stop.set()
 
+    async def start(self) -> asyncio.Task[None]:
+        """``serve`` in a task, returned once the daemon is ready (its start-up error, if
+        any, is raised here)."""
+        task = asyncio.create_task(self.serve(), name="robid-daemon")
+        ready = asyncio.create_task(self.ready.wait())
+        await asyncio.wait({task, ready}, return_when=asyncio.FIRST_COMPLETED)
+        if task.done():
+            ready.cancel()
+            await task
+        return task
+
     async def serve(self) -> None:
         cfg = self.cfg
         self.store = Store(cfg.state_dir)
@@ -154,7 +166,7 @@ class Daemon:
             self.notifier.send(STATUS=self._status_line())
             try:
                 await cp.execute_run(self.cfg, self.store, self.driver, self.ctx, run_id,
-                                     self._kill)
+                                     self.robot["joints"], self._kill)
             except Exception as err:  # a bug must fail its run, not the daemon (or resume loop)
                 log.exception("run=%s internal error", run_id)
                 self.store.set_run(run_id, "failed",

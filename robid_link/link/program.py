@@ -174,6 +174,11 @@ def trajectory_files(traj: ex.Trajectory) -> dict[str, bytes]:
             "traj.yaml": yaml.safe_dump(meta, sort_keys=False).encode()}
 
 
+def _rapid_units(robot: Robot) -> np.ndarray:
+    """RAPID joint targets per model unit: degrees per radian, millimetres per metre."""
+    return np.array([180 / math.pi if t == "revolute" else 1000.0 for t in robot.joint_types])
+
+
 def render_rapid(robot: Robot, traj: ex.Trajectory, exp_id: str,
                  rate_hz: float = RAPID_RATE_HZ) -> bytes:
     """An ABB RAPID module that replays the trajectory as timed MoveAbsJ through joint targets
@@ -185,7 +190,7 @@ def render_rapid(robot: Robot, traj: ex.Trajectory, exp_id: str,
     idx = np.arange(0, traj.t.size, step)
     if idx[-1] != traj.t.size - 1:
         idx = np.append(idx, traj.t.size - 1)
-    scale = np.array([180 / math.pi if t == "revolute" else 1000.0 for t in robot.joint_types])
+    scale = _rapid_units(robot)
     pts = traj.q[idx] * scale
     dts = np.diff(traj.t[idx])
     module = re.sub(r"[^A-Za-z0-9_]", "_", f"robid_{exp_id}")[:32]
@@ -234,7 +239,7 @@ def parse_rapid(text: str, robot: Robot) -> tuple[np.ndarray, np.ndarray]:
         targets.append(vals)
     if len(targets) != int(m.group(1)):
         raise ConfigError("RAPID module: target count differs from the declared size")
-    scale = np.array([180 / math.pi if t == "revolute" else 1000.0 for t in robot.joint_types])
+    scale = _rapid_units(robot)
     dts = np.array([float(x) for x in d.group(2).split(",")])
     return np.array(targets) / scale, dts
 

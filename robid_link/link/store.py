@@ -232,8 +232,9 @@ class Store:
         sha = hashlib.sha256(data).hexdigest()
         path = self.log_path(sha)
         if not (path.is_file() and path.stat().st_size == len(data)):
-            path.parent.mkdir(exist_ok=True)
-            fsync_dir(path.parent.parent)
+            if not path.parent.is_dir():  # a new fan-out folder must survive a power cut too
+                path.parent.mkdir()
+                fsync_dir(path.parent.parent)
             atomic_write(path, data, 0o444)
         self.db.execute("INSERT OR IGNORE INTO logs (sha256, size, stored) VALUES (?, ?, ?)",
                         (sha, len(data), time.time()))

@@ -34,14 +34,13 @@ def generate_program(robot_path: str, lock: tuple[str, ...], exp_id: str, kind: 
     return pg.make_program(robot, traj, exp_id, meta)
 
 
-def check_log(robot_path: str, lock: tuple[str, ...], log_path: str) -> dict[str, Any]:
+def check_log(n_joints: int, log_path: str) -> dict[str, Any]:
     """Load a captured log as the identification will (columns, joint count, NaN, time)."""
     from robid_link.ident.data import load_log
 
-    robot = _robot(robot_path, lock)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        log = load_log(log_path, robot.n)
+        log = load_log(log_path, n_joints)
     return {"samples": int(log.t.size), "duration_s": float(log.t[-1] - log.t[0]),
             "rate_hz": float(log.fs)}
 
@@ -59,7 +58,6 @@ def identify_run(job: dict[str, Any]) -> dict[str, Any]:
         model = model.with_added(parse_effect(entry, f"add {entry}"))
     out = Path(job["report_dir"])
     out.mkdir(parents=True, exist_ok=True)
-    notes: list[str] = []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         data = load_logs(robot, job["logs"], None, job.get("motor_side", False))

@@ -28,14 +28,9 @@ def with_daemon(cfg_path: Path, body: Callable[[Daemon], Awaitable[Any]],
                 env: dict[str, str] | None = None) -> Any:
     async def go() -> Any:
         daemon = Daemon(load_daemon_config(cfg_path), env=env or {})
-        task = asyncio.create_task(daemon.serve())
+        async with asyncio.timeout(60):
+            task = await daemon.start()  # raises the start-up error
         try:
-            async with asyncio.timeout(60):
-                ready = asyncio.create_task(daemon.ready.wait())
-                await asyncio.wait({task, ready}, return_when=asyncio.FIRST_COMPLETED)
-                if task.done():
-                    ready.cancel()
-                    await task  # raises the start-up error
             return await body(daemon)
         finally:
             daemon.stop()

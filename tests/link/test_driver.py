@@ -179,27 +179,21 @@ def test_stale_and_duplicate_semaphores_are_ignored(tmp_path: Path,
     assert "duplicate_semaphore=exp1.new.done" in caplog.text
 
 
-def test_controller_failure_is_reported(tmp_path: Path) -> None:
+@pytest.mark.parametrize("semaphore, text, message", [
+    ("exp1.n1.failed", "joint 2 collision stop\n",
+     "experiment exp1 failed: joint 2 collision stop"),  # the controller reports a failure
+    ("exp1.n1.done", "not a checksum\n", "does not start with the log's SHA-256"),
+])
+def test_failed_or_malformed_answer_is_an_error(tmp_path: Path, semaphore: str, text: str,
+                                                message: str) -> None:
     driver, peer = _file_share(tmp_path)
 
     async def go() -> None:
         async with driver:
-            (peer.share / "sem" / "exp1.n1.failed").write_text("joint 2 collision stop\n")
+            (peer.share / "sem" / semaphore).write_text(text)
             await driver.take_done("exp1", "n1", timeout_s=2)
 
-    with pytest.raises(DriverError, match="experiment exp1 failed: joint 2 collision stop"):
-        asyncio.run(go())
-
-
-def test_malformed_done_is_an_error(tmp_path: Path) -> None:
-    driver, peer = _file_share(tmp_path)
-
-    async def go() -> None:
-        async with driver:
-            (peer.share / "sem" / "exp1.n1.done").write_text("not a checksum\n")
-            await driver.take_done("exp1", "n1", timeout_s=2)
-
-    with pytest.raises(DriverError, match="does not start with the log's SHA-256"):
+    with pytest.raises(DriverError, match=message):
         asyncio.run(go())
 
 
