@@ -100,7 +100,7 @@ def bench_regressor(n_samples: int, chunk: int) -> dict[str, float]:
 
 def bench_closed_loop(seconds: float) -> dict[str, float]:
     """Closed loop with Coulomb friction, 6 axes, 1 kHz: wall time against real time."""
-    from fakes.plant import Plant, Truth
+    from robid_link.fakes.plant import Plant, Truth
 
     robot = load_robot(ROBOT)
     traj = random_fourier(robot, harmonics=5, base_hz=0.1, seed=2)

@@ -7,6 +7,7 @@ import sys
 import tempfile
 import warnings
 from collections.abc import Sequence
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +17,7 @@ from robid_link.exceptions import RobidError
 
 __all__ = ["main"]
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+EXAMPLES = Path(str(resources.files("robid_link.examples")))
 
 
 def _shared_inputs(p: argparse.ArgumentParser) -> None:
@@ -362,7 +363,7 @@ def _excite(args: argparse.Namespace) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    from fakes.plant import Plant, load_truth
+    from robid_link.fakes.plant import Plant, load_truth
     from robid_link.ident.data import write_log_csv
     from robid_link.ident.excitation import read_trajectory, trajectory_states
     from robid_link.ident.robot import load_robot

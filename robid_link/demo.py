@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import shutil
 import threading
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -22,8 +23,7 @@ from robid_link.exceptions import RobidError
 
 __all__ = ["run_demo", "DEMO_ROBOT", "HIDDEN"]
 
-ROOT = Path(__file__).resolve().parent.parent
-DEMO_ROBOT = ROOT / "examples" / "robots" / "industrial6.yaml"
+DEMO_ROBOT = Path(str(resources.files("robid_link.examples.robots") / "industrial6.yaml"))
 #: what the default model does not know: cogging on axis 1 (0.6 N·m, every 0.1 rad)
 HIDDEN = {"name": "ripple", "joint": 1, "amplitude": 0.6, "period": 0.1}
 CAMPAIGN = {"experiments": [{"kind": "rigid_body", "duration_s": 40, "harmonics": 8,
@@ -51,8 +51,8 @@ def _setup(work: Path, out: Path) -> tuple[Path, Path]:
 
 
 def _controller(share: Path) -> tuple[Any, threading.Event, threading.Thread]:
-    from fakes.controller import FileShareController
-    from fakes.plant import Truth, perturbed_inertials
+    from robid_link.fakes.controller import FileShareController
+    from robid_link.fakes.plant import Truth, perturbed_inertials
     from robid_link.ident.robot import load_robot
 
     robot = load_robot(DEMO_ROBOT)

@@ -158,8 +158,8 @@ def _fake_controller(args: argparse.Namespace) -> int:
     import signal
     import threading
 
-    from fakes.controller import FileShareController, default_truth
-    from fakes.plant import load_truth
+    from robid_link.fakes.controller import FileShareController, default_truth
+    from robid_link.fakes.plant import load_truth
     from robid_link.ident.robot import load_robot
     from robid_link.link.daemon import setup_logging
 

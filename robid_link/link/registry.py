@@ -17,7 +17,7 @@ ENTRY_POINT_GROUP = "robid_link.drivers"
 #: drivers shipped with robid_link; later issues add tcp_rpc, canopen_drives, modbus_plc,
 #: serial_line. The value names the extra that installs the driver's library, if any.
 BUILTIN_DRIVERS: dict[str, tuple[str, str | None]] = {
-    "file_share": ("drivers.file_share:FileShareDriver", None),
+    "file_share": ("robid_link.drivers.file_share:FileShareDriver", None),
 }
 
 

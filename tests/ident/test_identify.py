@@ -149,7 +149,7 @@ def test_validation_file_outside_training_range_warns(arm3, tmp_path):
     d = train.data
     # shrink the training motion so the other motion leaves its range
     slow = 0.5
-    from fakes.plant import Plant
+    from robid_link.fakes.plant import Plant
 
     plant = Plant(arm3, train.truth)
     small = plant.run(d["t"], d["q"] * slow, d["qd"] * slow, d["qdd"] * slow, seed=1)

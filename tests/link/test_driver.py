@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from drivers.file_share import FileShareDriver, parse_sem
+from robid_link.drivers.file_share import FileShareDriver, parse_sem
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.link.driver import Done, Driver, MotionProgram
 from robid_link.link.registry import available_drivers, driver_class, make_driver
@@ -226,7 +226,7 @@ def test_both_observers_deliver(tmp_path: Path, observer: str) -> None:
 
 
 def test_network_share_picks_polling(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import drivers.file_share as fs
+    import robid_link.drivers.file_share as fs
 
     monkeypatch.setattr(fs, "network_fs", lambda path: "nfs4")
     driver, _ = _file_share(tmp_path)
@@ -272,9 +272,9 @@ def test_third_party_driver_through_entry_points(monkeypatch: pytest.MonkeyPatch
 
     from robid_link.link import registry
 
-    ep = md.EntryPoint("acme", "drivers.file_share:FileShareDriver", "robid_link.drivers")
+    ep = md.EntryPoint("acme", "robid_link.drivers.file_share:FileShareDriver", "robid_link.drivers")
     monkeypatch.setattr(registry, "entry_points", lambda group: [ep])
-    assert registry.available_drivers()["acme"] == "drivers.file_share:FileShareDriver"
+    assert registry.available_drivers()["acme"] == "robid_link.drivers.file_share:FileShareDriver"
     assert registry.driver_class("acme") is FileShareDriver
     bad = md.EntryPoint("broken", "no_such_module:X", "robid_link.drivers")
     monkeypatch.setattr(registry, "entry_points", lambda group: [bad])

@@ -1,0 +1,1 @@
+"""Example files shipped with robid_link (read them with importlib.resources)."""
