@@ -12,8 +12,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from robid_link.drivers.file_share import FileShareDriver, done_text
+
 from robid_link.link.atomic import fsync_dir
 
 __all__ = ["bench_handoff"]

@@ -13,9 +13,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from robid_link.drivers.file_share import done_text, log_name, parse_sem, sem_name
 from robid_link.fakes.plant import Plant, Truth
+
 from robid_link.exceptions import RobidError
 from robid_link.ident.excitation import read_trajectory, trajectory_states
 from robid_link.ident.robot import Robot

@@ -7,7 +7,6 @@ import sys
 import tempfile
 import warnings
 from collections.abc import Sequence
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +16,7 @@ from robid_link.exceptions import RobidError
 
 __all__ = ["main"]
 
-EXAMPLES = Path(str(resources.files("robid_link.examples")))
+
 
 
 def _shared_inputs(p: argparse.ArgumentParser) -> None:

@@ -160,6 +160,7 @@ def _fake_controller(args: argparse.Namespace) -> int:
 
     from robid_link.fakes.controller import FileShareController, default_truth
     from robid_link.fakes.plant import load_truth
+
     from robid_link.ident.robot import load_robot
     from robid_link.link.daemon import setup_logging
 

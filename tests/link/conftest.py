@@ -16,8 +16,8 @@ from typing import Any
 
 import pytest
 import yaml
-
 from robid_link.fakes.controller import FileShareController, default_truth
+
 from robid_link.ident.robot import Robot, load_robot
 
 ROOT = Path(__file__).resolve().parents[2]

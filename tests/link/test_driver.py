@@ -10,8 +10,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-
 from robid_link.drivers.file_share import FileShareDriver, parse_sem
+
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.link.driver import Done, Driver, MotionProgram
 from robid_link.link.registry import available_drivers, driver_class, make_driver
@@ -272,9 +272,10 @@ def test_third_party_driver_through_entry_points(monkeypatch: pytest.MonkeyPatch
 
     from robid_link.link import registry
 
-    ep = md.EntryPoint("acme", "robid_link.drivers.file_share:FileShareDriver", "robid_link.drivers")
+    target = "robid_link.drivers.file_share:FileShareDriver"
+    ep = md.EntryPoint("acme", target, "robid_link.drivers")
     monkeypatch.setattr(registry, "entry_points", lambda group: [ep])
-    assert registry.available_drivers()["acme"] == "robid_link.drivers.file_share:FileShareDriver"
+    assert registry.available_drivers()["acme"] == target
     assert registry.driver_class("acme") is FileShareDriver
     bad = md.EntryPoint("broken", "no_such_module:X", "robid_link.drivers")
     monkeypatch.setattr(registry, "entry_points", lambda group: [bad])
