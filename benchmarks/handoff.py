@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from robid_link.drivers.file_share import FileShareDriver, done_text
 
-from robid_link.link.atomic import fsync_dir
+from robid_link.atomic import fsync_dir
 
 __all__ = ["bench_handoff"]
 

@@ -17,10 +17,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from robid_link.drivers.rapid import MAX_AXES, render_rapid
 from watchdog.events import FileSystemEventHandler
 
 from robid_link.exceptions import ConfigError, DriverError
-from robid_link.link.atomic import atomic_write
+from robid_link.atomic import atomic_write
 from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver, MotionProgram
 
 __all__ = ["FileShareDriver", "sem_name", "parse_sem", "network_fs", "done_text", "read_done",
@@ -123,18 +124,25 @@ class FileShareDriver(Driver):
 
     Options: ``share`` (folder), ``observer`` (auto | inotify | polling; auto picks polling on
     network file systems), ``poll_interval_s`` (polling observer), ``canary_interval_s`` (0 to
-    disable the liveness check), ``canary_timeout_s``.
+    disable the liveness check), ``canary_timeout_s``, ``rapid`` (true: render each program
+    as an ABB RAPID module ``inbox/<id>.mod`` beside the neutral trajectory; false for
+    controllers that read only the trajectory file).
     """
 
     name = "file_share"
     capabilities = frozenset({CAP_RAPID, CAP_UPLOAD})
     options = frozenset({"share", "observer", "poll_interval_s", "canary_interval_s",
-                         "canary_timeout_s"})
+                         "canary_timeout_s", "rapid"})
 
     def __init__(self, *, share: str | os.PathLike[str] | None = None, observer: str = "auto",
                  poll_interval_s: float = 0.1, canary_interval_s: float = 30.0,
-                 canary_timeout_s: float = 2.0) -> None:
+                 canary_timeout_s: float = 2.0, rapid: bool = True) -> None:
         super().__init__()
+        if not isinstance(rapid, bool):
+            raise ConfigError(f"driver.rapid: expected true or false, got {rapid!r}")
+        self.rapid = rapid
+        if not rapid:
+            self.capabilities = frozenset({CAP_UPLOAD})
         if share is None:
             raise ConfigError("driver.share: missing (the shared folder)")
         if observer not in ("auto", "inotify", "polling"):
@@ -254,10 +262,19 @@ class FileShareDriver(Driver):
                 self._canary_seen = None
                 path.unlink(missing_ok=True)
 
+    def _check_robot(self, robot: Any) -> None:
+        if self.rapid and robot.n > MAX_AXES:
+            raise ConfigError(f"driver.rapid: RAPID joint targets hold at most {MAX_AXES} axes, "
+                              f"robot {robot.name} has {robot.n} (set rapid: false)")
+
     # -- the cycle
     async def _put_program(self, program: MotionProgram) -> None:
+        files = dict(program.files)
+        if self.rapid:
+            files["mod"] = render_rapid(program)
+
         def write() -> None:
-            for suffix, data in program.files.items():
+            for suffix, data in files.items():
                 if not re.fullmatch(r"[a-z]+(\.[a-z]+)?", suffix):
                     raise DriverError(f"program file suffix {suffix!r} is not allowed")
                 atomic_write(self.inbox / f"{program.exp_id}.{suffix}", data)

@@ -1,146 +1,208 @@
-"""The controller side of the file-share protocol over the simulated robot, with the faults a
-real cell produces: never answering, dying mid-program, truncated or corrupt logs (the 'done'
-checksum must catch them), answering twice, stale semaphores, logs with NaN."""
+"""The protocol-neutral fake controller: a motion program run on the simulated robot gives the
+log a real cell would record, and the faults a real cell produces are chosen here. Protocol
+peers (``file_share_peer.py``, …) carry programs, answers and logs over their protocol and are
+found by driver name (``robid_link.link.registry.peer_class``)."""
 
 from __future__ import annotations
 
-import hashlib
+import abc
 import io
 import logging
 import os
 import threading
-import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, ClassVar, Self
 
 import numpy as np
-from robid_link.drivers.file_share import done_text, log_name, parse_sem, sem_name
-from robid_link.fakes.plant import Plant, Truth
+import yaml
 
 from robid_link.exceptions import RobidError
-from robid_link.ident.excitation import read_trajectory, trajectory_states
+from robid_link.fakes.plant import Plant, Truth
+from robid_link.ident.excitation import Trajectory, trajectory_states
 from robid_link.ident.robot import Robot
-from robid_link.link.atomic import atomic_write
+from robid_link.link.driver import MotionProgram
 
-__all__ = ["FAULTS", "FileShareController", "default_truth"]
+__all__ = ["FAULTS", "ControllerCore", "Peer", "RunResult", "default_truth", "log_csv",
+           "make_peer"]
 
 log = logging.getLogger("robid.fake_controller")
 
+#: faults every peer plays in its own protocol: no answer, the controller dies mid-program, a
+#: log cut short or with a flipped byte (the announced checksum is the true log's), two answers
+#: to one program, an answer to an attempt that no longer exists, NaN in the log, a controller
+#: that reports failure
 FAULTS = ("never_answer", "die", "truncated_log", "corrupt_log", "answer_twice",
           "stale_semaphore", "nan_log", "fail")
 
 
-class FileShareController:
-    """Serve ``share``: run every new ``sem/<id>.<nonce>.ready`` on the plant, write
-    ``outbox/<id>.<nonce>.log.csv`` atomically, then ``sem/<id>.<nonce>.done`` (SHA-256 and
-    size). ``fault`` hits the first ``fault_count`` programs; ``die`` ends ``serve`` (and the
-    process, with ``exit_on_die``) half-way through writing the log."""
+def log_csv(t: np.ndarray, q: np.ndarray, tau: np.ndarray) -> bytes:
+    """A log in the project's CSV format (``t,q1..qn,tau1..taun``)."""
+    n = q.shape[1]
+    buf = io.StringIO()
+    header = ",".join(["t"] + [f"q{j}" for j in range(1, n + 1)]
+                      + [f"tau{j}" for j in range(1, n + 1)])
+    np.savetxt(buf, np.hstack([t[:, None], q, tau]), delimiter=",", header=header,
+               comments="", fmt="%.10g")
+    return buf.getvalue().encode()
 
-    def __init__(self, share: str | Path, robot: Robot, truth: Truth, *,
-                 fault: str | None = None, fault_count: int = 1, poll_s: float = 0.005,
-                 seed: int = 0, exit_on_die: bool = False) -> None:
-        if fault is not None and fault not in FAULTS:
-            raise RobidError(f"--fault: expected one of {', '.join(FAULTS)}, got {fault!r}")
-        self.share = Path(share)
+
+@dataclass(frozen=True)
+class RunResult:
+    """One program's outcome on the fake controller: the true log (and its checksum) and the
+    bytes the controller side will deliver (damaged for the log faults), or a failure."""
+
+    exp_id: str
+    nonce: str
+    fault: str | None
+    log: bytes = b""
+    delivered: bytes = b""
+    error: str | None = None
+
+    @property
+    def sha256(self) -> str:
+        import hashlib
+
+        return hashlib.sha256(self.log).hexdigest()
+
+
+class ControllerCore:
+    """Program → plant → log, and the fault schedule: ``fault`` hits the first
+    ``fault_count`` programs. Thread-safe; one instance serves one peer."""
+
+    def __init__(self, robot: Robot, truth: Truth, *, fault: str | None = None,
+                 fault_count: int = 1, seed: int = 0, exit_on_die: bool = False,
+                 extra_faults: tuple[str, ...] = ()) -> None:
+        known = FAULTS + tuple(extra_faults)
+        if fault is not None and fault not in known:
+            raise RobidError(f"--fault: expected one of {', '.join(known)}, got {fault!r}")
         self.robot, self.plant = robot, Plant(robot, truth)
         self.rate_hz = truth.rate_hz
         self.fault, self.faults_left = fault, fault_count if fault else 0
-        self.poll_s, self.seed, self.exit_on_die = poll_s, seed, exit_on_die
+        self.seed, self.exit_on_die = seed, exit_on_die
         self.handled: list[tuple[str, str]] = []
-        self._seen: set[tuple[str, str]] = set()
-        for d in ("inbox", "outbox", "sem"):
-            (self.share / d).mkdir(parents=True, exist_ok=True)
+        self.parameters: list[dict[str, Any]] = []
+        self._lock = threading.Lock()
 
-    def serve(self, stop: threading.Event | None = None, max_programs: int | None = None) -> None:
-        stop = stop or threading.Event()
-        while not stop.is_set():
-            for exp_id, nonce in self._new_readies():
-                if not self._handle(exp_id, nonce):
-                    return  # died
-                if max_programs is not None and len(self.handled) >= max_programs:
-                    return
-            stop.wait(self.poll_s)
+    def take_fault(self) -> str | None:
+        """The fault for the next program (consumes one of ``fault_count``)."""
+        with self._lock:
+            if self.faults_left > 0:
+                self.faults_left -= 1
+                return self.fault
+            return None
 
-    def _new_readies(self) -> list[tuple[str, str]]:
-        sem = self.share / "sem"
-        names = set(os.listdir(sem))
-        out = []
-        for name in sorted(names):
-            p = parse_sem(name)
-            if p is None or p[2] != "ready" or (p[0], p[1]) in self._seen:
-                continue
-            if sem_name(p[0], p[1], "done") in names or sem_name(p[0], p[1], "failed") in names:
-                self._seen.add((p[0], p[1]))  # answered before a restart
-                continue
-            out.append((p[0], p[1]))
-        return out
+    def trajectory(self, csv: bytes, header: bytes | None = None) -> Trajectory:
+        """A program's neutral trajectory files as the plant's Trajectory."""
+        prog = MotionProgram("p", {"traj.csv": csv, "traj.yaml": header or b"rate_hz: 0\n"},
+                             0.0)
+        if header is None:  # rate from the time stamps
+            arr = np.loadtxt(io.BytesIO(csv), delimiter=",", skiprows=1, ndmin=2)
+            rate = 1.0 / float(np.median(np.diff(arr[:, 0])))
+            prog = MotionProgram("p", {"traj.csv": csv, "traj.yaml": yaml.safe_dump(
+                {"rate_hz": rate, "kind": "custom"}).encode()}, 0.0)
+        tr = prog.trajectory()
+        return Trajectory(tr.t, tr.q, tr.rate_hz, tr.kind, tr.robot, dict(tr.header))
 
-    def _log_bytes(self, exp_id: str, seed: int) -> bytes:
-        traj = read_trajectory(self.share / "inbox" / f"{exp_id}.traj.csv")
+    def simulate(self, traj: Trajectory, seed: int) -> bytes:
         if traj.q.shape[1] != self.robot.n:
-            raise RobidError(f"program {exp_id}: {traj.q.shape[1]} joints, robot has "
-                             f"{self.robot.n}")
+            raise RobidError(f"program has {traj.q.shape[1]} joints, robot has {self.robot.n}")
         t, q, qd, qdd = trajectory_states(traj, self.rate_hz)
         out = self.plant.run(t, q, qd, qdd, seed=seed)
-        q_log, tau = out["q"], out["tau"]
-        buf = io.StringIO()
-        n = self.robot.n
-        header = ",".join(["t"] + [f"q{j}" for j in range(1, n + 1)]
-                          + [f"tau{j}" for j in range(1, n + 1)])
-        np.savetxt(buf, np.hstack([out["t"][:, None], q_log, tau]), delimiter=",",
-                   header=header, comments="", fmt="%.10g")
-        return buf.getvalue().encode()
+        return log_csv(out["t"], out["q"], out["tau"])
 
-    def _handle(self, exp_id: str, nonce: str) -> bool:
-        self._seen.add((exp_id, nonce))
-        sem, outbox = self.share / "sem", self.share / "outbox"
-        fault = None
-        if self.faults_left > 0:
-            fault, self.faults_left = self.fault, self.faults_left - 1
+    def run(self, exp_id: str, nonce: str, csv: bytes, header: bytes | None = None
+            ) -> RunResult:
+        """Run one program: the plant's log, damaged as the fault schedule says. ``die`` and
+        ``never_answer`` are the peer's to play (it stops talking); ``fail`` and an unreadable
+        program come back as ``error``."""
+        fault = self.take_fault()
+        with self._lock:
+            seed = self.seed + len(self.handled)
+            self.handled.append((exp_id, nonce))
         log.info("exp=%s nonce=%s running%s", exp_id, nonce, f" (fault {fault})" if fault else "")
-        if fault == "never_answer":
-            self.handled.append((exp_id, nonce))
-            return True
         if fault == "fail":
-            atomic_write(sem / sem_name(exp_id, nonce, "failed"), b"motion supervision triggered\n")
-            self.handled.append((exp_id, nonce))
-            return True
+            return RunResult(exp_id, nonce, fault, error="motion supervision triggered")
+        if fault == "never_answer":
+            return RunResult(exp_id, nonce, fault)
         try:
-            data = self._log_bytes(exp_id, self.seed + len(self.handled))
+            data = self.simulate(self.trajectory(csv, header), seed)
         except RobidError as err:
-            atomic_write(sem / sem_name(exp_id, nonce, "failed"), f"{err}\n".encode())
-            self.handled.append((exp_id, nonce))
-            return True
-        if fault == "nan_log":
+            return RunResult(exp_id, nonce, fault, error=f"program {exp_id}: {err}")
+        if fault == "nan_log":  # the controller logged NaN: its checksum is consistent
             lines = data.split(b"\n")
             cells = lines[len(lines) // 2].split(b",")
             cells[1] = b"nan"
             lines[len(lines) // 2] = b",".join(cells)
             data = b"\n".join(lines)
-        sha = hashlib.sha256(data).hexdigest()
-        log_path = outbox / log_name(exp_id, nonce)
-        if fault == "die":  # half a log in a temp file, no rename, no 'done'
-            (outbox / f".{log_name(exp_id, nonce)}.partial").write_bytes(data[: len(data) // 2])
-            log.info("exp=%s nonce=%s controller dies mid-program", exp_id, nonce)
-            if self.exit_on_die:
-                os._exit(70)
-            return False
+        delivered = data
         if fault == "truncated_log":
-            atomic_write(log_path, data[: len(data) // 2])
+            delivered = data[: len(data) // 2]
         elif fault == "corrupt_log":
             bad = bytearray(data)
             bad[len(bad) // 2] ^= 0x01
-            atomic_write(log_path, bytes(bad))
-        else:
-            atomic_write(log_path, data)
-        if fault == "stale_semaphore":  # an answer to an attempt that no longer exists
-            atomic_write(sem / sem_name(exp_id, "0stale0", "done"), done_text("0" * 64, 1))
-        done = done_text(sha, len(data))
-        atomic_write(sem / sem_name(exp_id, nonce, "done"), done)
-        if fault == "answer_twice":
-            time.sleep(0.05)
-            atomic_write(sem / sem_name(exp_id, nonce, "done"), done)
-        self.handled.append((exp_id, nonce))
-        return True
+            delivered = bytes(bad)
+        return RunResult(exp_id, nonce, fault, data, delivered)
+
+    def die(self) -> None:
+        """The controller process dies (``die`` fault) where the peer runs as a process."""
+        log.info("controller dies mid-program")
+        if self.exit_on_die:
+            os._exit(70)
+
+    def receive_parameters(self, doc: dict[str, Any]) -> None:
+        """Parameters uploaded by the daemon (kept; issue 13 makes the loop use them)."""
+        with self._lock:
+            self.parameters.append(doc)
+
+
+class Peer(abc.ABC):
+    """The controller side of one protocol over a ``ControllerCore``. ``start`` serves in the
+    background, ``stop`` is safe twice, ``driver_options`` is the ``driver:`` mapping of a
+    daemon config that reaches this peer. Peers are context managers."""
+
+    driver: ClassVar[str] = ""
+    #: protocol-specific faults on top of the core's FAULTS
+    faults: ClassVar[tuple[str, ...]] = ()
+    #: core faults this protocol cannot express → why (the contract suite skips them, saying so)
+    unsupported: ClassVar[dict[str, str]] = {}
+
+    def __init__(self, core: ControllerCore, workdir: Path, **options: Any) -> None:
+        self.core, self.workdir = core, Path(workdir)
+        self.died = threading.Event()
+
+    @abc.abstractmethod
+    def start(self) -> None: ...
+
+    @abc.abstractmethod
+    def stop(self) -> None: ...
+
+    @abc.abstractmethod
+    def driver_options(self) -> dict[str, Any]: ...
+
+    def wait(self, stop: threading.Event) -> None:
+        """Block until ``stop`` is set or the peer died (the CLI's foreground loop)."""
+        while not stop.is_set() and not self.died.is_set():
+            stop.wait(0.2)
+
+    def __enter__(self) -> Self:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def make_peer(driver: str, robot: Robot, truth: Truth, workdir: str | Path, *,
+              fault: str | None = None, fault_count: int = 1, seed: int = 0,
+              exit_on_die: bool = False, **options: Any) -> Peer:
+    """The fake controller for ``driver``'s protocol (not started)."""
+    from robid_link.link.registry import peer_class
+
+    cls = peer_class(driver)
+    core = ControllerCore(robot, truth, fault=fault, fault_count=fault_count, seed=seed,
+                          exit_on_die=exit_on_die, extra_faults=cls.faults)
+    return cls(core, Path(workdir), **options)
 
 
 def default_truth(robot: Robot, rate_hz: float = 1000.0) -> Truth:

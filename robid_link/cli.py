@@ -104,6 +104,9 @@ def _parser() -> argparse.ArgumentParser:
                        "daemon, campaign, identification, diagnosis, report")
     p.add_argument("--json", metavar="FILE", help="write the run's result as JSON")
     p.add_argument("--out", metavar="DIR", default="demo-out")
+    p.add_argument("--driver", default="file_share",
+                   help="the controller link to run the demo over (its fake peer plays the "
+                   "cell): file_share, abb_rws, canopen_drives, modbus_plc, serial_line")
 
     _link_parsers(sub)
     return ap
@@ -115,14 +118,22 @@ def _link_parsers(sub: Any) -> None:
 
     p = sub.add_parser("fake-controller", help="the controller side of a driver's protocol "
                        "over the simulated robot (tests, demos)")
-    p.add_argument("--driver", default="file_share", choices=("file_share",))
-    p.add_argument("--share", required=True, metavar="DIR")
+    p.add_argument("--driver", default="file_share",
+                   help="the driver whose controller side to play (file_share, abb_rws, "
+                   "canopen_drives, modbus_plc, serial_line, or a plug-in's)")
+    p.add_argument("--share", "--workdir", dest="workdir", required=True, metavar="DIR",
+                   help="the peer's folder: the share (file_share, modbus_plc) or the "
+                   "controller's file system")
+    p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="a peer option (YAML value), e.g. --option port=0; repeatable")
+    p.add_argument("--ready-file", metavar="F", help="write the daemon's driver: mapping "
+                   "for this peer as JSON to F once it serves (ports chosen at start)")
     p.add_argument("--robot", required=True)
     p.add_argument("--lock", action="append", default=[], metavar="NAME")
     p.add_argument("--truth", help="truth file (default: nominal inertials, viscous and "
                    "Coulomb friction, torque noise)")
     p.add_argument("--fault", help="never_answer, die, truncated_log, corrupt_log, "
-                   "answer_twice, stale_semaphore, nan_log or fail")
+                   "answer_twice, stale_semaphore, nan_log, fail, or one of the peer's own")
     p.add_argument("--fault-count", type=int, default=1, metavar="N",
                    help="how many programs the fault hits (default 1)")
     p.add_argument("--seed", type=int, default=0)
@@ -362,18 +373,19 @@ def _excite(args: argparse.Namespace) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    from robid_link.fakes.plant import Plant, load_truth
     from robid_link.ident.data import write_log_csv
+    from robid_link.link.registry import fake_module
     from robid_link.ident.excitation import read_trajectory, trajectory_states
     from robid_link.ident.robot import load_robot
 
+    plant = fake_module("plant")
     robot = load_robot(args.robot, args.lock)
-    truth = load_truth(args.truth, robot)
+    truth = plant.load_truth(args.truth, robot)
     traj = read_trajectory(args.trajectory)
     if traj.q.shape[1] != robot.n:
         raise RobidError(f"{args.trajectory}: {traj.q.shape[1]} joints, the robot has {robot.n}")
     t, q, qd, qdd = trajectory_states(traj, truth.rate_hz)
-    log = Plant(robot, truth).run(t, q, qd, qdd, seed=args.seed)
+    log = plant.Plant(robot, truth).run(t, q, qd, qdd, seed=args.seed)
     write_log_csv(args.out, log["t"], log["q"], log["tau"])
     print(f"simulated {t[-1] - t[0]:.4g} s of {robot.name} at {truth.rate_hz:g} Hz "
           f"({truth.mode}, {len(truth.effects)} effect(s)); wrote {args.out}")
@@ -384,7 +396,7 @@ def _demo(args: argparse.Namespace) -> int:
     from robid_link.demo import run_demo
 
     with tempfile.TemporaryDirectory(prefix="robid-demo-") as tmp:
-        return run_demo(Path(tmp), Path(args.out), args.json)
+        return run_demo(Path(tmp), Path(args.out), args.json, driver=args.driver)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import asyncio
 import shutil
-import threading
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -32,9 +31,8 @@ CAMPAIGN = {"experiments": [{"kind": "rigid_body", "duration_s": 40, "harmonics"
             "diagnose": True, "timeout_s": 120, "retries": 1, "backoff_s": 1.0}
 
 
-def _setup(work: Path, out: Path) -> tuple[Path, Path]:
-    share, model = work / "share", out / "model.yaml"
-    share.mkdir(parents=True)
+def _setup(work: Path, out: Path, driver: dict[str, Any]) -> tuple[Path, Path]:
+    model = out / "model.yaml"
     out.mkdir(parents=True, exist_ok=True)
     for stale in (model, model.with_name("model.yaml.history.jsonl")):
         stale.unlink(missing_ok=True)
@@ -43,28 +41,27 @@ def _setup(work: Path, out: Path) -> tuple[Path, Path]:
     save_model(model, DEFAULT_MODEL)
     cfg = {"robot": str(DEMO_ROBOT), "state_dir": str(work / "state"),
            "control_socket": str(work / "control.sock"),
-           "driver": {"name": "file_share", "share": str(share)},
+           "driver": driver,
            "campaigns": {"demo": {**CAMPAIGN, "model": str(model)}}}
     path = work / "daemon.yaml"
     path.write_text(yaml.safe_dump(cfg, sort_keys=False))
     return path, model
 
 
-def _controller(share: Path) -> tuple[Any, threading.Event, threading.Thread]:
-    from robid_link.fakes.controller import FileShareController
-    from robid_link.fakes.plant import Truth, perturbed_inertials
+def _controller(driver: str, workdir: Path) -> Any:
+    """The fake controller of ``driver``'s protocol over the demo robot (not started)."""
     from robid_link.ident.robot import load_robot
+    from robid_link.link.registry import fake_module
 
+    plant, ctrl = fake_module("plant"), fake_module("controller")
     robot = load_robot(DEMO_ROBOT)
-    truth = Truth(inertials=perturbed_inertials(robot, seed=11, spread=0.2),
-                  effects=({"name": "viscous", "fv": 3.0}, {"name": "coulomb", "fc": 2.0},
-                           HIDDEN),
-                  noise_tau=0.3, q_resolution=2 * 3.141592653589793 / 2**20, rate_hz=250.0)
-    ctrl = FileShareController(share, robot, truth, seed=3)
-    stop = threading.Event()
-    thread = threading.Thread(target=ctrl.serve, args=(stop,), name="fake-controller",
-                              daemon=True)
-    return ctrl, stop, thread
+    truth = plant.Truth(inertials=plant.perturbed_inertials(robot, seed=11, spread=0.2),
+                        effects=({"name": "viscous", "fv": 3.0},
+                                 {"name": "coulomb", "fc": 2.0}, HIDDEN),
+                        noise_tau=0.3, q_resolution=2 * 3.141592653589793 / 2**20,
+                        rate_hz=250.0)
+    workdir.mkdir(parents=True)
+    return ctrl.make_peer(driver, robot, truth, workdir, seed=3)
 
 
 async def _campaign(cfg_path: Path, log_file: Path) -> dict[str, Any]:
@@ -94,7 +91,8 @@ async def _campaign(cfg_path: Path, log_file: Path) -> dict[str, Any]:
             setup_logging("info")  # the log file closes with this block
 
 
-def run_demo(work: Path, out: Path, json_path: str | None = None) -> int:
+def run_demo(work: Path, out: Path, json_path: str | None = None,
+             driver: str = "file_share") -> int:
     from robid_link.ident.effects import EffectSpec, load_model, save_model
     from robid_link.ident.history import append_record, read_history, result_record
     from robid_link.ident.identify import identify, load_logs
@@ -102,18 +100,13 @@ def run_demo(work: Path, out: Path, json_path: str | None = None) -> int:
     from robid_link.ident.robot import load_robot
 
     out = out.resolve()  # the daemon's config lives elsewhere: paths in it are absolute
-    cfg_path, model_file = _setup(work, out)
     print(f"robid demo: industrial6 (6 axes), simulated cell; hidden effect: "
           f"{HIDDEN['name']}@{HIDDEN['joint']} (the default model does not know it)")
-    print("  fake controller on a temporary share, daemon with a temporary state dir; "
+    print(f"  fake controller ({driver}) and daemon with a temporary state dir; "
           f"daemon log: {out / 'daemon.log'}")
-    ctrl, stop, thread = _controller(work / "share")
-    thread.start()
-    try:
+    with _controller(driver, work / "cell") as peer:
+        cfg_path, model_file = _setup(work, out, peer.driver_options())
         doc = asyncio.run(_campaign(cfg_path, out / "daemon.log"))
-    finally:
-        stop.set()
-        thread.join(10)
     run = doc["run"]
     if run["state"] != "completed":
         raise RobidError(f"demo campaign failed: {run['error']}")

@@ -154,31 +154,50 @@ def format_results(results: list[dict[str, Any]]) -> str:
 
 
 def _fake_controller(args: argparse.Namespace) -> int:
+    import json
     import logging
     import signal
     import threading
 
-    from robid_link.fakes.controller import FileShareController, default_truth
-    from robid_link.fakes.plant import load_truth
+    import yaml
 
+    from robid_link.atomic import atomic_write
     from robid_link.ident.robot import load_robot
     from robid_link.link.daemon import setup_logging
+    from robid_link.link.registry import fake_module
 
     setup_logging("info")
+    options: dict[str, Any] = {}
+    for item in args.option:
+        key, sep, value = item.partition("=")
+        if not sep or not key.isidentifier():
+            raise RobidError(f"--option {item!r}: expected KEY=VALUE")
+        options[key] = yaml.safe_load(value)
     robot = load_robot(args.robot, args.lock)
-    truth = load_truth(args.truth, robot) if args.truth else default_truth(robot)
-    if not Path(args.share).is_dir():
-        raise RobidError(f"--share: {args.share}: folder not found")
-    ctrl = FileShareController(args.share, robot, truth, fault=args.fault,
-                               fault_count=args.fault_count, seed=args.seed, exit_on_die=True)
+    ctrl = fake_module("controller")
+    truth = (fake_module("plant").load_truth(args.truth, robot) if args.truth
+             else ctrl.default_truth(robot))
+    if not Path(args.workdir).is_dir():
+        raise RobidError(f"--workdir: {args.workdir}: folder not found")
+    try:
+        peer = ctrl.make_peer(args.driver, robot, truth, args.workdir, fault=args.fault,
+                              fault_count=args.fault_count, seed=args.seed, exit_on_die=True,
+                              **options)
+    except TypeError as err:  # an option the peer does not take
+        raise RobidError(f"--option: {err}") from err
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    logging.getLogger("robid.fake_controller").info(
-        "serving share=%s robot=%s fault=%s", args.share, robot.name, args.fault)
-    try:
-        ctrl.serve(stop)
-    except KeyboardInterrupt:
-        pass
+    with peer:
+        driver = peer.driver_options()
+        if args.ready_file:
+            atomic_write(Path(args.ready_file), json.dumps(driver).encode())
+        logging.getLogger("robid.fake_controller").info(
+            "serving driver=%s robot=%s fault=%s options=%s", args.driver, robot.name,
+            args.fault, json.dumps(driver))
+        try:
+            peer.wait(stop)
+        except KeyboardInterrupt:
+            pass
     return 0
 
 

@@ -20,6 +20,7 @@ from robid_link.exceptions import ConfigError
 from robid_link.link import campaign as cp
 from robid_link.link.control import ControlServer
 from robid_link.link.notify import Notifier
+from robid_link.link.driver import RobotInfo
 from robid_link.link.registry import make_driver
 from robid_link.link.store import Store
 from robid_link.link.worker import run_in_worker
@@ -60,11 +61,10 @@ def setup_logging(level: str = "info", stream: TextIO | None = None) -> None:
     root.propagate = False
 
 
-def robot_info(robot_path: str, lock: tuple[str, ...]) -> dict[str, Any]:
+def robot_info(robot_path: str, lock: tuple[str, ...]) -> RobotInfo:
     from robid_link.ident.robot import load_robot
 
-    robot = load_robot(robot_path, lock)
-    return {"name": robot.name, "joints": robot.n}
+    return RobotInfo.of(load_robot(robot_path, lock))
 
 
 def _kill_hook(spec: str | None) -> Any:
@@ -97,7 +97,7 @@ class Daemon:
                                              "robid_link.ident.diagnose"])
         self.store: Store | None = None
         self.driver: Any = None
-        self.robot: dict[str, Any] = {}
+        self.robot: RobotInfo | None = None
         self._queue: asyncio.Queue[str] = asyncio.Queue()
         self._current: str | None = None
         self._stop = asyncio.Event()
@@ -123,6 +123,7 @@ class Daemon:
         try:
             self.robot = await run_in_worker(self.ctx, robot_info, str(cfg.robot), cfg.lock)
             self.driver = make_driver(cfg.driver)
+            self.driver.bind_robot(self.robot)
             loop = asyncio.get_running_loop()
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.add_signal_handler(sig, self.stop)
@@ -149,7 +150,7 @@ class Daemon:
             self.notifier.send(READY=1, STATUS=self._status_line())
             self.ready.set()
             log.info("daemon ready robot=%s joints=%d driver=%s socket=%s pid=%d",
-                     self.robot["name"], self.robot["joints"], self.cfg.driver["name"],
+                     self.robot.name, self.robot.n, self.cfg.driver["name"],
                      self.cfg.control_socket, os.getpid())
             await self._stop.wait()
             log.info("stopping: the current step is journaled; an unfinished run resumes "
@@ -166,7 +167,7 @@ class Daemon:
             self.notifier.send(STATUS=self._status_line())
             try:
                 await cp.execute_run(self.cfg, self.store, self.driver, self.ctx, run_id,
-                                     self.robot["joints"], self._kill)
+                                     self.robot.n, self._kill)
             except Exception as err:  # a bug must fail its run, not the daemon (or resume loop)
                 log.exception("run=%s internal error", run_id)
                 self.store.set_run(run_id, "failed",
@@ -194,7 +195,9 @@ class Daemon:
         assert self.store is not None
         cmd = req["cmd"]
         if cmd == "ping":
-            return {"ok": True, "pid": os.getpid(), "robot": self.robot}
+            return {"ok": True, "pid": os.getpid(),
+                    "robot": {"name": self.robot.name, "joints": self.robot.n}
+                    if self.robot else None}
         if cmd == "start":
             trigger = req.get("trigger", "operator")
             run_id = cp.create_run(self.cfg, self.store, str(req.get("campaign")), trigger)

@@ -9,17 +9,26 @@ from __future__ import annotations
 import abc
 import asyncio
 import hashlib
+import io
 import logging
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Self
+from typing import TYPE_CHECKING, Any, ClassVar, Self
+
+import numpy as np
+import yaml
 
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
+
+if TYPE_CHECKING:
+    from robid_link.ident.robot import Robot
 
 __all__ = [
     "Driver",
     "MotionProgram",
+    "ProgramTrajectory",
+    "RobotInfo",
     "Done",
     "check_name",
     "CAP_UPLOAD",
@@ -44,9 +53,50 @@ def check_name(value: str, what: str) -> str:
 
 
 @dataclass(frozen=True)
+class RobotInfo:
+    """What a driver needs to know of the robot it moves (picklable, no Pinocchio model):
+    joints in model order, their types and limits in SI units (``inf`` where unknown)."""
+
+    name: str
+    joint_names: tuple[str, ...]
+    joint_types: tuple[str, ...]
+    q_min: tuple[float, ...]
+    q_max: tuple[float, ...]
+    qd_max: tuple[float, ...]
+    qdd_max: tuple[float, ...]
+    tau_max: tuple[float, ...]
+
+    @property
+    def n(self) -> int:
+        return len(self.joint_names)
+
+    @classmethod
+    def of(cls, robot: Robot) -> RobotInfo:
+        lim = robot.limits
+        return cls(robot.name, tuple(robot.joint_names), tuple(robot.joint_types),
+                   *(tuple(float(x) for x in a)
+                     for a in (lim.q_min, lim.q_max, lim.qd_max, lim.qdd_max, lim.tau_max)))
+
+
+@dataclass(frozen=True)
+class ProgramTrajectory:
+    """The neutral trajectory of a program, parsed back from its files: what a driver renders
+    for its controller (RAPID, counts per SYNC, …)."""
+
+    t: np.ndarray
+    q: np.ndarray
+    rate_hz: float
+    kind: str
+    robot: str
+    joint_types: tuple[str, ...]
+    header: Mapping[str, Any]
+
+
+@dataclass(frozen=True)
 class MotionProgram:
-    """One experiment's program as it leaves the daemon: files by suffix (``traj.csv``,
-    ``traj.yaml``, ``mod``), already checked against the robot's limits."""
+    """One experiment's program as it leaves the daemon: the neutral trajectory
+    (``traj.csv`` + ``traj.yaml``), already checked against the robot's limits. This is what
+    an operator approves by hash; a driver renders it for its controller in ``_put_program``."""
 
     exp_id: str
     files: Mapping[str, bytes]
@@ -60,6 +110,31 @@ class MotionProgram:
         for suffix in sorted(self.files):
             h.update(suffix.encode() + b"\0" + self.files[suffix] + b"\0")
         return h.hexdigest()
+
+    def trajectory(self) -> ProgramTrajectory:
+        """``traj.csv`` + ``traj.yaml`` parsed; a DriverError names what is wrong."""
+        where = f"program {self.exp_id}"
+        try:
+            head = yaml.safe_load(self.files["traj.yaml"].decode())
+            arr = np.loadtxt(io.BytesIO(self.files["traj.csv"]), delimiter=",", skiprows=1,
+                             ndmin=2)
+        except KeyError as err:
+            raise DriverError(f"{where}: file {err.args[0]} missing") from err
+        except (ValueError, UnicodeDecodeError, yaml.YAMLError) as err:
+            raise DriverError(f"{where}: unreadable trajectory ({err})") from err
+        if not isinstance(head, dict) or arr.shape[1] < 2 or arr.shape[0] < 1:
+            raise DriverError(f"{where}: trajectory header or samples malformed")
+        n = arr.shape[1] - 1
+        types = tuple(head.get("joint_types") or ("revolute",) * n)
+        if len(types) != n or not np.all(np.isfinite(arr)):
+            raise DriverError(f"{where}: {n} joints in traj.csv, {len(types)} joint types in "
+                              "traj.yaml, or non-finite samples")
+        try:
+            rate = float(head["rate_hz"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise DriverError(f"{where}: traj.yaml has no valid rate_hz") from err
+        return ProgramTrajectory(arr[:, 0], arr[:, 1:], rate, str(head.get("kind", "custom")),
+                                 str(head.get("robot", "")), types, head)
 
 
 @dataclass(frozen=True)
@@ -88,6 +163,14 @@ class Driver(abc.ABC):
     def __init__(self) -> None:
         self._opened = False
         self._closed = False
+        self.robot: RobotInfo | None = None
+
+    def bind_robot(self, robot: RobotInfo) -> None:
+        """The robot this link moves, given before ``open``: a driver checks its options
+        against it (unit vectors per joint, axis counts) so a mismatch is refused before any
+        motion, with the option's name."""
+        self._check_robot(robot)
+        self.robot = robot
 
     # -- lifecycle
     async def open(self) -> None:
@@ -192,6 +275,9 @@ class Driver(abc.ABC):
 
     @abc.abstractmethod
     async def _fetch_logs(self, done: Done) -> bytes: ...
+
+    def _check_robot(self, robot: RobotInfo) -> None:
+        return None
 
     async def _acknowledge(self, done: Done) -> None:
         return None

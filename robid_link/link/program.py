@@ -1,13 +1,11 @@
 """Motion programs: each experiment's trajectory generated from the excitation design, checked
-against the robot's limits before it may leave the daemon, rendered as the neutral trajectory
-file and as an ABB RAPID module."""
+against the robot's limits before it may leave the daemon, packaged as the neutral trajectory
+file (drivers render it for their controller: RAPID in ``drivers/rapid.py``)."""
 
 from __future__ import annotations
 
 import io
-import math
-import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -20,11 +18,10 @@ from robid_link.ident.robot import Robot
 from robid_link.link.driver import MotionProgram, check_name
 
 __all__ = ["EXPERIMENT_KINDS", "experiment_trajectory", "check_program", "reduced_speed",
-           "render_rapid", "parse_rapid", "make_program", "trajectory_files",
+           "make_program", "trajectory_files",
            "program_trajectory"]
 
 EXPERIMENT_KINDS = ("rigid_body", "friction", "custom")
-RAPID_RATE_HZ = 25.0
 
 _DEFAULTS: dict[str, dict[str, Any]] = {
     "rigid_body": {"duration_s": 40.0, "harmonics": 8, "base_hz": 0.1, "rate_hz": 250.0,
@@ -162,86 +159,20 @@ def reduced_speed(traj: ex.Trajectory, k: float) -> ex.Trajectory:
 # ----------------------------------------------------------------------------- rendering
 
 
-def trajectory_files(traj: ex.Trajectory) -> dict[str, bytes]:
-    """The neutral trajectory file (CSV t,q1..qn + YAML header) as bytes."""
+def trajectory_files(traj: ex.Trajectory, joint_types: Sequence[str] | None = None
+                     ) -> dict[str, bytes]:
+    """The neutral trajectory file (CSV t,q1..qn + YAML header) as bytes; the header names
+    each joint's type so a driver can convert units without the robot file."""
     n = traj.q.shape[1]
     buf = io.StringIO()
     np.savetxt(buf, np.column_stack((traj.t, traj.q)), delimiter=",", fmt="%.10g",
                header=",".join(["t"] + [f"q{j}" for j in range(1, n + 1)]), comments="")
     meta = {"robot": traj.robot, "rate_hz": traj.rate_hz, "kind": traj.kind,
             "samples": int(traj.t.size), **traj.header}
+    if joint_types is not None:
+        meta["joint_types"] = list(joint_types)
     return {"traj.csv": buf.getvalue().encode(),
             "traj.yaml": yaml.safe_dump(meta, sort_keys=False).encode()}
-
-
-def _rapid_units(robot: Robot) -> np.ndarray:
-    """RAPID joint targets per model unit: degrees per radian, millimetres per metre."""
-    return np.array([180 / math.pi if t == "revolute" else 1000.0 for t in robot.joint_types])
-
-
-def render_rapid(robot: Robot, traj: ex.Trajectory, exp_id: str,
-                 rate_hz: float = RAPID_RATE_HZ) -> bytes:
-    """An ABB RAPID module that replays the trajectory as timed MoveAbsJ through joint targets
-    (degrees; mm for prismatic axes; a 7th axis goes to eax_a). Logging of q and τ is the cell's
-    own test-signal set-up and not part of the module."""
-    if robot.n > 7:
-        raise ConfigError(f"experiment {exp_id}: RAPID joint targets hold at most 7 axes")
-    step = max(1, round(traj.rate_hz / rate_hz))
-    idx = np.arange(0, traj.t.size, step)
-    if idx[-1] != traj.t.size - 1:
-        idx = np.append(idx, traj.t.size - 1)
-    scale = _rapid_units(robot)
-    pts = traj.q[idx] * scale
-    dts = np.diff(traj.t[idx])
-    module = re.sub(r"[^A-Za-z0-9_]", "_", f"robid_{exp_id}")[:32]
-    rows = []
-    for p in pts:
-        rob = [f"{x:.4f}" for x in p[:6]] + ["0"] * (6 - min(6, robot.n))
-        ext = [f"{p[6]:.4f}" if robot.n == 7 else "9E9"] + ["9E9"] * 5
-        rows.append(f"[[{','.join(rob)}],[{','.join(ext)}]]")
-    body = ",\n        ".join(rows)
-    lines = [
-        f"MODULE {module}",
-        f"    ! robid_link motion program: experiment {exp_id}, robot {robot.name}",
-        f"    ! {traj.kind} trajectory, {traj.t[-1]:.3f} s, {len(idx)} joint targets",
-        f"    CONST num n_points := {len(idx)};",
-        f"    CONST num dt{{{len(dts)}}} := [{', '.join(f'{d:.4f}' for d in dts)}];",
-        f"    CONST jointtarget path{{{len(idx)}}} := [\n        {body}];",
-        "",
-        "    PROC main()",
-        "        MoveAbsJ path{1}, v100, fine, tool0;",
-        "        WaitTime 0.5;",
-        "        FOR i FROM 2 TO n_points DO",
-        "            MoveAbsJ path{i}, v1000 \\T:=dt{i-1}, z1, tool0;",
-        "        ENDFOR",
-        "        MoveAbsJ path{n_points}, v100, fine, tool0;",
-        "    ENDPROC",
-        "ENDMODULE",
-        "",
-    ]
-    return "\n".join(lines).encode()
-
-
-_TARGET = re.compile(r"\[\[([^\]]*)\],\[([^\]]*)\]\]")
-
-
-def parse_rapid(text: str, robot: Robot) -> tuple[np.ndarray, np.ndarray]:
-    """Joint targets (rad / m) and their move times from a module ``render_rapid`` wrote."""
-    m = re.search(r"jointtarget path\{(\d+)\} := \[(.*?)\];", text, re.S)
-    d = re.search(r"CONST num dt\{(\d+)\} := \[(.*?)\];", text, re.S)
-    if m is None or d is None:
-        raise ConfigError("RAPID module: no 'path' joint targets or 'dt' times")
-    targets = []
-    for rob, ext in _TARGET.findall(m.group(2)):
-        vals = [float(x) for x in rob.split(",")][: min(6, robot.n)]
-        if robot.n == 7:
-            vals.append(float(ext.split(",")[0]))
-        targets.append(vals)
-    if len(targets) != int(m.group(1)):
-        raise ConfigError("RAPID module: target count differs from the declared size")
-    scale = _rapid_units(robot)
-    dts = np.array([float(x) for x in d.group(2).split(",")])
-    return np.array(targets) / scale, dts
 
 
 def make_program(robot: Robot, traj: ex.Trajectory, exp_id: str,
@@ -249,6 +180,5 @@ def make_program(robot: Robot, traj: ex.Trajectory, exp_id: str,
     """Check the trajectory and package it; nothing unchecked becomes a program."""
     check_name(exp_id, "experiment id")
     check_program(robot, traj, exp_id)
-    files = trajectory_files(traj)
-    files["mod"] = render_rapid(robot, traj, exp_id)
+    files = trajectory_files(traj, robot.joint_types)
     return MotionProgram(exp_id, files, float(traj.t[-1] - traj.t[0]), dict(meta or {}))

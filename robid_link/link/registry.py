@@ -1,51 +1,105 @@
-"""Driver lookup: a built-in table of ``name → module:Class`` extended by the entry-point group
-``robid_link.drivers``. A driver module is imported only when it is chosen."""
+"""Driver and fake-peer lookup: built-in tables of ``name → module:Class`` extended by the
+entry-point groups ``robid_link.drivers`` and ``robid_link.fake_peers``. A module is imported
+only when it is chosen, so the product never imports a driver or a fake it does not use."""
 
 from __future__ import annotations
 
 import importlib
+import importlib.util
 from importlib.metadata import entry_points
+from types import ModuleType
 from typing import Any
 
 from robid_link.exceptions import ConfigError
 from robid_link.link.driver import Driver
 
-__all__ = ["BUILTIN_DRIVERS", "available_drivers", "driver_class", "make_driver"]
+__all__ = ["BUILTIN_DRIVERS", "BUILTIN_PEERS", "available_drivers", "available_peers",
+           "driver_class", "make_driver", "peer_class", "fake_module"]
 
 ENTRY_POINT_GROUP = "robid_link.drivers"
+PEER_ENTRY_POINT_GROUP = "robid_link.fake_peers"
 
-#: drivers shipped with robid_link; later issues add tcp_rpc, canopen_drives, modbus_plc,
-#: serial_line. The value names the extra that installs the driver's library, if any.
+#: drivers shipped with robid_link → (``module:Class``, the extra that installs its library)
 BUILTIN_DRIVERS: dict[str, tuple[str, str | None]] = {
     "file_share": ("robid_link.drivers.file_share:FileShareDriver", None),
+    "abb_rws": ("robid_link.drivers.abb_rws:AbbRwsDriver", "rws"),
+    "canopen_drives": ("robid_link.drivers.canopen_drives:CanopenDrivesDriver", "can"),
+    "modbus_plc": ("robid_link.drivers.modbus_plc:ModbusPlcDriver", "modbus"),
+    "serial_line": ("robid_link.drivers.serial_line:SerialLineDriver", "serial"),
 }
 
+#: the fake controller side of each built-in driver's protocol (tests, demo, fake-controller)
+BUILTIN_PEERS: dict[str, str] = {
+    "file_share": "robid_link.fakes.file_share_peer:FileSharePeer",
+    "abb_rws": "robid_link.fakes.rws_peer:RwsPeer",
+    "canopen_drives": "robid_link.fakes.cia402_peer:Cia402Peer",
+    "modbus_plc": "robid_link.fakes.modbus_peer:ModbusPeer",
+    "serial_line": "robid_link.fakes.serial_peer:SerialPeer",
+}
 
-def available_drivers() -> dict[str, str]:
-    """Every driver name → ``module:Class``: built-ins, then installed plug-ins."""
-    table = {name: target for name, (target, _) in BUILTIN_DRIVERS.items()}
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
+#: fakes the product uses by name: the simulated robot and the protocol-neutral controller
+FAKE_MODULES = {"plant": "robid_link.fakes.plant", "controller": "robid_link.fakes.controller"}
+
+
+def _installed(builtin: dict[str, str], group: str) -> dict[str, str]:
+    table = dict(builtin)
+    for ep in entry_points(group=group):
         table.setdefault(ep.name, ep.value)
     return table
 
 
-def driver_class(name: str) -> type[Driver]:
-    table = available_drivers()
+def _shipped(table: dict[str, str]) -> dict[str, str]:
+    """Built-ins whose module is in this installation (a later issue's driver may not be)."""
+    return {name: target for name, target in table.items()
+            if importlib.util.find_spec(target.partition(":")[0]) is not None}
+
+
+def available_drivers() -> dict[str, str]:
+    """Every driver name → ``module:Class``: built-ins present here, then installed plug-ins."""
+    return _installed(_shipped({k: v for k, (v, _) in BUILTIN_DRIVERS.items()}),
+                      ENTRY_POINT_GROUP)
+
+
+def available_peers() -> dict[str, str]:
+    """Every fake peer by the driver name it answers."""
+    return _installed(_shipped(BUILTIN_PEERS), PEER_ENTRY_POINT_GROUP)
+
+
+def _load(kind: str, key: str, name: str, table: dict[str, str], extra: str | None) -> Any:
     if name not in table:
-        raise ConfigError(f"driver.name: unknown driver {name!r} "
+        raise ConfigError(f"{key}: unknown {kind} {name!r} "
                           f"(available: {', '.join(sorted(table))})")
     module_name, _, attr = table[name].partition(":")
-    extra = BUILTIN_DRIVERS.get(name, ("", None))[1]
     try:
         module = importlib.import_module(module_name)
     except ImportError as err:
         hint = f"; install it with: pip install 'robid_link[{extra}]'" if extra else ""
-        raise ConfigError(f"driver.name: driver {name!r} cannot be imported "
+        raise ConfigError(f"{key}: {kind} {name!r} cannot be imported "
                           f"({err.name or err}){hint}") from err
-    cls = getattr(module, attr, None)
+    return getattr(module, attr, None)
+
+
+def driver_class(name: str) -> type[Driver]:
+    extra = BUILTIN_DRIVERS.get(name, ("", None))[1]
+    cls = _load("driver", "driver.name", name, available_drivers(), extra)
     if not (isinstance(cls, type) and issubclass(cls, Driver)):
-        raise ConfigError(f"driver.name: {table[name]} is not a robid_link Driver")
+        raise ConfigError(f"driver.name: {available_drivers()[name]} is not a robid_link Driver")
     return cls
+
+
+def peer_class(name: str) -> Any:
+    """The fake peer class (a ``robid_link.fakes.controller.Peer``) for driver ``name``."""
+    extra = BUILTIN_DRIVERS.get(name, ("", None))[1]
+    cls = _load("fake peer", "--driver", name, available_peers(), extra)
+    if not isinstance(cls, type):
+        raise ConfigError(f"--driver: {available_peers()[name]} is not a fake peer class")
+    return cls
+
+
+def fake_module(name: str) -> ModuleType:
+    """A fake the product uses by name (``plant``, ``controller``), imported on demand."""
+    module: ModuleType = importlib.import_module(FAKE_MODULES[name])
+    return module
 
 
 def make_driver(options: dict[str, Any]) -> Driver:

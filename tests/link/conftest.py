@@ -16,7 +16,8 @@ from typing import Any
 
 import pytest
 import yaml
-from robid_link.fakes.controller import FileShareController, default_truth
+from robid_link.fakes.controller import default_truth, make_peer
+from robid_link.fakes.file_share_peer import FileSharePeer
 
 from robid_link.ident.robot import Robot, load_robot
 
@@ -54,14 +55,17 @@ def arm3_robot() -> Robot:
 
 
 class ControllerThread:
+    """The file-share peer serving in a thread (``with ... as peer``; ``peer.handled``)."""
+
     def __init__(self, share: Path, robot: Robot, **kw: Any) -> None:
         truth = default_truth(robot, rate_hz=200.0)
-        self.ctrl = FileShareController(share, robot, truth, poll_s=0.002, **kw)
+        self.ctrl: FileSharePeer = make_peer("file_share", robot, truth, share, poll_s=0.002,
+                                             **kw)
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self.ctrl.serve, args=(self.stop,),
                                        name="fake-controller", daemon=True)
 
-    def __enter__(self) -> FileShareController:
+    def __enter__(self) -> FileSharePeer:
         self.thread.start()
         return self.ctrl
 

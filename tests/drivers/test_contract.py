@@ -1,0 +1,230 @@
+"""The driver contract, run over every registered driver with its real fake peer (a share, an
+HTTP + websocket server, a virtual CAN bus, a Modbus server, a pty pair — each started and
+stopped here): the full cycle, timeouts, early, stale and duplicate answers, damaged logs, a
+controller that reports failure, unsafe names, the open/close life cycle, config errors."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import importlib.metadata as md
+import io
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
+from robid_link.fakes.controller import default_truth, make_peer
+from robid_link.ident import excitation as ex
+from robid_link.ident.robot import Robot, load_robot
+from robid_link.link import program as pg
+from robid_link.link import registry
+from robid_link.link.driver import Done, Driver, MotionProgram, RobotInfo
+
+ARM3 = Path(__file__).resolve().parents[2] / "examples" / "robots" / "arm3.yaml"
+NAMES = sorted(set(registry.available_drivers()) & set(registry.available_peers()))
+RATE_HZ = 200.0
+
+
+@pytest.fixture(scope="module")
+def robot() -> Robot:
+    return load_robot(ARM3)
+
+
+@pytest.fixture(scope="module")
+def program(robot: Robot) -> MotionProgram:
+    t = np.arange(0.0, 0.6, 0.01)
+    q = 0.05 * np.sin(np.pi * t / 0.6)[:, None] ** 2 * np.array([1.0, -1.0, 0.5])
+    return pg.make_program(robot, ex.Trajectory(t, q, 100.0, "custom", robot.name), "exp1")
+
+
+@contextlib.contextmanager
+def cell(name: str, tmp_path: Path, robot: Robot, **kw: Any) -> Iterator[tuple[Driver, Any]]:
+    """The driver ``name`` connected to its fake peer over the simulated arm3."""
+    cls = registry.peer_class(name)
+    fault = kw.get("fault")
+    if fault in getattr(cls, "unsupported", {}):
+        pytest.skip(f"{name}: {cls.unsupported[fault]}")
+    work = tmp_path / "cell"
+    work.mkdir(exist_ok=True)
+    peer = make_peer(name, robot, default_truth(robot, rate_hz=RATE_HZ), work, **kw)
+    with peer:
+        driver = registry.make_driver(peer.driver_options())
+        driver.bind_robot(RobotInfo.of(robot))
+        try:
+            yield driver, peer
+        finally:
+            asyncio.run(driver.close())
+
+
+def _cycle(driver: Driver, program: MotionProgram, timeout_s: float = 30.0) -> bytes:
+    async def go() -> bytes:
+        async with driver:
+            await driver.put_program(program)
+            await driver.give_ready("exp1", "n1")
+            await driver.give_ready("exp1", "n1")  # idempotent after a restart
+            done = await driver.take_done("exp1", "n1", timeout_s=timeout_s)
+            data = await driver.fetch_logs(done)
+            await driver.acknowledge(done)
+            return data
+
+    return asyncio.run(go())
+
+
+def _parse(data: bytes) -> np.ndarray:
+    head = data.split(b"\n", 1)[0].decode()
+    assert head == "t,q1,q2,q3,tau1,tau2,tau3"
+    return np.loadtxt(io.BytesIO(data), delimiter=",", skiprows=1, ndmin=2)
+
+
+@pytest.mark.parametrize("name", NAMES)
+class TestContract:
+    def test_full_cycle_brings_back_the_plant_log(self, name: str, tmp_path: Path,
+                                                  robot: Robot, program: MotionProgram) -> None:
+        with cell(name, tmp_path, robot) as (driver, peer):
+            arr = _parse(_cycle(driver, program))
+        assert arr.shape[0] >= 0.5 * RATE_HZ and np.all(np.isfinite(arr))
+        assert np.abs(arr[:, 1:4]).max() == pytest.approx(0.05, abs=0.01)  # the program's path
+        assert len(peer.core.handled) == 1  # one give, one run
+
+    def test_no_answer_times_out_with_a_clear_error(self, name: str, tmp_path: Path,
+                                                    robot: Robot, program: MotionProgram
+                                                    ) -> None:
+        with cell(name, tmp_path, robot, fault="never_answer") as (driver, _):
+            async def go() -> None:
+                async with driver:
+                    await driver.put_program(program)
+                    await driver.give_ready("exp1", "n1")
+                    try:
+                        await driver.take_done("exp1", "n1", timeout_s=1.0)
+                    finally:
+                        await driver.withdraw("exp1", "n1")
+
+            with pytest.raises(DriverTimeoutError, match=r"experiment exp1.*1 s"):
+                asyncio.run(go())
+
+    def test_answer_before_take_is_not_missed(self, name: str, tmp_path: Path, robot: Robot,
+                                              program: MotionProgram) -> None:
+        with cell(name, tmp_path, robot) as (driver, peer):
+            async def go() -> Done:
+                async with driver:
+                    await driver.put_program(program)
+                    await driver.give_ready("exp1", "n1")
+                    end = time.monotonic() + 30
+                    while not peer.core.handled and time.monotonic() < end:
+                        await asyncio.sleep(0.02)
+                    await asyncio.sleep(1.5)  # the answer is there before anyone waits
+                    return await driver.take_done("exp1", "n1", timeout_s=5)
+
+            assert asyncio.run(go()).nonce == "n1"
+
+    @pytest.mark.parametrize("fault", ["stale_semaphore", "answer_twice"])
+    def test_stale_and_duplicate_answers_are_ignored(self, name: str, tmp_path: Path,
+                                                     robot: Robot, program: MotionProgram,
+                                                     fault: str) -> None:
+        with cell(name, tmp_path, robot, fault=fault) as (driver, _):
+            arr = _parse(_cycle(driver, program))
+        assert np.all(np.isfinite(arr))
+
+    @pytest.mark.parametrize("fault", ["truncated_log", "corrupt_log"])
+    def test_checksum_catches_a_damaged_log(self, name: str, tmp_path: Path, robot: Robot,
+                                            program: MotionProgram, fault: str) -> None:
+        with cell(name, tmp_path, robot, fault=fault) as (driver, _):
+            with pytest.raises(DriverError, match="checksum|truncated|CRC|corrupt"):
+                _cycle(driver, program)
+
+    def test_a_reported_failure_is_an_error_not_a_timeout(self, name: str, tmp_path: Path,
+                                                          robot: Robot, program: MotionProgram
+                                                          ) -> None:
+        with cell(name, tmp_path, robot, fault="fail") as (driver, _):
+            t0 = time.monotonic()
+            with pytest.raises(DriverError, match="exp1") as err:
+                _cycle(driver, program, timeout_s=30)
+        assert not isinstance(err.value, DriverTimeoutError)
+        assert time.monotonic() - t0 < 25
+
+    @pytest.mark.parametrize("bad", ["../etc", "a.b", "", "x" * 65, "a/b"])
+    def test_names_that_could_escape_are_refused(self, name: str, tmp_path: Path,
+                                                 robot: Robot, bad: str) -> None:
+        with cell(name, tmp_path, robot) as (driver, _):
+            async def go() -> None:
+                async with driver:
+                    await driver.give_ready(bad, "n1")
+
+            with pytest.raises(DriverError, match="expected 1-64 letters"):
+                asyncio.run(go())
+
+    def test_life_cycle(self, name: str, tmp_path: Path, robot: Robot) -> None:
+        with cell(name, tmp_path, robot) as (driver, _):
+            with pytest.raises(DriverError, match="not open"):
+                asyncio.run(driver.give_ready("exp1", "n1"))
+
+            async def go() -> None:
+                async with driver:
+                    pass
+                await driver.close()  # twice is safe
+                with pytest.raises(DriverError, match="closed"):
+                    await driver.open()
+
+            asyncio.run(go())
+
+    def test_unknown_option_names_the_key(self, name: str, tmp_path: Path,
+                                          robot: Robot) -> None:
+        with cell(name, tmp_path, robot) as (_, peer):
+            with pytest.raises(ConfigError, match=rf"driver\.colour: unknown option for "
+                                                  rf"driver '{name}'"):
+                registry.make_driver({**peer.driver_options(), "colour": 1})
+
+
+def test_every_registered_driver_has_a_fake_peer() -> None:
+    assert NAMES and set(registry.available_drivers()) == set(NAMES)
+
+
+def test_third_party_driver_and_peer_through_entry_points(monkeypatch: pytest.MonkeyPatch
+                                                          ) -> None:
+    from robid_link.drivers.file_share import FileShareDriver
+    from robid_link.fakes.file_share_peer import FileSharePeer
+
+    eps = {registry.ENTRY_POINT_GROUP: [md.EntryPoint(
+               "acme", "robid_link.drivers.file_share:FileShareDriver", "robid_link.drivers")],
+           registry.PEER_ENTRY_POINT_GROUP: [md.EntryPoint(
+               "acme", "robid_link.fakes.file_share_peer:FileSharePeer",
+               "robid_link.fake_peers")]}
+    monkeypatch.setattr(registry, "entry_points", lambda group: eps[group])
+    assert registry.driver_class("acme") is FileShareDriver
+    assert registry.peer_class("acme") is FileSharePeer
+    bad = md.EntryPoint("broken", "no_such_module:X", "robid_link.drivers")
+    monkeypatch.setattr(registry, "entry_points", lambda group: [bad])
+    with pytest.raises(ConfigError, match="driver 'broken' cannot be imported"):
+        registry.driver_class("broken")
+
+
+def test_a_missing_library_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
+    import importlib
+
+    real = importlib.import_module
+
+    def fake_import(name: str, *a: Any) -> Any:
+        if name == "robid_link.drivers.file_share":
+            raise ModuleNotFoundError("No module named 'can'", name="can")
+        return real(name, *a)
+
+    monkeypatch.setattr(registry.importlib, "import_module", fake_import)
+    monkeypatch.setitem(registry.BUILTIN_DRIVERS, "file_share",
+                        ("robid_link.drivers.file_share:FileShareDriver", "can"))
+    with pytest.raises(ConfigError, match=r"driver 'file_share' cannot be imported \(can\); "
+                                          r"install it with: pip install 'robid_link\[can\]'"):
+        registry.driver_class("file_share")
+
+
+def test_log_checksum_of_the_core_is_the_true_log(robot: Robot, program: MotionProgram,
+                                                  tmp_path: Path) -> None:
+    peer = make_peer("file_share", robot, default_truth(robot, rate_hz=RATE_HZ), tmp_path,
+                     fault="corrupt_log")
+    res = peer.core.run("exp1", "n1", program.files["traj.csv"], program.files["traj.yaml"])
+    assert res.sha256 == hashlib.sha256(res.log).hexdigest() and res.delivered != res.log
