@@ -20,8 +20,8 @@ from typing import Any
 from robid_link.drivers.rapid import MAX_AXES, render_rapid
 from watchdog.events import FileSystemEventHandler
 
-from robid_link.exceptions import ConfigError, DriverError
 from robid_link.atomic import atomic_write
+from robid_link.exceptions import ConfigError, DriverError
 from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver, MotionProgram
 
 __all__ = ["FileShareDriver", "sem_name", "parse_sem", "network_fs", "done_text", "read_done",

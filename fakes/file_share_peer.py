@@ -11,9 +11,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from robid_link.atomic import atomic_write
 from robid_link.drivers.file_share import done_text, log_name, parse_sem, sem_name
 from robid_link.fakes.controller import ControllerCore, Peer
+
+from robid_link.atomic import atomic_write
 
 __all__ = ["FileSharePeer"]
 

@@ -374,9 +374,9 @@ def _excite(args: argparse.Namespace) -> int:
 
 def _simulate(args: argparse.Namespace) -> int:
     from robid_link.ident.data import write_log_csv
-    from robid_link.link.registry import fake_module
     from robid_link.ident.excitation import read_trajectory, trajectory_states
     from robid_link.ident.robot import load_robot
+    from robid_link.link.registry import fake_module
 
     plant = fake_module("plant")
     robot = load_robot(args.robot, args.lock)

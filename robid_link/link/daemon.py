@@ -19,8 +19,8 @@ from robid_link.config import DaemonConfig
 from robid_link.exceptions import ConfigError
 from robid_link.link import campaign as cp
 from robid_link.link.control import ControlServer
-from robid_link.link.notify import Notifier
 from robid_link.link.driver import RobotInfo
+from robid_link.link.notify import Notifier
 from robid_link.link.registry import make_driver
 from robid_link.link.store import Store
 from robid_link.link.worker import run_in_worker

@@ -16,8 +16,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from robid_link.exceptions import ConfigError, RobidError
 from robid_link.atomic import atomic_write, fsync_dir
+from robid_link.exceptions import ConfigError, RobidError
 from robid_link.link.driver import MotionProgram
 
 __all__ = ["Store", "StoreLockedError", "RUN_STATES"]
