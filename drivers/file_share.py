@@ -55,7 +55,7 @@ def parse_sem(name: str) -> tuple[str, str, str] | None:
 def network_fs(path: Path) -> str | None:
     """The file-system type of ``path`` when it is a network share, else None."""
     try:
-        mounts = Path("/proc/mounts").read_text().splitlines()
+        mounts = Path("/proc/self/mounts").read_text().splitlines()  # ProcSubset=pid
     except OSError:
         return None
     real = str(path.resolve())
