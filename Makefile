@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEVSTAMP := $(VENV)/.installed-dev
 
-.PHONY: demo test bench validate lint clean
+.PHONY: demo test bench validate lint wheel-check clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -30,6 +30,19 @@ validate: $(DEVSTAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run.py
+
+# the README's systemd route: a built wheel in a fresh venv, `robid demo` from outside the checkout
+WHEEL := build/wheel-check
+wheel-check: $(BIN)/python
+	rm -rf $(WHEEL) && mkdir -p $(WHEEL)
+	$(BIN)/python -m pip wheel -q --no-deps . -w $(WHEEL)/dist
+	$(BIN)/python tests/check_wheel.py $(WHEEL)/dist/*.whl
+	$(PY) -m venv $(WHEEL)/venv
+	$(WHEEL)/venv/bin/python -m pip install -q $(WHEEL)/dist/*.whl
+	cd "$$(mktemp -d)" && $(CURDIR)/$(WHEEL)/venv/bin/python -c \
+		"import robid_link, sys; sys.exit('/site-packages/' not in robid_link.__file__)" \
+		&& $(CURDIR)/$(WHEEL)/venv/bin/robid demo --out demo-out > demo.txt \
+		&& tail -n 2 demo.txt && test -f demo-out/summary.txt
 
 lint: $(DEVSTAMP)
 	$(BIN)/ruff check robid_link drivers fakes tests benchmarks

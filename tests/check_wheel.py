@@ -1,0 +1,27 @@
+"""The built wheel installs only under ``robid_link`` (no top-level ``drivers``/``fakes``) and
+ships what ``robid demo`` and the systemd route need: examples, units, fakes, drivers."""
+
+from __future__ import annotations
+
+import sys
+import zipfile
+
+NEEDED = ("robid_link/examples/robots/industrial6.yaml", "robid_link/examples/link/daemon.yaml",
+          "robid_link/systemd/robid-link.service", "robid_link/fakes/plant.py",
+          "robid_link/fakes/controller.py", "robid_link/drivers/file_share.py",
+          "robid_link/drivers/rapid.py", "robid_link/py.typed")
+
+
+def main(path: str) -> int:
+    names = zipfile.ZipFile(path).namelist()
+    tops = {n.split("/")[0] for n in names if not n.split("/")[0].endswith(".dist-info")}
+    missing = [n for n in NEEDED if n not in names]
+    if tops != {"robid_link"} or missing:
+        print(f"{path}: top-level packages {sorted(tops)}; missing {missing}")
+        return 1
+    print(f"{path}: {len(names)} files, all under robid_link/")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1]))
