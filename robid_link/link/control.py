@@ -1,6 +1,8 @@
 """The operator interface: one JSON request per line over a Unix stream socket (mode 0660),
 one JSON answer per line. A socket file left by a dead daemon is detected by trying to connect
-before it is replaced."""
+before it is replaced; nothing but a socket is ever replaced. Connections, line length, JSON
+nesting and idle time are bounded: a hostile or broken client gets ``ok: false`` with one line
+and never reaches a running campaign."""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ import json
 import logging
 import os
 import socket
+import stat
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -21,7 +24,11 @@ __all__ = ["ControlServer", "request", "DaemonUnreachable"]
 log = logging.getLogger("robid.control")
 
 Handler = Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]
-MAX_LINE = 1 << 20
+#: longest request line, deepest JSON nesting, most clients at once, idle seconds per client
+MAX_LINE = 1 << 16
+MAX_DEPTH = 16
+MAX_CLIENTS = 64
+IDLE_S = 120.0
 
 
 class DaemonUnreachable(RobidError, ConnectionError):
@@ -41,16 +48,31 @@ def _alive(path: Path) -> bool:
 class ControlServer:
     """Async context manager serving ``handler`` on ``path``."""
 
-    def __init__(self, path: Path, handler: Handler, mode: int = 0o660) -> None:
+    def __init__(self, path: Path, handler: Handler, mode: int = 0o660, *,
+                 max_clients: int = MAX_CLIENTS, idle_s: float = IDLE_S) -> None:
         self.path, self._handler, self._mode = Path(path), handler, mode
         self._server: asyncio.Server | None = None
+        self._max_clients, self._idle_s = max_clients, idle_s
+        self.clients = 0
+
+    def _clear_stale(self) -> None:
+        """Remove a dead daemon's socket; refuse anything that is not a socket (a typo in
+        ``control_socket`` must never delete the config or a log)."""
+        try:
+            st = os.lstat(self.path)
+        except FileNotFoundError:
+            return
+        if not stat.S_ISSOCK(st.st_mode):
+            kind = "a symbolic link" if stat.S_ISLNK(st.st_mode) else "not a socket"
+            raise ConfigError(f"control_socket: {self.path}: exists and is {kind}; refusing "
+                              "to replace it")
+        if _alive(self.path):
+            raise ConfigError(f"control_socket: {self.path}: another daemon answers there")
+        log.warning("control_socket=%s stale socket of a dead daemon replaced", self.path)
+        self.path.unlink()
 
     async def __aenter__(self) -> ControlServer:
-        if self.path.exists() or self.path.is_symlink():
-            if _alive(self.path):
-                raise ConfigError(f"control_socket: {self.path}: another daemon answers there")
-            log.warning("control_socket=%s stale socket file replaced", self.path)
-            self.path.unlink()
+        self._clear_stale()
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             old = os.umask(0o777 & ~self._mode & 0o777)
@@ -74,25 +96,77 @@ class ControlServer:
             self.path.unlink()
 
     async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.clients += 1
         try:
-            while line := await reader.readline():
+            if self.clients > self._max_clients:
+                await _answer(writer, {"ok": False, "error": f"too many connections (at most "
+                                       f"{self._max_clients}); try again later"})
+                return
+            while True:
                 try:
-                    req = json.loads(line)
-                    if not isinstance(req, dict) or not isinstance(req.get("cmd"), str):
-                        raise ValueError("expected a JSON object with 'cmd'")
-                    answer = await self._handler(req)
-                except RobidError as err:
-                    answer = {"ok": False, "error": str(err)}
-                except ValueError as err:
-                    answer = {"ok": False, "error": f"bad request: {err}"}
-                writer.write(json.dumps(answer, default=str).encode() + b"\n")
-                await writer.drain()
-        except (ConnectionError, asyncio.IncompleteReadError, asyncio.LimitOverrunError):
+                    async with asyncio.timeout(self._idle_s):
+                        line = await reader.readline()
+                except TimeoutError:
+                    return
+                except (ValueError, asyncio.LimitOverrunError):  # the line is over the limit
+                    await _answer(writer, {"ok": False, "error": f"bad request: longer than "
+                                           f"{MAX_LINE} bytes"})
+                    return
+                if not line:
+                    return
+                await _answer(writer, await self._serve_line(line))
+        except (ConnectionError, asyncio.IncompleteReadError):
             pass
         finally:
+            self.clients -= 1
             writer.close()
-            with contextlib.suppress(Exception):
+            # the server closing under us cancels this wait: the client is done either way
+            with contextlib.suppress(Exception, asyncio.CancelledError):
                 await writer.wait_closed()
+
+    async def _serve_line(self, line: bytes) -> dict[str, Any]:
+        try:
+            req = _parse(line)
+            return await self._handler(req)
+        except RobidError as err:
+            return {"ok": False, "error": str(err)}
+        except (ValueError, RecursionError) as err:
+            return {"ok": False, "error": f"bad request: {str(err).splitlines()[0][:200]}"}
+        except Exception as err:  # a bug in a command answers one line; runs go on
+            log.warning("control request failed: %s: %s", type(err).__name__, err)
+            return {"ok": False, "error": f"internal error: {type(err).__name__}: {err}"}
+
+
+def _depth(text: str) -> int:
+    """Deepest bracket nesting of a JSON text (strings skipped), without parsing it."""
+    depth = deepest = 0
+    in_str = esc = False
+    for ch in text:
+        if in_str:
+            esc, in_str = (False, in_str) if esc else (ch == "\\", ch != '"')
+        elif ch == '"':
+            in_str = True
+        elif ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif ch in "]}":
+            depth -= 1
+    return deepest
+
+
+def _parse(line: bytes) -> dict[str, Any]:
+    text = line.decode("utf-8", errors="strict")
+    if _depth(text) > MAX_DEPTH:
+        raise ValueError(f"JSON nested deeper than {MAX_DEPTH}")
+    req = json.loads(text)
+    if not isinstance(req, dict) or not isinstance(req.get("cmd"), str):
+        raise ValueError("expected a JSON object with 'cmd'")
+    return req
+
+
+async def _answer(writer: asyncio.StreamWriter, answer: dict[str, Any]) -> None:
+    writer.write(json.dumps(answer, default=str).encode() + b"\n")
+    await writer.drain()
 
 
 def request(path: str | Path, req: dict[str, Any], timeout_s: float = 30.0) -> dict[str, Any]:
