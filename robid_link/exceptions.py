@@ -9,7 +9,8 @@
      ├── EstimationError (ArithmeticError)  too few samples, rank deficiency
      ├── DriverError                    the controller link failed
      │    └── DriverTimeoutError (TimeoutError)
-     └── ApprovalError                  an unattended run met a program nobody approved
+     ├── ApprovalError                  an unattended run met a program nobody approved
+     └── StoreFullError (OSError)       the state_dir has no room: new runs wait, none fails
 
     RobidWarning (UserWarning)
      ├── ConditioningWarning            poorly excited / ill-conditioned regressor
@@ -30,6 +31,7 @@ __all__ = [
     "DriverTimeoutError",
     "UnsafeProgramError",
     "ApprovalError",
+    "StoreFullError",
     "RobidWarning",
     "ConditioningWarning",
     "ExcitationWarning",
@@ -91,3 +93,8 @@ class ExcitationWarning(RobidWarning):
 
 class DataWarning(RobidWarning):
     """A log looks suspicious: saturation, gaps, resampling, sign or scale mismatch."""
+
+
+class StoreFullError(RobidError, OSError):
+    """The state_dir's disk is full (or below its reserve): the daemon refuses new runs and
+    pauses the current one before its next motion; it resumes when space returns."""

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from robid_link.config import CampaignDef, DaemonConfig, ExperimentDef
-from robid_link.exceptions import ApprovalError, ConfigError, RobidError
+from robid_link.exceptions import ApprovalError, ConfigError, RobidError, StoreFullError
 from robid_link.link.cycle import CyclePolicy, run_cycle
 from robid_link.link.driver import Driver, MotionProgram
 from robid_link.link.store import Store
@@ -116,6 +116,8 @@ async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any,
                                         kill_hook))
         if camp.identify:
             await _identify(cfg, store, driver, ctx, run_id, camp, shas, kill_hook)
+    except StoreFullError:
+        raise  # not the run's fault: it waits, journaled as it is, until space returns
     except RobidError as err:
         store.set_run(run_id, "failed", error=str(err))
         log.error("run=%s failed: %s", run_id, err)

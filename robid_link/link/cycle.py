@@ -57,6 +57,9 @@ async def run_cycle(store: Store, driver: Driver, run_id: str, exp_id: str,
     while True:
         try:
             if nonce is None:
+                # room for the log before the robot moves (StoreFullError pauses the run)
+                store.require_space(20 * len(program.files.get("traj.csv", b"")),
+                                    f"experiment {exp_id}")
                 attempt += 1
                 nonce = new_nonce()
                 store.step(run_id, exp_id, "giving", attempt=attempt, nonce=nonce,

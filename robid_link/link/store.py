@@ -4,6 +4,7 @@ before their row. One daemon per ``state_dir``, enforced with ``flock``."""
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import hashlib
 import json
@@ -12,12 +13,12 @@ import sqlite3
 import time
 import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
 from robid_link.atomic import atomic_write, fsync_dir
-from robid_link.exceptions import ConfigError, RobidError
+from robid_link.exceptions import ConfigError, RobidError, StoreFullError
 from robid_link.link.driver import MotionProgram
 
 __all__ = ["Store", "StoreLockedError", "RUN_STATES"]
@@ -55,12 +56,19 @@ class StoreLockedError(RobidError):
     """Another daemon holds the state directory."""
 
 
+#: free bytes the store keeps in reserve: below it no new motion starts
+RESERVE_BYTES = 64 << 20
+_FULL_ERRNOS = {errno.ENOSPC, errno.EDQUOT}
+
+
 class Store:
     """Open with ``Store(state_dir)`` (exclusive, for the daemon) or
     ``Store(state_dir, readonly=True)`` (operator commands while no daemon answers)."""
 
-    def __init__(self, state_dir: str | Path, *, readonly: bool = False) -> None:
+    def __init__(self, state_dir: str | Path, *, readonly: bool = False,
+                 reserve_bytes: int = RESERVE_BYTES) -> None:
         self.dir = Path(state_dir)
+        self.reserve_bytes = reserve_bytes
         self.readonly = readonly
         self._lock_fd: int | None = None
         db = self.dir / "robid.sqlite"
@@ -111,15 +119,40 @@ class Store:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    # ----------------------------------------------------------------- space
+    def free_bytes(self) -> int:
+        st = os.statvfs(self.dir)
+        return st.f_bavail * st.f_frsize
+
+    def require_space(self, need_bytes: int = 0, what: str = "a new run") -> None:
+        """Refuse ``what`` (before any motion) unless ``need_bytes`` fit above the reserve."""
+        free = self.free_bytes()
+        if free < need_bytes + self.reserve_bytes:
+            raise StoreFullError(f"state_dir: {self.dir} has {free >> 20} MiB free, "
+                                 f"{(need_bytes + self.reserve_bytes) >> 20} MiB needed for "
+                                 f"{what}: waiting for space")
+
+    def _full(self, err: BaseException) -> StoreFullError:
+        return StoreFullError(f"state_dir: {self.dir}: disk full while writing "
+                              f"({str(err).splitlines()[0]}): waiting for space")
+
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
-        self.db.execute("BEGIN IMMEDIATE")
         try:
-            yield self.db
-        except BaseException:
-            self.db.execute("ROLLBACK")
+            self.db.execute("BEGIN IMMEDIATE")
+            try:
+                yield self.db
+            except BaseException:
+                with suppress(sqlite3.Error):  # SQLite rolls back by itself on SQLITE_FULL
+                    self.db.execute("ROLLBACK")
+                raise
+            self.db.execute("COMMIT")
+        except sqlite3.OperationalError as err:
+            if "full" in str(err) or "disk" in str(err):
+                with suppress(sqlite3.Error):
+                    self.db.execute("ROLLBACK")
+                raise self._full(err) from err
             raise
-        self.db.execute("COMMIT")
 
     # ----------------------------------------------------------------- runs
     def create_run(self, campaign: str, trigger: str, spec: dict[str, Any],
@@ -153,7 +186,8 @@ class Store:
             self._journal(db, run_id, None, state, {"error": error} if error else {})
 
     def set_step(self, run_id: str, step: str) -> None:
-        self.db.execute("UPDATE runs SET step = ? WHERE run_id = ?", (step, run_id))
+        with self._tx() as db:
+            db.execute("UPDATE runs SET step = ? WHERE run_id = ?", (step, run_id))
 
     def run(self, run_id: str) -> dict[str, Any]:
         row = self.db.execute("SELECT * FROM runs WHERE run_id = ?", (run_id,)).fetchone()
@@ -231,13 +265,19 @@ class Store:
         """Store a raw log under its SHA-256 (file fsynced before its row); idempotent."""
         sha = hashlib.sha256(data).hexdigest()
         path = self.log_path(sha)
-        if not (path.is_file() and path.stat().st_size == len(data)):
-            if not path.parent.is_dir():  # a new fan-out folder must survive a power cut too
-                path.parent.mkdir()
-                fsync_dir(path.parent.parent)
-            atomic_write(path, data, 0o444)
-        self.db.execute("INSERT OR IGNORE INTO logs (sha256, size, stored) VALUES (?, ?, ?)",
-                        (sha, len(data), time.time()))
+        try:
+            if not (path.is_file() and path.stat().st_size == len(data)):
+                if not path.parent.is_dir():  # a new fan-out folder must survive a power cut
+                    path.parent.mkdir()
+                    fsync_dir(path.parent.parent)
+                atomic_write(path, data, 0o444)
+        except OSError as err:
+            if err.errno in _FULL_ERRNOS:
+                raise self._full(err) from err
+            raise
+        with self._tx() as db:
+            db.execute("INSERT OR IGNORE INTO logs (sha256, size, stored) VALUES (?, ?, ?)",
+                       (sha, len(data), time.time()))
         return sha
 
     def check_log(self, sha: str) -> Path:
@@ -264,16 +304,22 @@ class Store:
         folder = self.dir / "programs" / sha
         if not folder.is_dir():
             tmp = self.dir / "programs" / f".{sha}.{os.getpid()}.tmp"
-            tmp.mkdir(exist_ok=True)
-            for suffix, data in program.files.items():
-                atomic_write(tmp / suffix, data)
-            meta = {"exp_id": program.exp_id, "duration_s": program.duration_s,
-                    "meta": dict(program.meta)}
-            atomic_write(tmp / "program.json", json.dumps(meta).encode())
-            os.replace(tmp, folder)
-            fsync_dir(folder.parent)
-        self.db.execute("INSERT OR REPLACE INTO programs (key, sha256, created) VALUES (?, ?, ?)",
-                        (key, sha, time.time()))
+            try:
+                tmp.mkdir(exist_ok=True)
+                for suffix, data in program.files.items():
+                    atomic_write(tmp / suffix, data)
+                meta = {"exp_id": program.exp_id, "duration_s": program.duration_s,
+                        "meta": dict(program.meta)}
+                atomic_write(tmp / "program.json", json.dumps(meta).encode())
+                os.replace(tmp, folder)
+                fsync_dir(folder.parent)
+            except OSError as err:
+                if err.errno in _FULL_ERRNOS:
+                    raise self._full(err) from err
+                raise
+        with self._tx() as db:
+            db.execute("INSERT OR REPLACE INTO programs (key, sha256, created) VALUES (?, ?, ?)",
+                       (key, sha, time.time()))
         return sha
 
     def load_program(self, sha: str) -> MotionProgram:
@@ -290,8 +336,9 @@ class Store:
 
     # ----------------------------------------------------------------- approvals
     def approve(self, sha: str, campaign: str, exp_id: str, by: str) -> None:
-        self.db.execute("INSERT OR REPLACE INTO approvals (sha256, campaign, exp_id, approved, "
-                        "by) VALUES (?, ?, ?, ?, ?)", (sha, campaign, exp_id, time.time(), by))
+        with self._tx() as db:
+            db.execute("INSERT OR REPLACE INTO approvals (sha256, campaign, exp_id, approved, "
+                       "by) VALUES (?, ?, ?, ?, ?)", (sha, campaign, exp_id, time.time(), by))
 
     def approved(self, sha: str) -> bool:
         return self.db.execute("SELECT 1 FROM approvals WHERE sha256 = ?",

@@ -126,3 +126,53 @@ def test_example_config_is_valid() -> None:
     cfg = load_daemon_config(root / "examples" / "link" / "daemon.yaml")
     assert set(cfg.campaigns) == {"nightly", "commissioning"}
     assert cfg.socket_mode == 0o660 and cfg.robot.is_file()
+
+
+def test_a_full_disk_is_one_line_and_loses_nothing_already_stored(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+    import os
+
+    from robid_link.exceptions import StoreFullError
+    from robid_link.link import store as store_mod
+
+    st = store_mod.Store(tmp_path / "state")
+    kept = st.put_log(b"t,q1\n0,1\n")
+
+    def no_room(*a: object, **kw: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(store_mod, "atomic_write", no_room)
+    with pytest.raises(StoreFullError, match=r"state_dir: .*disk full while writing .*"
+                                             r"waiting for space"):
+        st.put_log(b"t,q1\n0,2\n")
+    assert st.check_log(kept).read_bytes() == b"t,q1\n0,1\n"  # what was stored stays
+
+    class Vfs:
+        f_bavail, f_frsize = 10, 4096  # 40 kB free, below the reserve
+
+    real_statvfs = os.statvfs
+    monkeypatch.setattr(store_mod.os, "statvfs", lambda path: Vfs())
+    with pytest.raises(StoreFullError, match=r"has 0 MiB free, 64 MiB needed for experiment "
+                                             r"rb: waiting for space"):
+        st.require_space(1000, "experiment rb")
+    monkeypatch.setattr(store_mod.os, "statvfs", real_statvfs)
+    st.require_space(1000, "experiment rb")  # space returned
+    st.close()
+
+
+def test_sqlite_disk_full_becomes_store_full(tmp_path: Path) -> None:
+    """SQLite's own 'database or disk is full' (a page limit stands in for the disk)."""
+    from robid_link.exceptions import StoreFullError
+    from robid_link.link.store import Store
+
+    st = Store(tmp_path / "state")
+    run = st.create_run("quick", "operator", {}, [("a", "rigid_body")])
+    pages = st.db.execute("PRAGMA page_count").fetchone()[0]
+    st.db.execute(f"PRAGMA max_page_count = {pages}")
+    with pytest.raises(StoreFullError, match="disk full while writing"):
+        for k in range(10_000):
+            st.note(run, None, "filler", blob="x" * 4000, k=k)
+    st.db.execute("PRAGMA max_page_count = 1073741823")
+    st.note(run, None, "after")  # the store works again
+    st.close()
