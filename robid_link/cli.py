@@ -160,7 +160,20 @@ def _link_parsers(sub: Any) -> None:
 
     p = sub.add_parser("results", help="identification results across runs and robots")
     p.add_argument("--config", required=True, metavar="C")
-    p.add_argument("--robot", metavar="NAME")
+    p.add_argument("--robot", metavar="NAME", help="only this robot's results")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--trend", action="store_true",
+                   help="with --robot: each parameter over the stored runs, drift flagged")
+    g.add_argument("--compare", nargs=2, metavar=("ROBOT_A", "ROBOT_B"),
+                   help="the latest identification of two robots of one type side by side")
+    p.add_argument("--sigma", type=float, default=5.0,
+                   help="drift flag: change in combined standard errors (default 5)")
+    p.add_argument("--min-change", type=float, default=0.10, metavar="FRACTION",
+                   help="drift flag: change of the baseline, at the lower end of its 95 %% "
+                   "interval (default 0.10)")
+    p.add_argument("--json", metavar="FILE", help="write the trend as JSON")
+    p.add_argument("--out", metavar="PNG", help="plot the trend of the flagged (or all "
+                   "physically readable) parameters")
 
 
 def _one_line_warnings() -> None:

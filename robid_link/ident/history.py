@@ -32,6 +32,9 @@ def result_record(kind: str, doc: dict[str, Any]) -> dict[str, Any]:
         "data": [{"path": f.get("path"), "sha256": f.get("sha256")}
                  for f in doc.get("data_files", [])],
     }
+    if kind == "identify":  # what drift tracking and the controller's parameter set read
+        rec["parameters"] = [{k: p.get(k) for k in ("name", "value", "std", "expression")}
+                             for p in doc.get("parameters", [])]
     if kind == "diagnose":
         rec["verdict"] = doc.get("verdict")
         rec["suggestions"] = [{k: s.get(k) for k in ("effect", "joint", "gain",

@@ -13,7 +13,8 @@ import yaml
 from robid_link.ident.results import IdentResult
 from robid_link.ident.robot import Robot
 
-__all__ = ["write_report", "draw_robot", "write_json", "residual_figures", "history_figure"]
+__all__ = ["write_report", "draw_robot", "write_json", "residual_figures", "history_figure",
+           "trend_figure"]
 
 
 def _pyplot() -> Any:
@@ -183,6 +184,37 @@ def history_figure(records: list[dict[str, Any]], path: str | Path) -> Path:
     ax.set_yscale("log")
     ax.legend(fontsize=7)
     ax.set_title("error ladder: " + (labels[-1] if labels else ""))
+    fig.tight_layout()
+    p = Path(path)
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    return p
+
+
+def trend_figure(trend: Any, names: list[str], path: str | Path) -> Path:
+    """Each named parameter over a robot's runs (value ± 2 std, relative to its baseline),
+    flagged runs marked: the drift and wear report."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    x = np.arange(1, len(trend.runs) + 1)
+    for name in names:
+        vals = trend.values[name]
+        ok = [k for k, v in enumerate(vals) if v is not None]
+        base = np.mean([vals[k][0] for k in ok[: trend.baseline_runs]]) or 1.0
+        v = np.array([vals[k][0] for k in ok]) / base
+        e = 2 * np.array([vals[k][1] for k in ok]) / abs(base)
+        line = ax.errorbar(x[ok], v, yerr=e, fmt="o-", ms=3, capsize=2, label=name)
+        flag = trend.first_flag(name)
+        if flag is not None:
+            k = next(i for i, r in enumerate(trend.runs) if r["run_id"] == flag.run_id)
+            ax.plot(x[k], vals[k][0] / base, "s", ms=10, mfc="none",
+                    color=line[0].get_color())
+    ax.axhline(1.0, color="0.5", lw=0.8)
+    ax.set_xlabel("run (oldest first)")
+    ax.set_ylabel("value / baseline (±2 std)")
+    ax.set_title(f"{trend.robot}: parameters over {len(trend.runs)} runs "
+                 f"({len(trend.flags)} flagged, squares)")
+    ax.legend(fontsize=7, ncol=3)
     fig.tight_layout()
     p = Path(path)
     fig.savefig(p, dpi=100)

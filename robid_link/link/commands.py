@@ -70,13 +70,16 @@ def dispatch(args: argparse.Namespace) -> int:
         print(format_runs(ans["runs"]))
         return 0
     if args.cmd == "results":
+        robot = None if args.compare else args.robot
         try:
-            res = request(cfg.control_socket, {"cmd": "results", "robot": args.robot})["results"]
+            res = request(cfg.control_socket, {"cmd": "results", "robot": robot})["results"]
         except DaemonUnreachable:
             from robid_link.link.store import Store
 
             with Store(cfg.state_dir, readonly=True) as store:
-                res = store.results(args.robot)
+                res = store.results(robot)
+        if args.trend or args.compare:
+            return _drift(args, res)
         print(format_results(res))
         return 0
     raise AssertionError(args.cmd)
@@ -151,6 +154,29 @@ def format_results(results: list[dict[str, Any]]) -> str:
         lines.append(f"{r['run_id']:<24} {r['robot']:<14} {r['kind']:<9} RMSE [{rmse}] N·m"
                      + (f"  rel {100 * rel:.2f} %" if rel is not None else "") + extra)
     return "\n".join(lines)
+
+
+def _drift(args: argparse.Namespace, res: list[dict[str, Any]]) -> int:
+    from robid_link.ident import drift
+
+    if args.compare:
+        print(drift.compare(res, *args.compare))
+        return 0
+    if not args.robot:
+        raise RobidError("--trend: name the robot with --robot NAME")
+    tr = drift.trend(res, args.robot, sigma=args.sigma, min_change=args.min_change)
+    shown = list(dict.fromkeys(f.parameter for f in tr.flags)) or [
+        n for n in tr.values if drift.parameter_kind(n, tr.expressions[n])]
+    print(tr.table(shown))
+    if args.json:
+        from robid_link.ident.report import write_json
+
+        write_json(args.json, tr.as_dict())
+    if args.out:
+        from robid_link.ident.report import trend_figure
+
+        print(f"wrote {trend_figure(tr, shown, Path(args.out))}")
+    return 0
 
 
 def _fake_controller(args: argparse.Namespace) -> int:
