@@ -330,19 +330,23 @@ class Plant:
 
     # -- inverse dynamics
     def run(self, t: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
-            seed: int = 0) -> dict[str, np.ndarray]:
-        """Log of a commanded motion: t, quantized q, noisy τ (and the noise-free τ)."""
+            seed: int = 0, feedforward: Any = None) -> dict[str, np.ndarray]:
+        """Log of a commanded motion: t, quantized q, noisy τ (and the noise-free τ).
+        ``feedforward``: the controller's uploaded parameter set (closed loop only)."""
         if self.truth.mode == "closed_loop":
-            return self.run_closed_loop(t, q, qd, qdd, seed)
+            return self.run_closed_loop(t, q, qd, qdd, seed, feedforward)
         tau_rigid = self.rigid_torque(q, qd, qdd)
         tau_true = tau_rigid + self.effect_torque(t, q, qd, qdd, tau_rigid)
         return self._finish(t, q, qd, qdd, tau_true, seed)
 
     # -- closed loop
     def run_closed_loop(self, t: np.ndarray, q_ref: np.ndarray, qd_ref: np.ndarray,
-                        qdd_ref: np.ndarray, seed: int = 0) -> dict[str, np.ndarray]:
+                        qdd_ref: np.ndarray, seed: int = 0, feedforward: Any = None
+                        ) -> dict[str, np.ndarray]:
         """Forward dynamics tracking the reference with a computed-torque PID on the a-priori
         model (what a real controller has), integrated at ≥ 1 kHz (``controller.rate_hz``).
+        ``feedforward`` (a ``paramset.Feedforward``: an uploaded parameter set) replaces the
+        a-priori inertials and adds the identified joint friction to the command.
 
         Coulomb-like friction is handled by a time-stepping stick-slip step (no smoothing):
         the friction impulse of each step is solved with the full M⁻¹ on an active set, a
@@ -353,8 +357,11 @@ class Plant:
         n = self.robot.n
         wn = float(ctrl.get("bandwidth_hz", 8.0)) * 2 * math.pi
         kp, kd, ki = 3 * wn * wn, 3 * wn, wn**3  # PID with a triple pole at the bandwidth
-        nominal = (self.robot.model.copy() if self.robot.nominal is None
-                   else _with_inertials(self.robot.model, self.robot.nominal))
+        inertials = self.robot.nominal
+        if feedforward is not None and feedforward.inertials is not None:
+            inertials = feedforward.inertials
+        nominal = (self.robot.model.copy() if inertials is None
+                   else _with_inertials(self.robot.model, inertials))
         ndata = nominal.createData()
         integral = np.zeros(n)
 
@@ -362,7 +369,10 @@ class Plant:
             err = q_ref[k] - q_meas
             integral[:] += h * err
             acc = qdd_ref[k] + kp * err + kd * (qd_ref[k] - qd_meas) + ki * integral
-            return np.array(pin.rnea(nominal, ndata, self.robot.pin_q(q_meas), qd_meas, acc))
+            tau = np.array(pin.rnea(nominal, ndata, self.robot.pin_q(q_meas), qd_meas, acc))
+            if feedforward is not None:  # friction of the reference motion, as controllers do
+                tau += feedforward.friction(qd_ref[k])
+            return tau
 
         out = self._integrate(t, command, q_ref[0], qd_ref[0])
         return self._finish(t, *out, seed)

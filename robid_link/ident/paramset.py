@@ -1,0 +1,146 @@
+"""The parameter set a controller gets: what one identification found (base parameters with
+their expressions, friction and the other effects of the model, elasticity when measured),
+as one canonical, content-hashed document — and how a controller turns it into feedforward.
+
+The controller side needs physical link inertials, not base parameters: the set carries the
+a-priori (CAD) inertials projected onto the identified base parameters, θ = θ₀ + K⁺(β − K·θ₀),
+the standard parameters nearest to CAD that reproduce every identified torque exactly.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from robid_link.exceptions import ModelError
+from robid_link.ident.robot import Robot
+
+__all__ = ["FORMAT", "make_parameter_set", "canonical_bytes", "set_sha256", "Feedforward",
+           "feedforward", "diff_sets"]
+
+#: the document's format name and version (a controller refuses what it does not know)
+FORMAT = "robid-parameter-set/1"
+#: joint-side friction a controller's feedforward applies (other effects: reported only)
+_FRICTION = {"fv": "viscous", "fc": "coulomb", "off": "offset"}
+
+
+def canonical_bytes(doc: Mapping[str, Any]) -> bytes:
+    """The set's bytes as stored, uploaded and hashed: sorted keys, no NaN, one line."""
+    body = {k: v for k, v in doc.items() if k != "sha256"}
+    return (json.dumps(body, sort_keys=True, allow_nan=False, separators=(",", ":"))
+            + "\n").encode()
+
+
+def set_sha256(doc: Mapping[str, Any]) -> str:
+    return hashlib.sha256(canonical_bytes(doc)).hexdigest()
+
+
+def make_parameter_set(robot: Robot, identify_doc: Mapping[str, Any], *, run_id: str,
+                       elasticity: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The parameter set of one identification (``IdentResult.to_dict()``), with the
+    projected standard inertials when the robot has a-priori ones."""
+    params = identify_doc.get("parameters") or []
+    if not params:
+        raise ModelError(f"run {run_id}: the identification has no parameters to hand over")
+    base = [{k: p.get(k) for k in ("name", "value", "std", "expression")} for p in params]
+    if not all(isinstance(p["value"], int | float) and math.isfinite(p["value"])
+               for p in base):
+        raise ModelError(f"run {run_id}: a parameter is not a finite number; refusing to "
+                         "build a parameter set from it")
+    effects = list(identify_doc.get("effects") or [])
+    doc: dict[str, Any] = {
+        "format": FORMAT, "robot": robot.name, "joints": list(robot.joint_names),
+        "run_id": run_id, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "effects": effects, "base_parameters": base,
+        "friction": _friction(robot, base),
+        "standard_inertials": _projected(robot, effects, base),
+        "elasticity": [dict(e) for e in (elasticity or {}).get("joints", [])],
+        "relative_error": identify_doc.get("relative_error"),
+    }
+    doc["sha256"] = set_sha256(doc)
+    return doc
+
+
+def _friction(robot: Robot, base: list[dict[str, Any]]) -> dict[str, list[float]]:
+    values = {p["name"]: float(p["value"]) for p in base}
+    return {kind: [values.get(f"{prefix}_{j}", 0.0) for j in range(1, robot.n + 1)]
+            for prefix, kind in _FRICTION.items()}
+
+
+def _projected(robot: Robot, effects: list[str], base: list[dict[str, Any]]
+               ) -> list[float] | None:
+    """θ = θ₀ + K⁺(β − K·θ₀) over the rigid-body columns; None without a-priori inertials."""
+    if robot.nominal is None:
+        return None
+    from robid_link.ident.effects import Model
+    from robid_link.ident.identify import base_set_for
+
+    model = Model.parse([e for e in effects if e == "rigid_body"] or ["rigid_body"])
+    bs, _ = base_set_for(robot, model.blocks(robot))
+    names = list(bs.base_names)
+    values = {p["name"]: float(p["value"]) for p in base}
+    if not all(n in values for n in names):
+        return None  # a model without rigid_body: keep CAD
+    beta = np.array([values[n] for n in names])
+    k_mat = bs.combination[:, : 10 * robot.n]
+    theta0 = np.asarray(robot.nominal, dtype=float)
+    theta = theta0 + np.linalg.pinv(k_mat) @ (beta - k_mat @ theta0)
+    return [float(x) for x in theta]
+
+
+@dataclass(frozen=True)
+class Feedforward:
+    """What a controller computes from a parameter set: link inertials for its inverse
+    dynamics plus joint friction (viscous, Coulomb, offset) per joint."""
+
+    sha256: str
+    inertials: np.ndarray | None
+    viscous: np.ndarray
+    coulomb: np.ndarray
+    offset: np.ndarray
+
+    def friction(self, qd: np.ndarray) -> np.ndarray:
+        moving = np.abs(qd) > 1e-6
+        return self.viscous * qd + self.coulomb * np.sign(qd) * moving + self.offset
+
+
+def feedforward(doc: Mapping[str, Any], n_joints: int) -> Feedforward:
+    """A parameter set checked for what a controller needs; ModelError names the problem."""
+    if doc.get("format") != FORMAT:
+        raise ModelError(f"parameter set: format {doc.get('format')!r}, expected {FORMAT}")
+    if doc.get("sha256") != set_sha256(doc):
+        raise ModelError("parameter set: content does not match its sha256 (damaged)")
+    fr = doc.get("friction") or {}
+    arrays = {k: np.asarray(fr.get(k, [0.0] * n_joints), dtype=float)
+              for k in ("viscous", "coulomb", "offset")}
+    inert = doc.get("standard_inertials")
+    theta = None if inert is None else np.asarray(inert, dtype=float)
+    if any(a.shape != (n_joints,) for a in arrays.values()) or (
+            theta is not None and theta.shape != (10 * n_joints,)):
+        raise ModelError(f"parameter set: sizes do not fit a {n_joints}-joint robot")
+    return Feedforward(str(doc["sha256"]), theta, **arrays)
+
+
+def diff_sets(a: Mapping[str, Any], b: Mapping[str, Any]) -> list[str]:
+    """Lines naming each base parameter that differs between two sets (by name)."""
+    pa = {p["name"]: p for p in a.get("base_parameters", [])}
+    pb = {p["name"]: p for p in b.get("base_parameters", [])}
+    out = []
+    for name in dict.fromkeys([*pa, *pb]):
+        if name not in pa or name not in pb:
+            out.append(f"  {name:<12} only in {'the second' if name in pb else 'the first'}")
+            continue
+        va, vb = float(pa[name]["value"]), float(pb[name]["value"])
+        if va != vb:
+            sd = math.hypot(float(pa[name].get("std") or 0), float(pb[name].get("std") or 0))
+            rel = f"{100 * (vb - va) / abs(va):+.1f} %" if va else "new"
+            out.append(f"  {name:<12} {va:>12.5g} → {vb:<12.5g} {rel:>9}"
+                       + (f"  ({abs(vb - va) / sd:.1f} σ)" if sd > 0 else ""))
+    return out
