@@ -9,6 +9,7 @@ events still arrive, else the driver falls back to polling.
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import json
 import logging
 import os
@@ -327,11 +328,29 @@ class FileShareDriver(Driver):
     async def _withdraw(self, exp_id: str, nonce: str) -> None:
         await asyncio.to_thread((self.sem / sem_name(exp_id, nonce, "ready")).unlink, True)
 
-    async def _upload_parameters(self, doc: Any) -> None:
+    async def _upload_parameters(self, doc: Any, body: bytes) -> None:
+        """``params/<robot>.<sha16>.json``, then ``sem/params-<robot>.<sha16>.ready``; the
+        controller loads the set and answers ``.done`` with the file's SHA-256 (or
+        ``.failed`` with the reason)."""
+        exp_id, nonce = self._param_names(doc, body)
         folder = self.share / "params"
-        folder.mkdir(exist_ok=True)
-        stamp = time.strftime("%Y%m%dT%H%M%S")
+        await asyncio.to_thread(folder.mkdir, exist_ok=True)
+        await asyncio.to_thread(atomic_write, folder / f"{exp_id}.{nonce}.json", body)
+        await self._give_ready(exp_id, nonce)
+        done = await self._wait_done(exp_id, nonce)
+        if done.sha256 != hashlib.sha256(body).hexdigest():
+            raise DriverError(f"controller acknowledged parameter set {nonce[:12]} with "
+                              "another checksum: it loaded something else")
+        await self._acknowledge(done)
+
+    async def _withdraw_parameters(self, doc: Any, body: bytes) -> None:
+        exp_id, nonce = self._param_names(doc, body)
+        await self._withdraw(exp_id, nonce)
+        await asyncio.to_thread((self.share / "params" / f"{exp_id}.{nonce}.json").unlink,
+                                True)
+
+    @staticmethod
+    def _param_names(doc: Any, body: bytes) -> tuple[str, str]:
         robot = str(doc.get("robot", "robot")) if isinstance(doc, dict) else "robot"
-        safe = re.sub(r"[^A-Za-z0-9_\-]", "_", robot)
-        data = json.dumps(doc, indent=1).encode()
-        await asyncio.to_thread(atomic_write, folder / f"{safe}.{stamp}.json", data)
+        safe = re.sub(r"[^A-Za-z0-9_\-]", "_", robot)[:40]
+        return f"params-{safe}", hashlib.sha256(body).hexdigest()[:16]

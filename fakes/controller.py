@@ -31,9 +31,9 @@ log = logging.getLogger("robid.fake_controller")
 #: faults every peer plays in its own protocol: no answer, the controller dies mid-program, a
 #: log cut short or with a flipped byte (the announced checksum is the true log's), two answers
 #: to one program, an answer to an attempt that no longer exists, NaN in the log, a controller
-#: that reports failure
+#: that reports failure, a controller that never acknowledges an uploaded parameter set
 FAULTS = ("never_answer", "die", "truncated_log", "corrupt_log", "answer_twice",
-          "stale_semaphore", "nan_log", "fail")
+          "stale_semaphore", "nan_log", "fail", "no_param_ack")
 
 
 def log_csv(t: np.ndarray, q: np.ndarray, tau: np.ndarray) -> bytes:
@@ -81,7 +81,8 @@ class ControllerCore:
         self.fault, self.faults_left = fault, fault_count if fault else 0
         self.seed, self.exit_on_die = seed, exit_on_die
         self.handled: list[tuple[str, str]] = []
-        self.parameters: list[dict[str, Any]] = []
+        self.parameters: list[dict[str, Any]] = []  # every set loaded, in order
+        self.feedforward: Any = None  # the loaded set's feedforward (None: a-priori model)
         self._lock = threading.Lock()
 
     def take_fault(self) -> str | None:
@@ -108,7 +109,7 @@ class ControllerCore:
         if traj.q.shape[1] != self.robot.n:
             raise RobidError(f"program has {traj.q.shape[1]} joints, robot has {self.robot.n}")
         t, q, qd, qdd = trajectory_states(traj, self.rate_hz)
-        out = self.plant.run(t, q, qd, qdd, seed=seed)
+        out = self.plant.run(t, q, qd, qdd, seed=seed, feedforward=self.feedforward)
         return log_csv(out["t"], out["q"], out["tau"])
 
     def run(self, exp_id: str, nonce: str, csv: bytes, header: bytes | None = None
@@ -116,7 +117,7 @@ class ControllerCore:
         """Run one program: the plant's log, damaged as the fault schedule says. ``die`` and
         ``never_answer`` are the peer's to play (it stops talking); ``fail`` and an unreadable
         program come back as ``error``."""
-        fault = self.take_fault()
+        fault = None if self.fault == "no_param_ack" else self.take_fault()
         with self._lock:
             seed = self.seed + len(self.handled)
             self.handled.append((exp_id, nonce))
@@ -150,10 +151,23 @@ class ControllerCore:
         if self.exit_on_die:
             os._exit(70)
 
-    def receive_parameters(self, doc: dict[str, Any]) -> None:
-        """Parameters uploaded by the daemon (kept; issue 13 makes the loop use them)."""
+    def receive_parameters(self, body: bytes) -> None:
+        """Load an uploaded parameter set: from now on the closed loop's feedforward uses it
+        (like a controller that loads new dynamic parameters). A set that does not fit this
+        robot raises RobidError and the previous set stays in use."""
+        import json
+
+        from robid_link.ident.paramset import feedforward
+
+        try:
+            doc = json.loads(body)
+        except ValueError as err:
+            raise RobidError(f"parameter set: not JSON ({err})") from err
+        ff = feedforward(doc, self.robot.n)
         with self._lock:
             self.parameters.append(doc)
+            self.feedforward = ff
+        log.info("parameter set %s loaded", ff.sha256[:12])
 
 
 class Peer(abc.ABC):

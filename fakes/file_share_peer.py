@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import threading
@@ -15,6 +16,7 @@ from robid_link.drivers.file_share import done_text, log_name, parse_sem, sem_na
 from robid_link.fakes.controller import ControllerCore, Peer
 
 from robid_link.atomic import atomic_write
+from robid_link.exceptions import RobidError
 
 __all__ = ["FileSharePeer"]
 
@@ -79,8 +81,25 @@ class FileSharePeer(Peer):
             out.append((p[0], p[1]))
         return out
 
+    def _load_parameters(self, exp_id: str, nonce: str) -> None:
+        """An uploaded parameter set: load it and acknowledge with its file's SHA-256."""
+        sem = self.share / "sem"
+        if self.core.fault == "no_param_ack" and self.core.take_fault():
+            return
+        try:
+            body = (self.share / "params" / f"{exp_id}.{nonce}.json").read_bytes()
+            self.core.receive_parameters(body)
+        except (OSError, RobidError) as err:
+            atomic_write(sem / sem_name(exp_id, nonce, "failed"), f"{err}\n".encode())
+            return
+        atomic_write(sem / sem_name(exp_id, nonce, "done"),
+                     done_text(hashlib.sha256(body).hexdigest(), len(body)))
+
     def _handle(self, exp_id: str, nonce: str) -> bool:
         self._seen.add((exp_id, nonce))
+        if exp_id.startswith("params-"):
+            self._load_parameters(exp_id, nonce)
+            return True
         sem, outbox, inbox = self.share / "sem", self.share / "outbox", self.share / "inbox"
         try:
             csv = (inbox / f"{exp_id}.traj.csv").read_bytes()

@@ -10,6 +10,7 @@ import abc
 import asyncio
 import hashlib
 import io
+import json
 import logging
 import re
 from collections.abc import Mapping
@@ -31,6 +32,7 @@ __all__ = [
     "RobotInfo",
     "Done",
     "check_name",
+    "parameter_bytes",
     "CAP_UPLOAD",
     "CAP_RAPID",
 ]
@@ -42,6 +44,13 @@ CAP_UPLOAD = "upload_parameters"
 CAP_RAPID = "rapid"
 
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_\-]{0,63}$")
+
+
+def parameter_bytes(doc: Mapping[str, Any]) -> bytes:
+    """A parameter set as uploaded: canonical JSON, so the same set is the same bytes (a
+    rollback restores the previous set byte for byte)."""
+    return (json.dumps(doc, sort_keys=True, allow_nan=False, separators=(",", ":"))
+            + "\n").encode()
 
 
 def check_name(value: str, what: str) -> str:
@@ -250,12 +259,27 @@ class Driver(abc.ABC):
         self._require_open()
         await self._withdraw(exp_id, nonce)
 
-    async def upload_parameters(self, doc: Mapping[str, Any]) -> None:
-        """Send identified parameters to the controller, where the driver can."""
+    async def upload_parameters(self, doc: Mapping[str, Any], timeout_s: float = 60.0
+                                ) -> None:
+        """Send a parameter set to the controller and wait until it acknowledges loading it.
+        A set the controller never acknowledges is withdrawn after ``timeout_s`` (the
+        controller keeps its previous set) and raises DriverTimeoutError."""
         self._require_open()
         if CAP_UPLOAD not in self.capabilities:
             raise DriverError(f"{self.name}: this driver cannot upload parameters")
-        await self._upload_parameters(doc)
+        body = parameter_bytes(doc)
+        sha = hashlib.sha256(body).hexdigest()
+        if not timeout_s > 0:
+            raise ConfigError(f"timeout_s: expected a positive number, got {timeout_s!r}")
+        try:
+            async with asyncio.timeout(timeout_s):
+                await self._upload_parameters(doc, body)
+        except TimeoutError as err:
+            await self._withdraw_parameters(doc, body)
+            raise DriverTimeoutError(
+                f"{self.name}: the controller did not acknowledge parameter set "
+                f"{str(doc.get('sha256', sha))[:12]} within {timeout_s:g} s; withdrawn, it "
+                "keeps its previous set") from err
 
     # -- hooks
     @abc.abstractmethod
@@ -285,5 +309,10 @@ class Driver(abc.ABC):
     async def _withdraw(self, exp_id: str, nonce: str) -> None:
         return None
 
-    async def _upload_parameters(self, doc: Mapping[str, Any]) -> None:
+    async def _upload_parameters(self, doc: Mapping[str, Any], body: bytes) -> None:
+        """Deliver ``body`` (the set's exact bytes) and return once the controller has
+        acknowledged it; raise DriverError when it refuses."""
         raise NotImplementedError
+
+    async def _withdraw_parameters(self, doc: Mapping[str, Any], body: bytes) -> None:
+        return None

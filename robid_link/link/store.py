@@ -49,6 +49,13 @@ CREATE TABLE IF NOT EXISTS approvals (
 CREATE TABLE IF NOT EXISTS results (
     id INTEGER PRIMARY KEY AUTOINCREMENT, run_id TEXT NOT NULL, robot TEXT NOT NULL,
     kind TEXT NOT NULL, time REAL NOT NULL, record TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS param_sets (
+    sha256 TEXT PRIMARY KEY, robot TEXT NOT NULL, version INTEGER NOT NULL,
+    run_id TEXT NOT NULL, created REAL NOT NULL, body BLOB NOT NULL,
+    approved REAL, approved_by TEXT);
+CREATE TABLE IF NOT EXISTS param_uploads (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT, robot TEXT NOT NULL, sha256 TEXT NOT NULL,
+    time REAL NOT NULL, run_id TEXT, state TEXT NOT NULL, error TEXT);
 """
 
 
@@ -362,3 +369,62 @@ class Store:
             q, args = q + " AND run_id = ?", [*args, run_id]
         rows = self.db.execute(q + " ORDER BY time, id", args).fetchall()
         return [{**dict(r), "record": json.loads(r["record"])} for r in rows]
+
+    # ----------------------------------------------------------------- parameter sets
+    def add_param_set(self, doc: dict[str, Any], body: bytes) -> int:
+        """Keep a parameter set (its exact bytes); returns its version for the robot."""
+        with self._tx() as db:
+            row = db.execute("SELECT version FROM param_sets WHERE sha256 = ?",
+                             (doc["sha256"],)).fetchone()
+            if row:
+                return int(row[0])
+            version = 1 + int(db.execute("SELECT COALESCE(MAX(version), 0) FROM param_sets "
+                                         "WHERE robot = ?", (doc["robot"],)).fetchone()[0])
+            db.execute("INSERT INTO param_sets (sha256, robot, version, run_id, created, body) "
+                       "VALUES (?, ?, ?, ?, ?, ?)", (doc["sha256"], doc["robot"], version,
+                                                     doc["run_id"], time.time(), body))
+            self._journal(db, doc["run_id"], None, "param_set",
+                          {"robot": doc["robot"], "version": version, "sha256": doc["sha256"]})
+        return version
+
+    def param_sets(self, robot: str) -> list[dict[str, Any]]:
+        rows = self.db.execute("SELECT * FROM param_sets WHERE robot = ? ORDER BY version",
+                               (robot,)).fetchall()
+        return [{**dict(r), "body": bytes(r["body"])} for r in rows]
+
+    def param_set(self, robot: str, ref: str) -> dict[str, Any]:
+        """A set by version number or (a prefix of) its sha256."""
+        sets = self.param_sets(robot)
+        hits = [s for s in sets if str(s["version"]) == ref or s["sha256"].startswith(ref)]
+        if len(hits) != 1:
+            raise ConfigError(f"robot {robot}: {'no' if not hits else 'more than one'} "
+                              f"parameter set matches {ref!r}")
+        return hits[0]
+
+    def approve_param_set(self, sha: str, by: str) -> None:
+        with self._tx() as db:
+            db.execute("UPDATE param_sets SET approved = ?, approved_by = ? WHERE sha256 = ?",
+                       (time.time(), by, sha))
+
+    def record_upload(self, robot: str, sha: str, run_id: str | None, state: str,
+                      error: str | None = None) -> None:
+        """An upload attempt: ``sent``, then ``acknowledged`` or ``failed``."""
+        with self._tx() as db:
+            db.execute("INSERT INTO param_uploads (robot, sha256, time, run_id, state, error) "
+                       "VALUES (?, ?, ?, ?, ?, ?)",
+                       (robot, sha, time.time(), run_id, state, error))
+
+    def uploads(self, robot: str) -> list[dict[str, Any]]:
+        rows = self.db.execute("SELECT * FROM param_uploads WHERE robot = ? ORDER BY seq",
+                               (robot,)).fetchall()
+        return [dict(r) for r in rows]
+
+    def active_param_sets(self, robot: str) -> list[str]:
+        """The sets the controller acknowledged, oldest first: the last one is in use, the
+        one before it is what a rollback restores."""
+        acked = [u["sha256"] for u in self.uploads(robot) if u["state"] == "acknowledged"]
+        out: list[str] = []
+        for sha in acked:
+            if not out or out[-1] != sha:
+                out.append(sha)
+        return out

@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 from robid_link.drivers.file_share import FileShareDriver, parse_sem
 
-from robid_link.exceptions import ConfigError, DriverError
+from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.link.driver import Done, Driver, MotionProgram
 from robid_link.link.registry import make_driver
 
@@ -164,3 +164,65 @@ def test_missing_share_and_bad_options(tmp_path: Path) -> None:
         make_driver({"name": "ethercat"})
     with pytest.raises(ConfigError, match="driver.observer"):
         make_driver({"name": "file_share", "share": str(tmp_path), "observer": "magic"})
+
+
+def _param_cell(tmp_path: Path, **kw: Any) -> tuple[FileShareDriver, Any, dict[str, Any]]:
+    from robid_link.fakes.controller import default_truth, make_peer
+    from robid_link.ident.paramset import make_parameter_set
+    from robid_link.ident.robot import load_robot
+
+    robot = load_robot(Path(__file__).resolve().parents[2] / "examples/robots/arm3.yaml")
+    share = tmp_path / "share"
+    share.mkdir()
+    peer = make_peer("file_share", robot, default_truth(robot), share, poll_s=0.005, **kw)
+    names = [f"{p}_{j}" for p in ("fv", "fc") for j in (1, 2, 3)]
+    doc = make_parameter_set(robot, {"effects": ["viscous", "coulomb"], "parameters": [
+        {"name": n, "value": 1.0 + k, "std": 0.1, "expression": n}
+        for k, n in enumerate(names)]}, run_id="run1")
+    return FileShareDriver(share=share, canary_interval_s=0), peer, doc
+
+
+def test_upload_parameters_is_loaded_and_acknowledged(tmp_path: Path) -> None:
+    from robid_link.link.driver import parameter_bytes
+
+    driver, peer, doc = _param_cell(tmp_path)
+
+    async def go() -> None:
+        async with driver:
+            await driver.upload_parameters(doc, timeout_s=10)
+
+    with peer:
+        asyncio.run(go())
+    assert peer.core.feedforward.sha256 == doc["sha256"]
+    assert list(peer.core.feedforward.viscous) == [1.0, 2.0, 3.0]
+    files = list((peer.share / "params").iterdir())
+    assert [f.read_bytes() for f in files] == [parameter_bytes(doc)]  # atomically, exactly
+    assert os.listdir(peer.share / "sem") == []  # acknowledged: semaphores cleaned
+
+
+def test_an_unacknowledged_upload_times_out_and_is_withdrawn(tmp_path: Path) -> None:
+    driver, peer, doc = _param_cell(tmp_path, fault="no_param_ack")
+
+    async def go() -> None:
+        async with driver:
+            await driver.upload_parameters(doc, timeout_s=0.5)
+
+    with peer, pytest.raises(DriverTimeoutError, match=r"did not acknowledge parameter set "
+                                                       r"\w{12} within 0\.5 s; withdrawn, it "
+                                                       r"keeps its previous set"):
+        asyncio.run(go())
+    assert peer.core.feedforward is None  # the controller kept what it had
+    assert os.listdir(peer.share / "sem") == [] and os.listdir(peer.share / "params") == []
+
+
+def test_a_parameter_set_the_controller_refuses_is_an_error(tmp_path: Path) -> None:
+    driver, peer, doc = _param_cell(tmp_path)
+    bad = {**doc, "friction": {"viscous": [1.0]}}  # damaged: its hash no longer fits
+
+    async def go() -> None:
+        async with driver:
+            await driver.upload_parameters(bad, timeout_s=10)
+
+    with peer, pytest.raises(DriverError, match="does not match its sha256"):
+        asyncio.run(go())
+    assert peer.core.feedforward is None
