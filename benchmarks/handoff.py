@@ -12,9 +12,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from robid_link.drivers.file_share import FileShareDriver, done_text
 
 from robid_link.atomic import fsync_dir
+from robid_link.drivers.file_share import FileShareDriver, done_text
 
 __all__ = ["bench_handoff"]
 

@@ -18,10 +18,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from robid_link.drivers.rapid import MAX_AXES, render_rapid
 from watchdog.events import FileSystemEventHandler
 
 from robid_link.atomic import atomic_write
+from robid_link.drivers.rapid import MAX_AXES, render_rapid
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver, MotionProgram
 

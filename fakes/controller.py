@@ -16,9 +16,9 @@ from typing import Any, ClassVar, Self
 
 import numpy as np
 import yaml
-from robid_link.fakes.plant import Plant, Truth
 
 from robid_link.exceptions import RobidError
+from robid_link.fakes.plant import Plant, Truth
 from robid_link.ident.excitation import Trajectory, trajectory_states
 from robid_link.ident.robot import Robot
 from robid_link.link.driver import MotionProgram

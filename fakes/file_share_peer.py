@@ -12,11 +12,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from robid_link.drivers.file_share import done_text, log_name, parse_sem, sem_name
-from robid_link.fakes.controller import ControllerCore, Peer
-
 from robid_link.atomic import atomic_write
+from robid_link.drivers.file_share import done_text, log_name, parse_sem, sem_name
 from robid_link.exceptions import RobidError
+from robid_link.fakes.controller import ControllerCore, Peer
 
 __all__ = ["FileSharePeer"]
 

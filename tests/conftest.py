@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
-from robid_link.fakes.plant import Plant, Truth, perturbed_inertials
 
+from robid_link.fakes.plant import Plant, Truth, perturbed_inertials
 from robid_link.ident.data import write_log_csv
 from robid_link.ident.effects import Model
 from robid_link.ident.excitation import random_fourier

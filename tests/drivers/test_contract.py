@@ -17,9 +17,9 @@ from typing import Any
 
 import numpy as np
 import pytest
-from robid_link.fakes.controller import default_truth, make_peer
 
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
+from robid_link.fakes.controller import default_truth, make_peer
 from robid_link.ident import excitation as ex
 from robid_link.ident.robot import Robot, load_robot
 from robid_link.link import program as pg

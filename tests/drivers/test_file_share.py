@@ -11,8 +11,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from robid_link.drivers.file_share import FileShareDriver, parse_sem
 
+from robid_link.drivers.file_share import FileShareDriver, parse_sem
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.link.driver import Done, Driver, MotionProgram
 from robid_link.link.registry import make_driver

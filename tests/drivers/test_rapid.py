@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from robid_link.drivers.file_share import FileShareDriver
 from robid_link.drivers.rapid import parse_rapid, render_rapid
-
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.ident import excitation as ex
 from robid_link.ident.robot import load_robot

@@ -8,9 +8,9 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import scipy.signal as sig
-from robid_link.fakes.plant import Plant, Truth, load_truth, spring_torque
 
 from robid_link.exceptions import ConfigError
+from robid_link.fakes.plant import Plant, Truth, load_truth, spring_torque
 from robid_link.ident.effects import V_REST
 from robid_link.ident.excitation import random_fourier
 from robid_link.ident.robot import load_robot

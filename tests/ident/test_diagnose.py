@@ -198,7 +198,6 @@ joints:
 )
 def test_closed_form_effects_on_an_unseen_robot(tmp_path, extra, joint, accept):
     from robid_link.fakes.plant import Plant, Truth
-
     from robid_link.ident.data import write_log_csv
     from robid_link.ident.excitation import random_fourier
 

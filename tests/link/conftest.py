@@ -16,9 +16,9 @@ from typing import Any
 
 import pytest
 import yaml
+
 from robid_link.fakes.controller import default_truth, make_peer
 from robid_link.fakes.file_share_peer import FileSharePeer
-
 from robid_link.ident.robot import Robot, load_robot
 
 ROOT = Path(__file__).resolve().parents[2]
