@@ -158,6 +158,16 @@ def _link_parsers(sub: Any) -> None:
     p.add_argument("--config", required=True, metavar="C")
     p.add_argument("--json", metavar="FILE")
 
+    p = sub.add_parser("params", help="the parameter sets each robot's controller gets: "
+                       "show, diff, approve (for unattended uploads), rollback")
+    p.add_argument("params_cmd", choices=("show", "diff", "approve", "rollback"))
+    p.add_argument("sets", nargs="*", metavar="SET",
+                   help="a set's version number or sha256 prefix (show: one; diff: two, "
+                   "default the set in use and the newest; approve: one, default the newest)")
+    p.add_argument("--config", required=True, metavar="C")
+    p.add_argument("--robot", required=True, metavar="NAME")
+    p.add_argument("--json", metavar="FILE", help="show: write the set(s) as JSON")
+
     p = sub.add_parser("results", help="identification results across runs and robots")
     p.add_argument("--config", required=True, metavar="C")
     p.add_argument("--robot", metavar="NAME", help="only this robot's results")

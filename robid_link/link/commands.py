@@ -69,6 +69,8 @@ def dispatch(args: argparse.Namespace) -> int:
         print(f"daemon: {ans['status']}")
         print(format_runs(ans["runs"]))
         return 0
+    if args.cmd == "params":
+        return _params(args, cfg)
     if args.cmd == "results":
         robot = None if args.compare else args.robot
         try:
@@ -154,6 +156,54 @@ def format_results(results: list[dict[str, Any]]) -> str:
         lines.append(f"{r['run_id']:<24} {r['robot']:<14} {r['kind']:<9} RMSE [{rmse}] N·m"
                      + (f"  rel {100 * rel:.2f} %" if rel is not None else "") + extra)
     return "\n".join(lines)
+
+
+def _params(args: argparse.Namespace, cfg: Any) -> int:
+    """``robid params``: show and diff read the store; approve and rollback go through the
+    daemon (it owns the store and, for a rollback, the controller link)."""
+    import json
+
+    from robid_link.ident.paramset import diff_sets
+    from robid_link.link.store import Store
+
+    if args.params_cmd in ("approve", "rollback"):
+        req = {"cmd": f"params_{args.params_cmd}", "robot": args.robot,
+               "set": args.sets[0] if args.sets else None}
+        ans = request(cfg.control_socket, req, timeout_s=600.0)
+        print(ans["message"])
+        return 0
+    with Store(cfg.state_dir, readonly=True) as store:
+        sets = store.param_sets(args.robot)
+        active = store.active_param_sets(args.robot)
+        picked = [store.param_set(args.robot, ref) for ref in args.sets]
+    if not sets:
+        raise RobidError(f"robot {args.robot}: no parameter set stored yet")
+    if args.params_cmd == "diff":
+        if len(picked) == 1 or len(picked) > 2:
+            raise RobidError("params diff: give two sets, or none (the set in use and the "
+                             "newest)")
+        if not picked:
+            in_use = next((s for s in sets if active and s["sha256"] == active[-1]), sets[0])
+            picked = [in_use, sets[-1]]
+        a, b = (json.loads(p["body"]) for p in picked)
+        print(f"robot {args.robot}: set {picked[0]['version']} → set {picked[1]['version']}")
+        print("\n".join(diff_sets(a, b)) or "  identical parameters")
+        return 0
+    for s in picked or sets:
+        mark = " (in use)" if active and s["sha256"] == active[-1] else ""
+        ok = f"approved by {s['approved_by']}" if s["approved"] else "not approved"
+        print(f"set {s['version']}: {s['sha256'][:16]}… from run {s['run_id']}, {ok}{mark}")
+        if picked:
+            doc = json.loads(s["body"])
+            for p in doc["base_parameters"]:
+                print(f"  {p['name']:<12}{p['value']:>14.6g} ± {p['std']:<10.3g} "
+                      f"{p['expression']}")
+    if args.json:
+        from robid_link.ident.report import write_json
+
+        write_json(args.json, {"robot": args.robot, "sets": [
+            json.loads(s["body"]) for s in (picked or sets)]})
+    return 0
 
 
 def _drift(args: argparse.Namespace, res: list[dict[str, Any]]) -> int:
