@@ -199,7 +199,7 @@ class SyncMaster:
 
     # -- the loop
     def _run(self) -> None:
-        deadline = time.perf_counter()
+        deadline, last = time.perf_counter(), 0.0
         while not self._quit.is_set():
             now = time.perf_counter()
             if deadline - now > self.spin_s:
@@ -207,8 +207,8 @@ class SyncMaster:
             while time.perf_counter() < deadline:  # the last bit: sleep's wake-up is coarse;
                 time.sleep(0)  # sleep(0) lets the notifier threads have the GIL meanwhile
             start = time.perf_counter()
-            late = start - deadline
-            self._overrun(late)
+            self._overrun(start - last if last else 0.0)
+            last = start
             if self.tick_hook is not None:
                 self.tick_hook()
             try:
@@ -222,8 +222,9 @@ class SyncMaster:
             if time.perf_counter() - deadline > self.period:  # fell behind: no burst of SYNCs
                 deadline = time.perf_counter() + self.period
 
-    def _overrun(self, late: float) -> None:
-        if late > 0.5 * self.period:
+    def _overrun(self, interval: float) -> None:
+        """A SYNC more than half a period after its nominal time (counted between sends)."""
+        if interval > 1.5 * self.period:
             self.overruns += 1
             self.late_streak += 1
         else:

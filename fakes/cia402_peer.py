@@ -169,7 +169,7 @@ class Cia402Peer(Peer):
         self.channel = channel or f"robid-cia402-{uuid.uuid4().hex[:8]}"
         self.period = float(sync_period_s or max(0.001, 1.0 / core.rate_hz))
         self.cpr = [2**20 / (2 * math.pi)] * self.n
-        tau = [x if math.isfinite(x) else 100.0 for x in robot.limits.tau_max]
+        tau = [float(x) if math.isfinite(x) else 100.0 for x in robot.limits.tau_max]
         self.rated = [t / 3.0 for t in tau]  # peak ≈ 3 × rated, as servo drives are sized
         self.fault_joint = int(fault_node or min(2, self.n))
         self.fault_after = max(1, round(fault_after_s / self.period))
