@@ -428,9 +428,8 @@ class CanopenDrivesDriver(Driver):
         tail = ramp_to_rest(q[-1], qd[-1], 0.5 * qdd_cap, self.period)
         if len(tail):
             t = np.concatenate([t, t[-1] + self.period * np.arange(1, len(tail) + 1)])
-            q = np.vstack([q, tail])
-            qd = np.vstack([qd, np.gradient(tail, self.period, axis=0)])
-            qdd = np.vstack([qdd, np.zeros_like(tail)])
+            qd = np.vstack([qd, np.diff(np.vstack([q[-1:], tail]), axis=0) / self.period])
+            q, qdd = np.vstack([q, tail]), np.vstack([qdd, np.zeros_like(tail)])
         jump = np.abs(qd[0]) / self.period
         for j in range(robot.n):
             if jump[j] > qdd_cap[j]:
