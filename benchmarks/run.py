@@ -163,7 +163,7 @@ def main() -> int:
                   f"{v['p99_ms']:8.2f} ms over {v['n']:.0f} ({base / v['median_ms']:.0f}× faster "
                   "than the 1 s loop)" + (" (target median ≤ 5 ms)" if name == "inotify" else ""))
     if args.only in (None, "canopen"):
-        from benchmarks.canopen import bench_canopen, report
+        from benchmarks.cia402_sync import bench_canopen, report
 
         report(bench_canopen())
     if args.only in (None, "regressor"):

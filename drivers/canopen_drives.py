@@ -26,10 +26,21 @@ from typing import Any
 import can
 import canopen
 import numpy as np
-from robid_link.drivers.cia402 import (CW_ENABLE, CW_FAULT_RESET, CW_SHUTDOWN, CW_SWITCH_ON,
-                                       MODE_CSP, NMT_RESET_COMM, NMT_START, PROFILE_402,
-                                       RPDO1_MAP, TPDO1_MAP, TPDO2_MAP, drive_state,
-                                       error_words)
+from robid_link.drivers.cia402 import (
+    CW_ENABLE,
+    CW_FAULT_RESET,
+    CW_SHUTDOWN,
+    CW_SWITCH_ON,
+    MODE_CSP,
+    NMT_RESET_COMM,
+    NMT_START,
+    PROFILE_402,
+    RPDO1_MAP,
+    TPDO1_MAP,
+    TPDO2_MAP,
+    drive_state,
+    error_words,
+)
 from robid_link.drivers.cia402_master import Axis, Job, SyncMaster, quintic, ramp_to_rest
 from scipy.interpolate import CubicSpline
 

@@ -18,9 +18,17 @@ from typing import Any
 
 import can
 import numpy as np
-
-from robid_link.drivers.cia402 import (CW_ENABLE, CW_QUICK_STOP, CW_SHUTDOWN, RPDO1, SYNC_ID,
-                                       TPDO1, TPDO2, drive_state, error_words)
+from robid_link.drivers.cia402 import (
+    CW_ENABLE,
+    CW_QUICK_STOP,
+    CW_SHUTDOWN,
+    RPDO1,
+    SYNC_ID,
+    TPDO1,
+    TPDO2,
+    drive_state,
+    error_words,
+)
 
 __all__ = ["Axis", "Job", "SyncMaster", "quintic", "ramp_to_rest"]
 

@@ -21,8 +21,14 @@ from typing import Any
 import can
 import canopen
 import numpy as np
-from robid_link.drivers.cia402 import (MODE_CSP, NMT_PRE_OPERATIONAL, NMT_RESET_COMM,
-                                       NMT_START, SYNC_ID, error_words)
+from robid_link.drivers.cia402 import (
+    MODE_CSP,
+    NMT_PRE_OPERATIONAL,
+    NMT_RESET_COMM,
+    NMT_START,
+    SYNC_ID,
+    error_words,
+)
 from robid_link.fakes.controller import ControllerCore, Peer
 
 __all__ = ["Cia402Peer", "EDS"]
@@ -195,7 +201,9 @@ class Cia402Peer(Peer):
                 # lenient supervision: the fake drives and the master share one Python
                 # process (GIL) on what may be a loaded test machine
                 "heartbeat_timeout_s": 2.0, "max_missed": 40, "overrun_streak": 100000,
-                "following_error_rad": 0.3}
+                "following_error_rad": 0.3,
+                # the fake axes start at zero, wherever a program begins
+                "max_approach_rad": 2 * math.pi}
 
     def start(self) -> None:
         if self.network is not None:
