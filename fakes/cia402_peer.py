@@ -200,7 +200,7 @@ class Cia402Peer(Peer):
                 "record_dir": str(self.workdir / "records"),
                 # lenient supervision: the fake drives and the master share one Python
                 # process (GIL) on what may be a loaded test machine
-                "heartbeat_timeout_s": 2.0, "max_missed": 40, "overrun_streak": 100000,
+                "heartbeat_timeout_s": 2.0, "max_missed": 250, "overrun_streak": 100000,
                 "following_error_rad": 0.3,
                 # the fake axes start at zero, wherever a program begins
                 "max_approach_rad": 2 * math.pi}
