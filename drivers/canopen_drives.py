@@ -1,0 +1,584 @@
+"""CiA 402 servo drives on a CAN bus, the daemon as motion master (python-can + canopen).
+
+Open brings the drives up by NMT and SDO (boot-up, identity, PDO mapping, cyclic synchronous
+position, the power state machine); a ``SyncMaster`` thread then streams each program one
+setpoint per SYNC and records the drives' answers as the experiment's log (CSV + BLF).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import copy
+import hashlib
+import logging
+import math
+import os
+import queue
+import struct
+import tempfile
+import threading
+import time
+from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import can
+import canopen
+import numpy as np
+from robid_link.drivers.cia402 import (
+    CW_ENABLE,
+    CW_FAULT_RESET,
+    CW_SHUTDOWN,
+    CW_SWITCH_ON,
+    MODE_CSP,
+    NMT_RESET_COMM,
+    NMT_START,
+    PROFILE_402,
+    RPDO1_MAP,
+    TPDO1_MAP,
+    TPDO2_MAP,
+    drive_state,
+    error_words,
+)
+from robid_link.drivers.cia402_master import Axis, Job, SyncMaster, quintic, ramp_to_rest
+from scipy.interpolate import CubicSpline
+
+from robid_link.atomic import atomic_write
+from robid_link.exceptions import ConfigError, DriverError
+from robid_link.link.driver import Done, Driver, MotionProgram, RobotInfo
+
+__all__ = ["CanopenDrivesDriver", "log_bytes"]
+
+log = logging.getLogger("robid.driver.canopen")
+
+_INT32 = 2**31 - 1
+
+
+def log_bytes(job: Job, axes: Sequence[Axis]) -> bytes:
+    """The recorded samples as the project's CSV log (``t,q1..qn,tau1..taun``, rad and N·m)."""
+    n = len(axes)
+    head = ",".join(["t"] + [f"q{j}" for j in range(1, n + 1)]
+                    + [f"tau{j}" for j in range(1, n + 1)])
+    cpr = [a.counts_per_rad for a in axes]
+    scale = [a.rated_torque_nm / 1000.0 for a in axes]
+    lines = [head]
+    for t, pos, tq in job.rows:
+        cells = [f"{t:.6f}"] + [f"{p / c:.10g}" for p, c in zip(pos, cpr, strict=True)]
+        cells += [f"{x * s:.10g}" for x, s in zip(tq, scale, strict=True)]
+        lines.append(",".join(cells))
+    return ("\n".join(lines) + "\n").encode()
+
+
+class _Tap(can.Listener):
+    """Every frame of an experiment, both directions, into its BLF file, written off the
+    motion master's thread (python-can's BLFWriter compresses in chunks)."""
+
+    def __init__(self) -> None:
+        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._writer: can.BLFWriter | None = None
+        self._thread = threading.Thread(target=self._run, name="canopen-blf", daemon=True)
+        self._thread.start()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if self._writer is not None:
+            self._queue.put(msg)
+
+    def begin(self, path: Path) -> None:
+        self._queue.put(("begin", path))
+
+    def end(self) -> Future[None]:
+        fut: Future[None] = Future()
+        self._queue.put(("end", fut))
+        return fut
+
+    def stop(self) -> None:
+        self._queue.put(("quit", None))
+        self._thread.join(5.0)
+
+    def _run(self) -> None:
+        writer: can.BLFWriter | None = None
+        while True:
+            item = self._queue.get()
+            if isinstance(item, can.Message):
+                if writer is not None:
+                    frame = copy.copy(item)
+                    frame.channel = 1  # BLF numbers its channels
+                    try:
+                        writer.on_message_received(frame)
+                    except (struct.error, ValueError, OSError) as err:
+                        log.warning("BLF: frame not written (%s)", err)
+                continue
+            kind, arg = item
+            if writer is not None and kind in ("begin", "end", "quit"):
+                writer.stop()
+                writer = self._writer = None
+            if kind == "begin":
+                writer = self._writer = can.BLFWriter(str(arg))
+            elif kind == "end":
+                arg.set_result(None)
+            else:
+                return
+
+
+def _number(key: str, value: Any, *, low: float = 0.0, high: float = math.inf) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (
+            low <= value <= high) or not math.isfinite(value):
+        raise ConfigError(f"driver.{key}: expected a number in [{low:g}, {high:g}], "
+                          f"got {value!r}")
+    return float(value)
+
+
+def _vector(key: str, value: Any) -> tuple[float, ...] | None:
+    if value is None:
+        return None
+    if not isinstance(value, list | tuple) or not value:
+        raise ConfigError(f"driver.{key}: expected a list with one positive number per joint")
+    return tuple(_number(f"{key}[{i}]", v, low=1e-12) for i, v in enumerate(value))
+
+
+class CanopenDrivesDriver(Driver):
+    """One CiA 402 drive per joint; the daemon streams the trajectory (see module docstring).
+
+    Options: ``interface``, ``channel``, ``bitrate`` (python-can bus), ``nodes`` (node id per
+    joint), ``sync_period_s`` (≥ 1 ms), ``counts_per_rad`` and ``rated_torque_nm`` (per joint:
+    encoder counts per joint radian — per metre for prismatic joints — and the joint torque of
+    1000 per mille; default from 0x6076), ``eds``, ``record_dir`` (logs and BLF files),
+    ``following_error_rad``, ``heartbeat_ms``, ``heartbeat_timeout_s``, ``boot_timeout_s``,
+    ``state_timeout_s``, ``settle_timeout_s``, ``standstill_rad_s``, ``max_missed``,
+    ``overrun_streak``, ``max_approach_rad``, ``bus_options`` (extra python-can arguments).
+    """
+
+    name = "canopen_drives"
+    options = frozenset({"interface", "channel", "bitrate", "nodes", "sync_period_s",
+                         "counts_per_rad", "rated_torque_nm", "eds", "record_dir",
+                         "following_error_rad", "heartbeat_ms", "heartbeat_timeout_s",
+                         "boot_timeout_s", "state_timeout_s", "settle_timeout_s",
+                         "standstill_rad_s", "max_missed", "overrun_streak",
+                         "max_approach_rad", "bus_options"})
+
+    def __init__(self, *, interface: str = "socketcan", channel: str = "can0",
+                 bitrate: int = 1_000_000, nodes: Sequence[int] | None = None,
+                 sync_period_s: float = 0.004, counts_per_rad: Sequence[float] | None = None,
+                 rated_torque_nm: Sequence[float] | None = None, eds: str | None = None,
+                 record_dir: str | None = None, following_error_rad: float = 0.15,
+                 heartbeat_ms: int = 100, heartbeat_timeout_s: float = 0.35,
+                 boot_timeout_s: float = 2.0, state_timeout_s: float = 0.5,
+                 settle_timeout_s: float = 2.0, standstill_rad_s: float = 0.01,
+                 max_missed: int = 3, overrun_streak: int = 5, max_approach_rad: float = 1.0,
+                 bus_options: dict[str, Any] | None = None) -> None:
+        super().__init__()
+        for key, val in (("interface", interface), ("channel", channel)):
+            if not isinstance(val, str) or not val:
+                raise ConfigError(f"driver.{key}: expected a name, got {val!r}")
+        self.interface, self.channel = interface, channel
+        self.bitrate = int(_number("bitrate", bitrate, low=10_000, high=1_000_000))
+        if not isinstance(nodes, list | tuple) or not nodes:
+            raise ConfigError("driver.nodes: expected a list of node ids, one per joint")
+        for i, node in enumerate(nodes):
+            if isinstance(node, bool) or not isinstance(node, int) or not 1 <= node <= 127:
+                raise ConfigError(f"driver.nodes[{i}]: expected a node id in 1..127, "
+                                  f"got {node!r}")
+        if len(set(nodes)) != len(nodes):
+            raise ConfigError(f"driver.nodes: node ids repeat ({list(nodes)})")
+        self.nodes = tuple(nodes)
+        self.period = _number("sync_period_s", sync_period_s, low=0.001, high=0.1)
+        if counts_per_rad is None:
+            raise ConfigError("driver.counts_per_rad: missing (encoder counts per joint radian, "
+                              "one per joint)")
+        self.counts_per_rad = _vector("counts_per_rad", counts_per_rad)
+        self.rated_torque_nm = _vector("rated_torque_nm", rated_torque_nm)
+        if eds is None:
+            raise ConfigError("driver.eds: missing (the drives' EDS file)")
+        self.eds = Path(eds)
+        if not self.eds.is_file():
+            raise ConfigError(f"driver.eds: {eds}: file not found")
+        self.record_dir = Path(record_dir or Path(tempfile.gettempdir()) / "robid-canopen")
+        self.window = _number("following_error_rad", following_error_rad, low=1e-6)
+        self.heartbeat_ms = int(_number("heartbeat_ms", heartbeat_ms, low=1, high=65535))
+        self.hb_timeout = _number("heartbeat_timeout_s", heartbeat_timeout_s, low=0.001)
+        if self.hb_timeout < 2e-3 * self.heartbeat_ms:
+            raise ConfigError(f"driver.heartbeat_timeout_s: {heartbeat_timeout_s} s is shorter "
+                              f"than two heartbeats ({heartbeat_ms} ms each)")
+        self.boot_timeout = _number("boot_timeout_s", boot_timeout_s, low=0.01)
+        self.state_timeout = _number("state_timeout_s", state_timeout_s, low=0.001)
+        self.settle_timeout = _number("settle_timeout_s", settle_timeout_s, low=0.01)
+        self.standstill = _number("standstill_rad_s", standstill_rad_s, low=0.0)
+        self.max_missed = int(_number("max_missed", max_missed, low=1, high=1000))
+        self.overrun_streak = int(_number("overrun_streak", overrun_streak, low=1, high=1e6))
+        self.max_approach = _number("max_approach_rad", max_approach_rad, low=0.0)
+        if bus_options is not None and not isinstance(bus_options, dict):
+            raise ConfigError("driver.bus_options: expected a mapping of python-can arguments")
+        self.bus_options = dict(bus_options or {})
+        self.network: canopen.Network | None = None
+        self.axes: list[Axis] = []
+        self.master: SyncMaster | None = None
+        self._tap: _Tap | None = None
+        self._writer: ThreadPoolExecutor | None = None
+        self._programs: dict[str, tuple[np.ndarray, float]] = {}
+        self._jobs: dict[tuple[str, str], Job] = {}
+
+    # -- configuration against the robot
+    def _check_robot(self, robot: RobotInfo) -> None:
+        n, who = robot.n, f"robot {robot.name} has {robot.n} joints"
+        for key, vec in (("nodes", self.nodes), ("counts_per_rad", self.counts_per_rad),
+                         ("rated_torque_nm", self.rated_torque_nm)):
+            if vec is not None and len(vec) != n:
+                raise ConfigError(f"driver.{key}: {len(vec)} values, {who}")
+        assert self.counts_per_rad is not None
+        for j in range(n):
+            reach = max(abs(robot.q_min[j]), abs(robot.q_max[j]))
+            if math.isfinite(reach) and reach * self.counts_per_rad[j] > _INT32:
+                raise ConfigError(f"driver.counts_per_rad[{j}]: joint {j + 1} reaches "
+                                  f"{reach:.4g} rad = {reach * self.counts_per_rad[j]:.3g} "
+                                  "counts, beyond the drive's 32-bit position")
+            if self.rated_torque_nm is not None and math.isfinite(robot.tau_max[j]) and (
+                    robot.tau_max[j] / self.rated_torque_nm[j] * 1000 > 32767):
+                raise ConfigError(f"driver.rated_torque_nm[{j}]: joint {j + 1} torque limit "
+                                  f"{robot.tau_max[j]:g} N·m overflows 0x6077 (16-bit per mille)")
+
+    # -- lifecycle
+    async def _open(self) -> None:
+        if self.robot is None:
+            raise DriverError(f"{self.name}: no robot bound (bind_robot before open)")
+        self.record_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            await asyncio.to_thread(self._bring_up)
+        except BaseException:
+            await asyncio.to_thread(self._shutdown, False)
+            raise
+
+    def _bring_up(self) -> None:
+        """Bus, boot-up, identity, PDOs, CSP mode, power state machine, SYNC master."""
+        assert self.robot is not None and self.counts_per_rad is not None
+        try:
+            bus = can.Bus(interface=self.interface, channel=self.channel, bitrate=self.bitrate,
+                          **self.bus_options)
+        except (can.CanError, OSError, ValueError, ImportError) as err:
+            raise DriverError(f"driver.channel: cannot open CAN channel {self.channel} on "
+                              f"{self.interface} ({err})") from err
+        self.network = net = canopen.Network(bus)
+        net.connect()
+        self._tap = _Tap()
+        assert net.notifier is not None
+        net.notifier.add_listener(self._tap)
+        self._writer = ThreadPoolExecutor(1, thread_name_prefix="ThreadPoolExecutor-canopen")
+        for j, node_id in enumerate(self.nodes):
+            self.axes.append(Axis(node_id, j + 1, self.robot.joint_names[j],
+                                  self.counts_per_rad[j], 0.0,
+                                  self.window * self.counts_per_rad[j]))
+        boot = {a.node: threading.Event() for a in self.axes}
+        for i, a in enumerate(self.axes):
+            net.subscribe(0x700 + a.node, self._heartbeat_cb(i, boot[a.node]))
+        net.nmt.send_command(NMT_RESET_COMM)  # every node answers with its boot-up message
+        end = time.monotonic() + self.boot_timeout
+        for a in self.axes:
+            if not boot[a.node].wait(max(0.0, end - time.monotonic())):
+                raise DriverError(f"{a.label()}: no boot-up or heartbeat within "
+                                  f"{self.boot_timeout:g} s (missing node, no power, or "
+                                  "wrong bitrate)")
+        for a in self.axes:
+            self._configure(a)
+        hold = np.array([self._enable(a) for a in self.axes], dtype=np.int64)
+        self._start_master(hold)
+
+    def _heartbeat_cb(self, i: int, event: threading.Event) -> Any:
+        def cb(can_id: int, data: bytearray, timestamp: float) -> None:
+            event.set()
+            if self.master is not None:
+                self.master.on_heartbeat(i, bytes(data))
+        return cb
+
+    def _sdo(self, a: Axis, index: int, sub: int, value: int | None = None, fmt: str = "<I"
+             ) -> int:
+        """One SDO transfer; aborts and timeouts become a DriverError naming node and object."""
+        assert self.network is not None
+        node = self.network[a.node]
+        try:
+            if value is None:
+                return int(struct.unpack(fmt, node.sdo.upload(index, sub)[:struct.calcsize(
+                    fmt)])[0])
+            node.sdo.download(index, sub, struct.pack(fmt, value))
+            return value
+        except (canopen.SdoAbortedError, canopen.SdoCommunicationError, struct.error) as err:
+            raise DriverError(f"{a.label()}: SDO {'write' if value is not None else 'read'} "
+                              f"0x{index:04X}:{sub:02X} failed ({err})") from err
+
+    def _configure(self, a: Axis) -> None:
+        assert self.network is not None and self.robot is not None
+        node = self.network.add_node(a.node, str(self.eds))
+        node.sdo.RESPONSE_TIMEOUT = 0.5
+        kind = self._sdo(a, 0x1000, 0)
+        if kind & 0xFFFF != PROFILE_402:
+            raise DriverError(f"{a.label()}: device type 0x{kind:08X} is not a CiA 402 drive")
+        ident = [self._sdo(a, 0x1018, s) for s in (1, 2, 3, 4)]
+        log.info("%s vendor=0x%08X product=0x%08X revision=0x%08X serial=%d", a.label(), *ident)
+        self._sdo(a, 0x1017, 0, self.heartbeat_ms, "<H")
+        for comm, mapping, cob, entries in ((0x1400, 0x1600, 0x200, RPDO1_MAP),
+                                            (0x1800, 0x1A00, 0x180, TPDO1_MAP),
+                                            (0x1801, 0x1A01, 0x280, TPDO2_MAP)):
+            self._sdo(a, comm, 1, 0x80000000 | (cob + a.node))  # invalid while mapping
+            self._sdo(a, mapping, 0, 0, "<B")
+            for k, entry in enumerate(entries, 1):
+                self._sdo(a, mapping, k, entry)
+            self._sdo(a, mapping, 0, len(entries), "<B")
+            self._sdo(a, comm, 2, 1, "<B")  # synchronous, every SYNC
+            self._sdo(a, comm, 1, cob + a.node)
+        self._sdo(a, 0x1401, 1, 0x80000000 | (0x300 + a.node))  # RPDO2 unused
+        self._sdo(a, 0x1006, 0, round(self.period * 1e6))
+        self._sdo(a, 0x60C2, 1, round(self.period * 1e4), "<B")
+        self._sdo(a, 0x60C2, 2, -4, "<b")
+        self._sdo(a, 0x6065, 0, min(0xFFFFFFFE, round(a.window_counts)))
+        qdd = self.robot.qdd_max[a.joint - 1]
+        self._sdo(a, 0x6085, 0, min(0xFFFFFFFE, round((qdd if math.isfinite(qdd) else 2.0)
+                                                      * a.counts_per_rad)))
+        self._sdo(a, 0x605A, 0, 2, "<h")  # quick stop: ramp down, then Switch on disabled
+        self._sdo(a, 0x6060, 0, MODE_CSP, "<b")
+        mode = self._sdo(a, 0x6061, 0, fmt="<b")
+        if mode != MODE_CSP:
+            raise DriverError(f"{a.label()}: mode of operation display is {mode}, not "
+                              f"{MODE_CSP} (cyclic synchronous position)")
+        if self.rated_torque_nm is None:
+            a.rated_torque_nm = self._sdo(a, 0x6076, 0) / 1000.0
+        else:
+            a.rated_torque_nm = self.rated_torque_nm[a.joint - 1]
+
+    def _enable(self, a: Axis) -> int:
+        """Walk the power state machine to Operation enabled (by SDO, a timeout per step),
+        the target set to where the axis is so that enabling moves nothing."""
+        status = self._sdo(a, 0x6041, 0, fmt="<H")
+        if drive_state(status) in ("Fault", "Fault reaction active"):
+            code = self._sdo(a, 0x603F, 0, fmt="<H")
+            log.warning("%s was in Fault (%s) at start-up: resetting it", a.label(),
+                        error_words(code))
+            self._sdo(a, 0x6040, 0, 0, "<H")
+            self._step(a, CW_FAULT_RESET, "Switch on disabled")
+        pos = self._sdo(a, 0x6064, 0, fmt="<i")
+        self._sdo(a, 0x607A, 0, pos, "<i")
+        self._step(a, CW_SHUTDOWN, "Ready to switch on")
+        self._step(a, CW_SWITCH_ON, "Switched on")
+        self._step(a, CW_ENABLE, "Operation enabled")
+        return pos
+
+    def _step(self, a: Axis, cw: int, want: str) -> None:
+        self._sdo(a, 0x6040, 0, cw, "<H")
+        end = time.monotonic() + self.state_timeout
+        while True:
+            state = drive_state(self._sdo(a, 0x6041, 0, fmt="<H"))
+            if state == want:
+                return
+            if time.monotonic() > end:
+                raise DriverError(f"{a.label()}: state machine stuck in {state}, expected "
+                                  f"{want} within {self.state_timeout:g} s")
+            time.sleep(0.002)
+
+    def _start_master(self, hold: np.ndarray) -> None:
+        assert self.network is not None and self.robot is not None and self._tap is not None
+        qdd = np.array([x if math.isfinite(x) else 2.0 for x in self.robot.qdd_max])
+        self.master = master = SyncMaster(
+            self.network.bus, self.axes, self.period, heartbeat_timeout_s=self.hb_timeout,
+            max_missed=self.max_missed, overrun_streak=self.overrun_streak,
+            standstill_rad_s=self.standstill, decel_rad_s2=0.5 * qdd, on_end=self._job_ended,
+            tap=self._tap.on_message_received)
+        net = self.network
+        for i, a in enumerate(self.axes):
+            net.subscribe(0x180 + a.node, lambda _c, d, _t, i=i: master.on_tpdo1(i, d))
+            net.subscribe(0x280 + a.node, lambda _c, d, _t, i=i: master.on_tpdo2(i, d))
+            net.subscribe(0x80 + a.node, lambda _c, d, _t, i=i: master.on_emcy(i, d))
+        net.nmt.send_command(NMT_START)
+        master.start(hold)
+        log.info("drives %s in Operation enabled (CSP), SYNC every %g ms",
+                 list(self.nodes), 1000 * self.period)
+
+    async def _close(self) -> None:
+        await asyncio.to_thread(self._shutdown, True)
+
+    def _shutdown(self, ramp: bool) -> None:
+        """Moving axes ramp to rest, then every drive is disabled; threads end; bus closes."""
+        master, self.master = self.master, None
+        if master is not None:
+            if ramp:
+                master.request_rest(then="disable", reason="daemon stopping")
+                master.idle.wait(5.0)
+                time.sleep(5 * self.period)  # the shutdown controlword reaches every drive
+            master.stop()
+        if self._tap is not None:
+            self._tap.stop()
+            self._tap = None
+        if self._writer is not None:
+            self._writer.shutdown(wait=True)
+            self._writer = None
+        net, self.network = self.network, None
+        if net is not None:
+            try:
+                net.disconnect()
+            except (can.CanError, OSError) as err:
+                log.warning("CAN bus did not close cleanly: %s", err)
+
+    # -- the cycle
+    async def _put_program(self, program: MotionProgram) -> None:
+        counts, t0 = await asyncio.to_thread(self._render, program)
+        self._programs[program.exp_id] = (counts, t0)
+
+    def _render(self, program: MotionProgram) -> tuple[np.ndarray, float]:
+        """The trajectory at the SYNC period in counts (the spline the plant also uses),
+        checked once more against the limits; it must begin at rest (a step to its first
+        velocity within one period's acceleration) and is brought to rest after its end."""
+        assert self.robot is not None and self.counts_per_rad is not None
+        robot, where = self.robot, f"experiment {program.exp_id}"
+        tr = program.trajectory()
+        if tr.q.shape[1] != robot.n:
+            raise DriverError(f"{where}: program has {tr.q.shape[1]} joints, robot "
+                              f"{robot.name} has {robot.n}")
+        if tr.t.size < 2 or np.any(np.diff(tr.t) <= 0):
+            raise DriverError(f"{where}: program time stamps are not increasing")
+        spline = CubicSpline(tr.t, tr.q, axis=0)
+        t = np.arange(tr.t[0], tr.t[-1] + 1e-9, self.period)
+        q, qd, qdd = spline(t), spline(t, 1), spline(t, 2)
+        qdd_cap = np.array([x if math.isfinite(x) else 2.0 for x in robot.qdd_max])
+        tail = ramp_to_rest(q[-1], qd[-1], 0.5 * qdd_cap, self.period)
+        if len(tail):
+            t = np.concatenate([t, t[-1] + self.period * np.arange(1, len(tail) + 1)])
+            qd = np.vstack([qd, np.diff(np.vstack([q[-1:], tail]), axis=0) / self.period])
+            q, qdd = np.vstack([q, tail]), np.vstack([qdd, np.zeros_like(tail)])
+        jump = np.abs(qd[0]) / self.period
+        for j in range(robot.n):
+            if jump[j] > qdd_cap[j]:
+                raise DriverError(f"unsafe program refused: {where}: joint {j + 1} starts "
+                                  f"moving at {qd[0, j]:.4g} rad/s; a program must begin at "
+                                  "rest")
+            self._check_limits(where, j, t, q[:, j], qd[:, j], qdd[:, j])
+        counts = np.rint(q * np.array(self.counts_per_rad)).astype(np.int64)
+        return counts, float(tr.t[0])
+
+    def _check_limits(self, where: str, j: int, t: np.ndarray, q: np.ndarray,
+                      qd: np.ndarray, qdd: np.ndarray) -> None:
+        robot = self.robot
+        assert robot is not None
+        for what, arr, low, high, unit in (
+                ("position", q, robot.q_min[j], robot.q_max[j], "rad"),
+                ("velocity", qd, -robot.qd_max[j], robot.qd_max[j], "rad/s"),
+                ("acceleration", qdd, -robot.qdd_max[j], robot.qdd_max[j], "rad/s²")):
+            bad = np.flatnonzero((arr < low - 1e-9) | (arr > high + 1e-9))
+            if bad.size:
+                k = int(bad[0])
+                raise DriverError(f"unsafe program refused: {where}: joint {j + 1} {what} "
+                                  f"{arr[k]:.4g} {unit} at t={t[k]:.3f} s outside "
+                                  f"[{low:.4g}, {high:.4g}] (at the SYNC period "
+                                  f"{1000 * self.period:g} ms)")
+
+    async def _give_ready(self, exp_id: str, nonce: str) -> None:
+        if (exp_id, nonce) in self._jobs:
+            return  # given already: giving again must not move twice
+        master = self.master
+        if master is None:
+            raise DriverError(f"{self.name}: motion master not running")
+        if master.halt_reason is not None:
+            raise DriverError(f"experiment {exp_id}: drives are stopped after "
+                              f"'{master.halt_reason}'; not moving again until the daemon "
+                              "restarts with the cause cleared")
+        if exp_id not in self._programs:
+            raise DriverError(f"experiment {exp_id}: no program put before give")
+        job = self._job(exp_id, nonce, master)
+        assert self._tap is not None
+        self._tap.begin(self.record_dir / f"{exp_id}.{nonce}.blf")
+        try:
+            master.submit(job)
+        except RuntimeError as err:
+            self._tap.end()
+            raise DriverError(f"experiment {exp_id}: drives busy or stopped ({err})") from err
+        self._jobs[(exp_id, nonce)] = job
+        log.info("exp=%s nonce=%s streaming %d setpoints (%d to approach the start)", exp_id,
+                 nonce, len(job.targets), job.record_from)
+
+    def _job(self, exp_id: str, nonce: str, master: SyncMaster) -> Job:
+        """The program with a rest-to-rest approach from where the drives are."""
+        assert self.robot is not None and self.counts_per_rad is not None
+        counts, t0 = self._programs[exp_id]
+        cpr = np.array(self.counts_per_rad)
+        here = master.hold / cpr
+        start = counts[0] / cpr
+        far = np.abs(start - here)
+        if np.any(far > self.max_approach):
+            j = int(np.argmax(far))
+            raise DriverError(f"experiment {exp_id}: joint {j + 1} is {far[j]:.3g} rad from "
+                              f"the program's start (max_approach_rad {self.max_approach:g}); "
+                              "move the robot near the start first")
+        cap_v = 0.5 * np.array([x if math.isfinite(x) else 1.0 for x in self.robot.qd_max])
+        cap_a = 0.5 * np.array([x if math.isfinite(x) else 2.0 for x in self.robot.qdd_max])
+        approach = np.rint(quintic(here, start, cap_v, cap_a, self.period) * cpr)
+        targets = np.vstack([approach.astype(np.int64), counts])
+        return Job(exp_id, nonce, targets, len(approach), t0, self.period,
+                   self.settle_timeout + 0.0)
+
+    def _job_ended(self, job: Job) -> None:
+        """From the master thread: write the log (or what was captured) off that thread."""
+        tap_done = self._tap.end() if self._tap is not None else None
+        if self._writer is None:
+            job.result.set_exception(DriverError(f"experiment {job.exp_id}: driver closed"))
+            return
+        self._writer.submit(self._write_log, job, tap_done)
+
+    def _write_log(self, job: Job, tap_done: Future[None] | None) -> None:
+        try:
+            if tap_done is not None:
+                tap_done.result(5.0)
+            data = log_bytes(job, self.axes)
+            stem = f"{job.exp_id}.{job.nonce}"
+            partial = job.error is not None
+            path = self.record_dir / (f"{stem}.partial.csv" if partial else f"{stem}.log.csv")
+            atomic_write(path, data)
+            blf = self.record_dir / f"{stem}.blf"
+            if partial and blf.exists():
+                os.replace(blf, self.record_dir / f"{stem}.partial.blf")
+            job.result.set_result((path, hashlib.sha256(data).hexdigest(), len(data)))
+        except Exception as err:  # noqa: BLE001 - the waiter gets it as one line
+            job.result.set_exception(DriverError(f"experiment {job.exp_id}: log not written "
+                                                 f"({err})"))
+
+    async def _wait_done(self, exp_id: str, nonce: str) -> Done:
+        job = self._jobs.get((exp_id, nonce))
+        if job is None:
+            raise DriverError(f"experiment {exp_id}: nonce {nonce} was not streamed by this "
+                              "daemon (restarted mid-experiment: its motion ended with the "
+                              "old process and is not repeated)")
+        path, sha, size = await _wait_future(job.result)
+        if job.error is not None:
+            what = "quick stop on every drive" if job.quick_stop else "no quick stop needed"
+            raise DriverError(f"experiment {exp_id}: {job.error}; {what}; log captured so far "
+                              f"kept as {path} ({len(job.rows)} samples, incomplete)")
+        if job.missing_rows:
+            log.warning("exp=%s %d SYNC periods without every drive's answer (gaps in the log)",
+                        exp_id, job.missing_rows)
+        return Done(exp_id, nonce, sha, size)
+
+    async def _fetch_logs(self, done: Done) -> bytes:
+        path = self.record_dir / f"{done.exp_id}.{done.nonce}.log.csv"
+        try:
+            return await asyncio.to_thread(path.read_bytes)
+        except FileNotFoundError as err:
+            raise DriverError(f"{path}: recorded log missing") from err
+
+    async def _withdraw(self, exp_id: str, nonce: str) -> None:
+        job = self._jobs.get((exp_id, nonce))
+        master = self.master
+        if job is None or master is None or job.ended.is_set():
+            return
+        master.request_rest(then="hold", reason="withdrawn")
+        await asyncio.to_thread(master.idle.wait, 10.0)
+
+
+async def _wait_future(fut: Future[Any]) -> Any:
+    """A thread's Future awaited on the loop (cancelling the wait leaves the Future alone)."""
+    loop = asyncio.get_running_loop()
+    event = asyncio.Event()
+
+    def wake(_: Future[Any]) -> None:
+        try:
+            loop.call_soon_threadsafe(event.set)
+        except RuntimeError:  # that loop has closed meanwhile
+            pass
+
+    fut.add_done_callback(wake)
+    await event.wait()
+    return fut.result()

@@ -1,0 +1,222 @@
+"""The CANopen driver over its fake CiA 402 drives (python-can's virtual bus, in-process):
+every fault stops every drive (quick stop / disabled / fault), fails the experiment with one
+line naming node, joint and cause, and keeps the log captured so far; bad config names the key;
+closing while streaming ramps to rest."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+import pytest
+from robid_link.drivers.canopen_drives import CanopenDrivesDriver
+from robid_link.fakes.cia402_peer import EDS
+from robid_link.fakes.controller import default_truth, make_peer
+
+from robid_link.exceptions import ConfigError, DriverError
+from robid_link.ident import excitation as ex
+from robid_link.ident.robot import Robot, load_robot
+from robid_link.link import program as pg
+from robid_link.link import registry
+from robid_link.link.driver import Driver, MotionProgram, RobotInfo
+
+ARM3 = Path(__file__).resolve().parents[2] / "examples" / "robots" / "arm3.yaml"
+STOPPED = {"Quick stop active", "Switch on disabled", "Fault", "Ready to switch on"}
+
+
+@pytest.fixture(scope="module")
+def robot() -> Robot:
+    return load_robot(ARM3)
+
+
+@pytest.fixture(scope="module")
+def program(robot: Robot) -> MotionProgram:
+    """1.5 s, up to 0.5 rad: long and wide enough for every fault to strike mid-motion."""
+    t = np.arange(0.0, 1.5, 0.01)
+    q = 0.5 * np.sin(np.pi * t / 1.5)[:, None] ** 2 * np.array([1.0, -1.0, 0.5])
+    return pg.make_program(robot, ex.Trajectory(t, q, 100.0, "custom", robot.name), "exp1")
+
+
+@contextlib.contextmanager
+def drives(tmp_path: Path, robot: Robot, fault: str | None = None, **opts: Any
+           ) -> Iterator[tuple[Driver, Any]]:
+    peer = make_peer("canopen_drives", robot, default_truth(robot, rate_hz=200.0), tmp_path,
+                     fault=fault)
+    with peer:
+        driver = registry.make_driver({**peer.driver_options(), **opts})
+        driver.bind_robot(RobotInfo.of(robot))
+        try:
+            yield driver, peer
+        finally:
+            asyncio.run(driver.close())
+
+
+def _run(driver: Driver, program: MotionProgram, before_take: Any = None) -> bytes:
+    async def go() -> bytes:
+        async with driver:
+            await driver.put_program(program)
+            await driver.give_ready("exp1", "n1")
+            if before_take is not None:
+                before_take(driver)
+            done = await driver.take_done("exp1", "n1", timeout_s=30)
+            return await driver.fetch_logs(done)
+
+    return asyncio.run(go())
+
+
+def _partial(err: pytest.ExceptionInfo[DriverError]) -> np.ndarray:
+    path = Path(str(err.value).split("kept as ")[1].split(" (")[0])
+    assert path.name == "exp1.n1.partial.csv" and path.with_suffix(".blf").exists()
+    return np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+
+
+@pytest.mark.parametrize("fault, cause", [
+    ("drive_fault", r"node 2 \(joint 2 j2\): drive fault 0x2310 continuous over-current"),
+    ("heartbeat_loss", r"node 2 \(joint 2 j2\): lost heartbeat"),
+    ("following_error", r"node 2 \(joint 2 j2\): following error .* rad beyond the window"),
+    ("dropped_frames", r"node 2 \(joint 2 j2\): no TPDO for \d+ SYNC periods"),
+    ("die", r"node \d \(joint \d j\d\): no TPDO for \d+ SYNC periods"),
+])
+def test_a_fault_mid_motion_stops_every_drive_and_keeps_the_log(
+        tmp_path: Path, robot: Robot, program: MotionProgram, fault: str, cause: str) -> None:
+    opts = {"heartbeat_timeout_s": 0.5} if fault == "heartbeat_loss" else {}
+    if fault in ("dropped_frames", "die"):
+        opts = {"max_missed": 10, "heartbeat_timeout_s": 5.0}
+    with drives(tmp_path, robot, fault, **opts) as (driver, peer):
+        with pytest.raises(DriverError, match=rf"experiment exp1: {cause}.*quick stop on every "
+                                               r"drive; log captured so far kept as .*incomplete"
+                           ) as err:
+            _run(driver, program)
+        time.sleep(0.3)  # the quick stop ramp of the fake axes
+        states = peer.states()
+    rows = _partial(err)
+    assert len(rows) > 20 and np.all(np.isfinite(rows))  # what was captured before the stop
+    if fault != "die":
+        assert set(states.values()) <= STOPPED, states
+
+
+def test_a_node_that_never_boots_is_named_at_open(tmp_path: Path, robot: Robot) -> None:
+    with drives(tmp_path, robot, "no_boot", boot_timeout_s=0.5) as (driver, peer):
+        with pytest.raises(DriverError, match=r"node 2 \(joint 2 j2\): no boot-up or heartbeat "
+                                              r"within 0.5 s"):
+            asyncio.run(driver.open())
+        assert peer.states()[1] == "Switch on disabled"  # nothing was enabled
+
+
+def test_sync_overrun_streak_quick_stops(tmp_path: Path, robot: Robot,
+                                         program: MotionProgram) -> None:
+    with drives(tmp_path, robot, overrun_streak=3) as (driver, peer):
+        def slow_host(d: Driver) -> None:
+            assert isinstance(d, CanopenDrivesDriver) and d.master is not None
+            d.master.tick_hook = lambda: time.sleep(0.02)
+
+        with pytest.raises(DriverError, match=r"experiment exp1: bus: SYNC overrun: 3 periods "
+                                              r"in a row late.*kept as"):
+            _run(driver, program, slow_host)
+
+
+def test_bus_error_quick_stops(tmp_path: Path, robot: Robot, program: MotionProgram,
+                               monkeypatch: pytest.MonkeyPatch) -> None:
+    with drives(tmp_path, robot) as (driver, _):
+        def bus_off(d: Driver) -> None:
+            assert isinstance(d, CanopenDrivesDriver) and d.network is not None
+            bus = d.network.bus
+            real = bus.send
+            calls = {"n": 0}
+
+            def send(msg: can.Message, timeout: float | None = None) -> None:
+                calls["n"] += 1
+                if 200 < calls["n"] < 260:
+                    raise can.CanOperationError("Network is down (bus-off)")
+                real(msg, timeout)
+
+            monkeypatch.setattr(bus, "send", send)
+
+        with pytest.raises(DriverError, match=r"bus: CAN bus error .*bus-off"):
+            _run(driver, program, bus_off)
+
+
+def test_full_run_and_idempotent_give(tmp_path: Path, robot: Robot,
+                                      program: MotionProgram) -> None:
+    with drives(tmp_path, robot) as (driver, peer):
+        data = _run(driver, program)
+        records = sorted(p.name for p in (tmp_path / "records").iterdir())
+    arr = np.loadtxt(data.decode().splitlines()[1:], delimiter=",")
+    assert np.abs(arr[:, 1]).max() == pytest.approx(0.5, abs=0.01)
+    assert abs(arr[-1, 1]) < 1e-3  # ends at rest where the program ends
+    assert records == ["exp1.n1.blf", "exp1.n1.log.csv"] and len(peer.core.handled) == 1
+    frames = list(can.BLFReader(str(tmp_path / "records" / "exp1.n1.blf")))
+    assert {0x80, 0x201, 0x181, 0x281} <= {f.arbitration_id for f in frames}
+
+
+def test_close_while_streaming_ramps_to_rest(tmp_path: Path, robot: Robot,
+                                             program: MotionProgram) -> None:
+    with drives(tmp_path, robot) as (driver, peer):
+        async def go() -> None:
+            async with driver:
+                await driver.put_program(program)
+                await driver.give_ready("exp1", "n1")
+                await asyncio.sleep(0.6)  # mid-motion: SIGTERM closes the driver
+
+        asyncio.run(go())
+        states = peer.states()
+        hist = peer.hist.copy()
+    assert set(states.values()) == {"Ready to switch on"}, states  # disabled after the ramp
+    assert np.allclose(hist[-1], hist[-2])  # at rest
+    assert (tmp_path / "records" / "exp1.n1.partial.csv").exists()
+
+
+def test_unsafe_program_refused_before_motion(tmp_path: Path, robot: Robot) -> None:
+    t = np.arange(0.0, 1.0, 0.01)
+    q = np.zeros((t.size, 3))
+    q[:, 0] = 3.0 * t  # starts moving at 3 rad/s
+    prog = MotionProgram("exp1", pg.trajectory_files(
+        ex.Trajectory(t, q, 100.0, "custom", robot.name)), 1.0)
+    with drives(tmp_path, robot) as (driver, peer):
+        async def go() -> None:
+            async with driver:
+                await driver.put_program(prog)
+
+        with pytest.raises(DriverError, match=r"unsafe program refused: experiment exp1: joint 1 "
+                                              r"starts moving"):
+            asyncio.run(go())
+        assert not peer.core.handled
+
+
+def _options(**over: Any) -> dict[str, Any]:
+    base = {"name": "canopen_drives", "interface": "virtual", "channel": "x", "nodes": [1, 2, 3],
+            "counts_per_rad": [1000.0] * 3, "rated_torque_nm": [10.0] * 3, "eds": str(EDS)}
+    return {**base, **over}
+
+
+@pytest.mark.parametrize("over, key", [
+    ({"nodes": [1, 200, 3]}, r"driver\.nodes\[1\]: expected a node id in 1\.\.127"),
+    ({"nodes": [1, 1, 3]}, r"driver\.nodes: node ids repeat"),
+    ({"eds": "/nonexistent/drives.eds"}, r"driver\.eds: .*file not found"),
+    ({"eds": None}, r"driver\.eds: missing"),
+    ({"sync_period_s": 0.0005}, r"driver\.sync_period_s: expected a number in \[0\.001"),
+    ({"counts_per_rad": [1000.0, -1.0, 3.0]}, r"driver\.counts_per_rad\[1\]"),
+    ({"bitrate": "fast"}, r"driver\.bitrate"),
+])
+def test_bad_config_names_the_key(over: dict[str, Any], key: str) -> None:
+    with pytest.raises(ConfigError, match=key):
+        registry.make_driver(_options(**over))
+
+
+@pytest.mark.parametrize("over, key", [
+    ({"nodes": [1, 2]}, r"driver\.nodes: 2 values, robot arm3 has 3 joints"),
+    ({"counts_per_rad": [1000.0] * 4}, r"driver\.counts_per_rad: 4 values, robot arm3 has 3"),
+    ({"rated_torque_nm": [1.0] * 2}, r"driver\.rated_torque_nm: 2 values"),
+    ({"counts_per_rad": [1e12] * 3}, r"driver\.counts_per_rad\[0\]: joint 1 .* 32-bit"),
+])
+def test_unit_vectors_are_checked_against_the_robot(robot: Robot, over: dict[str, Any],
+                                                    key: str) -> None:
+    driver = registry.make_driver(_options(**over))
+    with pytest.raises(ConfigError, match=key):
+        driver.bind_robot(RobotInfo.of(robot))
