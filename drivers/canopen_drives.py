@@ -26,6 +26,9 @@ from typing import Any
 import can
 import canopen
 import numpy as np
+from scipy.interpolate import CubicSpline
+
+from robid_link.atomic import atomic_write
 from robid_link.drivers.cia402 import (
     CW_ENABLE,
     CW_FAULT_RESET,
@@ -42,9 +45,6 @@ from robid_link.drivers.cia402 import (
     error_words,
 )
 from robid_link.drivers.cia402_master import Axis, Job, SyncMaster, quintic, ramp_to_rest
-from scipy.interpolate import CubicSpline
-
-from robid_link.atomic import atomic_write
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.link.driver import Done, Driver, MotionProgram, RobotInfo
 

@@ -18,6 +18,7 @@ from typing import Any
 
 import can
 import numpy as np
+
 from robid_link.drivers.cia402 import (
     CW_ENABLE,
     CW_QUICK_STOP,

@@ -21,6 +21,7 @@ from typing import Any
 import can
 import canopen
 import numpy as np
+
 from robid_link.drivers.cia402 import (
     MODE_CSP,
     NMT_PRE_OPERATIONAL,

@@ -15,11 +15,11 @@ from typing import Any
 import can
 import numpy as np
 import pytest
+
 from robid_link.drivers.canopen_drives import CanopenDrivesDriver
+from robid_link.exceptions import ConfigError, DriverError
 from robid_link.fakes.cia402_peer import EDS
 from robid_link.fakes.controller import default_truth, make_peer
-
-from robid_link.exceptions import ConfigError, DriverError
 from robid_link.ident import excitation as ex
 from robid_link.ident.robot import Robot, load_robot
 from robid_link.link import program as pg
