@@ -27,9 +27,17 @@ from urllib.parse import urlencode
 
 import aiohttp
 from robid_link.drivers.rapid import MAX_AXES, render_rapid
-from robid_link.drivers.rws_api import (API, HOME, log_file, parse_done, parse_rapid_string,
-                                        program_file, rapid_string, read_credentials,
-                                        rws_module)
+from robid_link.drivers.rws_api import (
+    API,
+    HOME,
+    log_file,
+    parse_done,
+    parse_rapid_string,
+    program_file,
+    rapid_string,
+    read_credentials,
+    rws_module,
+)
 from yarl import URL
 
 from robid_link.exceptions import ConfigError, DriverError

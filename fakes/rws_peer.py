@@ -18,6 +18,7 @@ import hmac
 import itertools
 import json
 import logging
+import os
 import re
 import secrets
 import shutil
@@ -29,8 +30,15 @@ from typing import Any
 
 from aiohttp import WSMsgType, web
 from robid_link.drivers.rapid import parse_rapid
-from robid_link.drivers.rws_api import (API, PATH_MODULE, VARS, done_value, error_value,
-                                        log_file, parse_rapid_string, program_file)
+from robid_link.drivers.rws_api import (
+    API,
+    PATH_MODULE,
+    VARS,
+    done_value,
+    error_value,
+    log_file,
+    parse_rapid_string,
+)
 from robid_link.fakes.controller import ControllerCore, Peer
 
 from robid_link.atomic import atomic_write
@@ -76,8 +84,11 @@ class RwsPeer(Peer):
         self.user, self._password = "robid", secrets.token_urlsafe(12)
         self.credentials = self.workdir / "rws-credentials"
         wrong = core.fault == "bad_credentials"
-        self.credentials.write_text(f"{self.user}:{'wrong' + self._password if wrong else self._password}\n")
-        self.credentials.chmod(0o600)
+        given = ("wrong-" if wrong else "") + self._password
+        self.credentials.unlink(missing_ok=True)
+        fd = os.open(self.credentials, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w") as fh:  # created owner-only: never readable by others
+            fh.write(f"{self.user}:{given}\n")
         self.auth_attempts = self.logins = 0
         self._busy = core.faults_left if core.fault == "session_limit" else 0
         self._sessions: set[str] = set()
