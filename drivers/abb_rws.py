@@ -12,6 +12,7 @@ a websocket client, and a server for the fake (one library, no second event loop
 from __future__ import annotations
 
 import asyncio
+import base64
 import contextlib
 import ipaddress
 import json
@@ -167,9 +168,11 @@ class AbbRwsDriver(Driver):
                 connector=conn, cookie_jar=jar,
                 middlewares=(aiohttp.DigestAuthMiddleware(self._user, self._password),))
         else:
+            # Basic on every request (no redirects are followed: it never reaches another
+            # host); built by hand, aiohttp deprecates BasicAuth after 3.12
+            token = base64.b64encode(f"{self._user}:{self._password}".encode()).decode()
             self._http = aiohttp.ClientSession(connector=conn, cookie_jar=jar,
-                                               auth=aiohttp.BasicAuth(self._user,
-                                                                      self._password))
+                                               headers={"Authorization": f"Basic {token}"})
         try:
             await self._request("GET", "/", dict(self.api.query), what="login")
         except BaseException:

@@ -48,6 +48,7 @@ __all__ = ["RwsPeer"]
 log = logging.getLogger("robid.fake_controller.rws")
 
 REALM = "validusers@robapi.abb"
+_SESSION = web.RequestKey("session", str)
 _DIGEST_FIELD = re.compile(r'(\w+)=(?:"([^"]*)"|([^,\s]*))')
 
 
@@ -90,6 +91,7 @@ class RwsPeer(Peer):
         with os.fdopen(fd, "w") as fh:  # created owner-only: never readable by others
             fh.write(f"{self.user}:{given}\n")
         self.auth_attempts = self.logins = 0
+        self.issued: list[str] = []  # session cookies handed out (tests look for leaks)
         self._busy = core.faults_left if core.fault == "session_limit" else 0
         self._sessions: set[str] = set()
         self._nonces: set[str] = set()
@@ -234,7 +236,7 @@ class RwsPeer(Peer):
         if time.monotonic() < self._down_until:
             return _error(self.version, 503, "controller is starting")
         if request.cookies.get("-http-session-") in self._sessions:
-            request["session"] = request.cookies["-http-session-"]
+            request[_SESSION] = request.cookies["-http-session-"]
             return await self._checked(request, handler)
         header = request.headers.get("Authorization")
         if not header:
@@ -251,9 +253,10 @@ class RwsPeer(Peer):
             return _error(self.version, 503, "too many sessions")
         token = secrets.token_hex(16)
         self._sessions.add(token)
+        self.issued.append(token)
         self.logins += 1
         log.info("session %d opened for user %r", self.logins, self.user)
-        request["session"] = token
+        request[_SESSION] = token
         resp = await self._checked(request, handler)
         resp.set_cookie("-http-session-", token, httponly=True)
         resp.set_cookie("ABBCX", str(self.logins), httponly=True)
@@ -306,7 +309,7 @@ class RwsPeer(Peer):
         return web.json_response(_state(self.version, [{"_type": "rw-service"}]))
 
     async def _logout(self, request: web.Request) -> web.Response:
-        token = request.get("session")
+        token = request.get(_SESSION)
         self._sessions.discard(token)
         if self._master == token:
             self._master = None
@@ -314,12 +317,12 @@ class RwsPeer(Peer):
         return web.Response(status=204)
 
     def _is_master(self, request: web.Request) -> bool:
-        return self._master is not None and self._master == request.get("session")
+        return self._master is not None and self._master == request.get(_SESSION)
 
     async def _mastership_request(self, request: web.Request) -> web.Response:
-        if self._master not in (None, request.get("session")):
+        if self._master not in (None, request.get(_SESSION)):
             return _error(self.version, 403, "mastership held by another client")
-        self._master = request["session"]
+        self._master = request[_SESSION]
         return web.Response(status=204)
 
     async def _mastership_release(self, request: web.Request) -> web.Response:
@@ -379,7 +382,7 @@ class RwsPeer(Peer):
     async def _start(self, request: web.Request) -> web.Response:
         if self.exec_state == "running":
             return _error(self.version, 400, "execution is already running")
-        if self._master not in (None, request.get("session")):
+        if self._master not in (None, request.get(_SESSION)):
             return _error(self.version, 403, "mastership held by another client")
         exp, nonce = self.vars["robid_exp"], self.vars["robid_nonce"]
         self._set_exec("running")
@@ -402,7 +405,7 @@ class RwsPeer(Peer):
             return _error(self.version, 400, "unknown subscription resource")
         sid = str(next(self._ids))
         self._subs[sid] = {"resources": resources, "ws": None, "silent": False,
-                           "session": request["session"]}
+                           "session": request[_SESSION]}
         scheme = "wss" if self.tls else "ws"
         return web.Response(status=201, headers={
             "Location": f"{scheme}://127.0.0.1:{self.port}/poll/{sid}"})
@@ -417,7 +420,7 @@ class RwsPeer(Peer):
 
     async def _poll(self, request: web.Request) -> web.StreamResponse:
         sub = self._subs.get(request.match_info["id"])
-        if sub is None or sub["session"] != request.get("session") or sub["ws"] is not None:
+        if sub is None or sub["session"] != request.get(_SESSION) or sub["ws"] is not None:
             return _error(self.version, 404, "no such subscription")
         offered = [p.strip() for p in request.headers.get("Sec-WebSocket-Protocol",
                                                           "").split(",")]
@@ -546,6 +549,11 @@ class RwsPeer(Peer):
         if res.error is not None:
             self._in_loop(finish, error_value(nonce, res.error))
             return
+        if res.fault in ("restart", "silent_ws"):  # while the daemon waits on its socket
+            end = time.monotonic() + 10
+            while (not any(sub["ws"] is not None for sub in list(self._subs.values()))
+                   and time.monotonic() < end and not self._halt.wait(0.01)):
+                pass
         if res.fault == "restart":
             self._in_loop(self._restart)
         elif res.fault == "silent_ws":
