@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import hashlib
 import hmac
 import itertools
@@ -454,7 +455,12 @@ class RwsPeer(Peer):
             if resource in sub["resources"] and ws is not None and not sub["silent"]:
                 text = (f'<html><body><div class="state"><a href="subscription/{sid}" '
                         f'rel="group"></a><ul>{body}</ul></div></body></html>')
-                asyncio.ensure_future(ws.send_str(text))
+                asyncio.ensure_future(self._send(ws, text))
+
+    @staticmethod
+    async def _send(ws: web.WebSocketResponse, text: str) -> None:
+        with contextlib.suppress(ConnectionError, RuntimeError):  # a closing socket
+            await ws.send_str(text)
 
     def _notify_var(self, var: str) -> None:
         res = self._event_resource(var)
