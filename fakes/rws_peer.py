@@ -400,7 +400,7 @@ class RwsPeer(Peer):
     # -- subscriptions
     async def _subscribe(self, request: web.Request) -> web.Response:
         form = await request.post()
-        resources = [str(form[k]) for k in form.getall("resources", []) if k in form]
+        resources = [str(form[str(k)]) for k in form.getall("resources", []) if str(k) in form]
         known = {self._event_resource(v) for v in VARS} | {self.api.exec_event}
         if not resources or any(r not in known for r in resources):
             return _error(self.version, 400, "unknown subscription resource")
