@@ -1,6 +1,7 @@
 """`make bench`: figures printed as ratios against baselines measured in the same run.
 
-Sections: the file-share give→take hand-off (inotify, polling, the original 1 s loop); the
+Sections: the file-share give→take hand-off (inotify, polling, the original 1 s loop); the RWS
+link against the file share (hand-off, log transfer, `--only rws`); the
 batched regressor against a per-sample loop over Pinocchio's computeJointTorqueRegressor; the
 closed-loop plant; diagnose against identify; identify end-to-end on 1,000,000 samples.
 """
@@ -150,7 +151,7 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--samples", type=int, default=1_000_000)
     ap.add_argument("--only", choices=("identify", "regressor", "plant", "diagnose", "handoff",
-                                        "canopen"))
+                                        "canopen", "rws"))
     args = ap.parse_args()
     print("robid_link benchmarks (2-core machine; ratios are against baselines run here)\n")
     if args.only in (None, "handoff"):
@@ -166,6 +167,17 @@ def main() -> int:
         from benchmarks.cia402_sync import bench_canopen, report
 
         report(bench_canopen())
+    if args.only in (None, "rws"):
+        from benchmarks.rws import bench_rws
+
+        r = bench_rws()
+        base = r["file share (inotify)"]
+        for name, v in r.items():
+            if name != "log_mb":
+                print(f"give→take hand-off, {name:<22}: median {v['median_ms']:7.2f} ms, p99 "
+                      f"{v['p99_ms']:7.2f} ms over {v['n']:.0f}; {r['log_mb']:.1f} MB log "
+                      f"(60 s, 6 axes, 1 kHz) at {v['mb_s']:6.1f} MB/s "
+                      f"({v['mb_s'] / base['mb_s']:.2f}× the file share)")
     if args.only in (None, "regressor"):
         r = bench_regressor(100_000, 2048)
         print(f"regressor, 6 axes: {r['ours_us_per_sample']:.2f} µs/sample vs per-sample "

@@ -31,6 +31,17 @@ NAMES = sorted(set(registry.available_drivers()) & set(registry.available_peers(
 RATE_HZ = 200.0
 
 
+def _variants() -> list[Any]:
+    """Every driver with its peer, once per protocol variant the peer declares
+    (``contract_variants``, e.g. RWS 1.0 and 2.0)."""
+    out = []
+    for name in NAMES:
+        for opts in getattr(registry.peer_class(name), "contract_variants", ({},)):
+            tag = "-".join(f"{k}{v}" for k, v in opts.items())
+            out.append(pytest.param(name, dict(opts), id=f"{name}-{tag}" if tag else name))
+    return out
+
+
 @pytest.fixture(scope="module")
 def robot() -> Robot:
     return load_robot(ARM3)
@@ -44,15 +55,17 @@ def program(robot: Robot) -> MotionProgram:
 
 
 @contextlib.contextmanager
-def cell(name: str, tmp_path: Path, robot: Robot, **kw: Any) -> Iterator[tuple[Driver, Any]]:
-    """The driver ``name`` connected to its fake peer over the simulated arm3."""
+def cell(name: str, tmp_path: Path, robot: Robot, variant: dict[str, Any] | None = None,
+         **kw: Any) -> Iterator[tuple[Driver, Any]]:
+    """The driver ``name`` connected to its fake peer (options ``variant``) over arm3."""
     cls = registry.peer_class(name)
     fault = kw.get("fault")
     if fault in getattr(cls, "unsupported", {}):
         pytest.skip(f"{name}: {cls.unsupported[fault]}")
     work = tmp_path / "cell"
     work.mkdir(exist_ok=True)
-    peer = make_peer(name, robot, default_truth(robot, rate_hz=RATE_HZ), work, **kw)
+    peer = make_peer(name, robot, default_truth(robot, rate_hz=RATE_HZ), work,
+                     **(variant or {}), **kw)
     with peer:
         driver = registry.make_driver(peer.driver_options())
         driver.bind_robot(RobotInfo.of(robot))
@@ -82,20 +95,22 @@ def _parse(data: bytes) -> np.ndarray:
     return np.loadtxt(io.BytesIO(data), delimiter=",", skiprows=1, ndmin=2)
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name, variant", _variants())
 class TestContract:
-    def test_full_cycle_brings_back_the_plant_log(self, name: str, tmp_path: Path,
+    def test_full_cycle_brings_back_the_plant_log(self, name: str, variant: dict[str, Any],
+                                                  tmp_path: Path,
                                                   robot: Robot, program: MotionProgram) -> None:
-        with cell(name, tmp_path, robot) as (driver, peer):
+        with cell(name, tmp_path, robot, variant) as (driver, peer):
             arr = _parse(_cycle(driver, program))
         assert arr.shape[0] >= 0.5 * RATE_HZ and np.all(np.isfinite(arr))
         assert np.abs(arr[:, 1:4]).max() == pytest.approx(0.05, abs=0.01)  # the program's path
         assert len(peer.core.handled) == 1  # one give, one run
 
-    def test_no_answer_times_out_with_a_clear_error(self, name: str, tmp_path: Path,
+    def test_no_answer_times_out_with_a_clear_error(self, name: str, variant: dict[str, Any],
+                                                    tmp_path: Path,
                                                     robot: Robot, program: MotionProgram
                                                     ) -> None:
-        with cell(name, tmp_path, robot, fault="never_answer") as (driver, _):
+        with cell(name, tmp_path, robot, variant, fault="never_answer") as (driver, _):
             async def go() -> None:
                 async with driver:
                     await driver.put_program(program)
@@ -108,9 +123,10 @@ class TestContract:
             with pytest.raises(DriverTimeoutError, match=r"experiment exp1.*1 s"):
                 asyncio.run(go())
 
-    def test_answer_before_take_is_not_missed(self, name: str, tmp_path: Path, robot: Robot,
+    def test_answer_before_take_is_not_missed(self, name: str, variant: dict[str, Any],
+                                              tmp_path: Path, robot: Robot,
                                               program: MotionProgram) -> None:
-        with cell(name, tmp_path, robot) as (driver, peer):
+        with cell(name, tmp_path, robot, variant) as (driver, peer):
             async def go() -> Done:
                 async with driver:
                     await driver.put_program(program)
@@ -124,24 +140,27 @@ class TestContract:
             assert asyncio.run(go()).nonce == "n1"
 
     @pytest.mark.parametrize("fault", ["stale_semaphore", "answer_twice"])
-    def test_stale_and_duplicate_answers_are_ignored(self, name: str, tmp_path: Path,
+    def test_stale_and_duplicate_answers_are_ignored(self, name: str, variant: dict[str, Any],
+                                                     tmp_path: Path,
                                                      robot: Robot, program: MotionProgram,
                                                      fault: str) -> None:
-        with cell(name, tmp_path, robot, fault=fault) as (driver, _):
+        with cell(name, tmp_path, robot, variant, fault=fault) as (driver, _):
             arr = _parse(_cycle(driver, program))
         assert np.all(np.isfinite(arr))
 
     @pytest.mark.parametrize("fault", ["truncated_log", "corrupt_log"])
-    def test_checksum_catches_a_damaged_log(self, name: str, tmp_path: Path, robot: Robot,
+    def test_checksum_catches_a_damaged_log(self, name: str, variant: dict[str, Any],
+                                            tmp_path: Path, robot: Robot,
                                             program: MotionProgram, fault: str) -> None:
-        with cell(name, tmp_path, robot, fault=fault) as (driver, _):
+        with cell(name, tmp_path, robot, variant, fault=fault) as (driver, _):
             with pytest.raises(DriverError, match="checksum|truncated|CRC|corrupt"):
                 _cycle(driver, program)
 
-    def test_a_reported_failure_is_an_error_not_a_timeout(self, name: str, tmp_path: Path,
+    def test_a_reported_failure_is_an_error_not_a_timeout(self, name: str, variant: dict[str, Any],
+                                                          tmp_path: Path,
                                                           robot: Robot, program: MotionProgram
                                                           ) -> None:
-        with cell(name, tmp_path, robot, fault="fail") as (driver, _):
+        with cell(name, tmp_path, robot, variant, fault="fail") as (driver, _):
             t0 = time.monotonic()
             with pytest.raises(DriverError, match="exp1") as err:
                 _cycle(driver, program, timeout_s=30)
@@ -149,9 +168,10 @@ class TestContract:
         assert time.monotonic() - t0 < 25
 
     @pytest.mark.parametrize("bad", ["../etc", "a.b", "", "x" * 65, "a/b"])
-    def test_names_that_could_escape_are_refused(self, name: str, tmp_path: Path,
+    def test_names_that_could_escape_are_refused(self, name: str, variant: dict[str, Any],
+                                                 tmp_path: Path,
                                                  robot: Robot, bad: str) -> None:
-        with cell(name, tmp_path, robot) as (driver, _):
+        with cell(name, tmp_path, robot, variant) as (driver, _):
             async def go() -> None:
                 async with driver:
                     await driver.give_ready(bad, "n1")
@@ -159,8 +179,9 @@ class TestContract:
             with pytest.raises(DriverError, match="expected 1-64 letters"):
                 asyncio.run(go())
 
-    def test_life_cycle(self, name: str, tmp_path: Path, robot: Robot) -> None:
-        with cell(name, tmp_path, robot) as (driver, _):
+    def test_life_cycle(self, name: str, variant: dict[str, Any],
+                        tmp_path: Path, robot: Robot) -> None:
+        with cell(name, tmp_path, robot, variant) as (driver, _):
             with pytest.raises(DriverError, match="not open"):
                 asyncio.run(driver.give_ready("exp1", "n1"))
 
@@ -173,9 +194,9 @@ class TestContract:
 
             asyncio.run(go())
 
-    def test_unknown_option_names_the_key(self, name: str, tmp_path: Path,
+    def test_unknown_option_names_the_key(self, name: str, variant: dict[str, Any], tmp_path: Path,
                                           robot: Robot) -> None:
-        with cell(name, tmp_path, robot) as (_, peer):
+        with cell(name, tmp_path, robot, variant) as (_, peer):
             with pytest.raises(ConfigError, match=rf"driver\.colour: unknown option for "
                                                   rf"driver '{name}'"):
                 registry.make_driver({**peer.driver_options(), "colour": 1})

@@ -1,0 +1,450 @@
+"""The link over ABB Robot Web Services (RobComm's successor): RWS 1.0 on IRC5 (Digest auth),
+RWS 2.0 on OmniCore (Basic auth over HTTPS), one driver, the differences in ``rws_api.API``.
+
+put: the RAPID module and the neutral trajectory through the file service, then ``loadmod``
+under RAPID mastership; give: ``robid_exp``/``robid_nonce`` and start; take: a websocket
+subscription on ``robid_done`` and the execution state (no polling), re-made after a restart
+or a silent socket and followed each time by asking the state; fetch: the log through the file
+service. aiohttp: a maintained asyncio HTTP client with Digest auth (``DigestAuthMiddleware``),
+a websocket client, and a server for the fake (one library, no second event loop or thread).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import contextlib
+import hashlib
+import ipaddress
+import json
+import logging
+import random
+import re
+import ssl
+from collections.abc import AsyncIterator, Mapping
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlencode
+
+import aiohttp
+from yarl import URL
+
+from robid_link.drivers.rapid import MAX_AXES, render_rapid
+from robid_link.drivers.rws_api import (
+    API,
+    HOME,
+    log_file,
+    parse_done,
+    parse_rapid_string,
+    program_file,
+    rapid_string,
+    read_credentials,
+    rws_module,
+)
+from robid_link.exceptions import ConfigError, DriverError
+from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver, MotionProgram, RobotInfo
+
+__all__ = ["AbbRwsDriver"]
+
+log = logging.getLogger("robid.driver.abb_rws")
+
+_IDENT = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,31}$")
+_START = {"regain": "continue", "execmode": "continue", "cycle": "once", "condition": "none",
+          "stopatbp": "disabled", "alltaskbytsp": "false"}
+
+
+class _Lost(Exception):
+    """The subscription's websocket closed or went silent: subscribe again, then ask."""
+
+
+class _Unavailable(DriverError):
+    """The controller did not answer (503, refused connection) within the bounded retries."""
+
+
+def _number(key: str, value: Any, minimum: float = 0.0) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not value > minimum:
+        raise ConfigError(f"driver.{key}: expected a number > {minimum:g}, got {value!r}")
+    return float(value)
+
+
+def _flag(key: str, value: Any) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(f"driver.{key}: expected true or false, got {value!r}")
+    return value
+
+
+def _loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+class AbbRwsDriver(Driver):
+    """Daemon side of the RWS link. Options: ``url`` (http(s)://controller[:port]),
+    ``version`` (1: IRC5, 2: OmniCore), ``credentials_file`` (owner-only), ``task``,
+    ``module`` (the installed robid RAPID module), ``ca_file``, ``verify_tls``,
+    ``insecure_skip_verify``, ``ping_interval_s`` (the controller's websocket ping period; two
+    missed pings = a lost link), ``request_timeout_s``, ``retries``, ``backoff_s``."""
+
+    name = "abb_rws"
+    capabilities = frozenset({CAP_RAPID, CAP_UPLOAD})
+    options = frozenset({"url", "version", "credentials_file", "task", "module", "ca_file",
+                         "verify_tls", "insecure_skip_verify", "ping_interval_s",
+                         "request_timeout_s", "retries", "backoff_s"})
+
+    def __init__(self, *, url: str | None = None, version: int | None = None,
+                 credentials_file: str | None = None, task: str = "T_ROB1",
+                 module: str = "robid", ca_file: str | None = None, verify_tls: bool = True,
+                 insecure_skip_verify: bool = False, ping_interval_s: float = 30.0,
+                 request_timeout_s: float = 10.0, retries: int = 5,
+                 backoff_s: float = 0.5) -> None:
+        super().__init__()
+        if version not in (1, 2) or isinstance(version, bool):
+            raise ConfigError(f"driver.version: expected 1 (RWS 1.0, IRC5) or 2 (RWS 2.0, "
+                              f"OmniCore), got {version!r}")
+        self.api = API[version]
+        self._url = self._check_url(url, version)
+        if credentials_file is None:
+            raise ConfigError("driver.credentials_file: missing (a file with the RWS user and "
+                              "password, readable only by the daemon's user)")
+        self.credentials_file = str(credentials_file)
+        self._user, self._password = read_credentials(credentials_file)
+        for key, val in (("task", task), ("module", module)):
+            if not isinstance(val, str) or not _IDENT.match(val):
+                raise ConfigError(f"driver.{key}: expected a RAPID name, got {val!r}")
+        self.task, self.module = task, module
+        self._ssl = self._tls(ca_file, _flag("verify_tls", verify_tls),
+                              _flag("insecure_skip_verify", insecure_skip_verify))
+        self._ping_s = _number("ping_interval_s", ping_interval_s)
+        self._request_s = _number("request_timeout_s", request_timeout_s)
+        self._backoff_s = _number("backoff_s", backoff_s)
+        if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
+            raise ConfigError(f"driver.retries: expected a whole number >= 0, got {retries!r}")
+        self._retries = retries
+        self._http: aiohttp.ClientSession | None = None
+
+    @staticmethod
+    def _check_url(url: Any, version: int) -> URL:
+        if not isinstance(url, str):
+            raise ConfigError("driver.url: missing (http(s)://controller[:port])")
+        u = URL(url)
+        if u.scheme not in ("http", "https") or not u.host or u.path not in ("", "/"):
+            raise ConfigError(f"driver.url: expected http(s)://host[:port], got {url!r}")
+        if version == 2 and u.scheme == "http" and not _loopback(u.host):
+            raise ConfigError("driver.url: RWS 2.0 sends the password with every request "
+                              "(Basic auth): use https://")
+        return u.with_path("/")
+
+    def _tls(self, ca_file: str | None, verify: bool, insecure: bool) -> ssl.SSLContext | bool:
+        if not verify and not insecure:
+            raise ConfigError("driver.verify_tls: false needs driver.insecure_skip_verify: "
+                              "true as well (verification is only turned off explicitly)")
+        if insecure:
+            return False
+        if ca_file is not None and not Path(ca_file).is_file():
+            raise ConfigError(f"driver.ca_file: {ca_file}: file not found")
+        if self._url.scheme != "https":
+            return True
+        try:
+            return ssl.create_default_context(cafile=ca_file)
+        except (OSError, ssl.SSLError) as err:
+            raise ConfigError(f"driver.ca_file: {ca_file}: not a PEM certificate ({err})"
+                              ) from err
+
+    def _check_robot(self, robot: RobotInfo) -> None:
+        if robot.n > MAX_AXES:
+            raise ConfigError(f"driver.name: RAPID joint targets hold at most {MAX_AXES} axes, "
+                              f"robot {robot.name} has {robot.n}")
+
+    # -- HTTP
+    async def _open(self) -> None:
+        jar = aiohttp.CookieJar(unsafe=True)  # controllers are addressed by IP
+        conn = aiohttp.TCPConnector(ssl=self._ssl, limit=4)
+        if self.api.version == 1:
+            self._http = aiohttp.ClientSession(
+                connector=conn, cookie_jar=jar,
+                middlewares=(aiohttp.DigestAuthMiddleware(self._user, self._password),))
+        else:
+            # Basic on every request (no redirects are followed: it never reaches another
+            # host); built by hand, aiohttp deprecates BasicAuth after 3.12
+            token = base64.b64encode(f"{self._user}:{self._password}".encode()).decode()
+            self._http = aiohttp.ClientSession(connector=conn, cookie_jar=jar,
+                                               headers={"Authorization": f"Basic {token}"})
+        try:
+            await self._request("GET", "/", dict(self.api.query), what="login")
+        except BaseException:
+            await self._http.close()
+            raise
+        log.info("driver=abb_rws url=%s rws=%d.0 user=%s session open", self._url,
+                 self.api.version, self._user)
+
+    async def _close(self) -> None:
+        http, self._http = self._http, None
+        if http is None:
+            return
+        try:
+            async with asyncio.timeout(min(self._request_s, 3.0)):
+                async with http.get(self._url.with_path("/logout"),
+                                    params=dict(self.api.query)) as resp:
+                    await resp.read()
+        except (aiohttp.ClientError, OSError, TimeoutError) as err:
+            log.info("driver=abb_rws logout failed (%s); the controller drops the session "
+                     "itself", type(err).__name__)
+        finally:
+            await http.close()
+
+    async def _request(self, method: str, path: str, query: Mapping[str, str] | None = None,
+                       *, form: Mapping[str, str] | list[tuple[str, str]] | None = None,
+                       raw: bytes | None = None, what: str, ok: tuple[int, ...] = (200, 201,
+                                                                                    204),
+                       missing_ok: bool = False, retries: int | None = None
+                       ) -> tuple[int, bytes, Any]:
+        """One RWS call with bounded, jittered retries on 503 (session limit, start-up) and
+        lost connections; 401 and TLS failures are refused at once, in one line."""
+        assert self._http is not None
+        url = self._url.with_path(path, encoded=True)
+        headers = {} if path.startswith("/fileservice") else self.api.headers(form is not None)
+        data = urlencode(form).encode() if form is not None else raw
+        last = ""
+        retries = self._retries if retries is None else retries
+        for attempt in range(retries + 1):
+            try:
+                async with asyncio.timeout(self._request_s):
+                    async with self._http.request(method, url, params=query, data=data,
+                                                  headers=headers,
+                                                  allow_redirects=False) as resp:
+                        body, status, rh = await resp.read(), resp.status, resp.headers
+            except aiohttp.ClientConnectorCertificateError as err:
+                raise DriverError(f"{self.name}: {self._url}: TLS certificate verification "
+                                  f"failed ({err.certificate_error}); give driver.ca_file, or "
+                                  "set driver.insecure_skip_verify: true") from err
+            except aiohttp.ClientSSLError as err:
+                raise DriverError(f"{self.name}: {self._url}: TLS failed ({err})") from err
+            except (aiohttp.ClientError, OSError, TimeoutError) as err:
+                last = f"{type(err).__name__}: {err}".splitlines()[0][:160]
+            else:
+                if status in ok or (missing_ok and status == 404):
+                    return status, body, rh
+                if status == 401:
+                    raise DriverError(f"{self.name}: {self._url}: login refused (HTTP 401): "
+                                      f"check the user and password in {self.credentials_file}")
+                if status != 503:
+                    raise DriverError(f"{self.name}: {what}: HTTP {status}"
+                                      f"{self._rws_message(body)}")
+                last = "HTTP 503 (too many sessions, or the controller is starting)"
+            if attempt < retries:
+                delay = min(self._backoff_s * 2 ** attempt, 10.0) * random.uniform(0.5, 1.5)
+                log.warning("driver=abb_rws %s: %s; retry %d/%d in %.2f s", what, last,
+                            attempt + 1, retries, delay)
+                await asyncio.sleep(delay)
+        raise _Unavailable(f"{self.name}: {what}: controller unavailable after "
+                           f"{retries + 1} attempt{'s' if retries else ''} ({last})")
+
+    def _rws_message(self, body: bytes) -> str:
+        try:
+            doc = json.loads(body)
+        except ValueError:
+            return ""
+        status = (doc.get("_embedded", doc) if isinstance(doc, dict) else {}).get("status", {})
+        msg = status.get("msg") if isinstance(status, dict) else None
+        return f": {str(msg)[:160]}" if msg else ""
+
+    async def _call(self, which: str, form: Mapping[str, str] | None = None, *,
+                    what: str, **names: str) -> Any:
+        """An action of the version table; a JSON answer parsed, else None."""
+        path, query = self.api.path(which, task=self.task, module=self.module, **names)
+        method = "GET" if form is None and which in ("symbol", "execution") else "POST"
+        _, body, _ = await self._request(method, path, query, form=form if method == "POST"
+                                         else None, what=what)
+        return json.loads(body) if body.strip() else None
+
+    async def _get_var(self, var: str) -> str:
+        doc = await self._call("symbol", what=f"read {var}", var=var)
+        state = self.api.state(doc)
+        if not state or "value" not in state[0]:
+            raise DriverError(f"{self.name}: read {var}: no value in the answer")
+        return parse_rapid_string(str(state[0]["value"]))
+
+    async def _set_var(self, var: str, value: str) -> None:
+        await self._call("symbol_set", {"value": rapid_string(value)}, what=f"write {var}",
+                         var=var)
+
+    async def _exec_state(self) -> str:
+        state = self.api.state(await self._call("execution", what="execution state"))
+        if not state or "ctrlexecstate" not in state[0]:
+            raise DriverError(f"{self.name}: execution state: no ctrlexecstate in the answer")
+        return str(state[0]["ctrlexecstate"])
+
+    @contextlib.asynccontextmanager
+    async def _mastership(self) -> AsyncIterator[None]:
+        await self._call("mastership_request", {}, what="request RAPID mastership")
+        try:
+            yield
+        finally:
+            await self._call("mastership_release", {}, what="release RAPID mastership")
+
+    async def _put_file(self, remote: str, data: bytes) -> None:
+        await self._request("PUT", f"/fileservice/{remote}", raw=data, what=f"upload {remote}")
+
+    # -- the cycle
+    async def _put_program(self, program: MotionProgram) -> None:
+        module = rws_module(render_rapid(program))
+        exp = program.exp_id
+        for suffix, data in (("traj.csv", program.files["traj.csv"]),
+                             ("traj.yaml", program.files["traj.yaml"]), ("mod", module)):
+            await self._put_file(program_file(exp, suffix), data)
+        if await self._exec_state() == "running":
+            if await self._get_var("robid_exp") == exp:  # given before a daemon restart
+                log.info("driver=abb_rws exp=%s already running; module left as loaded", exp)
+                return
+            raise DriverError(f"{self.name}: RAPID execution is running another program; "
+                              f"refusing to load experiment {exp}")
+        async with self._mastership():
+            await self._call("loadmod", {"modulepath": program_file(exp, "mod"),
+                                         "replace": "true"}, what=f"load module of {exp}")
+
+    async def _give_ready(self, exp_id: str, nonce: str) -> None:
+        if (await self._get_var("robid_nonce") == nonce
+                and await self._get_var("robid_exp") == exp_id):
+            return  # given before a restart: giving again must not start it twice
+        if await self._exec_state() == "running":
+            raise DriverError(f"{self.name}: RAPID execution is running; refusing to start "
+                              f"experiment {exp_id}")
+        async with self._mastership():
+            await self._set_var("robid_done", "")
+            await self._set_var("robid_exp", exp_id)
+            await self._set_var("robid_nonce", nonce)  # last: the mark that it was given
+            await self._call("exec_resetpp", {}, what="reset the program pointer")
+        await self._call("exec_start", _START, what=f"start experiment {exp_id}")
+        log.info("driver=abb_rws exp=%s nonce=%s started", exp_id, nonce)
+
+    async def _wait_done(self, exp_id: str, nonce: str) -> Done:
+        lost = 0
+        while True:
+            try:
+                async with self._subscription() as ws:
+                    while True:  # ask after subscribing and after every event
+                        done = await self._ask(exp_id, nonce)
+                        if done is not None:
+                            return done
+                        await self._next_event(ws)
+            except (_Lost, _Unavailable) as err:
+                lost += 1
+                delay = min(self._backoff_s * 2 ** min(lost, 4), 5.0) * random.uniform(0.5, 1.5)
+                log.warning("driver=abb_rws exp=%s subscription lost (%s); subscribing again in "
+                            "%.2f s and asking the state", exp_id, err, delay)
+                await asyncio.sleep(delay)
+
+    async def _ask(self, exp_id: str, nonce: str) -> Done | None:
+        """The state as the controller has it now: ours done, ours failed, or still running."""
+        done = await self._look(exp_id, nonce)
+        if done is not None or await self._exec_state() != "stopped":
+            return done
+        done = await self._look(exp_id, nonce)  # a program writes robid_done before it ends
+        if done is None and await self._get_var("robid_nonce") == nonce:
+            raise DriverError(f"{self.name}: RAPID execution stopped during experiment {exp_id} "
+                              "without a 'done' (execution error: see the controller's event "
+                              "log)")
+        return done
+
+    async def _look(self, exp_id: str, nonce: str) -> Done | None:
+        parsed = parse_done(await self._get_var("robid_done"))
+        if parsed is None:
+            return None
+        kind, got, a, size = parsed
+        if got != nonce:
+            log.warning("driver=abb_rws exp=%s stale answer for nonce %s (waiting for %s; "
+                        "ignored)", exp_id, got, nonce)
+            return None
+        if kind == "error":
+            raise DriverError(f"controller reports experiment {exp_id} failed: {a}")
+        return Done(exp_id, nonce, str(a), size)
+
+    @contextlib.asynccontextmanager
+    async def _subscription(self) -> AsyncIterator[aiohttp.ClientWebSocketResponse]:
+        assert self._http is not None
+        a = self.api
+        done_res = a.symbol_event.format(task=self.task, module=self.module, var="robid_done")
+        form = [("resources", "1"), ("1", done_res), ("1-p", "1"),
+                ("resources", "2"), ("2", a.exec_event), ("2-p", "1")]
+        _, _, headers = await self._request("POST", "/subscription", dict(a.query), form=form,
+                                            what="subscribe", ok=(201,))
+        loc = URL(headers.get("Location", ""))
+        if not loc.path.startswith("/poll/"):
+            raise DriverError(f"{self.name}: subscribe: no websocket /poll/ location in the "
+                              "answer")
+        # the socket goes to the controller we logged in to, whatever host Location names
+        ws_url = self._url.with_scheme("wss" if self._url.scheme == "https" else "ws"
+                                       ).with_path(loc.path)
+        try:
+            async with asyncio.timeout(self._request_s):
+                ws = await self._http.ws_connect(ws_url, protocols=(a.subprotocol,),
+                                                 autoping=False)
+        except (aiohttp.ClientError, OSError, TimeoutError) as err:
+            raise _Lost(f"websocket: {type(err).__name__}") from err
+        try:
+            yield ws
+        finally:
+            await ws.close()
+            with contextlib.suppress(DriverError, aiohttp.ClientError, OSError):
+                await self._request("DELETE", f"/subscription/{loc.name}", what="unsubscribe",
+                                    missing_ok=True, retries=0)
+
+    async def _next_event(self, ws: aiohttp.ClientWebSocketResponse) -> str:
+        """The next event's text; the controller's pings answered on the way. Two ping periods
+        without a frame, or a closed socket, is a lost link."""
+        while True:
+            try:
+                async with asyncio.timeout(2 * self._ping_s):
+                    msg = await ws.receive()
+            except TimeoutError:
+                raise _Lost(f"no ping or event for {2 * self._ping_s:g} s") from None
+            if msg.type == aiohttp.WSMsgType.PING:
+                await ws.pong(msg.data)
+            elif msg.type == aiohttp.WSMsgType.TEXT:
+                return str(msg.data)
+            elif msg.type != aiohttp.WSMsgType.PONG:
+                raise _Lost(f"websocket {msg.type.name.lower()}")
+
+    async def _fetch_logs(self, done: Done) -> bytes:
+        remote = log_file(done.exp_id, done.nonce)
+        status, body, _ = await self._request("GET", f"/fileservice/{remote}",
+                                              what=f"download {remote}", missing_ok=True)
+        if status == 404:
+            raise DriverError(f"{self.name}: {remote}: log missing although 'done' was given")
+        return body
+
+    async def _withdraw(self, exp_id: str, nonce: str) -> None:
+        if (await self._get_var("robid_nonce") == nonce
+                and await self._exec_state() == "running"):
+            log.warning("driver=abb_rws exp=%s nonce=%s given up: stopping RAPID execution",
+                        exp_id, nonce)
+            await self._call("exec_stop", {"stopmode": "stop"}, what=f"stop {exp_id}")
+
+    async def _upload_parameters(self, doc: Mapping[str, Any], body: bytes) -> None:
+        """The set's file through the file service, its path into ``robid_params``; the
+        robid module loads it and answers ``robid_params_ack`` = ``<sha16> OK`` (or
+        ``<sha16> ERR <reason>``). A rare operation: the answer is read every 0.2 s under
+        the caller's timeout."""
+        robot = re.sub(r"[^A-Za-z0-9_\-]", "_", str(doc.get("robot", "robot")))[:40]
+        tag = hashlib.sha256(body).hexdigest()[:16]
+        remote = f"{HOME}/params/{robot}.{tag}.json"
+        await self._put_file(remote, body)
+        async with self._mastership():
+            await self._set_var("robid_params_ack", "")
+            await self._set_var("robid_params", remote)
+        while True:
+            ack = await self._get_var("robid_params_ack")
+            if ack.startswith(f"{tag} OK"):
+                return
+            if ack.startswith(f"{tag} ERR"):
+                raise DriverError(f"{self.name}: the controller refused parameter set {tag}: "
+                                  f"{ack.split(' ', 2)[-1]}")
+            await asyncio.sleep(0.2)
+
+    async def _withdraw_parameters(self, doc: Mapping[str, Any], body: bytes) -> None:
+        async with self._mastership():
+            await self._set_var("robid_params", "")
