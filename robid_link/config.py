@@ -13,6 +13,7 @@ from typing import Any
 import yaml
 
 from robid_link.exceptions import ConfigError, RobidError
+from robid_link.safeyaml import load_yaml_file
 
 __all__ = ["read_yaml_mapping", "load_daemon_config", "DaemonConfig", "CampaignDef",
            "ExperimentDef"]
@@ -27,7 +28,7 @@ def read_yaml_mapping(path: str | Path, what: str, error: type[RobidError] = Con
             raise error(f"{p}: {what} not found")
         return {}
     try:
-        doc = yaml.safe_load(p.read_text())
+        doc = load_yaml_file(p, error=error)
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
