@@ -251,8 +251,8 @@ def _csv_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.n
     known = {"t"} | {f"{k}{j}" for k in ("q", "qd", "qdd", "tau") for j in range(1, n + 1)}
     extra = [h for h in header if h not in known]
     if extra:
-        raise DataError(f"{p}: unexpected column {extra[0][:30]} (expected t, q1..q{n}, tau1..tau{n}, "
-                        f"optional qd1..qd{n}, qdd1..qdd{n})")
+        raise DataError(f"{p}: unexpected column {extra[0][:30]} (expected t, q1..q{n}, "
+                        f"tau1..tau{n}, optional qd1..qd{n}, qdd1..qdd{n})")
     return out
 
 

@@ -7,7 +7,7 @@ q_j(t) = q0_j + Σ_l a_jl/(l ω) sin(l ω t) − b_jl/(l ω) cos(l ω t), with a
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -207,18 +207,24 @@ def random_fourier(robot: Robot, *, harmonics: int = 5, base_hz: float = 0.1,
 
 def optimize_fourier(robot: Robot, *, harmonics: int = 8, base_hz: float = 0.1,
                      model: Model = DEFAULT_MODEL, seed: int = 0, evaluations: int = 2500,
-                     restarts: int = 3) -> tuple[FourierTrajectory, float]:
+                     restarts: int = 3, progress: Callable[[str], None] | None = None
+                     ) -> tuple[FourierTrajectory, float]:
     """Minimise the condition number of the column-scaled base regressor (Swevers), within
     the limits, starting and ending at rest. Returns the trajectory and its condition number.
 
     A (1+1) evolution strategy with the 1/5 success rule, best of ``restarts`` runs: the
     limit scaling makes the objective non-smooth, where gradient methods stall. Torque
     limits of the a-priori model are enforced once on the result (they shrink the
-    amplitude, gravity stays).
+    amplitude, gravity stays). ``progress`` gets a line per block of evaluations and restart.
     """
     best: tuple[FourierTrajectory, float] | None = None
     for r in range(restarts):
-        cand = _evolve(robot, harmonics, base_hz, model, seed * 1000 + r, evaluations)
+        def report(k: int, cond: float, r: int = r) -> None:
+            if progress is not None:
+                progress(f"restart {r + 1}/{restarts}: {k}/{evaluations} evaluations, "
+                         f"condition number {cond:.4g}")
+
+        cand = _evolve(robot, harmonics, base_hz, model, seed * 1000 + r, evaluations, report)
         if best is None or cand[1] < best[1]:
             best = cand
     assert best is not None
@@ -226,7 +232,8 @@ def optimize_fourier(robot: Robot, *, harmonics: int = 8, base_hz: float = 0.1,
 
 
 def _evolve(robot: Robot, harmonics: int, base_hz: float, model: Model, seed: int,
-            evaluations: int) -> tuple[FourierTrajectory, float]:
+            evaluations: int, report: Callable[[int, float], None] | None = None
+            ) -> tuple[FourierTrajectory, float]:
     n, L = robot.n, harmonics
     lo, hi = _q_bounds(robot)
     rng = np.random.default_rng(seed)
@@ -245,7 +252,10 @@ def _evolve(robot: Robot, harmonics: int, base_hz: float, model: Model, seed: in
     x = np.concatenate((rng.normal(size=2 * n * L), np.zeros(n)))
     fx = cost(x)
     sigma = 0.3
-    for _ in range(evaluations):
+    block = max(1, evaluations // 5)
+    for k in range(evaluations):
+        if report is not None and k and k % block == 0:
+            report(k, math.exp(fx))
         y = x + sigma * rng.normal(size=x.size)
         fy = cost(y)
         if fy < fx:
@@ -255,7 +265,10 @@ def _evolve(robot: Robot, harmonics: int, base_hz: float, model: Model, seed: in
             sigma *= 1.5 ** (-0.25)
         sigma = min(max(sigma, 1e-3), 2.0)
     traj = fit_limits(robot, unpack(x).scaled(1.0 / LIMIT_MARGIN))
-    return traj, excitation_condition(robot, traj, model)
+    cond = excitation_condition(robot, traj, model)
+    if report is not None:
+        report(evaluations, cond)
+    return traj, cond
 
 
 def constant_velocity_sweeps(robot: Robot, joint: int, speeds: Sequence[float],

@@ -172,7 +172,7 @@ def _fake_controller(args: argparse.Namespace) -> int:
         if not sep or not key.isidentifier():
             raise RobidError(f"--option {item!r}: expected KEY=VALUE")
         options[key] = load_yaml(value, f"--option {key}", error=RobidError)
-    robot = load_robot(args.robot, args.lock)
+    robot = load_robot(args.robot, args.lock, allow_unlimited=args.allow_unlimited)
     ctrl = fake_module("controller")
     truth = (fake_module("plant").load_truth(args.truth, robot) if args.truth
              else ctrl.default_truth(robot))
