@@ -207,7 +207,10 @@ def _one_line_warnings() -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as exc:  # a usage error (already printed in one line), --help, --version
+        return exc.code if isinstance(exc.code, int) else 2
     _one_line_warnings()
     try:
         return int(_dispatch(args) or 0)
