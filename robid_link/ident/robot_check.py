@@ -143,7 +143,8 @@ def _check_joint(joint: ET.Element, p: Path, seen: set[str], links: set[str]) ->
     if limit is None:
         if kind == "continuous":
             return UrdfJoint(name, kind)
-        return UrdfJoint(name, kind, limit_problem="no <limit> element")
+        raise RobotError(f"{p}: {where}: a {kind} joint needs a <limit> element (lower, upper, "
+                         "effort, velocity)")
     caps = {}
     for key in ("effort", "velocity"):
         if limit.get(key) is None:
