@@ -326,7 +326,8 @@ def test_non_string_paths_in_configs(tmp_path):
 # ----------------------------------------------------------------------------- wrong successes
 
 def test_unparsable_urdf_mass_is_not_zero(tmp_path):
-    for mass, problem in (("heavy", "mass: expected a finite number"), ("-2", "mass -2 is negative")):
+    for mass, problem in (("heavy", "mass: expected a finite number"),
+                          ("-2", "mass -2 is negative")):
         p = urdf(tmp_path, mass=mass)
         with pytest.raises(RobidError, match=f"link 'l1': {problem}") as exc:
             load_robot(p)
