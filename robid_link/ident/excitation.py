@@ -363,7 +363,8 @@ def read_trajectory(path: str | Path) -> Trajectory:
         raise ConfigError(f"{y}: kind: expected fourier, sweep, stepped_sine or custom")
     rate = meta["rate_hz"]
     if not _finite_number(rate) or not 0 < rate <= 100_000:
-        raise ConfigError(f"{y}: rate_hz: expected a number in (0, 100000], got {str(rate)[:30]}")
+        raise ConfigError(f"{y}: rate_hz: expected a number in (0, 100000], got "
+                          f"{repr(rate)[:30]}")
     rate = float(rate)
     header, arr = read_numeric_csv(p, ConfigError, "a header t,q1..qn", max_bytes=1 << 30)
     n = len(header) - 1
