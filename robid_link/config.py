@@ -6,6 +6,7 @@ Robot, model, truth and trajectory files validate their own keys on top of the r
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -100,7 +101,8 @@ def _num(doc: dict[str, Any], key: str, where: str, default: Any, *, positive: b
     if v is None:
         return None
     kinds = int if integer else (int, float)
-    if isinstance(v, bool) or not isinstance(v, kinds) or (v <= 0 if positive else v < 0):
+    if (isinstance(v, bool) or not isinstance(v, kinds)
+            or not (isinstance(v, int) or math.isfinite(v)) or (v <= 0 if positive else v < 0)):
         sign = "a positive" if positive else "a non-negative"
         raise ConfigError(f"{where}.{key}: expected {sign} {'integer' if integer else 'number'}"
                           f", got {v!r}")

@@ -13,7 +13,6 @@ import io
 import json
 import os
 import signal
-import sys
 import time
 import warnings
 from collections import Counter
@@ -587,16 +586,17 @@ def test_fuzz_cli_files(work, capsys, name, text):
     check_cli(f"CLI --{name} file", argv[name], capsys)
 
 
-def test_zz_fuzz_counts():
+def test_zz_fuzz_counts(capsys):
     """The tally of this module's run: printed for the closing note, checked in validate."""
     if not COUNTS:
         pytest.skip("no fuzz test ran")
     total = sum(COUNTS.values())
-    line = ", ".join(f"{k} {v}" for k, v in sorted(COUNTS.items()))
-    sys.__stderr__.write(f"\nfuzz: {total} malformed inputs ({line}); tracebacks "
-                         f"{sum('traceback' in f for f in FAILURES)}, hangs "
-                         f"{sum('hang' in f for f in FAILURES)}, wrong successes "
-                         f"{sum('wrong success' in f for f in FAILURES)}\n")
+    kinds = ", ".join(f"{k} {v}" for k, v in sorted(COUNTS.items()))
+    with capsys.disabled():
+        print(f"\nfuzz: {total} malformed inputs ({kinds}); tracebacks "
+              f"{sum('traceback' in f for f in FAILURES)}, hangs "
+              f"{sum('hang' in f for f in FAILURES)}, wrong successes "
+              f"{sum('wrong success' in f for f in FAILURES)}")
     assert not FAILURES, FAILURES[:5]
     if SLOW:
         assert total >= 1000
