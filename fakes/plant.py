@@ -19,6 +19,7 @@ from robid_link.config import read_yaml_mapping
 from robid_link.exceptions import ConfigError
 from robid_link.ident.effects import moving_sign
 from robid_link.ident.robot import Robot
+from robid_link.ident.robot_check import inertia_problem
 
 __all__ = ["Truth", "Plant", "perturbed_inertials", "load_truth", "EFFECT_PARAMS"]
 
@@ -40,6 +41,11 @@ EFFECT_PARAMS: dict[str, tuple[tuple[str, ...], dict[str, float]]] = {
     "elasticity": (("k", "d", "jm"), {}),
 }
 GLOBAL_EFFECTS = {"delay", "payload"}
+#: parameters that must be > 0 (a division or an exponent) or ≥ 0 (a physical magnitude)
+_POSITIVE = {"period", "vs", "shape", "tau_s", "alpha", "jm"}
+_NON_NEGATIVE = {"fv", "fc", "fs", "fc_pos", "fc_neg", "ia", "mu", "mass", "k", "d", "a"}
+#: bounds that keep a simulation finite: a rate beyond any controller, spreads below 100 %
+MAX_RATE_HZ = 100_000.0
 CLOSED_LOOP_ONLY = {"elasticity"}
 
 
@@ -85,8 +91,8 @@ def _check_effects(entries: Any, n: int, where: str) -> tuple[dict[str, Any], ..
         if not isinstance(e, dict) or "name" not in e:
             raise ConfigError(f"{w}: expected a mapping with 'name'")
         name = e["name"]
-        if name not in EFFECT_PARAMS:
-            raise ConfigError(f"{w}: unknown plant effect '{name}' "
+        if not isinstance(name, str) or name not in EFFECT_PARAMS:
+            raise ConfigError(f"{w}: unknown plant effect {_short(name)} "
                               f"(known: {', '.join(sorted(EFFECT_PARAMS))})")
         req, opt = EFFECT_PARAMS[name]
         joint = e.get("joint")
@@ -98,17 +104,77 @@ def _check_effects(entries: Any, n: int, where: str) -> tuple[dict[str, Any], ..
         for key in req:
             if key not in e:
                 raise ConfigError(f"{w}.{key}: missing (a '{name}' needs {', '.join(req)})")
-        bad = set(e) - {"name", "joint", *req, *opt}
+        bad = sorted(map(str, set(e) - {"name", "joint", *req, *opt}))
         if bad:
-            raise ConfigError(f"{w}: '{name}' has no parameter '{sorted(bad)[0]}'")
+            raise ConfigError(f"{w}: '{name}' has no parameter {_short(bad[0])}")
         for key in (*req, *opt):
             v = e.get(key, opt.get(key))
             if key == "com" and isinstance(v, list):
+                if len(v) != 3 or not all(_finite(x) for x in v):
+                    raise ConfigError(f"{w}.com: expected 3 finite numbers")
                 continue
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-                raise ConfigError(f"{w}.{key}: expected a finite number")
+            if not _finite(v):
+                raise ConfigError(f"{w}.{key}: expected a finite number, got {_short(v)}")
+            if key in _POSITIVE and v <= 0 or key in _NON_NEGATIVE and v < 0:
+                sign = "positive" if key in _POSITIVE else "non-negative"
+                raise ConfigError(f"{w}.{key}: expected a {sign} number, got {v!r}")
+            if key == "seconds" and abs(v) > 10:
+                raise ConfigError(f"{w}.seconds: expected a delay within ±10 s, got {v!r}")
         out.append({**opt, **e})
     return tuple(out)
+
+
+def _finite(v: Any) -> bool:
+    try:
+        return not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v)
+    except OverflowError:  # an integer beyond float range
+        return False
+
+
+def _short(x: Any) -> str:
+    text = repr(x)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _number(v: Any, where: str, lo: float, hi: float, *, integer: bool = False) -> float:
+    kinds = int if integer else int | float
+    if not (_finite(v) and isinstance(v, kinds) and lo <= v <= hi):
+        kind = "a whole number" if integer else "a number"
+        raise ConfigError(f"{where}: expected {kind} in [{lo:g}, {hi:g}], got {_short(v)}")
+    return v
+
+
+def _inertials(raw: Any, robot: Robot) -> np.ndarray:
+    """``inertials``: n rows of 10 standard parameters, each link physically consistent."""
+    n = robot.n
+    if (not isinstance(raw, list) or len(raw) != n
+            or not all(isinstance(r, list) and len(r) == 10 for r in raw)):
+        raise ConfigError(f"inertials: expected {n} rows of 10 standard parameters")
+    for j, row in enumerate(raw):
+        for k, v in enumerate(row):
+            if not _finite(v):
+                raise ConfigError(f"inertials[{j}][{k}]: expected a finite number, got "
+                                  f"{_short(v)}")
+    arr = np.array(raw, dtype=float)
+    for j, row in enumerate(arr):
+        problem = _link_problem(row)
+        if problem:
+            raise ConfigError(f"inertials[{j}] (link {j + 1}): {problem}")
+    return arr.reshape(-1)
+
+
+def _link_problem(row: np.ndarray) -> str | None:
+    m, first = row[0], row[1:4]
+    if m < 0:
+        return f"mass {m:g} is negative"
+    if m == 0:
+        if np.any(first != 0):
+            return "a massless link has no first moment (mx, my, mz must be 0)"
+        i_c = np.array([[row[4], row[5], row[7]], [row[5], row[6], row[8]],
+                        [row[7], row[8], row[9]]])
+    else:
+        i_c = np.array(pin.Inertia.FromDynamicParameters(row).inertia)
+    return inertia_problem(i_c)
 
 
 def load_truth(path: str | Path, robot: Robot) -> Truth:
@@ -117,9 +183,9 @@ def load_truth(path: str | Path, robot: Robot) -> Truth:
     doc = read_yaml_mapping(p, "truth file")
     known = {"robot", "inertials", "perturb", "effects", "noise", "rate_hz", "mode", "side",
              "controller"}
-    bad = set(doc) - known
+    bad = sorted(map(str, set(doc) - known))
     if bad:
-        raise ConfigError(f"{p}: unknown key '{sorted(bad)[0]}'")
+        raise ConfigError(f"{p}: unknown key {_short(bad[0])}")
     try:
         return _truth_from_doc(doc, robot)
     except ConfigError as err:
@@ -129,21 +195,32 @@ def load_truth(path: str | Path, robot: Robot) -> Truth:
 def _truth_from_doc(doc: dict[str, Any], robot: Robot) -> Truth:
     n = robot.n
     if "inertials" in doc:
-        arr = np.asarray(doc["inertials"], dtype=float)
-        if arr.shape != (n, 10):
-            raise ConfigError(f"inertials: expected {n} rows of 10 standard parameters")
-        inertials = arr.reshape(-1)
+        inertials = _inertials(doc["inertials"], robot)
     elif "perturb" in doc:
-        pert = doc["perturb"] or {}
-        inertials = perturbed_inertials(robot, int(pert.get("seed", 0)),
-                                        float(pert.get("spread", 0.2)))
+        pert = {} if doc["perturb"] is None else doc["perturb"]
+        if not isinstance(pert, dict) or set(pert) - {"seed", "spread"}:
+            raise ConfigError("perturb: expected {seed, spread}")
+        inertials = perturbed_inertials(
+            robot, int(_number(pert.get("seed", 0), "perturb.seed", 0, 2**32 - 1, integer=True)),
+            float(_number(pert.get("spread", 0.2), "perturb.spread", 0.0, 0.9)))
     elif robot.nominal is not None:
         inertials = robot.nominal.copy()
     else:
         raise ConfigError("inertials: missing (and the robot has no nominal inertials)")
-    noise = doc.get("noise") or {}
+    noise = {} if doc.get("noise") is None else doc["noise"]
     if not isinstance(noise, dict) or set(noise) - {"tau", "q_resolution"}:
         raise ConfigError("noise: expected {tau, q_resolution}")
+    tau_noise = noise.get("tau", 0.0)
+    if isinstance(tau_noise, list):
+        if len(tau_noise) != n:
+            raise ConfigError(f"noise.tau: expected one number or {n} (one per joint)")
+        for j, v in enumerate(tau_noise):
+            _number(v, f"noise.tau[{j}]", 0.0, 1e6)
+    else:
+        _number(tau_noise, "noise.tau", 0.0, 1e6)
+    _number(noise.get("q_resolution", 0.0), "noise.q_resolution", 0.0, 1.0)
+    if not isinstance(doc.get("controller", {}) or {}, dict):
+        raise ConfigError("controller: expected a mapping")
     mode = doc.get("mode", "inverse")
     if mode not in ("inverse", "closed_loop"):
         raise ConfigError(f"mode: expected inverse or closed_loop, got {mode!r}")
@@ -154,8 +231,9 @@ def _truth_from_doc(doc: dict[str, Any], robot: Robot) -> Truth:
     if mode == "inverse" and any(e["name"] in CLOSED_LOOP_ONLY for e in effects):
         raise ConfigError("effects: 'elasticity' needs mode: closed_loop")
     rate = doc.get("rate_hz", 1000.0)
-    if isinstance(rate, bool) or not isinstance(rate, int | float) or rate <= 0:
-        raise ConfigError(f"rate_hz: expected a positive number, got {rate!r}")
+    if not _finite(rate) or not 0 < rate <= MAX_RATE_HZ:
+        raise ConfigError(f"rate_hz: expected a positive number up to {MAX_RATE_HZ:g}, "
+                          f"got {_short(rate)}")
     return Truth(inertials, effects, noise.get("tau", 0.0), float(noise.get("q_resolution", 0.0)),
                  float(rate), mode, side, dict(doc.get("controller") or {}))
 

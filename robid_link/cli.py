@@ -12,25 +12,44 @@ from typing import Any
 
 import numpy as np
 
+from robid_link import __version__
+from robid_link.cli_types import (
+    OneLineParser,
+    bounded_int,
+    finite_float,
+    output_path,
+    positive_float,
+)
 from robid_link.exceptions import RobidError
 
 __all__ = ["main"]
 
+_ROBOT_HELP = "robot description: MDH YAML (.yaml) or URDF (.urdf)"
+_LOCK_HELP = "URDF joint to lock (e.g. gripper fingers); repeatable"
+_UNLIMITED_HELP = ("accept revolute/prismatic joints without consistent position limits "
+                   "(logged as a warning); otherwise such a robot file is refused")
+_SEED_HELP = "random seed (default 0)"
+#: most samples a generated trajectory or simulated log may have (≈ 3 h at 1 kHz)
+MAX_SAMPLES = 10_000_000
 
+
+def _robot_options(p: argparse.ArgumentParser, *, lock_help: str = _LOCK_HELP) -> None:
+    p.add_argument("--robot", required=True, help=_ROBOT_HELP)
+    p.add_argument("--lock", action="append", default=[], metavar="NAME", help=lock_help)
+    p.add_argument("--allow-unlimited", action="store_true", help=_UNLIMITED_HELP)
 
 
 def _shared_inputs(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--robot", required=True, help="MDH YAML or URDF robot description")
+    _robot_options(p, lock_help="URDF joint to lock (e.g. gripper fingers); repeatable")
     p.add_argument("--data", action="append", required=True, metavar="LOG",
                    help="log file (.csv, .npz, .mat); repeat to identify on several")
     p.add_argument("--validate", action="append", metavar="LOG",
                    help="held-out log(s); default: the last 20 %% of each --data file")
-    p.add_argument("--lock", action="append", default=[], metavar="NAME",
-                   help="URDF joint to lock (e.g. gripper fingers); repeatable")
-    p.add_argument("--fs", type=float, help="sampling rate in Hz (needed for .mat logs)")
-    p.add_argument("--cutoff", type=float, metavar="HZ",
+    p.add_argument("--fs", type=positive_float(1e6), metavar="HZ",
+                   help="sampling rate in Hz (needed for .mat logs)")
+    p.add_argument("--cutoff", type=positive_float(1e6), metavar="HZ",
                    help="zero-phase low-pass cutoff (default 10 Hz, at most 40 %% of Nyquist)")
-    p.add_argument("--interval", type=int, default=1, metavar="K",
+    p.add_argument("--interval", type=bounded_int(1, 100_000), default=1, metavar="K",
                    help="keep every K-th sample after anti-alias filtering (default 1)")
     p.add_argument("--motor-side", action="store_true",
                    help="logs are on the motor side; convert through the robot's transmission")
@@ -41,69 +60,83 @@ def _shared_inputs(p: argparse.ArgumentParser) -> None:
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="robid", description="Dynamic-model identification of "
-                                 "industrial robots.")
+    ap = OneLineParser(prog="robid", description="Dynamic-model identification of "
+                       "industrial robots.")
     ap.add_argument("--debug", action="store_true", help="show tracebacks")
+    ap.add_argument("--version", action="version", version=f"robid {__version__}",
+                    help="print the version and exit")
     sub = ap.add_subparsers(dest="cmd", required=True)
 
     p = sub.add_parser("identify", help="identify the dynamic model from logs")
     _shared_inputs(p)
-    p.add_argument("--method", choices=("ols", "wls", "irls"), default="ols")
+    p.add_argument("--method", choices=("ols", "wls", "irls"), default="ols",
+                   help="least squares: ols (default), wls (per-joint weights) or irls (robust)")
     p.add_argument("--weight", default="bisquare",
                    help="IRLS weight: andrews, bisquare, cauchy, fair, huber, logistic, "
                         "talwar, welsch")
-    p.add_argument("--json", metavar="FILE", help="write the result as JSON")
-    p.add_argument("--out", metavar="DIR", help="write figures, parameter table and YAML")
+    p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
+                   help="write the result as JSON")
+    p.add_argument("--out", metavar="DIR", type=output_path("dir"),
+                   help="write figures, parameter table and YAML")
 
     p = sub.add_parser("diagnose", help="find where the model fails and which effect is missing")
     _shared_inputs(p)
-    p.add_argument("--json", metavar="FILE", help="write the diagnosis as JSON")
-    p.add_argument("--out", metavar="DIR", help="write residual figures per joint")
+    p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
+                   help="write the diagnosis as JSON")
+    p.add_argument("--out", metavar="DIR", type=output_path("dir"),
+                   help="write residual figures per joint")
 
     p = sub.add_parser("history", help="the error ladder of a model file")
-    p.add_argument("model_file")
-    p.add_argument("--out", metavar="PNG", help="plot per-joint RMSE per model version")
+    p.add_argument("model_file", help="model file whose history (.history.jsonl) to show")
+    p.add_argument("--out", metavar="PNG", type=output_path("file"),
+                   help="plot per-joint RMSE per model version")
 
     p = sub.add_parser("show-robot", help="draw the kinematic chain at a pose (PNG)")
-    p.add_argument("--robot", required=True)
-    p.add_argument("--lock", action="append", default=[], metavar="NAME")
-    p.add_argument("--q", type=float, nargs="+", metavar="DEG",
+    _robot_options(p)
+    p.add_argument("--q", type=finite_float, nargs="+", metavar="DEG",
                    help="joint positions in degrees (metres for prismatic); default zeros")
-    p.add_argument("--out", required=True, metavar="PNG")
+    p.add_argument("--out", required=True, metavar="PNG",
+                   type=output_path("file", create_parents=True), help="the drawing (PNG)")
 
     p = sub.add_parser("model", help="edit a model file")
     msub = p.add_subparsers(dest="model_cmd", required=True)
     pa = msub.add_parser("add", help="add an effect (creates the file from the default model)")
-    pa.add_argument("model_file")
+    pa.add_argument("model_file", type=output_path("file"),
+                    help="model file (YAML with effects:) to edit or create")
     pa.add_argument("effect", help="EFFECT or EFFECT@J")
 
     p = sub.add_parser("excite", help="design an optimized excitation trajectory")
-    p.add_argument("--robot", required=True)
-    p.add_argument("--lock", action="append", default=[], metavar="NAME")
-    p.add_argument("--out", required=True, metavar="TRAJ", help="trajectory CSV (+ .yaml header)")
-    p.add_argument("--duration", type=float, default=20.0, metavar="S",
+    _robot_options(p)
+    p.add_argument("--out", required=True, metavar="TRAJ", type=output_path("file"),
+                   help="trajectory CSV (+ .yaml header)")
+    p.add_argument("--duration", type=positive_float(1e6), default=20.0, metavar="S",
                    help="length in seconds, whole periods (default 20)")
-    p.add_argument("--harmonics", type=int, default=8, metavar="K")
-    p.add_argument("--base-hz", type=float, default=0.1, help="Fourier base frequency")
-    p.add_argument("--rate", type=float, default=250.0, metavar="HZ",
+    p.add_argument("--harmonics", type=bounded_int(1, 50), default=8, metavar="K",
+                   help="Fourier harmonics per joint (default 8)")
+    p.add_argument("--base-hz", type=positive_float(100.0), default=0.1, metavar="HZ",
+                   help="Fourier base frequency (default 0.1)")
+    p.add_argument("--rate", type=positive_float(100_000.0), default=250.0, metavar="HZ",
                    help="controller rate of the trajectory file (default 250)")
     p.add_argument("--model", help="model file whose base set is excited (default model)")
-    p.add_argument("--evaluations", type=int, default=2500,
-                   help="optimizer budget per restart (3 restarts)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--evaluations", type=bounded_int(1, 1_000_000), default=2500, metavar="N",
+                   help="optimizer budget per restart (3 restarts; default 2500)")
+    p.add_argument("--seed", type=bounded_int(0, 2**32 - 1), default=0, help=_SEED_HELP)
 
     p = sub.add_parser("simulate", help="run a trajectory on the simulated robot, write a log")
-    p.add_argument("--robot", required=True)
-    p.add_argument("--lock", action="append", default=[], metavar="NAME")
+    _robot_options(p)
     p.add_argument("--truth", required=True, help="truth file (inertials, effects, noise)")
-    p.add_argument("--trajectory", required=True, metavar="TRAJ")
-    p.add_argument("--out", required=True, metavar="LOG")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--trajectory", required=True, metavar="TRAJ",
+                   help="trajectory CSV (with its .yaml header beside it)")
+    p.add_argument("--out", required=True, metavar="LOG", type=output_path("file"),
+                   help="the simulated log (CSV)")
+    p.add_argument("--seed", type=bounded_int(0, 2**32 - 1), default=0, help=_SEED_HELP)
 
     p = sub.add_parser("demo", help="the whole job on a simulated cell: fake controller, "
                        "daemon, campaign, identification, diagnosis, report")
-    p.add_argument("--json", metavar="FILE", help="write the run's result as JSON")
-    p.add_argument("--out", metavar="DIR", default="demo-out")
+    p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
+                   help="write the run's result as JSON")
+    p.add_argument("--out", metavar="DIR", default="demo-out", type=output_path("dir"),
+                   help="report folder (default demo-out)")
     p.add_argument("--driver", default="file_share",
                    help="the controller link to run the demo over (its fake peer plays the "
                    "cell): file_share, abb_rws, canopen_drives, modbus_plc, serial_line")
@@ -114,7 +147,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _link_parsers(sub: Any) -> None:
     p = sub.add_parser("daemon", help="run the link daemon in the foreground (systemd unit)")
-    p.add_argument("--config", required=True, metavar="C")
+    p.add_argument("--config", required=True, metavar="C", help="daemon config (YAML)")
 
     p = sub.add_parser("fake-controller", help="the controller side of a driver's protocol "
                        "over the simulated robot (tests, demos)")
@@ -126,37 +159,39 @@ def _link_parsers(sub: Any) -> None:
                    "controller's file system")
     p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="a peer option (YAML value), e.g. --option port=0; repeatable")
-    p.add_argument("--ready-file", metavar="F", help="write the daemon's driver: mapping "
-                   "for this peer as JSON to F once it serves (ports chosen at start)")
-    p.add_argument("--robot", required=True)
-    p.add_argument("--lock", action="append", default=[], metavar="NAME")
+    p.add_argument("--ready-file", metavar="F", type=output_path("file"),
+                   help="write the daemon's driver: mapping for this peer as JSON to F once it "
+                   "serves (ports chosen at start)")
+    _robot_options(p)
     p.add_argument("--truth", help="truth file (default: nominal inertials, viscous and "
                    "Coulomb friction, torque noise)")
     p.add_argument("--fault", help="never_answer, die, truncated_log, corrupt_log, "
                    "answer_twice, stale_semaphore, nan_log, fail, or one of the peer's own")
-    p.add_argument("--fault-count", type=int, default=1, metavar="N",
+    p.add_argument("--fault-count", type=bounded_int(0, 1_000_000), default=1, metavar="N",
                    help="how many programs the fault hits (default 1)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=bounded_int(0, 2**32 - 1), default=0, help=_SEED_HELP)
 
     p = sub.add_parser("campaign", help="start, list or approve test campaigns")
     csub = p.add_subparsers(dest="campaign_cmd", required=True)
     pc = csub.add_parser("start", help="queue a run of a campaign (prints its run_id)")
-    pc.add_argument("name")
-    pc.add_argument("--config", required=True, metavar="C")
+    pc.add_argument("name", help="campaign name (from the config's campaigns:)")
+    pc.add_argument("--config", required=True, metavar="C", help="daemon config (YAML)")
     pc.add_argument("--trigger", choices=("operator", "timer"), default="operator",
                     help="timer: unattended, runs only approved programs")
     pc.add_argument("--wait", action="store_true", help="show progress until the run ends")
-    pc.add_argument("--json", metavar="FILE", help="with --wait: write the run and results")
+    pc.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
+                    help="with --wait: write the run and results")
     pc = csub.add_parser("list", help="the campaigns of the config")
-    pc.add_argument("--config", required=True, metavar="C")
+    pc.add_argument("--config", required=True, metavar="C", help="daemon config (YAML)")
     pc = csub.add_parser("approve", help="generate, check and approve a campaign's programs "
                          "for unattended runs")
-    pc.add_argument("name")
-    pc.add_argument("--config", required=True, metavar="C")
+    pc.add_argument("name", help="campaign name (from the config's campaigns:)")
+    pc.add_argument("--config", required=True, metavar="C", help="daemon config (YAML)")
 
     p = sub.add_parser("status", help="runs, their state and progress")
-    p.add_argument("--config", required=True, metavar="C")
-    p.add_argument("--json", metavar="FILE")
+    p.add_argument("--config", required=True, metavar="C", help="daemon config (YAML)")
+    p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
+                   help="write the runs as JSON")
 
     p = sub.add_parser("params", help="the parameter sets each robot's controller gets: "
                        "show, diff, approve (for unattended uploads), rollback")
@@ -164,26 +199,28 @@ def _link_parsers(sub: Any) -> None:
     p.add_argument("sets", nargs="*", metavar="SET",
                    help="a set's version number or sha256 prefix (show: one; diff: two, "
                    "default the set in use and the newest; approve: one, default the newest)")
-    p.add_argument("--config", required=True, metavar="C")
-    p.add_argument("--robot", required=True, metavar="NAME")
-    p.add_argument("--json", metavar="FILE", help="show: write the set(s) as JSON")
+    p.add_argument("--config", required=True, metavar="C", help="daemon config (YAML)")
+    p.add_argument("--robot", required=True, metavar="NAME", help="the robot's name")
+    p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
+                   help="show: write the set(s) as JSON")
 
     p = sub.add_parser("results", help="identification results across runs and robots")
-    p.add_argument("--config", required=True, metavar="C")
+    p.add_argument("--config", required=True, metavar="C", help="daemon config (YAML)")
     p.add_argument("--robot", metavar="NAME", help="only this robot's results")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--trend", action="store_true",
                    help="with --robot: each parameter over the stored runs, drift flagged")
     g.add_argument("--compare", nargs=2, metavar=("ROBOT_A", "ROBOT_B"),
                    help="the latest identification of two robots of one type side by side")
-    p.add_argument("--sigma", type=float, default=5.0,
+    p.add_argument("--sigma", type=positive_float(1e3), default=5.0,
                    help="drift flag: change in combined standard errors (default 5)")
-    p.add_argument("--min-change", type=float, default=0.10, metavar="FRACTION",
+    p.add_argument("--min-change", type=positive_float(10.0), default=0.10, metavar="FRACTION",
                    help="drift flag: change of the baseline, at the lower end of its 95 %% "
                    "interval (default 0.10)")
-    p.add_argument("--json", metavar="FILE", help="write the trend as JSON")
-    p.add_argument("--out", metavar="PNG", help="plot the trend of the flagged (or all "
-                   "physically readable) parameters")
+    p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
+                   help="write the trend as JSON")
+    p.add_argument("--out", metavar="PNG", type=output_path("file"),
+                   help="plot the trend of the flagged (or all physically readable) parameters")
 
 
 def _one_line_warnings() -> None:
@@ -195,7 +232,10 @@ def _one_line_warnings() -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as exc:  # a usage error (already printed in one line), --help, --version
+        return exc.code if isinstance(exc.code, int) else 2
     _one_line_warnings()
     try:
         return int(_dispatch(args) or 0)
@@ -248,7 +288,7 @@ def _inputs(args: argparse.Namespace):
     from robid_link.ident.identify import load_logs
     from robid_link.ident.robot import load_robot
 
-    robot = load_robot(args.robot, args.lock)
+    robot = load_robot(args.robot, args.lock, allow_unlimited=args.allow_unlimited)
     model = _load_model(args)
     data = load_logs(robot, args.data, args.fs, args.motor_side)
     valid = load_logs(robot, args.validate, args.fs, args.motor_side) if args.validate else None
@@ -323,7 +363,7 @@ def _show_robot(args: argparse.Namespace) -> int:
     from robid_link.ident.report import draw_robot
     from robid_link.ident.robot import load_robot
 
-    robot = load_robot(args.robot, args.lock)
+    robot = load_robot(args.robot, args.lock, allow_unlimited=args.allow_unlimited)
     q = np.zeros(robot.n)
     if args.q is not None:
         if len(args.q) != robot.n:
@@ -369,17 +409,26 @@ def _excite(args: argparse.Namespace) -> int:
     from robid_link.ident.effects import load_model
     from robid_link.ident.robot import load_robot
 
-    robot = load_robot(args.robot, args.lock)
+    periods = max(1, round(args.duration * args.base_hz))
+    samples = periods / args.base_hz * args.rate
+    if samples > MAX_SAMPLES:
+        raise RobidError(f"--duration {args.duration:g} s at --rate {args.rate:g} Hz (whole "
+                         f"periods of 1/--base-hz) makes {samples:.3g} samples, more than "
+                         f"{MAX_SAMPLES}")
+    yaml_out = Path(args.out).with_suffix(".yaml")
+    if yaml_out.is_dir() or yaml_out == Path(args.out):
+        raise RobidError(f"{args.out}: the header {yaml_out} would not be a file beside it")
+    robot = load_robot(args.robot, args.lock, allow_unlimited=args.allow_unlimited)
     model = load_model(args.model)
-    if args.harmonics < 1 or args.base_hz <= 0 or args.rate <= 0 or args.duration <= 0:
-        raise RobidError("--harmonics, --base-hz, --rate and --duration must be positive")
+    print(f"optimizing the excitation of {robot.name}: 3 restarts × {args.evaluations} "
+          "evaluations", flush=True)
     traj, cond = ex.optimize_fourier(robot, harmonics=args.harmonics, base_hz=args.base_hz,
                                      model=model, seed=args.seed,
-                                     evaluations=args.evaluations)
+                                     evaluations=args.evaluations,
+                                     progress=lambda line: print(f"  {line}", flush=True))
     rand = [ex.excitation_condition(robot, ex.random_fourier(
         robot, harmonics=args.harmonics, base_hz=args.base_hz, seed=1000 + s), model)
         for s in range(20)]
-    periods = max(1, round(args.duration * args.base_hz))
     t = np.arange(0.0, periods / args.base_hz, 1.0 / args.rate)
     q, qd, qdd = traj.evaluate(t)
     ex.check_limits(robot, q, qd, qdd, ex._nominal_torque(robot, q, qd, qdd), args.out)
@@ -402,11 +451,16 @@ def _simulate(args: argparse.Namespace) -> int:
     from robid_link.link.registry import fake_module
 
     plant = fake_module("plant")
-    robot = load_robot(args.robot, args.lock)
+    robot = load_robot(args.robot, args.lock, allow_unlimited=args.allow_unlimited)
     truth = plant.load_truth(args.truth, robot)
     traj = read_trajectory(args.trajectory)
     if traj.q.shape[1] != robot.n:
         raise RobidError(f"{args.trajectory}: {traj.q.shape[1]} joints, the robot has {robot.n}")
+    samples = (traj.t[-1] - traj.t[0]) * truth.rate_hz
+    if samples > MAX_SAMPLES:
+        raise RobidError(f"{args.trajectory}: {traj.t[-1] - traj.t[0]:.4g} s at the truth's "
+                         f"{truth.rate_hz:g} Hz makes {samples:.3g} samples, more than "
+                         f"{MAX_SAMPLES}")
     t, q, qd, qdd = trajectory_states(traj, truth.rate_hz)
     log = plant.Plant(robot, truth).run(t, q, qd, qdd, seed=args.seed)
     write_log_csv(args.out, log["t"], log["q"], log["tau"])

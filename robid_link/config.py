@@ -6,6 +6,7 @@ Robot, model, truth and trajectory files validate their own keys on top of the r
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -13,6 +14,7 @@ from typing import Any
 import yaml
 
 from robid_link.exceptions import ConfigError, RobidError
+from robid_link.safeyaml import load_yaml_file
 
 __all__ = ["read_yaml_mapping", "load_daemon_config", "DaemonConfig", "CampaignDef",
            "ExperimentDef"]
@@ -27,7 +29,7 @@ def read_yaml_mapping(path: str | Path, what: str, error: type[RobidError] = Con
             raise error(f"{p}: {what} not found")
         return {}
     try:
-        doc = yaml.safe_load(p.read_text())
+        doc = load_yaml_file(p, error=error)
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
@@ -99,7 +101,8 @@ def _num(doc: dict[str, Any], key: str, where: str, default: Any, *, positive: b
     if v is None:
         return None
     kinds = int if integer else (int, float)
-    if isinstance(v, bool) or not isinstance(v, kinds) or (v <= 0 if positive else v < 0):
+    if (isinstance(v, bool) or not isinstance(v, kinds)
+            or not (isinstance(v, int) or math.isfinite(v)) or (v <= 0 if positive else v < 0)):
         sign = "a positive" if positive else "a non-negative"
         raise ConfigError(f"{where}.{key}: expected {sign} {'integer' if integer else 'number'}"
                           f", got {v!r}")

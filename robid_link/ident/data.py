@@ -7,15 +7,24 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import math
 import warnings
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from robid_link.exceptions import DataError, DataWarning
+from robid_link.exceptions import DataError, DataWarning, RobidError
 
-__all__ = ["Log", "load_log", "file_sha256", "write_log_csv"]
+__all__ = ["Log", "load_log", "file_sha256", "write_log_csv", "read_numeric_csv",
+           "MAX_LOG_BYTES", "MAX_ARRAY_BYTES"]
+
+#: a log file (an hour at 1 kHz of 7 joints as CSV is ~0.5 GB)
+MAX_LOG_BYTES = 1 << 30
+#: one array of an .npz or .mat log, as its header claims it
+MAX_ARRAY_BYTES = 1 << 30
 
 #: time steps longer than this many median steps split the log into segments
 GAP_FACTOR = 2.5
@@ -77,62 +86,140 @@ def load_log(path: str | Path, n_joints: int, fs: float | None = None) -> Log:
 
 
 def _read_csv(p: Path) -> dict[str, np.ndarray]:
-    try:
-        with open(p, newline="") as fh:
-            reader = csv.reader(fh)
-            header = next(reader, None)
-            if not header:
-                raise DataError(f"{p}: empty file, expected a header t,q1..qn,tau1..taun")
-            header = [h.strip() for h in header]
-            rows = [r for r in reader if r]
-    except UnicodeDecodeError as err:
-        raise DataError(f"{p}: not a text CSV file") from err
-    if len(set(header)) != len(header):
-        dup = next(h for h in header if header.count(h) > 1)
-        raise DataError(f"{p}: column {dup} appears twice")
-    if not rows:
-        raise DataError(f"{p}: no data rows")
-    for i, r in enumerate(rows):
-        if len(r) != len(header):
-            raise DataError(f"{p}: row {i + 2} has {len(r)} fields, header has {len(header)}")
-    try:
-        arr = np.array(rows, dtype=float)
-    except ValueError:
-        for i, r in enumerate(rows):
-            for h, v in zip(header, r, strict=True):
-                try:
-                    float(v)
-                except ValueError:
-                    raise DataError(f"{p}: row {i + 2}, column {h}: not a number: {v!r}") from None
-        raise
+    header, arr = read_numeric_csv(p, DataError, "a header t,q1..qn,tau1..taun")
     return {"__csv__": arr, "__header__": np.array(header, dtype=object)}
 
 
-def _read_npz(p: Path) -> dict[str, np.ndarray]:
+def _short(v: str, size: int = 30) -> str:
+    return repr(v) if len(v) <= size else repr(v[: size - 3] + "...")
+
+
+def read_numeric_csv(p: Path, error: type[RobidError], expected: str,
+                     max_bytes: int = MAX_LOG_BYTES) -> tuple[list[str], np.ndarray]:
+    """A CSV of numbers under a header: size-limited, every row as long as the header, every
+    cell a number; errors are one line naming the file, line and column."""
+    size = _size_checked(p, max_bytes, error)
+    if size == 0:
+        raise error(f"{p}: empty file, expected {expected}")
+    rows: list[list[float]] = []
     try:
+        with open(p, newline="", encoding="utf-8") as fh:
+            reader = csv.reader(fh)
+            header = next(reader, None)
+            if not header or not any(h.strip() for h in header):
+                raise error(f"{p}: empty header, expected {expected}")
+            header = [h.strip() for h in header]
+            if len(set(header)) != len(header):
+                dup = next(h for h in header if header.count(h) > 1)
+                raise error(f"{p}: column {dup[:30]} appears twice")
+            for row in reader:
+                if not row:
+                    continue
+                if len(row) != len(header):
+                    raise error(f"{p}: row {reader.line_num} has {len(row)} fields, header has "
+                                f"{len(header)}")
+                try:
+                    rows.append([float(v) for v in row])
+                except ValueError:
+                    k = next(i for i, v in enumerate(row) if not _is_number(v))
+                    raise error(f"{p}: row {reader.line_num}, column {header[k][:30]}: not a "
+                                f"number: {_short(row[k])}") from None
+    except UnicodeDecodeError as err:
+        raise error(f"{p}: not a text CSV file (not UTF-8)") from err
+    except csv.Error as err:
+        raise error(f"{p}: malformed CSV at line {reader.line_num}: {err}") from err
+    except OSError as err:
+        raise error(f"{p}: cannot read: {err.strerror or err}") from err
+    if not rows:
+        raise error(f"{p}: no data rows")
+    return header, np.array(rows, dtype=float)
+
+
+def _is_number(v: str) -> bool:
+    try:
+        float(v)
+    except ValueError:
+        return False
+    return True
+
+
+def _size_checked(p: Path, max_bytes: int, error: type[RobidError] = DataError) -> int:
+    try:
+        size = p.stat().st_size
+    except OSError as err:
+        raise error(f"{p}: cannot read: {err.strerror or err}") from err
+    if size > max_bytes:
+        raise error(f"{p}: {size} bytes, more than the {max_bytes} allowed for a log")
+    return size
+
+
+def _npz_member_checked(p: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> None:
+    """Read only the .npy header of a member: numeric dtype and a size within the limit."""
+    name = info.filename
+    with zf.open(info) as fh:
+        version = np.lib.format.read_magic(fh)
+        read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                       else np.lib.format.read_array_header_2_0)
+        shape, _fortran, dtype = read_header(fh)
+    if dtype.kind not in "iuf" or dtype.hasobject:
+        raise DataError(f"{p}: array {_short(name)} has dtype {dtype}, expected numbers")
+    nbytes = math.prod(shape) * dtype.itemsize
+    if nbytes > MAX_ARRAY_BYTES:
+        raise DataError(f"{p}: array {_short(name)} claims shape {shape} ({nbytes} bytes), more "
+                        f"than the {MAX_ARRAY_BYTES} allowed")
+
+
+def _read_npz(p: Path) -> dict[str, np.ndarray]:
+    _size_checked(p, MAX_LOG_BYTES)
+    try:
+        with zipfile.ZipFile(p) as zf:
+            infos = zf.infolist()
+            if not infos:
+                raise DataError(f"{p}: empty .npz file (no arrays)")
+            if len(infos) > 64:
+                raise DataError(f"{p}: {len(infos)} arrays, a log has at most 5")
+            for info in infos:
+                _npz_member_checked(p, zf, info)
         with np.load(p, allow_pickle=False) as z:
             return {k: np.asarray(z[k]) for k in z.files}
-    except (OSError, ValueError) as err:
-        raise DataError(f"{p}: not a readable .npz file") from err
+    except DataError:
+        raise
+    except (OSError, ValueError, EOFError, KeyError, NotImplementedError, zipfile.BadZipFile,
+            zlib.error) as err:
+        raise DataError(f"{p}: not a readable .npz file ({_reason(err)})") from err
+
+
+def _reason(err: BaseException) -> str:
+    text = str(err).strip().splitlines()[0] if str(err).strip() else ""
+    return f"{type(err).__name__}: {text[:80]}" if text else type(err).__name__
 
 
 def _read_mat(p: Path, n: int, fs: float | None) -> dict[str, np.ndarray]:
     import scipy.io
 
-    if fs is None or fs <= 0:
+    if fs is None or not math.isfinite(fs) or fs <= 0:
         raise DataError(f"{p}: a .mat log has no time stamps; give the sampling rate with --fs")
+    _size_checked(p, MAX_LOG_BYTES)
     try:
+        for name, shape, _kind in scipy.io.whosmat(str(p)):
+            if math.prod(shape) * 8 > MAX_ARRAY_BYTES:
+                raise DataError(f"{p}: variable {_short(name)} claims shape {shape}, more than "
+                                f"the {MAX_ARRAY_BYTES} bytes allowed")
         mat = scipy.io.loadmat(str(p))
-    except (OSError, ValueError, NotImplementedError) as err:
-        raise DataError(f"{p}: not a readable MATLAB file") from err
+    except DataError:
+        raise
+    except Exception as err:  # scipy's MATLAB reader fails in many ways on a damaged file
+        raise DataError(f"{p}: not a readable MATLAB file ({_reason(err)})") from err
     arrays = {k: v for k, v in mat.items() if not k.startswith("__") and isinstance(v, np.ndarray)}
     mats = {k: v for k, v in arrays.items() if v.ndim == 2 and v.shape[0] > 1}
     if len(mats) != 1:
         raise DataError(f"{p}: expected one matrix (columns q, qd, qdd, tau), found {len(mats)}")
     (name, m), = mats.items()
+    if m.dtype.kind not in "iuf":
+        raise DataError(f"{p}: matrix {_short(name)} holds {m.dtype}, expected numbers")
     if m.shape[1] != 4 * n:
-        raise DataError(f"{p}: matrix '{name}' has {m.shape[1]} columns, expected 4×{n} = {4 * n} "
-                        "(q, qd, qdd, tau)")
+        raise DataError(f"{p}: matrix {_short(name)} has {m.shape[1]} columns, expected "
+                        f"4×{n} = {4 * n} (q, qd, qdd, tau)")
     m = m.astype(float)
     t = np.arange(m.shape[0]) / fs
     return {"t": t, "q": m[:, :n], "qd": m[:, n:2 * n], "qdd": m[:, 2 * n:3 * n],
@@ -164,8 +251,8 @@ def _csv_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.n
     known = {"t"} | {f"{k}{j}" for k in ("q", "qd", "qdd", "tau") for j in range(1, n + 1)}
     extra = [h for h in header if h not in known]
     if extra:
-        raise DataError(f"{p}: unexpected column {extra[0]} (expected t, q1..q{n}, tau1..tau{n}, "
-                        f"optional qd1..qd{n}, qdd1..qdd{n})")
+        raise DataError(f"{p}: unexpected column {extra[0][:30]} (expected t, q1..q{n}, "
+                        f"tau1..tau{n}, optional qd1..qd{n}, qdd1..qdd{n})")
     return out
 
 
@@ -180,6 +267,9 @@ def _npz_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.n
         if key not in cols:
             raise DataError(f"{p}: array '{key}' missing (expected t, q, tau [, qd, qdd] or "
                             "FloBaRoID's times, positions, torques)")
+    for key, a in cols.items():
+        if key in ("t", "q", "qd", "qdd", "tau") and np.asarray(a).dtype.kind not in "iuf":
+            raise DataError(f"{p}: array '{key}' holds {np.asarray(a).dtype}, expected numbers")
     out = {"t": np.asarray(cols["t"], dtype=float).reshape(-1)}
     for key in ("q", "qd", "qdd", "tau"):
         if key not in cols:
@@ -212,6 +302,8 @@ def _check_and_grid(p: Path, cols: dict[str, np.ndarray], n: int, fs: float | No
     if nsamp < 10:
         raise DataError(f"{p}: only {nsamp} samples")
     dt = np.diff(t)
+    if not np.all(np.isfinite(dt)):
+        raise DataError(f"{p}: time stamps span more than a float can hold")
     if np.any(dt == 0):
         k = int(np.argmax(dt == 0))
         raise DataError(f"{p}: duplicate time stamp {t[k]:.6g} s at samples {k + 1} and {k + 2}")

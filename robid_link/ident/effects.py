@@ -6,6 +6,7 @@ profiles them when the model does not fix them.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -383,13 +384,33 @@ class Block:
         return [h for h in self.effect.hypers if h not in self.opts]
 
 
+#: option → (smallest, largest, integer): a value outside makes NaN columns or no sense
+OPTION_RANGES: dict[str, tuple[float, float, bool]] = {
+    "alpha": (1e-3, 3.0, False),  # friction_power exponent
+    "vs": (1e-6, 1e3, False),  # Stribeck velocity, rad/s
+    "shape": (0.1, 10.0, False),  # Stribeck shape exponent
+    "order": (1, 20, True),  # spring harmonics
+    "period": (1e-4, 100.0, False),  # ripple period, rad
+    "tau_s": (1e-3, 1e9, False),  # friction_drift time constant, s
+    "seconds": (-10.0, 10.0, False),  # delay, s
+}
+#: more joints than any robot has; a joint beyond the robot's own count is refused later
+MAX_JOINT = 1000
+
+
+def _short(x: Any) -> str:
+    text = repr(x)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
 def parse_effect(entry: Any, where: str = "effect") -> EffectSpec:
     if isinstance(entry, str):
-        name, _, joint = entry.strip().partition("@")
+        name, at, joint = entry.strip().partition("@")
         spec_joint = None
-        if joint:
-            if not joint.isdigit() or int(joint) < 1:
-                raise ModelError(f"{where}: '{entry}': joint must be a number from 1")
+        if at:
+            if not joint.isdigit() or not 1 <= int(joint) <= MAX_JOINT:
+                raise ModelError(f"{where}: {_short(entry)}: after '@' a joint number from 1 "
+                                 "is needed (NAME@J)")
             spec_joint = int(joint)
         return _checked(EffectSpec(name, spec_joint), where)
     if isinstance(entry, dict):
@@ -398,16 +419,20 @@ def parse_effect(entry: Any, where: str = "effect") -> EffectSpec:
         opts = {k: v for k, v in entry.items() if k not in ("name", "joint")}
         joint = entry.get("joint")
         if joint is not None and (isinstance(joint, bool) or not isinstance(joint, int)
-                                  or joint < 1):
-            raise ModelError(f"{where}.joint: expected a joint number from 1, got {joint!r}")
-        return _checked(EffectSpec(str(entry["name"]), joint, tuple(sorted(opts.items()))), where)
-    raise ModelError(f"{where}: expected NAME, NAME@J or a mapping, got {entry!r}")
+                                  or not 1 <= joint <= MAX_JOINT):
+            raise ModelError(f"{where}.joint: expected a joint number from 1, got {_short(joint)}")
+        if not isinstance(entry["name"], str):
+            raise ModelError(f"{where}.name: expected an effect name, got {_short(entry['name'])}")
+        if not all(isinstance(k, str) for k in opts):
+            raise ModelError(f"{where}: option names must be words")
+        return _checked(EffectSpec(entry["name"], joint, tuple(sorted(opts.items()))), where)
+    raise ModelError(f"{where}: expected NAME, NAME@J or a mapping, got {_short(entry)}")
 
 
 def _checked(spec: EffectSpec, where: str) -> EffectSpec:
     if spec.name not in REGISTRY:
         known = ", ".join(sorted(REGISTRY))
-        raise ModelError(f"{where}: unknown effect '{spec.name}' (known: {known})")
+        raise ModelError(f"{where}: unknown effect {_short(spec.name)} (known: {known})")
     eff = REGISTRY[spec.name]
     if not eff.per_joint and spec.joint is not None:
         raise ModelError(f"{where}: '{spec.name}' is global and takes no joint")
@@ -415,8 +440,17 @@ def _checked(spec: EffectSpec, where: str) -> EffectSpec:
     if bad:
         raise ModelError(f"{where}: '{spec.name}' has no option '{sorted(bad)[0]}'")
     for key, val in spec.opts.items():
-        if isinstance(val, bool) or not isinstance(val, int | float) or not np.isfinite(val):
-            raise ModelError(f"{where}: '{spec.name}' option {key}: expected a number")
+        lo, hi, integer = OPTION_RANGES[key]
+        kinds = int if integer else int | float
+        try:
+            ok = (not isinstance(val, bool) and isinstance(val, kinds) and math.isfinite(val)
+                  and lo <= val <= hi)
+        except OverflowError:  # an integer beyond float range
+            ok = False
+        if not ok:
+            kind = "a whole number" if integer else "a number"
+            raise ModelError(f"{where}: '{spec.name}' option {key}: expected {kind} in "
+                             f"[{lo:g}, {hi:g}], got {_short(val)}")
     return spec
 
 
@@ -478,12 +512,26 @@ def load_model(path: str | Path | None) -> Model:
     doc = read_yaml_mapping(p, "model file", ModelError)
     if not isinstance(doc.get("effects"), list):
         raise ModelError(f"{p}: expected a mapping with a list 'effects'")
+    bad = sorted(map(str, set(doc) - {"effects", "description"}))
+    if bad:
+        raise ModelError(f"{p}: unknown key {_short(bad[0])}")
+    if not doc["effects"]:
+        raise ModelError(f"{p}: effects: the list is empty (the default model is "
+                         f"[{', '.join(DEFAULT_MODEL.labels())}])")
     try:
-        return Model.parse(doc["effects"], "effects")
+        model = Model.parse(doc["effects"], "effects")
     except ModelError as err:
         raise ModelError(f"{p}: {err}") from err
+    if not any(spec.name == "rigid_body" for spec in model.specs):
+        # identification, validation and diagnosis all start from the rigid-body model
+        raise ModelError(f"{p}: effects: 'rigid_body' missing (every model identifies the rigid "
+                         "body; friction and other effects add to it)")
+    return model
 
 
 def save_model(path: str | Path, model: Model) -> None:
     doc = {"effects": [s.to_yaml() for s in model.specs]}
-    Path(path).write_text(yaml.safe_dump(doc, sort_keys=False))
+    try:
+        Path(path).write_text(yaml.safe_dump(doc, sort_keys=False))
+    except OSError as err:
+        raise ModelError(f"{path}: cannot write the model file: {err.strerror or err}") from err

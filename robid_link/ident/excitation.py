@@ -7,7 +7,7 @@ q_j(t) = q0_j + Σ_l a_jl/(l ω) sin(l ω t) − b_jl/(l ω) cos(l ω t), with a
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -207,18 +207,24 @@ def random_fourier(robot: Robot, *, harmonics: int = 5, base_hz: float = 0.1,
 
 def optimize_fourier(robot: Robot, *, harmonics: int = 8, base_hz: float = 0.1,
                      model: Model = DEFAULT_MODEL, seed: int = 0, evaluations: int = 2500,
-                     restarts: int = 3) -> tuple[FourierTrajectory, float]:
+                     restarts: int = 3, progress: Callable[[str], None] | None = None
+                     ) -> tuple[FourierTrajectory, float]:
     """Minimise the condition number of the column-scaled base regressor (Swevers), within
     the limits, starting and ending at rest. Returns the trajectory and its condition number.
 
     A (1+1) evolution strategy with the 1/5 success rule, best of ``restarts`` runs: the
     limit scaling makes the objective non-smooth, where gradient methods stall. Torque
     limits of the a-priori model are enforced once on the result (they shrink the
-    amplitude, gravity stays).
+    amplitude, gravity stays). ``progress`` gets a line per block of evaluations and restart.
     """
     best: tuple[FourierTrajectory, float] | None = None
     for r in range(restarts):
-        cand = _evolve(robot, harmonics, base_hz, model, seed * 1000 + r, evaluations)
+        def report(k: int, cond: float, r: int = r) -> None:
+            if progress is not None:
+                progress(f"restart {r + 1}/{restarts}: {k}/{evaluations} evaluations, "
+                         f"condition number {cond:.4g}")
+
+        cand = _evolve(robot, harmonics, base_hz, model, seed * 1000 + r, evaluations, report)
         if best is None or cand[1] < best[1]:
             best = cand
     assert best is not None
@@ -226,7 +232,8 @@ def optimize_fourier(robot: Robot, *, harmonics: int = 8, base_hz: float = 0.1,
 
 
 def _evolve(robot: Robot, harmonics: int, base_hz: float, model: Model, seed: int,
-            evaluations: int) -> tuple[FourierTrajectory, float]:
+            evaluations: int, report: Callable[[int, float], None] | None = None
+            ) -> tuple[FourierTrajectory, float]:
     n, L = robot.n, harmonics
     lo, hi = _q_bounds(robot)
     rng = np.random.default_rng(seed)
@@ -245,7 +252,10 @@ def _evolve(robot: Robot, harmonics: int, base_hz: float, model: Model, seed: in
     x = np.concatenate((rng.normal(size=2 * n * L), np.zeros(n)))
     fx = cost(x)
     sigma = 0.3
-    for _ in range(evaluations):
+    block = max(1, evaluations // 5)
+    for k in range(evaluations):
+        if report is not None and k and k % block == 0:
+            report(k, math.exp(fx))
         y = x + sigma * rng.normal(size=x.size)
         fy = cost(y)
         if fy < fx:
@@ -255,7 +265,10 @@ def _evolve(robot: Robot, harmonics: int, base_hz: float, model: Model, seed: in
             sigma *= 1.5 ** (-0.25)
         sigma = min(max(sigma, 1e-3), 2.0)
     traj = fit_limits(robot, unpack(x).scaled(1.0 / LIMIT_MARGIN))
-    return traj, excitation_condition(robot, traj, model)
+    cond = excitation_condition(robot, traj, model)
+    if report is not None:
+        report(evaluations, cond)
+    return traj, cond
 
 
 def constant_velocity_sweeps(robot: Robot, joint: int, speeds: Sequence[float],
@@ -333,6 +346,9 @@ def write_trajectory(path: str | Path, traj: Trajectory) -> tuple[Path, Path]:
 
 
 def read_trajectory(path: str | Path) -> Trajectory:
+    """A trajectory file (CSV ``t,q1..qn`` + YAML header), checked: one-line errors."""
+    from robid_link.ident.data import read_numeric_csv
+
     p = Path(path)
     y = p.with_suffix(".yaml")
     if not p.is_file():
@@ -345,18 +361,51 @@ def read_trajectory(path: str | Path) -> Trajectory:
             raise ConfigError(f"{y}: {key}: missing")
     if meta["kind"] not in ("fourier", "sweep", "stepped_sine", "custom"):
         raise ConfigError(f"{y}: kind: expected fourier, sweep, stepped_sine or custom")
-    try:
-        arr = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
-    except ValueError as err:
-        raise ConfigError(f"{p}: not a numeric CSV t,q1..qn") from err
-    if arr.shape[1] < 2 or not np.all(np.isfinite(arr)):
-        raise ConfigError(f"{p}: expected finite columns t,q1..qn")
-    rate = float(meta["rate_hz"])
+    rate = meta["rate_hz"]
+    if not _finite_number(rate) or not 0 < rate <= 100_000:
+        raise ConfigError(f"{y}: rate_hz: expected a number in (0, 100000], got "
+                          f"{repr(rate)[:30]}")
+    rate = float(rate)
+    header, arr = read_numeric_csv(p, ConfigError, "a header t,q1..qn", max_bytes=1 << 30)
+    n = len(header) - 1
+    if n < 1 or header != ["t"] + [f"q{j}" for j in range(1, n + 1)]:
+        raise ConfigError(f"{p}: expected the header t,q1..qn, got {','.join(header)[:60]}")
+    if arr.shape[0] < 2 or not np.all(np.isfinite(arr)):
+        raise ConfigError(f"{p}: expected at least 2 rows of finite numbers t,q1..qn")
     if np.any(np.abs(np.diff(arr[:, 0]) - 1.0 / rate) > 1e-6 + 1e-3 / rate):
         raise ConfigError(f"{p}: time column is not uniform at rate_hz {rate}")
+    extra = {k: v for k, v in meta.items() if k not in ("rate_hz", "kind", "robot", "samples")}
+    if meta["kind"] == "fourier" and {"base_hz", "q0", "a", "b"} <= set(extra):
+        _check_fourier_header(y, extra, n)
     return Trajectory(arr[:, 0], arr[:, 1:], rate, str(meta["kind"]), str(meta.get("robot", "")),
-                      {k: v for k, v in meta.items()
-                       if k not in ("rate_hz", "kind", "robot", "samples")})
+                      extra)
+
+
+def _finite_number(v: Any) -> bool:
+    try:
+        return not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v)
+    except OverflowError:
+        return False
+
+
+def _check_fourier_header(y: Path, h: dict[str, Any], n: int) -> None:
+    """The Fourier coefficients that trajectory_states evaluates: shapes and finite values."""
+    if not _finite_number(h.get("base_hz")) or not 0 < h["base_hz"] <= 1000:
+        raise ConfigError(f"{y}: base_hz: expected a number in (0, 1000]")
+    q0 = h.get("q0")
+    if not isinstance(q0, list) or len(q0) != n or not all(_finite_number(v) for v in q0):
+        raise ConfigError(f"{y}: q0: expected {n} finite numbers")
+    width = None
+    for key in ("a", "b"):
+        rows = h.get(key)
+        if (not isinstance(rows, list) or len(rows) != n
+                or not all(isinstance(r, list) and r and all(_finite_number(v) for v in r)
+                           for r in rows)):
+            raise ConfigError(f"{y}: {key}: expected {n} rows of finite coefficients")
+        widths = {len(r) for r in rows}
+        if len(widths) != 1 or (width is not None and widths != {width}) or max(widths) > 1000:
+            raise ConfigError(f"{y}: {key}: rows of a and b must all have one length (≤ 1000)")
+        width = next(iter(widths))
 
 
 def fourier_header(traj: FourierTrajectory, cond: float) -> dict[str, Any]:

@@ -7,6 +7,7 @@ keeps for each result.
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -51,20 +52,70 @@ def append_record(model_file: str | Path, record: dict[str, Any]) -> Path:
     return path
 
 
+#: a history grows by one short line per run
+MAX_HISTORY_BYTES = 64 * 1024 * 1024
+
+
 def read_history(model_file: str | Path) -> list[dict[str, Any]]:
     path = history_path(model_file)
     if not path.is_file():
         raise ModelError(f"{model_file}: no history yet ({path.name}); run identify or "
                          "diagnose with --model first")
+    if path.stat().st_size > MAX_HISTORY_BYTES:
+        raise ModelError(f"{path}: larger than the {MAX_HISTORY_BYTES} bytes allowed")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise ModelError(f"{path}: not a readable UTF-8 text file") from err
     out = []
-    for i, line in enumerate(path.read_text().splitlines(), 1):
+    for i, line in enumerate(text.splitlines(), 1):
         if not line.strip():
             continue
         try:
-            out.append(json.loads(line))
-        except json.JSONDecodeError as err:
+            rec = json.loads(line)
+        except (json.JSONDecodeError, RecursionError, ValueError) as err:
             raise ModelError(f"{path}: line {i} is not valid JSON") from err
+        problem = _record_problem(rec)
+        if problem:
+            raise ModelError(f"{path}: line {i}: {problem}")
+        out.append(rec)
+    if not out:
+        raise ModelError(f"{path}: the history is empty (no runs recorded)")
     return out
+
+
+def _number_or_none(x: Any) -> bool:
+    return x is None or (not isinstance(x, bool) and isinstance(x, int | float)
+                         and math.isfinite(x))
+
+
+def _record_problem(rec: Any) -> str | None:
+    """Why a history line is not a result record, or None (fields read by history/model add)."""
+    if not isinstance(rec, dict):
+        return "expected a JSON object (a result record)"
+    for key in ("time", "kind"):
+        if not isinstance(rec.get(key), str):
+            return f"'{key}' missing or not text"
+    if rec.get("verdict") is not None and not isinstance(rec["verdict"], str):
+        return "'verdict' must be text"
+    if rec.get("effects") is not None and not (
+            isinstance(rec["effects"], list) and all(isinstance(e, str) for e in rec["effects"])):
+        return "'effects' must be a list of effect labels"
+    if rec.get("rmse") is not None and not (
+            isinstance(rec["rmse"], list) and all(_number_or_none(x) for x in rec["rmse"])):
+        return "'rmse' must be a list of numbers"
+    sugg = rec.get("suggestions")
+    if sugg is not None and not (isinstance(sugg, list) and all(isinstance(x, dict)
+                                                                for x in sugg)):
+        return "'suggestions' must be a list of objects"
+    for s in sugg or []:
+        hyp = s.get("hyper_parameters")
+        if hyp is not None and not (isinstance(hyp, dict)
+                                    and all(_number_or_none(v) for v in hyp.values())):
+            return "'hyper_parameters' must map names to numbers"
+        if not _number_or_none(s.get("seconds")):
+            return "'seconds' must be a number"
+    return None
 
 
 def latest_hypers(model_file: str | Path, effect: str, joint: int | None) -> dict[str, float]:

@@ -5,6 +5,7 @@ Owns joint numbering and naming, limits, nominal inertials and the motor↔joint
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -16,6 +17,7 @@ import pinocchio as pin
 
 from robid_link.config import read_yaml_mapping
 from robid_link.exceptions import RobotError
+from robid_link.ident.robot_check import UrdfJoint, check_urdf, inertia_problem
 
 __all__ = ["Robot", "Limits", "load_robot", "STANDARD_NAMES", "standard_parameter_names"]
 
@@ -24,6 +26,8 @@ STANDARD_NAMES = ("m", "mx", "my", "mz", "xx", "xy", "yy", "xz", "yz", "zz")
 
 _REVOLUTE = {"RX": (1.0, 0.0, 0.0), "RY": (0.0, 1.0, 0.0), "RZ": (0.0, 0.0, 1.0)}
 _PRISMATIC = {"PX": (1.0, 0.0, 0.0), "PY": (0.0, 1.0, 0.0), "PZ": (0.0, 0.0, 1.0)}
+
+_log = logging.getLogger(__name__)
 
 
 def standard_parameter_names(n_joints: int) -> list[str]:
@@ -117,8 +121,15 @@ class Robot:
 # ----------------------------------------------------------------------------- loading
 
 
-def load_robot(path: str | Path, lock: Sequence[str] = ()) -> Robot:
-    """Load an MDH YAML (``.yaml``/``.yml``) or a URDF (``.urdf``) robot description."""
+def load_robot(path: str | Path, lock: Sequence[str] = (), *, allow_unlimited: bool = False
+               ) -> Robot:
+    """Load an MDH YAML (``.yaml``/``.yml``) or a URDF (``.urdf``) robot description.
+
+    A revolute or prismatic joint without consistent position limits (lower < upper) is
+    refused: excitation and the safety check would otherwise allow ±0.9π. ``allow_unlimited``
+    (``--allow-unlimited``; ``allow_unlimited: true`` in an MDH file) accepts it with a logged
+    warning. A URDF continuous joint is bounded to one turn (±180°) for those checks.
+    """
     p = Path(path)
     if not p.is_file():
         raise RobotError(f"{p}: robot description not found")
@@ -126,32 +137,42 @@ def load_robot(path: str | Path, lock: Sequence[str] = ()) -> Robot:
     if suffix in (".yaml", ".yml"):
         if lock:
             raise RobotError(f"{p}: --lock applies to URDF robots only")
-        return _load_mdh(p)
+        return _load_mdh(p, allow_unlimited)
     if suffix == ".urdf":
-        return _load_urdf(p, lock)
+        return _load_urdf(p, lock, allow_unlimited)
     raise RobotError(f"{p}: unknown robot format '{suffix}' (expected .yaml, .yml or .urdf)")
 
 
 def _num(x: Any, where: str, src: Path) -> float:
-    if isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x):
-        raise RobotError(f"{src}: {where}: expected a finite number, got {x!r}")
+    try:
+        ok = not isinstance(x, bool) and isinstance(x, int | float) and math.isfinite(x)
+    except OverflowError:  # an integer beyond float range
+        ok = False
+    if not ok:
+        shown = repr(x) if len(repr(x)) <= 40 else repr(x)[:37] + "..."
+        raise RobotError(f"{src}: {where}: expected a finite number, got {shown}")
     return float(x)
 
 
 def _vec(x: Any, size: int, where: str, src: Path) -> np.ndarray:
     if not isinstance(x, list) or len(x) != size:
-        raise RobotError(f"{src}: {where}: expected a list of {size} numbers, got {x!r}")
+        shown = repr(x) if len(repr(x)) <= 40 else repr(x)[:37] + "..."
+        raise RobotError(f"{src}: {where}: expected a list of {size} numbers, got {shown}")
     return np.array([_num(v, f"{where}[{i}]", src) for i, v in enumerate(x)])
 
 
 _JOINT_KEYS = {"name", "type", "alpha", "a", "theta", "d", "limits", "inertial"}
 
 
-def _load_mdh(p: Path) -> Robot:
+def _load_mdh(p: Path, allow_unlimited: bool) -> Robot:
     doc = read_yaml_mapping(p, "robot description", RobotError)
-    unknown = set(doc) - {"name", "gravity", "joints", "transmission", "description"}
+    unknown = set(doc) - {"name", "gravity", "joints", "transmission", "description",
+                          "allow_unlimited"}
     if unknown:
-        raise RobotError(f"{p}: unknown key '{sorted(unknown)[0]}'")
+        raise RobotError(f"{p}: unknown key '{str(sorted(map(str, unknown))[0])[:40]}'")
+    if not isinstance(doc.get("allow_unlimited", False), bool):
+        raise RobotError(f"{p}: allow_unlimited: expected true or false")
+    allow_unlimited = allow_unlimited or doc.get("allow_unlimited", False)
     rows = doc.get("joints")
     if not isinstance(rows, list) or not rows:
         raise RobotError(f"{p}: joints: expected a non-empty list")
@@ -170,7 +191,7 @@ def _load_mdh(p: Path) -> Robot:
             raise RobotError(f"{p}: {where}: expected a mapping")
         bad = set(row) - _JOINT_KEYS
         if bad:
-            raise RobotError(f"{p}: {where}: unknown key '{sorted(bad)[0]}'")
+            raise RobotError(f"{p}: {where}: unknown key '{str(sorted(map(str, bad))[0])[:40]}'")
         for key in ("alpha", "a", "theta", "d"):
             if key not in row:
                 raise RobotError(f"{p}: {where}.{key}: missing")
@@ -179,7 +200,8 @@ def _load_mdh(p: Path) -> Robot:
             raise RobotError(f"{p}: {where}.name: duplicate joint name '{name}'")
         jtype = row.get("type", "revolute")
         if jtype not in ("revolute", "prismatic"):
-            raise RobotError(f"{p}: {where}.type: expected revolute or prismatic, got {jtype!r}")
+            raise RobotError(f"{p}: {where}.type: expected revolute or prismatic, "
+                             f"got {str(jtype)[:40]!r}")
         alpha = math.radians(_num(row["alpha"], f"{where}.alpha", p))
         a = _num(row["a"], f"{where}.a", p)
         theta = math.radians(_num(row["theta"], f"{where}.theta", p))
@@ -200,7 +222,7 @@ def _load_mdh(p: Path) -> Robot:
             else pin.Inertia(1e-3, np.zeros(3), 1e-6 * np.eye(3))
         )
         model.appendBodyToJoint(jid, inertia, pin.SE3.Identity())
-        _mdh_limits(row.get("limits"), jtype, f"{where}.limits", p, lim)
+        _mdh_limits(row.get("limits"), jtype, f"{where}.limits", p, lim, allow_unlimited)
         names.append(name)
         types.append(jtype)
         parent = jid
@@ -228,6 +250,28 @@ def _load_mdh(p: Path) -> Robot:
     )
 
 
+def _urdf_limits(p: Path, names: Sequence[str], joints: dict[str, UrdfJoint],
+                 allow_unlimited: bool) -> Limits:
+    """Limits from the URDF's text, by joint name (Pinocchio's q-limit vectors are per
+    configuration slot, and a continuous joint has two)."""
+    rows = []
+    for name in names:
+        j = joints.get(name, UrdfJoint(name, "revolute", limit_problem="not found in the file"))
+        lo, hi = j.lower, j.upper
+        if j.kind == "continuous":  # unbounded by definition; excitation and checks: one turn
+            lo, hi = -math.pi, math.pi
+        elif j.limit_problem and not allow_unlimited:
+            raise RobotError(f"{p}: joint '{name}': {j.limit_problem}; position limits are "
+                             "needed (or --allow-unlimited to accept an unlimited joint)")
+        elif j.limit_problem:
+            _log.warning("%s: joint '%s': %s; accepted as unlimited (--allow-unlimited)",
+                         p, name, j.limit_problem)
+            lo, hi = -math.inf, math.inf
+        rows.append((lo, hi, j.velocity, math.inf, j.effort))
+    arr = np.array(rows, dtype=float).reshape(len(names), 5)
+    return Limits(*(arr[:, k].copy() for k in range(5)))
+
+
 def _rotx(a: float) -> np.ndarray:
     c, s = math.cos(a), math.sin(a)
     return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
@@ -250,11 +294,15 @@ def _mdh_inertial(x: Any, where: str, p: Path) -> np.ndarray | None:
     com = _vec(x.get("com", [0, 0, 0]), 3, f"{where}.com", p)
     ii = _vec(x.get("I", [0, 0, 0, 0, 0, 0]), 6, f"{where}.I", p)
     i_c = np.array([[ii[0], ii[1], ii[3]], [ii[1], ii[2], ii[4]], [ii[3], ii[4], ii[5]]])
+    problem = inertia_problem(i_c)
+    if problem:
+        raise RobotError(f"{p}: {where}.I: {problem}")
     return np.array(pin.Inertia(m, com, i_c).toDynamicParameters())
 
 
-def _mdh_limits(x: Any, jtype: str, where: str, p: Path, out: dict[str, list[float]]) -> None:
-    x = x or {}
+def _mdh_limits(x: Any, jtype: str, where: str, p: Path, out: dict[str, list[float]],
+                allow_unlimited: bool) -> None:
+    x = {} if x is None else x
     if not isinstance(x, dict) or set(x) - {"q", "qd", "qdd", "tau"}:
         raise RobotError(f"{p}: {where}: expected keys among q, qd, qdd, tau")
     scale = math.radians(1.0) if jtype == "revolute" else 1.0
@@ -264,15 +312,22 @@ def _mdh_limits(x: Any, jtype: str, where: str, p: Path, out: dict[str, list[flo
             raise RobotError(f"{p}: {where}.q: lower limit {lo} not below upper {hi}")
         out["q_min"].append(lo * scale)
         out["q_max"].append(hi * scale)
-    else:
+    elif allow_unlimited:
+        _log.warning("%s: %s.q: no position limits; accepted as unlimited (allow_unlimited)",
+                     p, where)
         out["q_min"].append(-math.inf)
         out["q_max"].append(math.inf)
-    for key in ("qd", "qdd"):
-        v = _num(x[key], f"{where}.{key}", p) * scale if key in x else math.inf
+    else:
+        raise RobotError(f"{p}: {where}.q: position limits missing (give q: [lower, upper], "
+                         "or allow_unlimited: true to accept an unlimited joint)")
+    for key in ("qd", "qdd", "tau"):
+        if key not in x:
+            out[f"{key}_max"].append(math.inf)
+            continue
+        v = _num(x[key], f"{where}.{key}", p) * (scale if key != "tau" else 1.0)
         if v <= 0:
-            raise RobotError(f"{p}: {where}.{key}: must be positive")
+            raise RobotError(f"{p}: {where}.{key}: must be positive, got {x[key]!r}")
         out[f"{key}_max"].append(v)
-    out["tau_max"].append(_num(x["tau"], f"{where}.tau", p) if "tau" in x else math.inf)
 
 
 def _transmission(x: Any, n: int, p: Path) -> np.ndarray | None:
@@ -284,26 +339,33 @@ def _transmission(x: Any, n: int, p: Path) -> np.ndarray | None:
     if np.any(ratios == 0):
         raise RobotError(f"{p}: transmission.ratios: a gear ratio of 0 is not invertible")
     c = np.eye(n)
-    for k, entry in enumerate(x.get("coupling") or []):
+    coupling = x.get("coupling") or []
+    if not isinstance(coupling, list):
+        raise RobotError(f"{p}: transmission.coupling: expected a list of [joint, motor, factor]")
+    for k, entry in enumerate(coupling):
         where = f"transmission.coupling[{k}]"
         if not isinstance(entry, list) or len(entry) != 3:
             raise RobotError(f"{p}: {where}: expected [joint, motor, factor]")
-        src, dst = int(entry[0]), int(entry[1])
+        if not all(type(v) is int for v in entry[:2]):
+            raise RobotError(f"{p}: {where}: joint and motor must be whole numbers in 1..{n}, "
+                             f"got {str(entry[:2])[:40]}")
+        src, dst = entry[0], entry[1]
         if not (1 <= src <= n and 1 <= dst <= n) or src == dst:
             raise RobotError(f"{p}: {where}: joints must be distinct numbers in 1..{n}")
         c[dst - 1, src - 1] = _num(entry[2], f"{where}[2]", p)
     t = np.diag(ratios) @ c
-    if abs(np.linalg.det(t)) < 1e-12:
+    if not np.all(np.isfinite(t)) or np.linalg.cond(t) > 1e12:
         raise RobotError(f"{p}: transmission: the coupling matrix is singular")
     return t
 
 
-def _load_urdf(p: Path, lock: Sequence[str]) -> Robot:
+def _load_urdf(p: Path, lock: Sequence[str], allow_unlimited: bool) -> Robot:
+    text, urdf_joints = check_urdf(p)
     try:
-        full = pin.buildModelFromUrdf(str(p))
+        full = pin.buildModelFromXML(text)
     except (RuntimeError, ValueError) as err:
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise RobotError(f"{p}: cannot parse URDF: {first}") from err
+        raise RobotError(f"{p}: cannot parse URDF: {first[:200]}") from err
     if lock:
         ids = []
         for nm in lock:
@@ -337,20 +399,7 @@ def _load_urdf(p: Path, lock: Sequence[str]) -> Robot:
     n = len(names)
     if n == 0:
         raise RobotError(f"{p}: the URDF has no movable joint")
-    inf = np.full(n, math.inf)
-    lo = np.array(full.lowerPositionLimit, dtype=float)
-    hi = np.array(full.upperPositionLimit, dtype=float)
-    if any(unbounded):  # Pinocchio's (cos, sin) slots carry no angle limit
-        lo, hi = inf * -1, inf.copy()
-    vel = np.array(full.velocityLimit, dtype=float)
-    eff = np.array(full.effortLimit, dtype=float)
-    limits = Limits(
-        q_min=np.where(np.isfinite(lo) & (lo < hi), lo, -math.inf),
-        q_max=np.where(np.isfinite(hi) & (lo < hi), hi, math.inf),
-        qd_max=np.where(vel > 0, vel, math.inf),
-        qdd_max=inf.copy(),
-        tau_max=np.where(eff > 0, eff, math.inf),
-    )
+    limits = _urdf_limits(p, names, urdf_joints, allow_unlimited)
     nominal = np.concatenate([full.inertias[j].toDynamicParameters() for j in range(1, n + 1)])
     parents = tuple(int(full.parents[j]) - 1 for j in range(1, n + 1))
     return Robot(

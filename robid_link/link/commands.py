@@ -235,12 +235,11 @@ def _fake_controller(args: argparse.Namespace) -> int:
     import signal
     import threading
 
-    import yaml
-
     from robid_link.atomic import atomic_write
     from robid_link.ident.robot import load_robot
     from robid_link.link.daemon import setup_logging
     from robid_link.link.registry import fake_module
+    from robid_link.safeyaml import load_yaml
 
     setup_logging("info")
     options: dict[str, Any] = {}
@@ -248,8 +247,8 @@ def _fake_controller(args: argparse.Namespace) -> int:
         key, sep, value = item.partition("=")
         if not sep or not key.isidentifier():
             raise RobidError(f"--option {item!r}: expected KEY=VALUE")
-        options[key] = yaml.safe_load(value)
-    robot = load_robot(args.robot, args.lock)
+        options[key] = load_yaml(value, f"--option {key}", error=RobidError)
+    robot = load_robot(args.robot, args.lock, allow_unlimited=args.allow_unlimited)
     ctrl = fake_module("controller")
     truth = (fake_module("plant").load_truth(args.truth, robot) if args.truth
              else ctrl.default_truth(robot))

@@ -21,6 +21,7 @@ import numpy as np
 import yaml
 
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
+from robid_link.safeyaml import load_yaml
 
 if TYPE_CHECKING:
     from robid_link.ident.robot import Robot
@@ -124,7 +125,7 @@ class MotionProgram:
         """``traj.csv`` + ``traj.yaml`` parsed; a DriverError names what is wrong."""
         where = f"program {self.exp_id}"
         try:
-            head = yaml.safe_load(self.files["traj.yaml"].decode())
+            head = load_yaml(self.files["traj.yaml"], f"{where}: traj.yaml", error=DriverError)
             arr = np.loadtxt(io.BytesIO(self.files["traj.csv"]), delimiter=",", skiprows=1,
                              ndmin=2)
         except KeyError as err:

@@ -145,8 +145,9 @@ def test_payload_adds_its_gravity_torque(arm3):
 def test_two_mass_joint_resonance(tmp_path):
     """Open loop: motor torque → motor acceleration resonates at √(K(Jm+Ja)/(Jm·Ja))/2π."""
     desc = tmp_path / "one.yaml"
-    desc.write_text("name: one\njoints:\n  - {name: j, alpha: 0, a: 0, theta: 0, d: 0.2, "
-                    "inertial: {m: 2.0, com: [0, 0, 0], I: [0.01, 0, 0.01, 0, 0, 0.05]}}\n")
+    desc.write_text("name: one\nallow_unlimited: true\njoints:\n"
+                    "  - {name: j, alpha: 0, a: 0, theta: 0, d: 0.2, "
+                    "inertial: {m: 2.0, com: [0, 0, 0], I: [0.03, 0, 0.03, 0, 0, 0.05]}}\n")
     robot = load_robot(desc)
     k, jm, ja = 400.0, 0.02, 0.05
     truth = Truth(robot.nominal, effects=({"name": "elasticity", "k": k, "d": 0.02, "jm": jm},),

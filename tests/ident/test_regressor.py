@@ -36,7 +36,7 @@ def test_batched_regressor_matches_pinocchio_urdf(kuka_dir):
 def test_batched_regressor_prismatic_and_offsets(tmp_path):
     desc = tmp_path / "cart.yaml"
     desc.write_text(
-        "name: cart\njoints:\n"
+        "name: cart\nallow_unlimited: true\njoints:\n"
         "  - {name: rail, type: prismatic, alpha: 0, a: 0, theta: 30, d: 0.2}\n"
         "  - {name: shoulder, alpha: -90, a: 0.1, theta: -90, d: 0.05}\n"
         "  - {name: slide, type: prismatic, alpha: 90, a: 0.3, theta: 10, d: -0.1}\n"

@@ -68,10 +68,11 @@ def test_urdf_lock_removes_joints(kuka_dir):
         ("joints: []", "joints: expected a non-empty list"),
         ("joints: [{alpha: 0, a: 0, theta: 0, d: 0, limits: {q: [10, -10]}}]",
          "joints[0].limits.q: lower limit"),
-        ("joints: [{alpha: 0, a: 0, theta: 0, d: 0}]\ntransmission: {ratios: [0]}",
+        ("allow_unlimited: true\njoints: [{alpha: 0, a: 0, theta: 0, d: 0}]\n"
+         "transmission: {ratios: [0]}",
          "transmission.ratios: a gear ratio of 0"),
         ("joints: [{alpha: 0, a: 0, theta: 0, d: 0,\n", "invalid YAML"),
-        ("gravity: [0, 0]\njoints: [{alpha: 0, a: 0, theta: 0, d: 0}]",
+        ("gravity: [0, 0]\njoints: [{alpha: 0, a: 0, theta: 0, d: 0, limits: {q: [-9, 9]}}]",
          "gravity: expected a list of 3 numbers"),
     ],
 )
@@ -90,7 +91,7 @@ def test_bad_robot_paths(tmp_path, kuka_dir):
     with pytest.raises(RobotError, match="unknown robot format"):
         load_robot(tmp_path / "r.txt")
     (tmp_path / "broken.urdf").write_text("<robot name='x'><link></robot>")
-    with pytest.raises(RobotError, match="cannot parse URDF"):
+    with pytest.raises(RobotError, match="invalid XML at line 1"):
         load_robot(tmp_path / "broken.urdf")
     with pytest.raises(RobotError, match="--lock gripper: no joint of that name"):
         load_robot(kuka_dir / "kuka_lwr4.urdf", lock=["gripper"])
