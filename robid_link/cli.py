@@ -195,7 +195,9 @@ def _link_parsers(sub: Any) -> None:
 
     p = sub.add_parser("params", help="the parameter sets each robot's controller gets: "
                        "show, diff, approve (for unattended uploads), rollback")
-    p.add_argument("params_cmd", choices=("show", "diff", "approve", "rollback"))
+    p.add_argument("params_cmd", choices=("show", "diff", "approve", "rollback"),
+                   help="show the sets, diff two, approve one for unattended uploads, or "
+                   "roll the controller back to the set before the one in use")
     p.add_argument("sets", nargs="*", metavar="SET",
                    help="a set's version number or sha256 prefix (show: one; diff: two, "
                    "default the set in use and the newest; approve: one, default the newest)")
