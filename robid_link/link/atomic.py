@@ -1,35 +1,7 @@
-"""Crash-safe file writes shared by the store, the drivers and the fakes."""
+"""Moved to :mod:`robid_link.atomic` (the one atomic write); kept while callers switch."""
 
 from __future__ import annotations
 
-import os
-import secrets
-from pathlib import Path
+from robid_link.atomic import atomic_write, fsync_dir
 
 __all__ = ["atomic_write", "fsync_dir"]
-
-
-def atomic_write(path: Path, data: bytes, mode: int = 0o644) -> None:
-    """Temp file in the same folder, fsync, rename over ``path``, fsync of the folder: a reader
-    sees the old file or the whole new one, and a power cut keeps one of them."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    fsync_dir(path.parent)
-
-
-def fsync_dir(folder: Path) -> None:
-    """Make a rename or a new file in ``folder`` durable."""
-    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
