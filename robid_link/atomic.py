@@ -1,4 +1,5 @@
-"""Crash-safe file writes shared by the store, the drivers and the fakes."""
+"""Crash-safe file writes shared by the store, the drivers, the fakes and the worker's reports:
+a whole file replaced atomically, or a line appended durably (the error-ladder history)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import os
 import secrets
 from pathlib import Path
 
-__all__ = ["atomic_write", "fsync_dir"]
+__all__ = ["atomic_write", "append_durable", "fsync_dir"]
 
 
 def atomic_write(path: Path, data: bytes, mode: int = 0o644) -> None:
@@ -24,6 +25,24 @@ def atomic_write(path: Path, data: bytes, mode: int = 0o644) -> None:
         tmp.unlink(missing_ok=True)
         raise
     fsync_dir(path.parent)
+
+
+def append_durable(path: Path, data: bytes, mode: int = 0o644) -> None:
+    """Append ``data`` with one write and fsync it (and the folder, for a new file).
+
+    An append log is not rewritten through a temp file: with O_APPEND two writers (the CLI
+    and the daemon on one model's history) cannot lose each other's lines."""
+    created = not path.exists()
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, mode)
+    try:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(fd, view):]
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    if created:
+        fsync_dir(path.parent)
 
 
 def fsync_dir(folder: Path) -> None:

@@ -298,50 +298,35 @@ def _inputs(args: argparse.Namespace):
 
 
 def _identify(args: argparse.Namespace) -> int:
-    from robid_link.ident.identify import identify
-    from robid_link.ident.report import write_json, write_report
+    from robid_link.ident.jobs import run_job
 
     robot, model, data, valid = _inputs(args)
-    res = identify(robot, data, model, validate=valid, cutoff_hz=args.cutoff,
-                   interval=args.interval, method=args.method, weight=args.weight,
-                   motor_side=args.motor_side)
-    print(res.summary())
-    doc = res.to_dict()
-    if args.json:
-        write_json(args.json, doc)
+    job = run_job(robot, data, model, validate=valid, cutoff_hz=args.cutoff,
+                  interval=args.interval, method=args.method, weight=args.weight,
+                  motor_side=args.motor_side, json_files={"identify": args.json} if args.json
+                  else None, report_dir=args.out, history=args.model or None)
+    print(job.result.summary())
     if args.out:
-        paths = write_report(res, args.out)
-        print(f"\n  wrote {len(paths)} files to {args.out}")
-    _record(args, "identify", doc)
+        print(f"\n  wrote {len(job.report_files['identify'])} files to {args.out}")
     return 0
 
 
-def _record(args: argparse.Namespace, kind: str, doc: dict[str, Any]) -> None:
-    if args.model:
-        from robid_link.ident.history import append_record, result_record
-
-        append_record(args.model, result_record(kind, doc))
-
-
 def _diagnose(args: argparse.Namespace) -> int:
-    from robid_link.ident.diagnose import diagnose
-    from robid_link.ident.report import residual_figures, write_json
+    from robid_link.ident.jobs import run_job
 
     robot, model, data, valid = _inputs(args)
-    dg = diagnose(robot, data, model, validate=valid, cutoff_hz=args.cutoff,
-                  interval=args.interval, motor_side=args.motor_side)
+    job = run_job(robot, data, model, analyses=("diagnose",), validate=valid,
+                  cutoff_hz=args.cutoff, interval=args.interval, motor_side=args.motor_side,
+                  json_files={"diagnose": args.json} if args.json else None,
+                  report_dir=args.out, history=args.model or None)
+    dg = job.diagnosis
+    assert dg is not None  # "diagnose" was asked for
     print(dg.summary())
-    doc = dg.to_dict()
-    doc["data_files"] = dg.result.to_dict()["data_files"]
-    if args.json:
-        write_json(args.json, doc)
     if args.out:
-        paths = residual_figures(dg.residuals, dg.result.joints, args.out)
-        print(f"  wrote {len(paths)} figures to {args.out}")
+        print(f"  wrote {len(job.report_files['diagnose'])} figures to {args.out}")
     if dg.suggestions and args.model:
         s = dg.suggestions[0]
         print(f"  next: robid model add {args.model} {s.label()}")
-    _record(args, "diagnose", doc)
     return 0
 
 
@@ -433,7 +418,7 @@ def _excite(args: argparse.Namespace) -> int:
         for s in range(20)]
     t = np.arange(0.0, periods / args.base_hz, 1.0 / args.rate)
     q, qd, qdd = traj.evaluate(t)
-    ex.check_limits(robot, q, qd, qdd, ex._nominal_torque(robot, q, qd, qdd), args.out)
+    ex.check_limits(robot, q, qd, qdd, ex.nominal_torque(robot, q, qd, qdd), args.out)
     header = ex.fourier_header(traj, cond)
     header["random_median_condition_number"] = float(np.median(rand))
     csv_path, yaml_path = ex.write_trajectory(args.out, ex.Trajectory(

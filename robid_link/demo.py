@@ -94,9 +94,10 @@ async def _campaign(cfg_path: Path, log_file: Path) -> dict[str, Any]:
 def run_demo(work: Path, out: Path, json_path: str | None = None,
              driver: str = "file_share") -> int:
     from robid_link.ident.effects import EffectSpec, load_model, save_model
-    from robid_link.ident.history import append_record, read_history, result_record
-    from robid_link.ident.identify import identify, load_logs
-    from robid_link.ident.report import history_figure, write_json, write_report
+    from robid_link.ident.history import read_history
+    from robid_link.ident.identify import load_logs
+    from robid_link.ident.jobs import run_job
+    from robid_link.ident.report import history_figure, write_json
     from robid_link.ident.robot import load_robot
 
     out = out.resolve()  # the daemon's config lives elsewhere: paths in it are absolute
@@ -130,10 +131,10 @@ def run_demo(work: Path, out: Path, json_path: str | None = None,
         print(f"  adding {spec.label()} to {model_file} and identifying the stored logs again")
         logs = [str(work / "state" / "logs" / e["log_sha"][:2] / f"{e['log_sha']}.csv")
                 for e in run["experiments"]]
-        final = identify(robot, load_logs(robot, logs), model)
-        append_record(model_file, result_record("identify", final.to_dict()))
-        files += write_report(final, out / "final")
-        final_rmse = final.rmse.tolist()
+        final = run_job(robot, load_logs(robot, logs), model, report_dir=out / "final",
+                        history=model_file)
+        files += final.report_files["identify"]
+        final_rmse = final.result.rmse.tolist()
     files.append(history_figure(read_history(model_file), out / "error_ladder.png"))
     print("\n  error ladder, validation RMSE per joint [N·m]:")
     print("    default model : " + " ".join(f"{x:7.3f}" for x in first["rmse"]))

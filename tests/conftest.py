@@ -12,9 +12,9 @@ import pytest
 
 from robid_link.fakes.plant import Plant, Truth, perturbed_inertials
 from robid_link.ident.data import write_log_csv
+from robid_link.ident.design import base_set_for
 from robid_link.ident.effects import Model
 from robid_link.ident.excitation import random_fourier
-from robid_link.ident.identify import base_set_for
 from robid_link.ident.robot import Robot, load_robot
 
 ROOT = Path(__file__).resolve().parent.parent

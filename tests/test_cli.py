@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from robid_link.cli import main
@@ -38,11 +39,22 @@ def test_identify_json_and_report(arm3_log, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("method", ["wls", "irls"])
-def test_identify_methods(arm3_log, method, capsys):
-    rc = main(["identify", "--robot", str(ROBOTS / "arm3.yaml"), "--data", str(arm3_log),
-               "--method", method, "--weight", "huber"])
-    assert rc == 0
-    assert method.upper() in capsys.readouterr().out
+def test_identify_methods(arm3_log, method, tmp_path, capsys):
+    """The method reaches the estimator: other weights, other estimates, as good a model."""
+    docs = {}
+    for m in ("ols", method):
+        out = tmp_path / f"{m}.json"
+        rc = main(["identify", "--robot", str(ROBOTS / "arm3.yaml"), "--data", str(arm3_log),
+                   "--method", m, "--weight", "huber", "--json", str(out)])
+        assert rc == 0
+        docs[m] = json.loads(out.read_text())
+    assert f"{method.upper()}\n" in capsys.readouterr().out
+    ols, other = docs["ols"], docs[method]
+    assert other["method"] == method
+    assert [p["name"] for p in other["parameters"]] == [p["name"] for p in ols["parameters"]]
+    values = np.array([[p["value"] for p in d["parameters"]] for d in (ols, other)])
+    assert not np.allclose(values[0], values[1], rtol=1e-9, atol=0.0)
+    assert other["relative_error"] < 1.5 * ols["relative_error"]
 
 
 @pytest.mark.parametrize(

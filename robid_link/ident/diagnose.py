@@ -9,17 +9,25 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from scipy.stats import chi2
 
 from robid_link.ident.data import Log
+from robid_link.ident.design import (
+    Design,
+    attach_predictions,
+    base_set_for,
+    block_columns,
+    random_states,
+    structural_mask,
+)
 from robid_link.ident.effects import REGISTRY, Block, Model, States
-from robid_link.ident.estimate import RANK_TOL, Grams, accumulate, solve
-from robid_link.ident.identify import build_problem, identify, make_design, structural_mask
-from robid_link.ident.preprocess import Design, Piece, block_columns, filter_windows, split
+from robid_link.ident.estimate import RANK_TOL, Grams, accumulate, long_run_factor, solve
+from robid_link.ident.identify import identify
+from robid_link.ident.preprocess import Piece, Prepared, filter_windows, split
 from robid_link.ident.profile import ProfileRows, profile_effect, refine_effect, screen
 from robid_link.ident.results import IdentResult
 from robid_link.ident.robot import Robot
@@ -140,13 +148,11 @@ class _Novelty:
 
     def __init__(self, robot: Robot, blocks: Sequence[Block], base: Any,
                  transmission: np.ndarray | None) -> None:
-        from robid_link.ident.identify import _random_states
-
         self.robot = robot
         self.names = list(base.names)
         self.base_names = base.base_names
         n_states = max(200, 4 * len(self.names))
-        self.states = _random_states(robot, np.random.default_rng(20260), n_states, transmission)
+        self.states = random_states(robot, np.random.default_rng(20260), n_states, transmission)
         w = block_columns(robot, blocks, self.states).reshape(-1, len(self.names))
         w = w[:, list(base.independent)]
         self.scale = np.linalg.norm(w, axis=0)
@@ -237,15 +243,13 @@ class _FoldCV:
 
 def _wald(grams: Grams, sub: np.ndarray, cand: np.ndarray) -> tuple[float, np.ndarray]:
     """p-value that the candidate's coefficients are zero, and the full-data θ."""
-    from robid_link.ident.estimate import _long_run_factor
-
     p = grams.p
     idx = np.concatenate((sub, [p, p + 1]))
     sg = Grams(grams.g[:, :, idx[:, None], idx[None, :]], grams.n_rows)
     tot = sg.total()
     s = sub.size
     theta, a_inv, _ = solve(tot[:, :s, :s].sum(0), tot[:, :s, s].sum(0), warn=False)
-    kappa, var = _long_run_factor(sg, theta)
+    kappa, var = long_run_factor(sg, theta)
     cov = a_inv @ np.einsum("j,jik->ik", kappa * var, tot[:, :s, :s]) @ a_inv
     pos = np.searchsorted(sub, cand) if np.all(np.diff(sub) > 0) else \
         np.array([int(np.flatnonzero(sub == c)[0]) for c in cand])
@@ -309,18 +313,31 @@ def _evidence(blk: Block, before: float, after: float, r2: dict[str, float],
 
 def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
              validate: Sequence[Log] | None = None, cutoff_hz: float | None = None,
-             interval: int = 1, method: str = "ols", motor_side: bool = False) -> Diagnosis:
-    """Fit the model, then score every catalog effect not in it (see the module docstring)."""
-    result = identify(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
-                      interval=interval, method=method if method != "irls" else "ols",
-                      motor_side=motor_side)
+             interval: int = 1, method: str = "ols", motor_side: bool = False,
+             result: IdentResult | None = None) -> Diagnosis:
+    """Fit the model, then score every catalog effect not in it (see the module docstring).
+
+    ``result``: the model already identified from these inputs (``identify`` with the same
+    options); its prepared logs, design and estimate are reused instead of fitting again.
+    Candidates are scored on OLS/WLS residuals, so an IRLS result (or one of another method
+    than ``method``) is not reused.
+    """
+    method = method if method != "irls" else "ols"
+    if result is None or result.method != method or result.problem is None:
+        result = identify(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
+                          interval=interval, method=method, motor_side=motor_side)
+    if result.problem is None or result.design is None:
+        raise ValueError("diagnose needs a result from identify (it keeps the fitted problem)")
     logs = [*data, *(validate or ())]
-    pb = build_problem(robot, logs, model, cutoff_hz=cutoff_hz, interval=interval,
-                       motor_side=motor_side)
-    pieces, _ = split(pb.preps, None, holdout=0.0)
-    design, base, _ = make_design(robot, pb.blocks, pb.transmission)
+    pb = result.problem
+    _ = result.rmse  # the held-out figures read the fitted problem's model-torque inputs
+    # copies: the model's predictions attached below must not change what the result reads
+    preps = [replace(p) for p in (*pb.preps, *pb.vpreps)]
+    pieces, _ = split(preps, None, holdout=0.0)
+    design = result.design
+    base, _ = base_set_for(robot, pb.blocks, pb.transmission)
     theta0 = np.asarray(result.theta)  # same model, same base set: identify's estimate
-    attach_predictions(robot, pb.preps, design, theta0)
+    attach_predictions(robot, preps, design, theta0)
     notes: list[str] = []
     if len(logs) == 1 or all(_same_motion(logs[0], lg) for lg in logs[1:]):
         notes.append("all data is one motion: candidates are scored by blocked "
@@ -373,7 +390,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                      "joint's filtered residual even in-sample and were not scored")
     if not kept:  # nothing can show a gain: no union pass, the verdict is adequate
         return Diagnosis(result, model.labels(), None, [], [], absorbed,
-                         _unexplained(pb, design, theta0), notes,
+                         _unexplained(preps[0], design, theta0), notes,
                          _residual_dict(resid, states, pb.preps[0].filt.fs / step))
     union_blocks = [*pb.blocks, *kept]
     model_cols = list(base.independent)
@@ -420,7 +437,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     good = _prefer_simpler(good)
     bad.sort(key=lambda s: -s.gain)
     return Diagnosis(result, model.labels(), [float(x) for x in rmse0], good, bad[:10],
-                     absorbed, _unexplained(pb, design, theta0), notes,
+                     absorbed, _unexplained(preps[0], design, theta0), notes,
                      _residual_dict(resid, states, pb.preps[0].filt.fs / step))
 
 
@@ -454,27 +471,6 @@ def _same_motion(a: Log, b: Log) -> bool:
     return bool(n > 10 and np.abs(a.q[:n] - b.q[:n]).max() < 0.02)
 
 
-def attach_predictions(robot: Robot, preps: Sequence[Any], design: Design,
-                       theta: np.ndarray) -> None:
-    """The current model's rigid torque and torque rate on every sample (candidates use them)."""
-    blocks = design.blocks
-    n_rigid = 10 * robot.n if blocks and blocks[0].effect.name == "rigid_body" else 0
-    rigid_theta = theta.copy()
-    rigid_theta[np.asarray(design.cols) >= n_rigid] = 0.0
-    for prep in preps:
-        n = len(prep.log)
-        full = np.zeros((n, robot.n))
-        rigid = np.zeros((n, robot.n))
-        for a in range(0, n, 65536):
-            b = min(a + 65536, n)
-            c = design.compact(prep.states(a, b))
-            full[a:b] = design.predict(c, theta)
-            rigid[a:b] = design.predict(c, rigid_theta)
-        prep.tau_rigid = rigid
-        prep.tau_model = full
-        prep.tau_rate = np.gradient(full, 1.0 / prep.filt.fs, axis=0)
-
-
 def _residual_with_states(pieces: Sequence[Piece], step: int
                           ) -> tuple[np.ndarray, np.ndarray, States]:
     """The model's residual on decimated rows, of the filtered and of the raw torque, with
@@ -504,14 +500,13 @@ def _residual_with_states(pieces: Sequence[Piece], step: int
     return np.concatenate(res), np.concatenate(raw), st
 
 
-def _unexplained(pb: Any, design: Design, theta: np.ndarray) -> list[dict[str, Any]]:
+def _unexplained(prep: Prepared, design: Design, theta: np.ndarray) -> list[dict[str, Any]]:
     """Structure no catalog effect explains: a resonance in the raw residual spectrum."""
     import scipy.signal as sig
 
     out: list[dict[str, Any]] = []
-    prep = pb.preps[0]
     n = min(len(prep.log), 200_000)
-    if getattr(prep, "tau_model", None) is not None:  # attach_predictions computed it
+    if prep.tau_model is not None:  # attach_predictions computed it
         r = prep.tau[:n] - prep.tau_model[:n]
     else:
         r = prep.tau[:n] - design.predict(design.compact(prep.states(0, n)), theta)
@@ -523,7 +518,7 @@ def _unexplained(pb: Any, design: Design, theta: np.ndarray) -> list[dict[str, A
     motion_hz = _motion_bandwidth(prep.q[:n], fs)
     band = (f > max(2.0, 3.0 * motion_hz)) & (f < 0.45 * fs)
     idx = np.flatnonzero(band)
-    for j in range(pb.robot.n):
+    for j in range(design.robot.n):
         if idx.size < 20:
             break
         spec = pxx[:, j]

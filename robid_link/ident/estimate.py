@@ -10,13 +10,18 @@ import math
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from robid_link.exceptions import ConditioningWarning, EstimationError
-from robid_link.ident.preprocess import Design, Piece, design_chunks
+from robid_link.ident.design import Design, design_chunks
 
-__all__ = ["WEIGHTS", "TUNING", "Grams", "accumulate", "solve", "Fit", "fit"]
+if TYPE_CHECKING:  # pieces only pass through to design_chunks
+    from robid_link.ident.preprocess import Piece
+
+__all__ = ["WEIGHTS", "TUNING", "RANK_TOL", "Grams", "accumulate", "solve", "Fit", "fit",
+           "long_run_factor"]
 
 #: Robust weight functions of r = residual / (tuning · robust scale), as in MATLAB's
 #: robustfit; the tuning constants give 95 % efficiency at Gaussian noise.
@@ -159,13 +164,13 @@ def _weighted_solve(grams: Grams, wj: np.ndarray, names: Sequence[str] | None, w
     a = np.einsum("j,jik->ik", wj, tot[:, :p, :p])
     b = np.einsum("j,ji->i", wj, tot[:, :p, p])
     theta, a_inv, cond = solve(a, b, names, warn)
-    kappa, var = _long_run_factor(grams, theta)
+    kappa, var = long_run_factor(grams, theta)
     meat = np.einsum("j,jik->ik", wj * wj * kappa * var, tot[:, :p, :p])
     cov = a_inv @ meat @ a_inv
     return theta, cov, a_inv, cond
 
 
-def _long_run_factor(grams: Grams, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def long_run_factor(grams: Grams, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per joint: κ = long-run variance / variance of the residual, and the variance.
 
     Filtering correlates neighbouring residuals, so σ²(XᵀX)⁻¹ would be too optimistic.

@@ -26,6 +26,7 @@ __all__ = [
     "random_fourier",
     "optimize_fourier",
     "excitation_condition",
+    "nominal_torque",
     "constant_velocity_sweeps",
     "stepped_sine",
     "check_limits",
@@ -128,13 +129,18 @@ def check_limits(robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
                               f"at sample {k + 1}, above the limit {lim.tau_max[j]:.4g} N·m")
 
 
-def _nominal_torque(robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
-                    ) -> np.ndarray | None:
+def nominal_torque(robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
+                   ) -> np.ndarray | None:
+    """The a-priori model's torque along a motion, where there are inertials and limits."""
     if robot.nominal is None or not np.isfinite(robot.limits.tau_max).any():
         return None
     from robid_link.ident.regressor import rigid_regressor
 
     return rigid_regressor(robot, q, qd, qdd) @ robot.nominal
+
+
+#: the old private name, still called by link/program.py (its owner switches to the public one)
+_nominal_torque = nominal_torque
 
 
 def fit_limits(robot: Robot, traj: FourierTrajectory, margin: float = LIMIT_MARGIN,
@@ -157,7 +163,7 @@ def fit_limits(robot: Robot, traj: FourierTrajectory, margin: float = LIMIT_MARG
     # torque limits are not linear in the scale (gravity stays): shrink until they hold
     for _ in range(20 if torque else 0):
         qs, qds, qdds = out.evaluate(t)
-        tau = _nominal_torque(robot, qs, qds, qdds)
+        tau = nominal_torque(robot, qs, qds, qdds)
         if tau is None or np.all(np.abs(tau) <= margin * lim.tau_max):
             break
         out = out.scaled(0.9)
@@ -170,7 +176,7 @@ def fit_limits(robot: Robot, traj: FourierTrajectory, margin: float = LIMIT_MARG
 def excitation_condition(robot: Robot, traj: FourierTrajectory, model: Model = DEFAULT_MODEL,
                          n_samples: int = 200) -> float:
     """Condition number of the column-scaled base regressor over one period."""
-    from robid_link.ident.identify import make_design
+    from robid_link.ident.design import make_design
 
     design = _design_cache(robot, model, make_design)
     t = np.linspace(0.0, traj.period_s, n_samples, endpoint=False)

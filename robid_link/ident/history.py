@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from robid_link.atomic import append_durable
 from robid_link.exceptions import ModelError
 
 __all__ = ["history_path", "result_record", "append_record", "read_history", "latest_hypers"]
@@ -46,9 +47,7 @@ def result_record(kind: str, doc: dict[str, Any]) -> dict[str, Any]:
 
 def append_record(model_file: str | Path, record: dict[str, Any]) -> Path:
     path = history_path(model_file)
-    with open(path, "a") as fh:
-        fh.write(json.dumps(record) + "\n")
-        fh.flush()
+    append_durable(path, (json.dumps(record) + "\n").encode())
     return path
 
 

@@ -5,45 +5,26 @@ Orchestrates preprocess → regressor/effects → base set → estimate → vali
 
 from __future__ import annotations
 
-import math
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from robid_link.exceptions import ConditioningWarning, DataError, DataWarning, ExcitationWarning
+from robid_link.exceptions import ConditioningWarning, DataWarning, ExcitationWarning
 from robid_link.ident.data import Log, file_sha256, load_log
-from robid_link.ident.effects import Block, Model, States
+from robid_link.ident.design import attach_predictions, make_design
+from robid_link.ident.effects import Block, Model
 from robid_link.ident.estimate import Grams, accumulate, fit
-from robid_link.ident.preprocess import (
-    Design,
-    Piece,
-    Prepared,
-    block_columns,
-    check_counts,
-    design_chunks,
-    prepare,
-    split,
-)
-from robid_link.ident.regressor import (
-    BaseSet,
-    preference_order,
-    rigid_regressor,
-    structural_base_set,
-)
-from robid_link.ident.results import ErrorStats, IdentResult, Parameter, StatsAccumulator
+from robid_link.ident.preprocess import Piece, Problem, build_problem, check_counts
+from robid_link.ident.regressor import BaseSet, rigid_regressor
+from robid_link.ident.results import ErrorStats, IdentResult, Parameter
 from robid_link.ident.robot import Robot
 
-__all__ = ["Problem", "build_problem", "identify", "load_logs", "base_set_for", "make_design",
-           "structural_mask"]
+__all__ = ["identify", "load_logs"]
 
 #: condition number of the column-scaled base regressor above which excitation is poor
 POOR_EXCITATION_COND = 1e3
-#: max samples per validation trace kept for plots
-TRACE_SAMPLES = 20000
 
 
 def load_logs(robot: Robot, paths: Sequence[str | Path], fs: float | None = None,
@@ -55,115 +36,6 @@ def load_logs(robot: Robot, paths: Sequence[str | Path], fs: float | None = None
             log.q, log.qd, log.qdd, log.tau = robot.to_joint_side(log.q, log.qd, log.qdd, log.tau)
         logs.append(log)
     return logs
-
-
-def _random_states(robot: Robot, rng: np.random.Generator, n: int,
-                   transmission: np.ndarray | None = None) -> States:
-    lo = np.where(np.isfinite(robot.limits.q_min), robot.limits.q_min, -math.pi)
-    hi = np.where(np.isfinite(robot.limits.q_max), robot.limits.q_max, math.pi)
-    q = rng.uniform(lo, hi, (n, robot.n))
-    return States(q, rng.normal(size=(n, robot.n)), rng.normal(size=(n, robot.n)),
-                  np.sort(rng.uniform(0.0, 100.0, n)), transmission,
-                  rng.normal(size=(n, robot.n)), rng.normal(size=(n, robot.n)))
-
-
-def make_design(robot: Robot, blocks: Sequence[Block], transmission: np.ndarray | None = None
-                ) -> tuple[Design, BaseSet, list[str]]:
-    """Base set plus the structural sparsity of the base columns (random states)."""
-    base, names = base_set_for(robot, blocks, transmission)
-    cols = np.array(base.independent)
-    mask = structural_mask(robot, blocks, cols, transmission)
-    return Design(robot, tuple(blocks), cols, mask), base, names
-
-
-def structural_mask(robot: Robot, blocks: Sequence[Block], cols: np.ndarray,
-                    transmission: np.ndarray | None = None) -> np.ndarray:
-    """(n, len(cols)): where joint j's row of each column can be non-zero (random states)."""
-    w = block_columns(robot, blocks,
-                      _random_states(robot, np.random.default_rng(7), 64, transmission))
-    return np.abs(w[:, :, cols]).max(axis=0) > 0
-
-
-_BASE_SETS: dict[tuple[Any, ...], tuple[Robot, tuple[BaseSet, list[str]]]] = {}
-
-
-def base_set_for(robot: Robot, blocks: Sequence[Block], transmission: np.ndarray | None = None
-                 ) -> tuple[BaseSet, list[str]]:
-    """The structural base set of a robot and effect list (random states, fixed seed),
-    memoized per robot object: identify, diagnose and excitation ask for the same ones."""
-    key = (id(robot), tuple((b.effect.name, b.joint, tuple(sorted(b.opts.items())))
-                            for b in blocks),
-           None if transmission is None else transmission.tobytes())
-    hit = _BASE_SETS.get(key)
-    if hit is not None and hit[0] is robot:
-        return hit[1]
-    out = _base_set_for(robot, blocks, transmission)
-    if len(_BASE_SETS) >= 64:
-        _BASE_SETS.pop(next(iter(_BASE_SETS)))
-    _BASE_SETS[key] = (robot, out)  # the reference keeps id(robot) from being reused
-    return out
-
-
-def _base_set_for(robot: Robot, blocks: Sequence[Block], transmission: np.ndarray | None
-                  ) -> tuple[BaseSet, list[str]]:
-    names = [nm for b in blocks for nm in b.effect.param_names(robot, b.joint, b.opts)]
-
-    def sample(rng: np.random.Generator, n: int) -> np.ndarray:
-        w = block_columns(robot, blocks, _random_states(robot, rng, n, transmission))
-        return w.reshape(-1, w.shape[2])
-
-    rigid = blocks and blocks[0].effect.name == "rigid_body"
-    pref = preference_order(robot.n, len(names) - 10 * robot.n) if rigid else None
-    return structural_base_set(names, sample, n_samples=max(200, 4 * len(names)),
-                               preference=pref), names
-
-
-@dataclass
-class Problem:
-    """Everything the estimators and the diagnosis share for one set of inputs."""
-
-    robot: Robot
-    model: Model
-    blocks: list[Block]
-    train: list[Piece]
-    valid: list[Piece]
-    preps: list[Prepared]
-    vpreps: list[Prepared]
-    interval: int
-    block_len: int
-    validation_source: str
-    notes: list[str]
-    transmission: np.ndarray | None = None
-
-
-def build_problem(robot: Robot, data: Sequence[Log], model: Model, *,
-                  validate: Sequence[Log] | None = None, cutoff_hz: float | None = None,
-                  interval: int = 1, motor_side: bool = False) -> Problem:
-    if interval < 1:
-        raise DataError(f"--interval must be at least 1, got {interval}")
-    transmission = robot.transmission if motor_side else None
-    shift = sum(float(s.opts.get("seconds", 0.0)) for s in model.specs if s.name == "delay")
-    if shift:
-        data = [_shift_torque(lg, shift) for lg in data]
-        validate = [_shift_torque(lg, shift) for lg in validate or ()] or None
-    preps = [prepare(lg, cutoff_hz, interval) for lg in data]
-    vpreps = [prepare(lg, cutoff_hz, 1) for lg in validate or ()]
-    for prep in (*preps, *vpreps):
-        prep.transmission = transmission
-    train, valid = split(preps, vpreps or None)
-    notes = [n for lg in [*data, *(validate or ())] for n in lg.notes]
-    fs = preps[0].filt.fs
-    fc = preps[0].filt.cutoff_hz
-    block_len = max(1, math.ceil(2.0 * fs / interval / fc))
-    if validate:
-        source = "files " + ", ".join(Path(v.path).name for v in validate)
-    else:
-        source = "last 20 % of each data file (gap of the filter's length)"
-    if len(data) > 1 and not validate:
-        notes.append("validation holds out the end of each file; use --validate with a "
-                     "different motion for an honest check of generalisation")
-    return Problem(robot, model, model.blocks(robot), train, valid, preps, vpreps, interval,
-                   block_len, source, notes, transmission)
 
 
 def _profile_hypers(pb: Problem) -> dict[str, dict[str, float]]:
@@ -230,7 +102,6 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
     ms = f.rss / np.maximum(n_rows, 1)
     var = np.maximum(ms - f.mean_res**2, 0.0)
     fit_err = ErrorStats(np.sqrt(ms), np.sqrt(var), var, int(n_rows[0]))
-    val, nom, traces = _validate(pb, design, f.theta)
     notes += _sanity_checks(pb, nominal=robot.nominal is not None)
     if pb.valid:
         notes += _extrapolation(pb)
@@ -243,8 +114,6 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
         n_samples=int(n_rows[0]),
         condition_number=f.cond,
         fit=fit_err,
-        validation=val,
-        nominal=nom,
         cutoff_hz=pb.preps[0].filt.cutoff_hz,
         fs_hz=pb.preps[0].filt.fs,
         interval=pb.interval,
@@ -257,9 +126,10 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
                     for lg in logs],
         validation_source=pb.validation_source,
         notes=notes,
-        traces=traces,
         theta=f.theta,
         cov=f.cov,
+        problem=pb,
+        design=design,
     )
 
 
@@ -284,34 +154,6 @@ def _least_excited(grams: Grams, base: BaseSet) -> list[str]:
     v = np.abs(evecs[:, 0])
     order = np.argsort(v)[::-1]
     return [base.base_names[i] for i in order[:5] if v[i] > 0.2]
-
-
-def _validate(pb: Problem, design: Design, theta: np.ndarray):
-    robot = pb.robot
-    if not pb.valid:
-        return None, None, []
-    acc = StatsAccumulator(robot.n)
-    nom = StatsAccumulator(robot.n) if robot.nominal is not None else None
-    traces: dict[str, dict[str, list[np.ndarray]]] = {}
-    for pc in pb.valid:
-        for c, tau, idx in design_chunks(design, pc, filtered=False):
-            pred = design.predict(c, theta)
-            acc.add(tau - pred, tau)
-            tr = traces.setdefault(pc.prep.log.path, {"t": [], "tau": [], "pred": []})
-            tr["t"].append(pc.prep.log.t[idx])
-            tr["tau"].append(tau)
-            tr["pred"].append(pred)
-            if nom is not None:
-                st = pc.prep.states(int(idx[0]), int(idx[-1]) + 1)
-                pred_nom = rigid_regressor(robot, st.q, st.qd, st.qdd) @ robot.nominal
-                nom.add(tau - pred_nom, tau)
-    out = []
-    for path, tr in traces.items():
-        t = np.concatenate(tr["t"])
-        step = max(1, t.size // TRACE_SAMPLES)
-        out.append({"file": path, "t": t[::step], "tau": np.concatenate(tr["tau"])[::step],
-                    "pred": np.concatenate(tr["pred"])[::step]})
-    return acc.stats(), None if nom is None else nom.stats(), out
 
 
 def _ranges(pieces: Sequence[Piece]) -> np.ndarray:
@@ -388,16 +230,6 @@ def _longest_run(mask: np.ndarray) -> int:
     return int((stops - starts).max())
 
 
-def _shift_torque(log: Log, seconds: float) -> Log:
-    """Undo a torque log that lags the positions by ``seconds``: τ'(t) = τ(t + seconds)."""
-    from dataclasses import replace
-
-    tau = np.stack([np.interp(log.t + seconds, log.t, log.tau[:, j])
-                    for j in range(log.tau.shape[1])], axis=1)
-    return replace(log, tau=tau, notes=[*log.notes,
-                                        f"torque log shifted by {1e3 * seconds:.3g} ms (delay)"])
-
-
 _NEEDS_MODEL_TORQUE = ("load_friction", "delay")
 
 
@@ -407,8 +239,6 @@ def _model_torque_inputs(pb: Problem) -> None:
     if not any(b.effect.name in _NEEDS_MODEL_TORQUE and b.effect.param_names(pb.robot, b.joint,
                b.opts) for b in pb.blocks):
         return
-    from robid_link.ident.diagnose import attach_predictions
-
     first = [b for b in pb.blocks if b.effect.name not in _NEEDS_MODEL_TORQUE]
     design, _, _ = make_design(pb.robot, first, pb.transmission)
     f, _ = fit(design, pb.train, pb.interval, pb.block_len, warn=False)

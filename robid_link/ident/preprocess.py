@@ -1,7 +1,8 @@
-"""Filtering, differentiation, train/validation split, and parallel-filtered design rows.
+"""Filtering, differentiation, decimation, segments and the train/validation split: logs
+become the prepared problem that the design (design.py) turns into regressor rows.
 
-Regressor columns are filtered with the same zero-phase filter as the torques (Gautier's
-parallel filtering), in chunks with overlap so that long logs stream in bounded memory.
+The filter windows say where regressor columns are filtered with the same zero-phase filter
+as the torques (Gautier's parallel filtering), in chunks with overlap (bounded memory).
 """
 
 from __future__ import annotations
@@ -9,15 +10,15 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numba
 import numpy as np
 
 from robid_link.exceptions import DataError, DataWarning
 from robid_link.ident.data import Log
-from robid_link.ident.effects import Block, States
-from robid_link.ident.regressor import rigid_regressor
+from robid_link.ident.effects import Block, Model, States
 from robid_link.ident.robot import Robot
 
 __all__ = [
@@ -28,9 +29,10 @@ __all__ = [
     "filter_windows",
     "prepare",
     "split",
-    "design_chunks",
-    "block_columns",
-    "Design",
+    "Problem",
+    "build_problem",
+    "shift_torque",
+    "check_counts",
     "butter_lowpass_sos",
     "sos_steady_state",
 ]
@@ -269,106 +271,6 @@ def split(preps: Sequence[Prepared], validate: Sequence[Prepared] | None,
     return train, valid
 
 
-def block_columns(robot: Robot, blocks: Sequence[Block], st: States) -> np.ndarray:
-    """(N, n, P): the columns of every block side by side."""
-    return np.concatenate([b.effect.columns(robot, st, b.joint, b.opts) for b in blocks], axis=2)
-
-
-class Design:
-    """The model's base columns, evaluated compactly.
-
-    Joint j's torque row is non-zero only in some base columns (its support); the compact
-    matrix holds, joint after joint, just those entries: (N, nnz) instead of (N, n, p).
-    """
-
-    def __init__(self, robot: Robot, blocks: Sequence[Block], cols: np.ndarray,
-                 mask: np.ndarray) -> None:
-        self.robot = robot
-        self.blocks = tuple(blocks)
-        self.cols = np.asarray(cols)
-        self.mask = np.asarray(mask, dtype=bool)  # (n, p)
-        self.support = [np.flatnonzero(self.mask[j]) for j in range(robot.n)]
-        sizes = [s.size for s in self.support]
-        self.offsets = np.concatenate(([0], np.cumsum(sizes))).astype(int)
-        self._gathers = self._plan()
-
-    @property
-    def p(self) -> int:
-        return int(self.cols.size)
-
-    @property
-    def nnz(self) -> int:
-        return int(self.offsets[-1])
-
-    def joint_slice(self, j: int) -> slice:
-        return slice(int(self.offsets[j]), int(self.offsets[j + 1]))
-
-    def _plan(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Per block: (compact destination columns, flat source index in that block)."""
-        widths = [len(b.effect.param_names(self.robot, b.joint, b.opts)) for b in self.blocks]
-        starts = np.concatenate(([0], np.cumsum(widths))).astype(int)
-        plan = []
-        for bi, width in enumerate(widths):
-            dst, src = [], []
-            for j in range(self.robot.n):
-                for pos, k in enumerate(self.support[j]):
-                    c = int(self.cols[k])
-                    if starts[bi] <= c < starts[bi] + width:
-                        dst.append(self.offsets[j] + pos)
-                        src.append(j * width + c - starts[bi])
-            plan.append((np.array(dst, dtype=int), np.array(src, dtype=int)))
-        return plan
-
-    def compact(self, st: States) -> np.ndarray:
-        """(N, nnz) base-column entries of every joint row, joint after joint."""
-        n_samp = len(st)
-        out = np.empty((n_samp, self.nnz))
-        n = self.robot.n
-        for blk, (dst, src) in zip(self.blocks, self._gathers, strict=True):
-            if dst.size == 0:
-                continue
-            if blk.effect.name == "rigid_body":  # the kernel writes straight into place
-                dest = np.full(n * 10 * n, -1, dtype=np.int64)
-                dest[src] = dst
-                rigid_regressor(self.robot, st.q, st.qd, st.qdd, out=out,
-                                dest=dest.reshape(n, 10 * n))
-            else:
-                vals = blk.effect.columns(self.robot, st, blk.joint, blk.opts)
-                out[:, dst] = vals.reshape(n_samp, -1)[:, src]
-        return out
-
-    def predict(self, c: np.ndarray, theta: np.ndarray) -> np.ndarray:
-        """Torques (N, n) from compact columns and base parameters."""
-        return np.stack([c[:, self.joint_slice(j)] @ theta[self.support[j]]
-                         for j in range(self.robot.n)], axis=1)
-
-    def expand(self, c: np.ndarray) -> np.ndarray:
-        """(N, n, p) dense base regressor from compact columns."""
-        out = np.zeros((c.shape[0], self.robot.n, self.p))
-        for j in range(self.robot.n):
-            out[:, j, self.support[j]] = c[:, self.joint_slice(j)]
-        return out
-
-
-def design_chunks(design: Design, piece: Piece, interval: int = 1, filtered: bool = True,
-                  chunk: int = CHUNK) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Yield (compact columns (m, nnz), τ (m, n), sample index (m,)) for a piece, in chunks.
-
-    With ``filtered`` the columns and the torque are parallel-filtered and decimated by
-    ``interval`` (training rows); otherwise columns come from the filtered states at the
-    full rate against the raw torques (validation rows).
-    """
-    prep = piece.prep
-    if not filtered:
-        for a in range(piece.lo, piece.hi, chunk):
-            b = min(a + chunk, piece.hi)
-            yield design.compact(prep.states(a, b)), prep.tau[a:b], np.arange(a, b)
-        return
-    for a, b, ca, cb, at_edge in filter_windows(piece, interval, chunk):
-        c = prep.filt.apply(design.compact(prep.states(ca, cb)), edges=at_edge)
-        yield c[a - ca: b - ca: interval], prep.tau_f[a:b:interval], np.arange(a, b, interval)
-
-
 def filter_windows(piece: Piece, interval: int = 1, chunk: int = CHUNK
                    ) -> Iterator[tuple[int, int, int, int, bool]]:
     """Chunks [a, b) of a piece's rows kept at ``interval`` (on the grid of its filtering
@@ -387,6 +289,63 @@ def check_counts(n_rows: int, n_params: int, where: str) -> None:
     if n_rows < 5 * n_params:
         raise DataError(f"{where}: {n_rows} training samples×joints for {n_params} parameters; "
                         f"need at least {5 * n_params} (longer log or smaller --interval)")
+
+
+@dataclass
+class Problem:
+    """Everything the estimators and the diagnosis share for one set of inputs."""
+
+    robot: Robot
+    model: Model
+    blocks: list[Block]
+    train: list[Piece]
+    valid: list[Piece]
+    preps: list[Prepared]
+    vpreps: list[Prepared]
+    interval: int
+    block_len: int
+    validation_source: str
+    notes: list[str]
+    transmission: np.ndarray | None = None
+
+
+def build_problem(robot: Robot, data: Sequence[Log], model: Model, *,
+                  validate: Sequence[Log] | None = None, cutoff_hz: float | None = None,
+                  interval: int = 1, motor_side: bool = False) -> Problem:
+    """Prepare the logs (filter, differentiate, split) for a model's identification."""
+    if interval < 1:
+        raise DataError(f"--interval must be at least 1, got {interval}")
+    transmission = robot.transmission if motor_side else None
+    shift = sum(float(s.opts.get("seconds", 0.0)) for s in model.specs if s.name == "delay")
+    if shift:
+        data = [shift_torque(lg, shift) for lg in data]
+        validate = [shift_torque(lg, shift) for lg in validate or ()] or None
+    preps = [prepare(lg, cutoff_hz, interval) for lg in data]
+    vpreps = [prepare(lg, cutoff_hz, 1) for lg in validate or ()]
+    for prep in (*preps, *vpreps):
+        prep.transmission = transmission
+    train, valid = split(preps, vpreps or None)
+    notes = [n for lg in [*data, *(validate or ())] for n in lg.notes]
+    fs = preps[0].filt.fs
+    fc = preps[0].filt.cutoff_hz
+    block_len = max(1, math.ceil(2.0 * fs / interval / fc))
+    if validate:
+        source = "files " + ", ".join(Path(v.path).name for v in validate)
+    else:
+        source = "last 20 % of each data file (gap of the filter's length)"
+    if len(data) > 1 and not validate:
+        notes.append("validation holds out the end of each file; use --validate with a "
+                     "different motion for an honest check of generalisation")
+    return Problem(robot, model, model.blocks(robot), train, valid, preps, vpreps, interval,
+                   block_len, source, notes, transmission)
+
+
+def shift_torque(log: Log, seconds: float) -> Log:
+    """Undo a torque log that lags the positions by ``seconds``: τ'(t) = τ(t + seconds)."""
+    tau = np.stack([np.interp(log.t + seconds, log.t, log.tau[:, j])
+                    for j in range(log.tau.shape[1])], axis=1)
+    return replace(log, tau=tau, notes=[*log.notes,
+                                        f"torque log shifted by {1e3 * seconds:.3g} ms (delay)"])
 
 
 def warn(msg: str) -> None:

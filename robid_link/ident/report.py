@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 from pathlib import Path
 from typing import Any
@@ -10,6 +11,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from robid_link.atomic import atomic_write
 from robid_link.ident.results import IdentResult
 from robid_link.ident.robot import Robot
 
@@ -29,9 +31,18 @@ def _pyplot() -> Any:
 def write_json(path: str | Path, doc: dict[str, Any]) -> None:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(json.dumps(doc, indent=2, allow_nan=False))
-    tmp.replace(p)
+    atomic_write(p, json.dumps(doc, indent=2, allow_nan=False).encode())
+
+
+def _write_text(path: Path, text: str) -> None:
+    atomic_write(path, text.encode())
+
+
+def _save_figure(fig: Any, path: Path, dpi: int) -> None:
+    """Render to memory first: a reader never sees half an image."""
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=dpi, format=path.suffix.lstrip(".").lower() or "png")
+    atomic_write(path, buf.getvalue())
 
 
 def write_report(res: IdentResult, out_dir: str | Path) -> list[Path]:
@@ -39,13 +50,13 @@ def write_report(res: IdentResult, out_dir: str | Path) -> list[Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = [out / "summary.txt", out / "parameters.csv", out / "parameters.yaml"]
-    written[0].write_text(res.summary() + "\n")
-    with open(written[1], "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["name", "value", "std", "rel_std_pct", "nominal", "expression"])
-        for p in res.parameters:
-            w.writerow([p.name, f"{p.value:.10g}", f"{p.std:.6g}", f"{p.rel_std_pct:.4g}",
-                        "" if p.nominal is None else f"{p.nominal:.10g}", p.expression])
+    _write_text(written[0], res.summary() + "\n")
+    table = io.StringIO(newline="")
+    w = csv.writer(table)
+    w.writerow(["name", "value", "std", "rel_std_pct", "nominal", "expression"])
+    for p in res.parameters:
+        w.writerow([p.name, f"{p.value:.10g}", f"{p.std:.6g}", f"{p.rel_std_pct:.4g}",
+                    "" if p.nominal is None else f"{p.nominal:.10g}", p.expression])
     doc = {
         "robot": res.robot,
         "effects": res.effects,
@@ -54,7 +65,8 @@ def write_report(res: IdentResult, out_dir: str | Path) -> list[Path]:
         "base_parameters": {p.name: {"value": p.value, "std": p.std, "expression": p.expression}
                             for p in res.parameters},
     }
-    written[2].write_text(yaml.safe_dump(doc, sort_keys=False, allow_unicode=True))
+    _write_text(written[1], table.getvalue())
+    _write_text(written[2], yaml.safe_dump(doc, sort_keys=False, allow_unicode=True))
     written += _torque_figures(res, out)
     return written
 
@@ -82,7 +94,7 @@ def _torque_figures(res: IdentResult, out: Path) -> list[Path]:
         ax2.set_xlabel("time [s]")
         fig.tight_layout()
         path = out / f"torque_joint{jt['joint']}.png"
-        fig.savefig(path, dpi=110)
+        _save_figure(fig, path, 110)
         plt.close(fig)
         paths.append(path)
     return paths
@@ -126,7 +138,7 @@ def draw_robot(robot: Robot, q: np.ndarray, path: str | Path) -> Path:
     ax.set_title(f"{robot.name} at q = [{qs}] (arrows: joint axes)")
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=100)
+    _save_figure(fig, p, 100)
     plt.close(fig)
     return p
 
@@ -163,7 +175,7 @@ def residual_figures(res: dict[str, np.ndarray], joints: list[dict[str, Any]], o
         fig.suptitle(f"joint {jt['joint']} ({jt['name']}): where the model fails")
         fig.tight_layout()
         p = out / f"residual_joint{jt['joint']}.png"
-        fig.savefig(p, dpi=90)
+        _save_figure(fig, p, 90)
         plt.close(fig)
         paths.append(p)
     return paths
@@ -186,7 +198,7 @@ def history_figure(records: list[dict[str, Any]], path: str | Path) -> Path:
     ax.set_title("error ladder: " + (labels[-1] if labels else ""))
     fig.tight_layout()
     p = Path(path)
-    fig.savefig(p, dpi=100)
+    _save_figure(fig, p, 100)
     plt.close(fig)
     return p
 

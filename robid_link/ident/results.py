@@ -1,14 +1,27 @@
-"""The identification result: figures, parameters, notes; a terminal summary and JSON."""
+"""The identification result: figures, parameters, notes; a terminal summary and JSON.
+
+Like a statsmodels results object it keeps what it was fitted on (the prepared problem and
+the design) and computes the held-out figures, predictions and residuals on first use.
+"""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 
-__all__ = ["ErrorStats", "Parameter", "IdentResult"]
+from robid_link.ident.design import Design, design_chunks, predict_torque
+from robid_link.ident.preprocess import Prepared, Problem
+from robid_link.ident.regressor import rigid_regressor
+
+__all__ = ["ErrorStats", "Parameter", "IdentResult", "HeldOut", "evaluate_held_out",
+           "StatsAccumulator", "TRACE_SAMPLES"]
+
+#: max samples per validation trace kept for plots
+TRACE_SAMPLES = 20000
 
 
 @dataclass
@@ -80,8 +93,52 @@ class Parameter:
 
 
 @dataclass
+class HeldOut:
+    """The model (and the a-priori model) on the held-out rows: statistics and plot traces."""
+
+    validation: ErrorStats | None
+    nominal: ErrorStats | None
+    traces: list[dict[str, Any]]
+
+
+def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> HeldOut:
+    """One pass over the validation pieces: columns from the filtered states at the full
+    rate against the measured (unfiltered) torques."""
+    robot = problem.robot
+    if not problem.valid:
+        return HeldOut(None, None, [])
+    acc = StatsAccumulator(robot.n)
+    nom = StatsAccumulator(robot.n) if robot.nominal is not None else None
+    parts: dict[str, dict[str, list[np.ndarray]]] = {}
+    for pc in problem.valid:
+        for c, tau, idx in design_chunks(design, pc, filtered=False):
+            pred = design.predict(c, theta)
+            acc.add(tau - pred, tau)
+            tr = parts.setdefault(pc.prep.log.path, {"t": [], "tau": [], "pred": []})
+            tr["t"].append(pc.prep.log.t[idx])
+            tr["tau"].append(tau)
+            tr["pred"].append(pred)
+            if nom is not None:
+                st = pc.prep.states(int(idx[0]), int(idx[-1]) + 1)
+                pred_nom = rigid_regressor(robot, st.q, st.qd, st.qdd) @ robot.nominal
+                nom.add(tau - pred_nom, tau)
+    traces = []
+    for path, tr in parts.items():
+        t = np.concatenate(tr["t"])
+        step = max(1, t.size // TRACE_SAMPLES)
+        traces.append({"file": path, "t": t[::step], "tau": np.concatenate(tr["tau"])[::step],
+                       "pred": np.concatenate(tr["pred"])[::step]})
+    return HeldOut(acc.stats(), None if nom is None else nom.stats(), traces)
+
+
+@dataclass
 class IdentResult:
-    """What ``identify`` returns; ``summary()`` for people, ``to_dict()`` for JSON."""
+    """What ``identify`` returns; ``summary()`` for people, ``to_dict()`` for JSON.
+
+    It keeps the prepared problem and the design it was fitted on: the held-out figures
+    (``validation``, ``nominal``, ``rmse``, ``traces``) are computed on first use, and
+    ``predict``/``residuals`` evaluate the fitted model on any prepared log of the problem.
+    """
 
     robot: str
     joints: list[dict[str, Any]]
@@ -91,8 +148,6 @@ class IdentResult:
     n_samples: int
     condition_number: float
     fit: ErrorStats
-    validation: ErrorStats | None
-    nominal: ErrorStats | None
     cutoff_hz: float
     fs_hz: float
     interval: int
@@ -103,9 +158,48 @@ class IdentResult:
     data_files: list[dict[str, str]]
     validation_source: str
     notes: list[str] = field(default_factory=list)
-    traces: list[dict[str, Any]] = field(default_factory=list, repr=False)
     theta: np.ndarray | None = field(default=None, repr=False)
     cov: np.ndarray | None = field(default=None, repr=False)
+    problem: Problem | None = field(default=None, repr=False, compare=False)
+    design: Design | None = field(default=None, repr=False, compare=False)
+
+    @cached_property
+    def held_out(self) -> HeldOut:
+        if self.problem is None or self.design is None or self.theta is None:
+            return HeldOut(None, None, [])
+        return evaluate_held_out(self.problem, self.design, self.theta)
+
+    @property
+    def validation(self) -> ErrorStats | None:
+        """Errors on the held-out rows against the measured torques (None: none held out)."""
+        return self.held_out.validation
+
+    @property
+    def nominal(self) -> ErrorStats | None:
+        """The a-priori (CAD) model's errors on the same rows, where inertials were given."""
+        return self.held_out.nominal
+
+    @property
+    def traces(self) -> list[dict[str, Any]]:
+        """Measured and predicted torque per validation file, thinned for plots."""
+        return self.held_out.traces
+
+    def _fitted(self) -> tuple[Problem, Design, np.ndarray]:
+        if self.problem is None or self.design is None or self.theta is None:
+            raise ValueError("this result keeps no fitted problem (made without identify)")
+        return self.problem, self.design, self.theta
+
+    def predict(self, prep: Prepared | None = None) -> np.ndarray:
+        """The fitted model's torque (N, n) on every sample of a prepared log (default: the
+        first data file), from its filtered states."""
+        pb, design, theta = self._fitted()
+        return predict_torque(design, pb.preps[0] if prep is None else prep, theta)
+
+    def residuals(self, prep: Prepared | None = None) -> np.ndarray:
+        """Measured minus predicted torque (N, n) on every sample of a prepared log."""
+        pb, _, _ = self._fitted()
+        prep = pb.preps[0] if prep is None else prep
+        return prep.tau - self.predict(prep)
 
     @property
     def rmse(self) -> np.ndarray:

@@ -48,9 +48,8 @@ def check_log(n_joints: int, log_path: str) -> dict[str, Any]:
 def identify_run(job: dict[str, Any]) -> dict[str, Any]:
     """Identify (and diagnose) a run's logs; write the report; return the result records."""
     from robid_link.ident.effects import DEFAULT_MODEL, load_model, parse_effect
-    from robid_link.ident.history import append_record, result_record
-    from robid_link.ident.identify import identify, load_logs
-    from robid_link.ident.report import residual_figures, write_json, write_report
+    from robid_link.ident.identify import load_logs
+    from robid_link.ident.jobs import run_job
 
     robot = _robot(job["robot"], tuple(job["lock"]))
     model = load_model(job["model"]) if job.get("model") else DEFAULT_MODEL
@@ -58,32 +57,16 @@ def identify_run(job: dict[str, Any]) -> dict[str, Any]:
         model = model.with_added(parse_effect(entry, f"add {entry}"))
     out = Path(job["report_dir"])
     out.mkdir(parents=True, exist_ok=True)
+    analyses = ("identify", "diagnose") if job.get("diagnose") else ("identify",)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         data = load_logs(robot, job["logs"], None, job.get("motor_side", False))
-        res = identify(robot, data, model, cutoff_hz=job.get("cutoff_hz"),
-                       method=job.get("method", "ols"), motor_side=job.get("motor_side", False))
-        doc = res.to_dict()
-        records = {"identify": result_record("identify", doc)}
-        summaries = [res.summary()]
-        write_json(out / "identify.json", doc)
-        write_report(res, out)
-        if job.get("diagnose"):
-            from robid_link.ident.diagnose import diagnose
-
-            dg = diagnose(robot, data, model, cutoff_hz=job.get("cutoff_hz"),
-                          motor_side=job.get("motor_side", False))
-            ddoc = dg.to_dict()
-            ddoc["data_files"] = doc["data_files"]
-            records["diagnose"] = result_record("diagnose", ddoc)
-            summaries.append(dg.summary())
-            write_json(out / "diagnose.json", ddoc)
-            residual_figures(dg.residuals, dg.result.joints, out)
+        done = run_job(robot, data, model, analyses=analyses, cutoff_hz=job.get("cutoff_hz"),
+                       method=job.get("method", "ols"), motor_side=job.get("motor_side", False),
+                       json_files={k: out / f"{k}.json" for k in analyses}, report_dir=out,
+                       history=job.get("model") or None)
     notes = sorted({f"{w.category.__name__}: {w.message}" for w in caught})
-    if job.get("model"):
-        for kind in ("identify", "diagnose"):
-            if kind in records:
-                append_record(job["model"], records[kind])
+    records, doc, summaries = done.records, done.docs["identify"], done.summaries()
     for rec in records.values():
         rec["robot"] = robot.name
         rec["run_id"] = job["run_id"]

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from robid_link.ident.design import base_set_for
 from robid_link.ident.effects import DEFAULT_MODEL, Block, Effect, Model
-from robid_link.ident.identify import base_set_for
 from robid_link.ident.regressor import reference_regressor, rigid_regressor
 from robid_link.ident.robot import load_robot
 
@@ -58,9 +58,14 @@ def test_regressor_times_parameters_is_rnea(industrial6):
 def test_base_set_is_structural_and_named(arm3):
     blocks = DEFAULT_MODEL.blocks(arm3)
     b1, names = base_set_for(arm3, blocks)
-    b2, _ = base_set_for(arm3, blocks)
+    assert base_set_for(arm3, blocks)[0] is b1  # memoized per robot object
+    # structural, not an accident of the memo: another robot object of the same description
+    # gets the same base set, computed afresh from its own random states
+    other = load_robot(ROBOTS / "arm3.yaml")
+    b2, names2 = base_set_for(other, DEFAULT_MODEL.blocks(other))
+    assert b2 is not b1 and names2 == names
     assert b1.independent == b2.independent
-    np.testing.assert_array_equal(b1.combination, b2.combination)
+    np.testing.assert_allclose(b1.combination, b2.combination, rtol=1e-9, atol=1e-12)
     # 3-axis arm3 (vertical axis, two parallel pitch axes): 15 rigid base parameters
     assert b1.rank == 15 + 6
     exprs = {b1.names[i]: b1.expression(k) for k, i in enumerate(b1.independent)}
@@ -74,8 +79,8 @@ def test_base_regressor_reproduces_full_model(industrial6):
     """W_full·θ = W_base·(K·θ) for any θ: the base set loses nothing."""
     blocks = Model.parse(["rigid_body", "viscous", "coulomb", "offset"]).blocks(industrial6)
     base, names = base_set_for(industrial6, blocks)
+    from robid_link.ident.design import block_columns
     from robid_link.ident.effects import States
-    from robid_link.ident.preprocess import block_columns
 
     q, qd, qdd = _random_states(industrial6, 100, seed=4)
     w = block_columns(industrial6, blocks, States(q, qd, qdd))

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import re
 import stat
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -172,7 +173,12 @@ def test_unsafe_program_never_reaches_the_share(tmp_path: Path, controller: Any)
     assert run["state"] == "failed"
     assert run["error"].startswith("unsafe program refused: experiment wild: qd1 = ")
     assert os.listdir(tmp_path / "share" / "inbox") == [] and ctrl.handled == []
-    assert robot.n == 3
+    # the refusal quotes the program's peak speed against the robot's own limit
+    m = re.search(r"qd1 = ([\d.]+) deg/s at sample \d+ exceeds the limit ([\d.]+) deg/s",
+                  run["error"])
+    assert m is not None, run["error"]
+    assert float(m[2]) == pytest.approx(float(ex.np.degrees(robot.limits.qd_max[0])), rel=1e-3)
+    assert float(m[1]) > float(m[2])
 
 
 def test_unattended_runs_need_approved_programs(tmp_path: Path, controller: Any) -> None:

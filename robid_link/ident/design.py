@@ -1,0 +1,238 @@
+"""The regressor assembly: structural base set and sparsity mask, block columns, the compact
+design and its parallel-filtered chunks, and the model's predictions on prepared logs.
+
+Everything that turns states into base-regressor rows lives here, so that identify, the
+estimators, the diagnosis and the excitation design share one path from log to columns.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+import numpy as np
+
+from robid_link.ident.effects import Block, States
+from robid_link.ident.preprocess import CHUNK, Piece, Prepared, filter_windows
+from robid_link.ident.regressor import (
+    BaseSet,
+    preference_order,
+    rigid_regressor,
+    structural_base_set,
+)
+from robid_link.ident.robot import Robot
+
+__all__ = [
+    "Design",
+    "attach_predictions",
+    "base_set_for",
+    "block_columns",
+    "design_chunks",
+    "make_design",
+    "predict_torque",
+    "random_states",
+    "structural_mask",
+]
+
+
+def block_columns(robot: Robot, blocks: Sequence[Block], st: States) -> np.ndarray:
+    """(N, n, P): the columns of every block side by side."""
+    return np.concatenate([b.effect.columns(robot, st, b.joint, b.opts) for b in blocks], axis=2)
+
+
+def random_states(robot: Robot, rng: np.random.Generator, n: int,
+                  transmission: np.ndarray | None = None) -> States:
+    """n random states within the joint limits, with every optional input an effect may
+    read (time, model torque and its rate): the structural checks see every column."""
+    lo = np.where(np.isfinite(robot.limits.q_min), robot.limits.q_min, -math.pi)
+    hi = np.where(np.isfinite(robot.limits.q_max), robot.limits.q_max, math.pi)
+    q = rng.uniform(lo, hi, (n, robot.n))
+    return States(q, rng.normal(size=(n, robot.n)), rng.normal(size=(n, robot.n)),
+                  np.sort(rng.uniform(0.0, 100.0, n)), transmission,
+                  rng.normal(size=(n, robot.n)), rng.normal(size=(n, robot.n)))
+
+
+class Design:
+    """The model's base columns, evaluated compactly.
+
+    Joint j's torque row is non-zero only in some base columns (its support); the compact
+    matrix holds, joint after joint, just those entries: (N, nnz) instead of (N, n, p).
+    """
+
+    def __init__(self, robot: Robot, blocks: Sequence[Block], cols: np.ndarray,
+                 mask: np.ndarray) -> None:
+        self.robot = robot
+        self.blocks = tuple(blocks)
+        self.cols = np.asarray(cols)
+        self.mask = np.asarray(mask, dtype=bool)  # (n, p)
+        self.support = [np.flatnonzero(self.mask[j]) for j in range(robot.n)]
+        sizes = [s.size for s in self.support]
+        self.offsets = np.concatenate(([0], np.cumsum(sizes))).astype(int)
+        self._gathers = self._plan()
+
+    @property
+    def p(self) -> int:
+        return int(self.cols.size)
+
+    @property
+    def nnz(self) -> int:
+        return int(self.offsets[-1])
+
+    def joint_slice(self, j: int) -> slice:
+        return slice(int(self.offsets[j]), int(self.offsets[j + 1]))
+
+    def _plan(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per block: (compact destination columns, flat source index in that block)."""
+        widths = [len(b.effect.param_names(self.robot, b.joint, b.opts)) for b in self.blocks]
+        starts = np.concatenate(([0], np.cumsum(widths))).astype(int)
+        plan = []
+        for bi, width in enumerate(widths):
+            dst, src = [], []
+            for j in range(self.robot.n):
+                for pos, k in enumerate(self.support[j]):
+                    c = int(self.cols[k])
+                    if starts[bi] <= c < starts[bi] + width:
+                        dst.append(self.offsets[j] + pos)
+                        src.append(j * width + c - starts[bi])
+            plan.append((np.array(dst, dtype=int), np.array(src, dtype=int)))
+        return plan
+
+    def compact(self, st: States) -> np.ndarray:
+        """(N, nnz) base-column entries of every joint row, joint after joint."""
+        n_samp = len(st)
+        out = np.empty((n_samp, self.nnz))
+        n = self.robot.n
+        for blk, (dst, src) in zip(self.blocks, self._gathers, strict=True):
+            if dst.size == 0:
+                continue
+            if blk.effect.name == "rigid_body":  # the kernel writes straight into place
+                dest = np.full(n * 10 * n, -1, dtype=np.int64)
+                dest[src] = dst
+                rigid_regressor(self.robot, st.q, st.qd, st.qdd, out=out,
+                                dest=dest.reshape(n, 10 * n))
+            else:
+                vals = blk.effect.columns(self.robot, st, blk.joint, blk.opts)
+                out[:, dst] = vals.reshape(n_samp, -1)[:, src]
+        return out
+
+    def predict(self, c: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """Torques (N, n) from compact columns and base parameters."""
+        return np.stack([c[:, self.joint_slice(j)] @ theta[self.support[j]]
+                         for j in range(self.robot.n)], axis=1)
+
+    def expand(self, c: np.ndarray) -> np.ndarray:
+        """(N, n, p) dense base regressor from compact columns."""
+        out = np.zeros((c.shape[0], self.robot.n, self.p))
+        for j in range(self.robot.n):
+            out[:, j, self.support[j]] = c[:, self.joint_slice(j)]
+        return out
+
+
+# ----------------------------------------------------------------------------- base set
+
+
+def structural_mask(robot: Robot, blocks: Sequence[Block], cols: np.ndarray,
+                    transmission: np.ndarray | None = None) -> np.ndarray:
+    """(n, len(cols)): where joint j's row of each column can be non-zero (random states)."""
+    w = block_columns(robot, blocks,
+                      random_states(robot, np.random.default_rng(7), 64, transmission))
+    return np.abs(w[:, :, cols]).max(axis=0) > 0
+
+
+_BASE_SETS: dict[tuple[Any, ...], tuple[Robot, tuple[BaseSet, list[str]]]] = {}
+
+
+def base_set_for(robot: Robot, blocks: Sequence[Block], transmission: np.ndarray | None = None
+                 ) -> tuple[BaseSet, list[str]]:
+    """The structural base set of a robot and effect list (random states, fixed seed),
+    memoized per robot object: identify, diagnose and excitation ask for the same ones."""
+    key = (id(robot), tuple((b.effect.name, b.joint, tuple(sorted(b.opts.items())))
+                            for b in blocks),
+           None if transmission is None else transmission.tobytes())
+    hit = _BASE_SETS.get(key)
+    if hit is not None and hit[0] is robot:
+        return hit[1]
+    out = _compute_base_set(robot, blocks, transmission)
+    if len(_BASE_SETS) >= 64:
+        _BASE_SETS.pop(next(iter(_BASE_SETS)))
+    _BASE_SETS[key] = (robot, out)  # the reference keeps id(robot) from being reused
+    return out
+
+
+def _compute_base_set(robot: Robot, blocks: Sequence[Block], transmission: np.ndarray | None
+                      ) -> tuple[BaseSet, list[str]]:
+    names = [nm for b in blocks for nm in b.effect.param_names(robot, b.joint, b.opts)]
+
+    def sample(rng: np.random.Generator, n: int) -> np.ndarray:
+        w = block_columns(robot, blocks, random_states(robot, rng, n, transmission))
+        return w.reshape(-1, w.shape[2])
+
+    rigid = blocks and blocks[0].effect.name == "rigid_body"
+    pref = preference_order(robot.n, len(names) - 10 * robot.n) if rigid else None
+    return structural_base_set(names, sample, n_samples=max(200, 4 * len(names)),
+                               preference=pref), names
+
+
+def make_design(robot: Robot, blocks: Sequence[Block], transmission: np.ndarray | None = None
+                ) -> tuple[Design, BaseSet, list[str]]:
+    """Base set plus the structural sparsity of the base columns (random states)."""
+    base, names = base_set_for(robot, blocks, transmission)
+    cols = np.array(base.independent)
+    mask = structural_mask(robot, blocks, cols, transmission)
+    return Design(robot, tuple(blocks), cols, mask), base, names
+
+
+# ----------------------------------------------------------------------------- rows
+
+
+def design_chunks(design: Design, piece: Piece, interval: int = 1, filtered: bool = True,
+                  chunk: int = CHUNK) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Yield (compact columns (m, nnz), τ (m, n), sample index (m,)) for a piece, in chunks.
+
+    With ``filtered`` the columns and the torque are parallel-filtered and decimated by
+    ``interval`` (training rows); otherwise columns come from the filtered states at the
+    full rate against the raw torques (validation rows).
+    """
+    prep = piece.prep
+    if not filtered:
+        for a in range(piece.lo, piece.hi, chunk):
+            b = min(a + chunk, piece.hi)
+            yield design.compact(prep.states(a, b)), prep.tau[a:b], np.arange(a, b)
+        return
+    for a, b, ca, cb, at_edge in filter_windows(piece, interval, chunk):
+        c = prep.filt.apply(design.compact(prep.states(ca, cb)), edges=at_edge)
+        yield c[a - ca: b - ca: interval], prep.tau_f[a:b:interval], np.arange(a, b, interval)
+
+
+def predict_torque(design: Design, prep: Prepared, theta: np.ndarray,
+                   chunk: int = CHUNK) -> np.ndarray:
+    """The model's torque (N, n) on every sample of a prepared log (unfiltered columns)."""
+    n = len(prep.log)
+    out = np.zeros((n, design.robot.n))
+    for a in range(0, n, chunk):
+        b = min(a + chunk, n)
+        out[a:b] = design.predict(design.compact(prep.states(a, b)), theta)
+    return out
+
+
+def attach_predictions(robot: Robot, preps: Sequence[Prepared], design: Design,
+                       theta: np.ndarray) -> None:
+    """The current model's rigid torque and torque rate on every sample (effects that depend
+    on the model's own torque — load friction, delay, the diagnosis' candidates — read them)."""
+    blocks = design.blocks
+    n_rigid = 10 * robot.n if blocks and blocks[0].effect.name == "rigid_body" else 0
+    rigid_theta = theta.copy()
+    rigid_theta[np.asarray(design.cols) >= n_rigid] = 0.0
+    for prep in preps:
+        n = len(prep.log)
+        full = np.zeros((n, robot.n))
+        rigid = np.zeros((n, robot.n))
+        for a in range(0, n, CHUNK):
+            b = min(a + CHUNK, n)
+            c = design.compact(prep.states(a, b))
+            full[a:b] = design.predict(c, theta)
+            rigid[a:b] = design.predict(c, rigid_theta)
+        prep.tau_rigid = rigid
+        prep.tau_model = full
+        prep.tau_rate = np.gradient(full, 1.0 / prep.filt.fs, axis=0)

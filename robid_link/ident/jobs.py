@@ -1,0 +1,90 @@
+"""One identification job: identify → JSON and report files → history → maybe diagnose (→ its
+JSON and figures). The CLI, the daemon's worker and the demo all run their analyses here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from robid_link.ident.data import Log
+from robid_link.ident.effects import Model
+from robid_link.ident.history import append_record, result_record
+from robid_link.ident.identify import identify
+from robid_link.ident.report import residual_figures, write_json, write_report
+from robid_link.ident.results import IdentResult
+from robid_link.ident.robot import Robot
+
+if TYPE_CHECKING:  # diagnose (scipy.stats) is imported only when a job diagnoses
+    from robid_link.ident.diagnose import Diagnosis
+
+__all__ = ["ANALYSES", "JobOutcome", "run_job"]
+
+#: the analyses a job can run, in the order they run
+ANALYSES = ("identify", "diagnose")
+
+
+@dataclass
+class JobOutcome:
+    """What a job produced: the fitted result, the diagnosis, their JSON documents and
+    history records (by analysis), and the report files written."""
+
+    result: IdentResult
+    diagnosis: Diagnosis | None = None
+    docs: dict[str, dict[str, Any]] = field(default_factory=dict)
+    records: dict[str, dict[str, Any]] = field(default_factory=dict)
+    report_files: dict[str, list[Path]] = field(default_factory=dict)
+
+    def summaries(self) -> list[str]:
+        out = [self.result.summary()] if "identify" in self.docs else []
+        return out + ([self.diagnosis.summary()] if self.diagnosis is not None else [])
+
+
+def run_job(robot: Robot, data: Sequence[Log], model: Model, *,
+            analyses: Collection[str] = ("identify",),
+            validate: Sequence[Log] | None = None, cutoff_hz: float | None = None,
+            interval: int = 1, method: str = "ols", weight: str = "bisquare",
+            motor_side: bool = False, json_files: Mapping[str, str | Path] | None = None,
+            report_dir: str | Path | None = None, history: str | Path | None = None
+            ) -> JobOutcome:
+    """Run the ``analyses`` (``identify``, ``diagnose``) on one set of inputs.
+
+    The model is fitted once: a diagnosis reuses the identification (see ``diagnose``).
+    ``json_files`` maps an analysis to the file its JSON document goes to; ``report_dir``
+    gets identify's report files and the diagnosis' residual figures; ``history`` (a model
+    file) gets one record per analysis, after all of them ran.
+    """
+    unknown = set(analyses) - set(ANALYSES)
+    if unknown or not analyses:
+        raise ValueError(f"analyses: {sorted(unknown) or 'none'} (choose from {ANALYSES})")
+    json_files = json_files or {}
+    res = identify(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
+                   interval=interval, method=method, weight=weight, motor_side=motor_side)
+    out = JobOutcome(res)
+    if "identify" in analyses:
+        out.docs["identify"] = res.to_dict()
+        if "identify" in json_files:
+            write_json(json_files["identify"], out.docs["identify"])
+        if report_dir is not None:
+            out.report_files["identify"] = write_report(res, report_dir)
+    if "diagnose" in analyses:
+        from robid_link.ident.diagnose import diagnose
+
+        dg = diagnose(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
+                      interval=interval, motor_side=motor_side, result=res)
+        out.diagnosis = dg
+        doc = dg.to_dict()
+        doc["data_files"] = dg.result.to_dict()["data_files"]
+        out.docs["diagnose"] = doc
+        if "diagnose" in json_files:
+            write_json(json_files["diagnose"], doc)
+        if report_dir is not None:
+            out.report_files["diagnose"] = residual_figures(dg.residuals, dg.result.joints,
+                                                            report_dir)
+    out.records = {kind: result_record(kind, doc) for kind, doc in out.docs.items()}
+    if history is not None:
+        for rec in out.records.values():
+            append_record(history, rec)
+    return out
