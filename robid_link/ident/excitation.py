@@ -140,7 +140,6 @@ def nominal_torque(robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
 
 
 #: the old private name, still called by link/program.py (its owner switches to the public one)
-_nominal_torque = nominal_torque
 
 
 def fit_limits(robot: Robot, traj: FourierTrajectory, margin: float = LIMIT_MARGIN,

@@ -133,7 +133,7 @@ def check_program(robot: Robot, traj: ex.Trajectory, exp_id: str) -> None:
         raise UnsafeProgramError(f"experiment {exp_id}: program holds non-finite positions")
     q, qd, qdd = program_trajectory(traj)
     try:
-        ex.check_limits(robot, q, qd, qdd, ex._nominal_torque(robot, q, qd, qdd),
+        ex.check_limits(robot, q, qd, qdd, ex.nominal_torque(robot, q, qd, qdd),
                         f"experiment {exp_id}")
     except ConfigError as err:
         raise UnsafeProgramError(f"unsafe program refused: {err}") from err
