@@ -15,10 +15,10 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from robid_link.config import read_yaml_mapping
 from robid_link.exceptions import ConfigError
 from robid_link.ident.effects import moving_sign
 from robid_link.ident.robot import Robot
+from robid_link.yamlio import check_keys, read_yaml_mapping
 
 __all__ = ["Truth", "Plant", "perturbed_inertials", "load_truth", "EFFECT_PARAMS"]
 
@@ -82,25 +82,19 @@ def _check_effects(entries: Any, n: int, where: str) -> tuple[dict[str, Any], ..
     out = []
     for i, e in enumerate(entries):
         w = f"{where}[{i}]"
-        if not isinstance(e, dict) or "name" not in e:
-            raise ConfigError(f"{w}: expected a mapping with 'name'")
+        check_keys(e, w, required=("name",), optional=e.keys() if isinstance(e, dict) else ())
         name = e["name"]
-        if name not in EFFECT_PARAMS:
+        if not isinstance(name, str) or name not in EFFECT_PARAMS:
             raise ConfigError(f"{w}: unknown plant effect '{name}' "
                               f"(known: {', '.join(sorted(EFFECT_PARAMS))})")
         req, opt = EFFECT_PARAMS[name]
+        check_keys(e, f"{w} ({name})", required=("name", *req), optional=("joint", *opt))
         joint = e.get("joint")
         if joint is not None:
             if name in GLOBAL_EFFECTS:
                 raise ConfigError(f"{w}: '{name}' is global and takes no joint")
             if isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= n:
                 raise ConfigError(f"{w}.joint: expected a joint number in 1..{n}")
-        for key in req:
-            if key not in e:
-                raise ConfigError(f"{w}.{key}: missing (a '{name}' needs {', '.join(req)})")
-        bad = set(e) - {"name", "joint", *req, *opt}
-        if bad:
-            raise ConfigError(f"{w}: '{name}' has no parameter '{sorted(bad)[0]}'")
         for key in (*req, *opt):
             v = e.get(key, opt.get(key))
             if key == "com" and isinstance(v, list):
@@ -115,11 +109,8 @@ def load_truth(path: str | Path, robot: Robot) -> Truth:
     """Read a truth file; every error names the key path."""
     p = Path(path)
     doc = read_yaml_mapping(p, "truth file")
-    known = {"robot", "inertials", "perturb", "effects", "noise", "rate_hz", "mode", "side",
-             "controller"}
-    bad = set(doc) - known
-    if bad:
-        raise ConfigError(f"{p}: unknown key '{sorted(bad)[0]}'")
+    check_keys(doc, str(p), optional=("robot", "inertials", "perturb", "effects", "noise",
+                                      "rate_hz", "mode", "side", "controller"))
     try:
         return _truth_from_doc(doc, robot)
     except ConfigError as err:
@@ -134,16 +125,14 @@ def _truth_from_doc(doc: dict[str, Any], robot: Robot) -> Truth:
             raise ConfigError(f"inertials: expected {n} rows of 10 standard parameters")
         inertials = arr.reshape(-1)
     elif "perturb" in doc:
-        pert = doc["perturb"] or {}
+        pert = check_keys(doc["perturb"] or {}, "perturb", optional=("seed", "spread"))
         inertials = perturbed_inertials(robot, int(pert.get("seed", 0)),
                                         float(pert.get("spread", 0.2)))
     elif robot.nominal is not None:
         inertials = robot.nominal.copy()
     else:
         raise ConfigError("inertials: missing (and the robot has no nominal inertials)")
-    noise = doc.get("noise") or {}
-    if not isinstance(noise, dict) or set(noise) - {"tau", "q_resolution"}:
-        raise ConfigError("noise: expected {tau, q_resolution}")
+    noise = check_keys(doc.get("noise") or {}, "noise", optional=("tau", "q_resolution"))
     mode = doc.get("mode", "inverse")
     if mode not in ("inverse", "closed_loop"):
         raise ConfigError(f"mode: expected inverse or closed_loop, got {mode!r}")

@@ -359,7 +359,7 @@ def _excite(args: argparse.Namespace) -> int:
     periods = max(1, round(args.duration * args.base_hz))
     t = np.arange(0.0, periods / args.base_hz, 1.0 / args.rate)
     q, qd, qdd = traj.evaluate(t)
-    ex.check_limits(robot, q, qd, qdd, ex._nominal_torque(robot, q, qd, qdd), args.out)
+    ex.check_limits(robot, q, qd, qdd, ex.nominal_torque(robot, q, qd, qdd), args.out)
     header = ex.fourier_header(traj, cond)
     header["random_median_condition_number"] = float(np.median(rand))
     csv_path, yaml_path = ex.write_trajectory(args.out, ex.Trajectory(

@@ -14,7 +14,7 @@ from typing import Any, ClassVar
 import numpy as np
 import yaml
 
-from robid_link.config import read_yaml_mapping
+from robid_link.yamlio import check_keys, read_yaml_mapping, yaml_type
 from robid_link.exceptions import ModelError
 from robid_link.ident.regressor import rigid_regressor
 from robid_link.ident.robot import Robot, standard_parameter_names
@@ -476,8 +476,9 @@ def load_model(path: str | Path | None) -> Model:
         return DEFAULT_MODEL
     p = Path(path)
     doc = read_yaml_mapping(p, "model file", ModelError)
-    if not isinstance(doc.get("effects"), list):
-        raise ModelError(f"{p}: expected a mapping with a list 'effects'")
+    check_keys(doc, str(p), required=("effects",), optional=("description",), error=ModelError)
+    if not isinstance(doc["effects"], list):
+        raise ModelError(f"{p}: effects: expected a list, got {yaml_type(doc['effects'])}")
     try:
         return Model.parse(doc["effects"], "effects")
     except ModelError as err:

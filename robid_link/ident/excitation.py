@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from robid_link.config import read_yaml_mapping
+from robid_link.yamlio import read_yaml_mapping
 from robid_link.exceptions import ConfigError
 from robid_link.ident.effects import DEFAULT_MODEL, Model, States
 from robid_link.ident.robot import Robot
@@ -25,6 +25,7 @@ __all__ = [
     "Trajectory",
     "random_fourier",
     "optimize_fourier",
+    "nominal_torque",
     "excitation_condition",
     "constant_velocity_sweeps",
     "stepped_sine",
@@ -128,7 +129,7 @@ def check_limits(robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
                               f"at sample {k + 1}, above the limit {lim.tau_max[j]:.4g} N·m")
 
 
-def _nominal_torque(robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
+def nominal_torque(robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
                     ) -> np.ndarray | None:
     if robot.nominal is None or not np.isfinite(robot.limits.tau_max).any():
         return None
@@ -157,7 +158,7 @@ def fit_limits(robot: Robot, traj: FourierTrajectory, margin: float = LIMIT_MARG
     # torque limits are not linear in the scale (gravity stays): shrink until they hold
     for _ in range(20 if torque else 0):
         qs, qds, qdds = out.evaluate(t)
-        tau = _nominal_torque(robot, qs, qds, qdds)
+        tau = nominal_torque(robot, qs, qds, qdds)
         if tau is None or np.all(np.abs(tau) <= margin * lim.tau_max):
             break
         out = out.scaled(0.9)
@@ -342,7 +343,7 @@ def read_trajectory(path: str | Path) -> Trajectory:
     meta = read_yaml_mapping(y, "trajectory header")
     for key in ("rate_hz", "kind"):
         if key not in meta:
-            raise ConfigError(f"{y}: {key}: missing")
+            raise ConfigError(f"{y}: missing key {key!r}")
     if meta["kind"] not in ("fourier", "sweep", "stepped_sine", "custom"):
         raise ConfigError(f"{y}: kind: expected fourier, sweep, stepped_sine or custom")
     try:

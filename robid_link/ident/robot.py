@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from robid_link.config import read_yaml_mapping
+from robid_link.yamlio import check_keys, read_yaml_mapping
 from robid_link.exceptions import RobotError
 
 __all__ = ["Robot", "Limits", "load_robot", "STANDARD_NAMES", "standard_parameter_names"]
@@ -144,14 +144,13 @@ def _vec(x: Any, size: int, where: str, src: Path) -> np.ndarray:
     return np.array([_num(v, f"{where}[{i}]", src) for i, v in enumerate(x)])
 
 
-_JOINT_KEYS = {"name", "type", "alpha", "a", "theta", "d", "limits", "inertial"}
+_JOINT_OPTIONAL = ("name", "type", "limits", "inertial")
 
 
 def _load_mdh(p: Path) -> Robot:
     doc = read_yaml_mapping(p, "robot description", RobotError)
-    unknown = set(doc) - {"name", "gravity", "joints", "transmission", "description"}
-    if unknown:
-        raise RobotError(f"{p}: unknown key '{sorted(unknown)[0]}'")
+    check_keys(doc, str(p), required=("joints",),
+               optional=("name", "gravity", "transmission", "description"), error=RobotError)
     rows = doc.get("joints")
     if not isinstance(rows, list) or not rows:
         raise RobotError(f"{p}: joints: expected a non-empty list")
@@ -166,14 +165,8 @@ def _load_mdh(p: Path) -> Robot:
     parent = 0
     for i, row in enumerate(rows):
         where = f"joints[{i}]"
-        if not isinstance(row, dict):
-            raise RobotError(f"{p}: {where}: expected a mapping")
-        bad = set(row) - _JOINT_KEYS
-        if bad:
-            raise RobotError(f"{p}: {where}: unknown key '{sorted(bad)[0]}'")
-        for key in ("alpha", "a", "theta", "d"):
-            if key not in row:
-                raise RobotError(f"{p}: {where}.{key}: missing")
+        check_keys(row, f"{p}: {where}", required=("alpha", "a", "theta", "d"),
+                   optional=_JOINT_OPTIONAL, error=RobotError)
         name = str(row.get("name", f"j{i + 1}"))
         if name in names:
             raise RobotError(f"{p}: {where}.name: duplicate joint name '{name}'")

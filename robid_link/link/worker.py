@@ -23,10 +23,11 @@ def generate_program(robot_path: str, lock: tuple[str, ...], exp_id: str, kind: 
                      options: dict[str, Any], base_dir: str,
                      reduced_speed: float | None = None) -> MotionProgram:
     """Generate, check (limits) and render one experiment's program."""
+    from robid_link.ident.experiments import experiment_trajectory
     from robid_link.link import program as pg
 
     robot = _robot(robot_path, lock)
-    traj = pg.experiment_trajectory(robot, kind, options, Path(base_dir))
+    traj = experiment_trajectory(robot, kind, options, Path(base_dir))
     meta: dict[str, Any] = {"kind": kind, "trajectory_kind": traj.kind}
     if reduced_speed is not None:
         traj = pg.reduced_speed(traj, reduced_speed)
