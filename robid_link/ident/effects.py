@@ -14,10 +14,10 @@ from typing import Any, ClassVar
 import numpy as np
 import yaml
 
-from robid_link.yamlio import check_keys, read_yaml_mapping, yaml_type
 from robid_link.exceptions import ModelError
 from robid_link.ident.regressor import rigid_regressor
 from robid_link.ident.robot import Robot, standard_parameter_names
+from robid_link.yamlio import check_keys, read_yaml_mapping, yaml_type
 
 __all__ = [
     "States",

@@ -15,10 +15,10 @@ from typing import Any
 import numpy as np
 import yaml
 
-from robid_link.yamlio import read_yaml_mapping
 from robid_link.exceptions import ConfigError
 from robid_link.ident.effects import DEFAULT_MODEL, Model, States
 from robid_link.ident.robot import Robot
+from robid_link.yamlio import read_yaml_mapping
 
 __all__ = [
     "FourierTrajectory",

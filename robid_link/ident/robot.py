@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from robid_link.yamlio import check_keys, read_yaml_mapping
 from robid_link.exceptions import RobotError
+from robid_link.yamlio import check_keys, read_yaml_mapping
 
 __all__ = ["Robot", "Limits", "load_robot", "STANDARD_NAMES", "standard_parameter_names"]
 
