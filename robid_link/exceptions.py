@@ -9,7 +9,11 @@
      ├── EstimationError (ArithmeticError)  too few samples, rank deficiency
      ├── DriverError                    the controller link failed
      │    └── DriverTimeoutError (TimeoutError)
-     └── ApprovalError                  an unattended run met a program nobody approved
+     ├── CycleError                     an experiment failed after its retries
+     ├── ApprovalError                  an unattended run met a program nobody approved
+     ├── StoreLockedError (RuntimeError)  the state dir is in use by another daemon
+     ├── DaemonUnreachable (ConnectionError)  no daemon answers on the control socket
+     └── WorkerError (RuntimeError)     a worker process crashed or died (a bug, not bad input)
 
     RobidWarning (UserWarning)
      ├── ConditioningWarning            poorly excited / ill-conditioned regressor
@@ -30,6 +34,10 @@ __all__ = [
     "DriverTimeoutError",
     "UnsafeProgramError",
     "ApprovalError",
+    "CycleError",
+    "StoreLockedError",
+    "DaemonUnreachable",
+    "WorkerError",
     "RobidWarning",
     "ConditioningWarning",
     "ExcitationWarning",
@@ -75,6 +83,22 @@ class DriverError(RobidError):
 
 class DriverTimeoutError(DriverError, TimeoutError):
     """The controller did not answer in time."""
+
+
+class CycleError(RobidError):
+    """An experiment failed after its retries (the last attempt's error is its cause)."""
+
+
+class StoreLockedError(RobidError, RuntimeError):
+    """The state dir is locked by another running daemon."""
+
+
+class DaemonUnreachable(RobidError, ConnectionError):
+    """No daemon answers on the control socket."""
+
+
+class WorkerError(RobidError, RuntimeError):
+    """A worker process crashed (an unexpected exception) or died without an answer."""
 
 
 class RobidWarning(UserWarning):

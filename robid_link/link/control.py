@@ -14,18 +14,14 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
-from robid_link.exceptions import ConfigError, RobidError
+from robid_link.exceptions import ConfigError, DaemonUnreachable, RobidError
 
-__all__ = ["ControlServer", "request", "DaemonUnreachable"]
+__all__ = ["ControlServer", "request"]
 
 log = logging.getLogger("robid.control")
 
 Handler = Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]
 MAX_LINE = 1 << 20
-
-
-class DaemonUnreachable(RobidError, ConnectionError):
-    """No daemon answers on the control socket."""
 
 
 def _alive(path: Path) -> bool:

@@ -17,10 +17,10 @@ from pathlib import Path
 from typing import Any
 
 from robid_link.atomic import atomic_write, fsync_dir
-from robid_link.exceptions import ConfigError, RobidError
+from robid_link.exceptions import ConfigError, RobidError, StoreLockedError
 from robid_link.link.driver import MotionProgram
 
-__all__ = ["Store", "StoreLockedError", "RUN_STATES"]
+__all__ = ["Store", "RUN_STATES"]
 
 RUN_STATES = ("queued", "running", "completed", "failed")
 
@@ -49,10 +49,6 @@ CREATE TABLE IF NOT EXISTS results (
     id INTEGER PRIMARY KEY AUTOINCREMENT, run_id TEXT NOT NULL, robot TEXT NOT NULL,
     kind TEXT NOT NULL, time REAL NOT NULL, record TEXT NOT NULL);
 """
-
-
-class StoreLockedError(RobidError):
-    """Another daemon holds the state directory."""
 
 
 class Store:

@@ -113,7 +113,8 @@ def process(*args: str, env: dict[str, str] | None = None, log: Path | None = No
 
 def wait_socket(path: Path, proc: subprocess.Popen[bytes] | None = None,
                 timeout_s: float = 60.0) -> None:
-    from robid_link.link.control import DaemonUnreachable, request
+    from robid_link.exceptions import DaemonUnreachable
+    from robid_link.link.control import request
 
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:

@@ -10,9 +10,9 @@ import pytest
 import yaml
 
 from robid_link.config import load_daemon_config
-from robid_link.exceptions import ConfigError, RobidError
+from robid_link.exceptions import ConfigError, RobidError, StoreLockedError
 from robid_link.link.driver import MotionProgram
-from robid_link.link.store import Store, StoreLockedError
+from robid_link.link.store import Store
 
 from .conftest import QUICK, write_config
 
