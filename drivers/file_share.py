@@ -331,7 +331,13 @@ class FileShareDriver(Driver):
         folder = self.share / "params"
         folder.mkdir(exist_ok=True)
         stamp = time.strftime("%Y%m%dT%H%M%S")
-        robot = str(doc.get("robot", "robot")) if isinstance(doc, dict) else "robot"
-        safe = re.sub(r"[^A-Za-z0-9_\-]", "_", robot)
+        parts = [str(doc.get(k) or "") for k in ("robot", "run_id")] if isinstance(doc, dict) \
+            else ["robot", ""]
+        safe = ".".join(re.sub(r"[^A-Za-z0-9_\-]", "_", p) for p in (parts[0] or "robot", stamp,
+                                                                      parts[1]) if p)
         data = json.dumps(doc, indent=1).encode()
-        await asyncio.to_thread(atomic_write, folder / f"{safe}.{stamp}.json", data)
+        path, k = folder / f"{safe}.json", 1
+        while path.exists():  # two uploads within a second: keep both
+            k += 1
+            path = folder / f"{safe}-{k}.json"
+        await asyncio.to_thread(atomic_write, path, data)

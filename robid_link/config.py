@@ -134,6 +134,8 @@ def _campaign(name: str, raw: Any, base: Path) -> CampaignDef:
     for key in ("identify", "diagnose", "motor_side", "upload"):
         if not isinstance(raw.get(key, False), bool):
             raise ConfigError(f"{w}.{key}: expected true or false")
+    if raw.get("upload", False) and not raw.get("identify", True):
+        raise ConfigError(f"{w}.upload: needs identify: true (nothing to upload otherwise)")
     return CampaignDef(
         name=name, experiments=_experiments(raw["experiments"], f"{w}.experiments"),
         identify=raw.get("identify", True), diagnose=raw.get("diagnose", False),

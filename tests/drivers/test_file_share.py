@@ -164,3 +164,53 @@ def test_missing_share_and_bad_options(tmp_path: Path) -> None:
         make_driver({"name": "ethercat"})
     with pytest.raises(ConfigError, match="driver.observer"):
         make_driver({"name": "file_share", "share": str(tmp_path), "observer": "magic"})
+
+
+def test_upload_parameters_lands_in_params_atomically(tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """The identified parameters go to ``share/params/`` as one whole JSON file per upload,
+    written through the atomic write (temp + rename), never half a file."""
+    import json
+
+    import robid_link.atomic as atomic
+
+    doc = {"robot": "arm3", "run_id": "r-1", "parameters": [
+        {"name": "zz_1", "value": 0.25, "std": 0.01, "expression": "zz_1"}]}
+    renames: list[tuple[str, str]] = []
+    real_replace = os.replace
+
+    def spy(src: Any, dst: Any) -> None:
+        renames.append((Path(src).name, Path(dst).name))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(atomic.os, "replace", spy)
+
+    async def go() -> list[Path]:
+        driver, _ = _file_share(tmp_path)
+        async with driver:
+            await driver.upload_parameters(doc)
+            await driver.upload_parameters({**doc, "parameters": []})  # same second: kept too
+        return sorted((tmp_path / "share" / "params").iterdir())
+
+    files = asyncio.run(go())
+    assert [f.suffix for f in files] == [".json", ".json"]
+    assert all(f.name.startswith("arm3.") and ".r-1" in f.name for f in files)
+    contents = [json.loads(f.read_text()) for f in files]
+    assert doc in contents and {**doc, "parameters": []} in contents
+    assert {dst for _, dst in renames} == {f.name for f in files}
+    assert all(src.startswith(".") and src.endswith(".tmp") for src, _ in renames)
+
+
+def test_upload_needs_the_capability(tmp_path: Path) -> None:
+    class NoUpload(FileShareDriver):
+        capabilities = frozenset()
+
+    async def go() -> None:
+        share = tmp_path / "share"
+        share.mkdir()
+        async with NoUpload(share=share, canary_interval_s=0) as driver:
+            with pytest.raises(DriverError, match="cannot upload parameters"):
+                await driver.upload_parameters({"robot": "arm3"})
+        assert not (share / "params").exists()
+
+    asyncio.run(go())
