@@ -119,6 +119,8 @@ def load_truth(path: str | Path, robot: Robot) -> Truth:
 
 def _truth_from_doc(doc: dict[str, Any], robot: Robot) -> Truth:
     n = robot.n
+    if "robot" in doc and str(doc["robot"]) != robot.name:
+        raise ConfigError(f"robot: this truth is for {doc['robot']!r}, not {robot.name!r}")
     if "inertials" in doc:
         arr = np.asarray(doc["inertials"], dtype=float)
         if arr.shape != (n, 10):
