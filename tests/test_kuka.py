@@ -7,6 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
+from robid_link.exceptions import ConditioningWarning, DataWarning, ExcitationWarning
 from robid_link.ident.effects import Model
 from robid_link.ident.identify import identify, load_logs
 from robid_link.ident.robot import load_robot
@@ -15,11 +16,22 @@ MODEL = Model.parse(["rigid_body", "viscous", "coulomb", "offset"])
 PEER_RELATIVE_ERROR = 0.0281
 
 
+def _expected_kuka_warnings() -> None:
+    """What these logs are known to raise: jittered stamps resampled, two joints logged with
+    the opposite sign of the URDF's a-priori model, validation motions outside the training
+    range, weak excitation of some parameters. Anything else still fails the test."""
+    warnings.filterwarnings("ignore", r".*time step varies by up to", DataWarning)
+    warnings.filterwarnings("ignore", r".*has the opposite sign of the a-priori model",
+                            DataWarning)
+    warnings.filterwarnings("ignore", r"validation leaves the training range", ExcitationWarning)
+    warnings.filterwarnings("ignore", category=ConditioningWarning)
+
+
 def _run(kuka_dir, train, valid):
     robot = load_robot(kuka_dir / "kuka_lwr4.urdf")
     files = [kuka_dir / f"measurements_{i}.npz" for i in (*train, *valid)]
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # resampling of jittered stamps, sign notes
+        _expected_kuka_warnings()
         data = load_logs(robot, files[: len(train)])
         val = load_logs(robot, files[len(train):])
         return identify(robot, data, MODEL, validate=val)
@@ -53,7 +65,7 @@ def test_diagnosis_on_real_data_and_its_effect_on_the_unseen_motion(kuka_dir):
 
     robot = load_robot(kuka_dir / "kuka_lwr4.urdf")
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+        _expected_kuka_warnings()
         data = load_logs(robot, [kuka_dir / f"measurements_{i}.npz" for i in (1, 2)])
         val = load_logs(robot, [kuka_dir / "measurements_3.npz"])
         dg = diagnose(robot, data, DEFAULT_MODEL)
