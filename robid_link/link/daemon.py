@@ -139,6 +139,8 @@ class Daemon:
             if self.notifier.watchdog_s:
                 self._tasks.append(tg.create_task(self._watchdog_loop(), name="robid-watchdog"))
         except BaseException:
+            for task in self._tasks:
+                task.cancel()
             await stack.aclose()
             raise
         self._stack = stack
@@ -148,9 +150,10 @@ class Daemon:
                  self.robot.n, cfg.driver["name"], cfg.control_socket, os.getpid())
         return self
 
-    async def __aexit__(self, *exc: Any) -> bool | None:
+    async def __aexit__(self, *exc: Any) -> None:
         """Cancel the loops (the current step is journaled: an unfinished run resumes at the
-        next start), then close the control socket, the driver and the store."""
+        next start), then close the control socket, the driver and the store. The body's own
+        exception goes on unchanged (not wrapped into the TaskGroup's ExceptionGroup)."""
         log.info("stopping: the current step is journaled; an unfinished run resumes at the "
                  "next start")
         self.notifier.send(STOPPING=1, STATUS="stopping")
@@ -158,7 +161,7 @@ class Daemon:
             task.cancel()
         stack, self._stack = self._stack, None
         assert stack is not None
-        return await stack.__aexit__(*exc)
+        await stack.aclose()
 
     def _closed_store(self) -> None:
         assert self.store is not None
@@ -166,7 +169,7 @@ class Daemon:
         log.info("daemon stopped")
 
     async def _runner_loop(self) -> None:
-        assert self.store is not None
+        assert self.store is not None and self.robot is not None
         while True:
             run_id = await self._queue.get()
             self._current = run_id

@@ -371,3 +371,17 @@ def test_daemon_context_leaves_nothing_running(tmp_path: Path) -> None:
     assert not (tmp_path / "ctl.sock").exists()
     with Store(tmp_path / "state"):
         pass
+
+
+def test_an_error_in_the_body_leaves_the_daemon_as_itself(tmp_path: Path) -> None:
+    """``async with Daemon(...)``: the body's exception comes out as it was raised (not in an
+    ExceptionGroup) and the daemon is closed behind it."""
+    cfg = write_config(tmp_path, {"one": ONE})
+
+    async def go() -> None:
+        async with Daemon(load_daemon_config(cfg), env={}):
+            raise ConfigError("campaign 'x': not in the config")
+
+    with pytest.raises(ConfigError, match="campaign 'x'"):
+        asyncio.run(go())
+    assert not (tmp_path / "ctl.sock").exists()
