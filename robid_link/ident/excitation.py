@@ -130,7 +130,7 @@ def check_limits(robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
 
 
 def nominal_torque(robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
-                    ) -> np.ndarray | None:
+                   ) -> np.ndarray | None:
     if robot.nominal is None or not np.isfinite(robot.limits.tau_max).any():
         return None
     from robid_link.ident.regressor import rigid_regressor

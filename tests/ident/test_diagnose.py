@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from robid_link.exceptions import ConditioningWarning
+from robid_link.exceptions import ConditioningWarning, DataWarning
 from robid_link.ident.diagnose import diagnose
 from robid_link.ident.effects import DEFAULT_MODEL, EffectSpec, Model
 from robid_link.ident.identify import identify, load_logs
@@ -75,13 +75,22 @@ def _spec(s) -> EffectSpec:
     return EffectSpec(s.effect, s.joint, tuple(sorted(opts.items())))
 
 
+def _expected_warnings() -> None:
+    """What simulated logs are known to raise here: weakly excited columns (a spring, a
+    ripple) and a joint whose torque differs much from the a-priori model's (arm3's light
+    wrist, perturbed inertials). Anything else still fails the test."""
+    warnings.simplefilter("ignore", ConditioningWarning)
+    warnings.filterwarnings("ignore", r".*(the a-priori model's torque|has the opposite sign of "
+                            r"the a-priori model)", DataWarning)
+
+
 def _run_case(robot, case: Case, tmp: Path, seed: int, duration: float = 40.0):
     model = Model.parse(list(case.model))
     kw = {"noise": 0.3, "seed": seed, "duration": duration, "rate": 250.0}
     hidden = simulate(robot, tmp / "hidden.csv", effects=(*case.base, case.hidden), **kw)
     clean = simulate(robot, tmp / "clean.csv", effects=case.base, **kw)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConditioningWarning)  # weakly excited spring columns
+        _expected_warnings()
         logs = load_logs(robot, [hidden.path])
         dg = diagnose(robot, logs, model)
         assert dg.verdict == "missing_effect", dg.summary()
@@ -128,7 +137,7 @@ def test_clean_log_is_adequate(robot_name, tmp_path):
     robot = load_robot(ROBOTS / f"{robot_name}.yaml")
     sim = simulate(robot, tmp_path / "c.csv", noise=0.3, seed=7, duration=40.0, rate=250.0)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConditioningWarning)  # weakly excited spring columns
+        _expected_warnings()
         dg = diagnose(robot, load_logs(robot, [sim.path]), DEFAULT_MODEL)
     assert dg.verdict == "adequate", dg.summary()
     assert dg.to_dict()["suggestions"] == []
@@ -145,7 +154,7 @@ def test_false_alarm_rate_over_clean_seeds(arm3, tmp_path):
         sim = simulate(arm3, tmp_path / f"c{seed}.csv", noise=0.3, seed=100 + seed,
                        duration=40.0, rate=250.0)
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ConditioningWarning)  # weakly excited spring columns
+            _expected_warnings()
             dg = diagnose(arm3, load_logs(arm3, [sim.path]), DEFAULT_MODEL)
         alarms.append(dg.verdict != "adequate")
     print(f"false alarms: {sum(alarms)} of 20 clean seeds")
@@ -160,7 +169,7 @@ def test_two_hidden_effects_one_after_the_other(arm3, tmp_path):
     model = DEFAULT_MODEL
     found = []
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConditioningWarning)  # weakly excited spring columns
+        _expected_warnings()
         logs = load_logs(arm3, [sim.path])
         for _ in range(3):
             dg = diagnose(arm3, logs, model)
@@ -216,7 +225,7 @@ def test_closed_form_effects_on_an_unseen_robot(tmp_path, extra, joint, accept):
     path = tmp_path / "log.csv"
     write_log_csv(path, t, log["q"], tau)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConditioningWarning)  # weakly excited spring columns
+        _expected_warnings()
         dg = diagnose(robot, load_logs(robot, [path]), DEFAULT_MODEL)
     top = dg.suggestions[0]
     assert top.effect in accept and top.joint == joint, dg.summary()
