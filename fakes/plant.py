@@ -15,11 +15,11 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from robid_link.config import read_yaml_mapping
 from robid_link.exceptions import ConfigError
 from robid_link.ident.effects import moving_sign
 from robid_link.ident.robot import Robot
 from robid_link.ident.robot_check import inertia_problem
+from robid_link.yamlio import check_keys, read_yaml_mapping
 
 __all__ = ["Truth", "Plant", "perturbed_inertials", "load_truth", "EFFECT_PARAMS"]
 
@@ -88,25 +88,19 @@ def _check_effects(entries: Any, n: int, where: str) -> tuple[dict[str, Any], ..
     out = []
     for i, e in enumerate(entries):
         w = f"{where}[{i}]"
-        if not isinstance(e, dict) or "name" not in e:
-            raise ConfigError(f"{w}: expected a mapping with 'name'")
+        check_keys(e, w, required=("name",), optional=e.keys() if isinstance(e, dict) else ())
         name = e["name"]
         if not isinstance(name, str) or name not in EFFECT_PARAMS:
             raise ConfigError(f"{w}: unknown plant effect {_short(name)} "
                               f"(known: {', '.join(sorted(EFFECT_PARAMS))})")
         req, opt = EFFECT_PARAMS[name]
+        check_keys(e, f"{w} ({name})", required=("name", *req), optional=("joint", *opt))
         joint = e.get("joint")
         if joint is not None:
             if name in GLOBAL_EFFECTS:
                 raise ConfigError(f"{w}: '{name}' is global and takes no joint")
             if isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= n:
                 raise ConfigError(f"{w}.joint: expected a joint number in 1..{n}")
-        for key in req:
-            if key not in e:
-                raise ConfigError(f"{w}.{key}: missing (a '{name}' needs {', '.join(req)})")
-        bad = sorted(map(str, set(e) - {"name", "joint", *req, *opt}))
-        if bad:
-            raise ConfigError(f"{w}: '{name}' has no parameter {_short(bad[0])}")
         for key in (*req, *opt):
             v = e.get(key, opt.get(key))
             if key == "com" and isinstance(v, list):
@@ -181,11 +175,8 @@ def load_truth(path: str | Path, robot: Robot) -> Truth:
     """Read a truth file; every error names the key path."""
     p = Path(path)
     doc = read_yaml_mapping(p, "truth file")
-    known = {"robot", "inertials", "perturb", "effects", "noise", "rate_hz", "mode", "side",
-             "controller"}
-    bad = sorted(map(str, set(doc) - known))
-    if bad:
-        raise ConfigError(f"{p}: unknown key {_short(bad[0])}")
+    check_keys(doc, str(p), optional=("robot", "inertials", "perturb", "effects", "noise",
+                                      "rate_hz", "mode", "side", "controller"))
     try:
         return _truth_from_doc(doc, robot)
     except ConfigError as err:
@@ -194,12 +185,12 @@ def load_truth(path: str | Path, robot: Robot) -> Truth:
 
 def _truth_from_doc(doc: dict[str, Any], robot: Robot) -> Truth:
     n = robot.n
+    if "robot" in doc and str(doc["robot"]) != robot.name:
+        raise ConfigError(f"robot: this truth is for {doc['robot']!r}, not {robot.name!r}")
     if "inertials" in doc:
         inertials = _inertials(doc["inertials"], robot)
     elif "perturb" in doc:
-        pert = {} if doc["perturb"] is None else doc["perturb"]
-        if not isinstance(pert, dict) or set(pert) - {"seed", "spread"}:
-            raise ConfigError("perturb: expected {seed, spread}")
+        pert = check_keys(doc["perturb"] or {}, "perturb", optional=("seed", "spread"))
         inertials = perturbed_inertials(
             robot, int(_number(pert.get("seed", 0), "perturb.seed", 0, 2**32 - 1, integer=True)),
             float(_number(pert.get("spread", 0.2), "perturb.spread", 0.0, 0.9)))
@@ -207,9 +198,7 @@ def _truth_from_doc(doc: dict[str, Any], robot: Robot) -> Truth:
         inertials = robot.nominal.copy()
     else:
         raise ConfigError("inertials: missing (and the robot has no nominal inertials)")
-    noise = {} if doc.get("noise") is None else doc["noise"]
-    if not isinstance(noise, dict) or set(noise) - {"tau", "q_resolution"}:
-        raise ConfigError("noise: expected {tau, q_resolution}")
+    noise = check_keys(doc.get("noise") or {}, "noise", optional=("tau", "q_resolution"))
     tau_noise = noise.get("tau", 0.0)
     if isinstance(tau_noise, list):
         if len(tau_noise) != n:

@@ -1,7 +1,7 @@
-"""YAML at the edge: read a file into a mapping with one-line errors that name the file, and
-the daemon's config parsed once into frozen dataclasses whose errors name the key path.
+"""The daemon's config, parsed once into frozen dataclasses whose errors name the key path.
 
-Robot, model, truth and trajectory files validate their own keys on top of the reader.
+Imports no wing but two one-way edges: experiment kinds (``ident/experiments.py``) and the
+file-name rule of experiment ids (``link/driver.py``). The YAML reader is ``yamlio.py``.
 """
 
 from __future__ import annotations
@@ -11,43 +11,21 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from robid_link.exceptions import ConfigError, RobidError
-from robid_link.safeyaml import load_yaml_file
+from robid_link.ident.experiments import EXPERIMENT_KINDS, experiment_options
+from robid_link.link.driver import check_name
+from robid_link.yamlio import check_keys, read_yaml_mapping, yaml_type
 
-__all__ = ["read_yaml_mapping", "load_daemon_config", "DaemonConfig", "CampaignDef",
+__all__ = ["load_daemon_config", "DaemonConfig", "CampaignDef",
            "ExperimentDef"]
-
-
-def read_yaml_mapping(path: str | Path, what: str, error: type[RobidError] = ConfigError,
-                      must_exist: bool = True) -> dict[str, Any]:
-    """``safe_load`` a YAML file that must hold a mapping; ``what`` names it in errors."""
-    p = Path(path)
-    if not p.is_file():
-        if must_exist:
-            raise error(f"{p}: {what} not found")
-        return {}
-    try:
-        doc = load_yaml_file(p, error=error)
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise error(f"{p}: invalid YAML{where}") from err
-    except UnicodeDecodeError as err:
-        raise error(f"{p}: not a text file") from err
-    if not isinstance(doc, dict):
-        raise error(f"{p}: expected a mapping")
-    return doc
 
 
 # ----------------------------------------------------------------------------- daemon config
 
-_DAEMON_KEYS = {"robot", "lock", "state_dir", "control_socket", "socket_mode", "driver",
-                "campaigns", "worker_start_method", "log_level"}
-_CAMPAIGN_KEYS = {"experiments", "identify", "diagnose", "model", "add", "method", "retries",
-                  "backoff_s", "timeout_s", "reduced_speed_first", "cutoff_hz", "motor_side",
-                  "upload"}
+_DAEMON_REQUIRED = ("robot", "state_dir", "control_socket", "driver", "campaigns")
+_DAEMON_OPTIONAL = ("lock", "socket_mode", "worker_start_method", "log_level")
+_CAMPAIGN_OPTIONAL = ("identify", "diagnose", "model", "add", "method", "retries", "backoff_s",
+                      "timeout_s", "reduced_speed_first", "cutoff_hz", "motor_side", "upload")
 
 
 @dataclass(frozen=True)
@@ -117,9 +95,6 @@ def _path(base: Path, v: Any, where: str) -> Path:
 
 
 def _experiments(raw: Any, where: str) -> tuple[ExperimentDef, ...]:
-    from robid_link.link.driver import check_name
-    from robid_link.link.program import EXPERIMENT_KINDS, experiment_options
-
     if not isinstance(raw, list) or not raw:
         raise ConfigError(f"{where}: expected a non-empty list of experiments")
     out: list[ExperimentDef] = []
@@ -131,7 +106,7 @@ def _experiments(raw: Any, where: str) -> tuple[ExperimentDef, ...]:
             raise ConfigError(f"{w}: expected an experiment kind or a mapping with 'kind'")
         opts = dict(entry)
         kind = opts.pop("kind", None)
-        if kind not in EXPERIMENT_KINDS:
+        if not isinstance(kind, str) or kind not in EXPERIMENT_KINDS:
             raise ConfigError(f"{w}.kind: expected one of {', '.join(EXPERIMENT_KINDS)}, "
                               f"got {kind!r}")
         exp_id = opts.pop("id", kind if i == 0 or all(e.kind != kind for e in out)
@@ -148,13 +123,7 @@ def _experiments(raw: Any, where: str) -> tuple[ExperimentDef, ...]:
 
 def _campaign(name: str, raw: Any, base: Path) -> CampaignDef:
     w = f"campaigns.{name}"
-    if not isinstance(raw, dict):
-        raise ConfigError(f"{w}: expected a mapping with 'experiments'")
-    bad = set(raw) - _CAMPAIGN_KEYS
-    if bad:
-        raise ConfigError(f"{w}.{sorted(bad)[0]}: unknown key")
-    if "experiments" not in raw:
-        raise ConfigError(f"{w}.experiments: missing")
+    check_keys(raw, w, required=("experiments",), optional=_CAMPAIGN_OPTIONAL)
     method = raw.get("method", "ols")
     if method not in ("ols", "wls", "irls"):
         raise ConfigError(f"{w}.method: expected ols, wls or irls, got {method!r}")
@@ -167,6 +136,8 @@ def _campaign(name: str, raw: Any, base: Path) -> CampaignDef:
     for key in ("identify", "diagnose", "motor_side", "upload"):
         if not isinstance(raw.get(key, False), bool):
             raise ConfigError(f"{w}.{key}: expected true or false")
+    if raw.get("upload", False) and not raw.get("identify", True):
+        raise ConfigError(f"{w}.upload: needs identify: true (nothing to upload otherwise)")
     return CampaignDef(
         name=name, experiments=_experiments(raw["experiments"], f"{w}.experiments"),
         identify=raw.get("identify", True), diagnose=raw.get("diagnose", False),
@@ -192,22 +163,22 @@ def load_daemon_config(path: str | Path) -> DaemonConfig:
 def _daemon_config(p: Path, doc: dict[str, Any]) -> DaemonConfig:
     import re
 
-    bad = set(doc) - _DAEMON_KEYS
-    if bad:
-        raise ConfigError(f"{sorted(bad)[0]}: unknown key")
-    for key in ("robot", "state_dir", "control_socket", "driver", "campaigns"):
-        if key not in doc:
-            raise ConfigError(f"{key}: missing")
+    check_keys(doc, "", required=_DAEMON_REQUIRED, optional=_DAEMON_OPTIONAL)
     base = p.parent
     driver = doc["driver"]
-    if not isinstance(driver, dict) or not isinstance(driver.get("name"), str):
-        raise ConfigError("driver.name: missing (e.g. driver: {name: file_share, share: DIR})")
+    if not isinstance(driver, dict):
+        raise ConfigError(f"driver: expected a mapping, got {yaml_type(driver)} "
+                          "(e.g. driver: {name: file_share, share: DIR})")
+    if not isinstance(driver.get("name"), str):
+        raise ConfigError("driver: missing key 'name' (e.g. driver: {name: file_share, "
+                          "share: DIR})")
     driver = dict(driver)
     if isinstance(driver.get("share"), str):
         driver["share"] = str(_path(base, driver["share"], "driver.share"))
     camps = doc["campaigns"]
     if not isinstance(camps, dict) or not camps:
-        raise ConfigError("campaigns: expected a mapping of campaign names")
+        raise ConfigError(f"campaigns: expected a mapping of campaign names, got "
+                          f"{yaml_type(camps) if camps else 'nothing'}")
     for name in camps:
         if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9_\-]+", name):
             raise ConfigError(f"campaigns.{name}: names are letters, digits, '_' and '-'")

@@ -72,10 +72,8 @@ async def _campaign(cfg_path: Path, log_file: Path) -> dict[str, Any]:
     cfg = load_daemon_config(cfg_path)
     with open(log_file, "a") as log:
         setup_logging("info", log)
-        daemon = Daemon(cfg, env={})
         try:
-            task = await daemon.start()
-            try:
+            async with Daemon(cfg, env={}):
                 sock = cfg.control_socket
                 ans = await asyncio.to_thread(request, sock, {"cmd": "start",
                                                               "campaign": "demo"})
@@ -84,9 +82,6 @@ async def _campaign(cfg_path: Path, log_file: Path) -> dict[str, Any]:
                 res = await asyncio.to_thread(request, sock, {"cmd": "results",
                                                               "run_id": run["run_id"]})
                 return {"run": run, "results": res["results"]}
-            finally:
-                daemon.stop()
-                await task
         finally:
             setup_logging("info")  # the log file closes with this block
 

@@ -9,8 +9,12 @@
      ├── EstimationError (ArithmeticError)  too few samples, rank deficiency
      ├── DriverError                    the controller link failed
      │    └── DriverTimeoutError (TimeoutError)
+     ├── CycleError                     an experiment failed after its retries
      ├── ApprovalError                  an unattended run met a program nobody approved
-     └── StoreFullError (OSError)       the state_dir has no room: new runs wait, none fails
+     ├── StoreLockedError (RuntimeError)  the state dir is in use by another daemon
+     ├── StoreFullError (OSError)       the state_dir has no room: new runs wait, none fails
+     ├── DaemonUnreachable (ConnectionError)  no daemon answers on the control socket
+     └── WorkerError (RuntimeError)     a worker process crashed or died (a bug, not bad input)
 
     RobidWarning (UserWarning)
      ├── ConditioningWarning            poorly excited / ill-conditioned regressor
@@ -31,7 +35,11 @@ __all__ = [
     "DriverTimeoutError",
     "UnsafeProgramError",
     "ApprovalError",
+    "CycleError",
+    "StoreLockedError",
     "StoreFullError",
+    "DaemonUnreachable",
+    "WorkerError",
     "RobidWarning",
     "ConditioningWarning",
     "ExcitationWarning",
@@ -77,6 +85,22 @@ class DriverError(RobidError):
 
 class DriverTimeoutError(DriverError, TimeoutError):
     """The controller did not answer in time."""
+
+
+class CycleError(RobidError):
+    """An experiment failed after its retries (the last attempt's error is its cause)."""
+
+
+class StoreLockedError(RobidError, RuntimeError):
+    """The state dir is locked by another running daemon."""
+
+
+class DaemonUnreachable(RobidError, ConnectionError):
+    """No daemon answers on the control socket."""
+
+
+class WorkerError(RobidError, RuntimeError):
+    """A worker process crashed (an unexpected exception) or died without an answer."""
 
 
 class RobidWarning(UserWarning):

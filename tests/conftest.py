@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import asyncio
 import math
+import threading
+import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -74,6 +79,63 @@ def simulate(robot: Robot, path: Path, *, duration: float = 30.0, rate: float = 
     write_log_csv(path, log["t"], log["q"], log["tau"], log["qd"] if derivatives else None,
                   log["qdd"] if derivatives else None)
     return SimLog(path, truth, log)
+
+
+# ----------------------------------------------------------------------------- leak check
+
+
+class _LeakCheckLoop(asyncio.SelectorEventLoop):
+    """Records the tasks still pending when ``asyncio.run``'s main coroutine returns: the
+    runner would cancel them silently, but a task that outlives its owner is a leak (an
+    unjoined ``_xxx_loop``, a forgotten ``create_task``)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._main_done = False
+
+    def run_until_complete(self, future: Any) -> Any:
+        first = not self._main_done
+        self._main_done = True
+        try:
+            return super().run_until_complete(future)
+        finally:
+            if first:
+                _LEAKED_TASKS.extend(
+                    f"{t.get_name()} ({getattr(t.get_coro(), '__qualname__', t.get_coro())})"
+                    for t in asyncio.all_tasks(self) if not t.done())
+
+
+class _LeakCheckPolicy(asyncio.DefaultEventLoopPolicy):
+    def new_event_loop(self) -> asyncio.AbstractEventLoop:
+        return _LeakCheckLoop()
+
+
+_LEAKED_TASKS: list[str] = []
+
+
+@pytest.fixture(autouse=True)
+def no_leaks() -> Iterator[None]:
+    """A test that leaves a thread (observer, fake controller, worker bridge) running, or an
+    asyncio task pending when its ``asyncio.run`` returns, fails."""
+    before = set(threading.enumerate())
+    old_policy = asyncio.get_event_loop_policy()
+    asyncio.set_event_loop_policy(_LeakCheckPolicy())
+    _LEAKED_TASKS.clear()
+    try:
+        yield
+    finally:
+        asyncio.set_event_loop_policy(old_policy)
+    tasks = list(_LEAKED_TASKS)
+    _LEAKED_TASKS.clear()
+    assert not tasks, f"test leaked asyncio tasks: {tasks}"
+    end = time.monotonic() + 5.0
+    while time.monotonic() < end:
+        left = [t for t in set(threading.enumerate()) - before
+                if t.is_alive() and not t.name.startswith(("asyncio_", "ThreadPoolExecutor"))]
+        if not left:
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"test leaked threads: {[t.name for t in left]}")
 
 
 def mdh_to_urdf(robot: Robot) -> str:

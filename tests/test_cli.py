@@ -136,7 +136,7 @@ def test_simulate_errors(tmp_path, capsys):
     rc = main(["simulate", "--robot", str(ROBOTS / "arm3.yaml"), "--truth", str(truth),
                "--trajectory", str(tmp_path / "none.csv"), "--out", str(tmp_path / "l.csv")])
     assert rc == 2
-    assert "effects[0].fv: missing" in capsys.readouterr().err
+    assert "effects[0] (viscous): missing key 'fv'" in capsys.readouterr().err
 
 
 def test_demo_runs_the_whole_job_through_the_daemon(tmp_path):

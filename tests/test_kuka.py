@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterator
-from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -18,20 +16,22 @@ MODEL = Model.parse(["rigid_body", "viscous", "coulomb", "offset"])
 PEER_RELATIVE_ERROR = 0.0281
 
 
-@contextmanager
-def _expected_warnings() -> Iterator[None]:
-    """Resampling of jittered stamps, sign notes, extrapolation to an unseen motion: the
-    identification's own warnings are expected on these logs; any other one fails."""
-    with warnings.catch_warnings():
-        for category in (ConditioningWarning, ExcitationWarning, DataWarning):
-            warnings.filterwarnings("ignore", category=category)
-        yield
+def _expected_kuka_warnings() -> None:
+    """What these logs are known to raise: jittered stamps resampled, two joints logged with
+    the opposite sign of the URDF's a-priori model, validation motions outside the training
+    range, weak excitation of some parameters. Anything else still fails the test."""
+    warnings.filterwarnings("ignore", r".*time step varies by up to", DataWarning)
+    warnings.filterwarnings("ignore", r".*has the opposite sign of the a-priori model",
+                            DataWarning)
+    warnings.filterwarnings("ignore", r"validation leaves the training range", ExcitationWarning)
+    warnings.filterwarnings("ignore", category=ConditioningWarning)
 
 
 def _run(kuka_dir, train, valid):
     robot = load_robot(kuka_dir / "kuka_lwr4.urdf")
     files = [kuka_dir / f"measurements_{i}.npz" for i in (*train, *valid)]
-    with _expected_warnings():
+    with warnings.catch_warnings():
+        _expected_kuka_warnings()
         data = load_logs(robot, files[: len(train)])
         val = load_logs(robot, files[len(train):])
         return identify(robot, data, MODEL, validate=val)
@@ -64,7 +64,8 @@ def test_diagnosis_on_real_data_and_its_effect_on_the_unseen_motion(kuka_dir):
     from robid_link.ident.effects import DEFAULT_MODEL, EffectSpec
 
     robot = load_robot(kuka_dir / "kuka_lwr4.urdf")
-    with _expected_warnings():
+    with warnings.catch_warnings():
+        _expected_kuka_warnings()
         data = load_logs(robot, [kuka_dir / f"measurements_{i}.npz" for i in (1, 2)])
         val = load_logs(robot, [kuka_dir / "measurements_3.npz"])
         dg = diagnose(robot, data, DEFAULT_MODEL)

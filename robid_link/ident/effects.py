@@ -15,10 +15,10 @@ from typing import Any, ClassVar
 import numpy as np
 import yaml
 
-from robid_link.config import read_yaml_mapping
 from robid_link.exceptions import ModelError
 from robid_link.ident.regressor import rigid_regressor
 from robid_link.ident.robot import Robot, standard_parameter_names
+from robid_link.yamlio import check_keys, read_yaml_mapping, yaml_type
 
 __all__ = [
     "States",
@@ -510,11 +510,9 @@ def load_model(path: str | Path | None) -> Model:
         return DEFAULT_MODEL
     p = Path(path)
     doc = read_yaml_mapping(p, "model file", ModelError)
-    if not isinstance(doc.get("effects"), list):
-        raise ModelError(f"{p}: expected a mapping with a list 'effects'")
-    bad = sorted(map(str, set(doc) - {"effects", "description"}))
-    if bad:
-        raise ModelError(f"{p}: unknown key {_short(bad[0])}")
+    check_keys(doc, str(p), required=("effects",), optional=("description",), error=ModelError)
+    if not isinstance(doc["effects"], list):
+        raise ModelError(f"{p}: effects: expected a list, got {yaml_type(doc['effects'])}")
     if not doc["effects"]:
         raise ModelError(f"{p}: effects: the list is empty (the default model is "
                          f"[{', '.join(DEFAULT_MODEL.labels())}])")

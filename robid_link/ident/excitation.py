@@ -15,16 +15,17 @@ from typing import Any
 import numpy as np
 import yaml
 
-from robid_link.config import read_yaml_mapping
 from robid_link.exceptions import ConfigError
 from robid_link.ident.effects import DEFAULT_MODEL, Model, States
 from robid_link.ident.robot import Robot
+from robid_link.yamlio import read_yaml_mapping
 
 __all__ = [
     "FourierTrajectory",
     "Trajectory",
     "random_fourier",
     "optimize_fourier",
+    "nominal_torque",
     "excitation_condition",
     "nominal_torque",
     "constant_velocity_sweeps",
@@ -363,7 +364,7 @@ def read_trajectory(path: str | Path) -> Trajectory:
     meta = read_yaml_mapping(y, "trajectory header")
     for key in ("rate_hz", "kind"):
         if key not in meta:
-            raise ConfigError(f"{y}: {key}: missing")
+            raise ConfigError(f"{y}: missing key {key!r}")
     if meta["kind"] not in ("fourier", "sweep", "stepped_sine", "custom"):
         raise ConfigError(f"{y}: kind: expected fourier, sweep, stepped_sine or custom")
     rate = meta["rate_hz"]

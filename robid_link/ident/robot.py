@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from robid_link.config import read_yaml_mapping
 from robid_link.exceptions import RobotError
 from robid_link.ident.robot_check import UrdfJoint, check_urdf, inertia_problem
+from robid_link.yamlio import check_keys, read_yaml_mapping
 
 __all__ = ["Robot", "Limits", "load_robot", "STANDARD_NAMES", "standard_parameter_names"]
 
@@ -161,15 +161,13 @@ def _vec(x: Any, size: int, where: str, src: Path) -> np.ndarray:
     return np.array([_num(v, f"{where}[{i}]", src) for i, v in enumerate(x)])
 
 
-_JOINT_KEYS = {"name", "type", "alpha", "a", "theta", "d", "limits", "inertial"}
+_JOINT_OPTIONAL = ("name", "type", "limits", "inertial")
 
 
 def _load_mdh(p: Path, allow_unlimited: bool) -> Robot:
     doc = read_yaml_mapping(p, "robot description", RobotError)
-    unknown = set(doc) - {"name", "gravity", "joints", "transmission", "description",
-                          "allow_unlimited"}
-    if unknown:
-        raise RobotError(f"{p}: unknown key '{str(sorted(map(str, unknown))[0])[:40]}'")
+    check_keys(doc, str(p), required=("joints",), error=RobotError,
+               optional=("name", "gravity", "transmission", "description", "allow_unlimited"))
     if not isinstance(doc.get("allow_unlimited", False), bool):
         raise RobotError(f"{p}: allow_unlimited: expected true or false")
     allow_unlimited = allow_unlimited or doc.get("allow_unlimited", False)
@@ -187,14 +185,8 @@ def _load_mdh(p: Path, allow_unlimited: bool) -> Robot:
     parent = 0
     for i, row in enumerate(rows):
         where = f"joints[{i}]"
-        if not isinstance(row, dict):
-            raise RobotError(f"{p}: {where}: expected a mapping")
-        bad = set(row) - _JOINT_KEYS
-        if bad:
-            raise RobotError(f"{p}: {where}: unknown key '{str(sorted(map(str, bad))[0])[:40]}'")
-        for key in ("alpha", "a", "theta", "d"):
-            if key not in row:
-                raise RobotError(f"{p}: {where}.{key}: missing")
+        check_keys(row, f"{p}: {where}", required=("alpha", "a", "theta", "d"),
+                   optional=_JOINT_OPTIONAL, error=RobotError)
         name = str(row.get("name", f"j{i + 1}"))
         if name in names:
             raise RobotError(f"{p}: {where}.name: duplicate joint name '{name}'")

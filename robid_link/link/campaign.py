@@ -14,11 +14,12 @@ from typing import Any
 from robid_link.config import CampaignDef, DaemonConfig, ExperimentDef
 from robid_link.exceptions import ApprovalError, ConfigError, RobidError, StoreFullError
 from robid_link.link.cycle import CyclePolicy, run_cycle
-from robid_link.link.driver import Driver, MotionProgram
+from robid_link.link.driver import CAP_UPLOAD, Driver, MotionProgram
 from robid_link.link.store import Store
 from robid_link.link.worker import check_log, generate_program, identify_run, run_in_worker
 
-__all__ = ["TRIGGERS", "plan", "create_run", "prepare_programs", "execute_run"]
+__all__ = ["TRIGGERS", "plan", "check_capabilities", "create_run", "prepare_programs",
+           "execute_run"]
 
 log = logging.getLogger("robid.campaign")
 
@@ -34,6 +35,18 @@ def plan(camp: CampaignDef) -> list[tuple[str, ExperimentDef, float | None]]:
             out.append((exp.exp_id + SLOW_SUFFIX, exp, camp.reduced_speed_first))
         out.append((exp.exp_id, exp, None))
     return out
+
+
+def check_capabilities(cfg: DaemonConfig, driver: Driver) -> None:
+    """Refuse, before anything moves, a campaign that needs what the driver cannot do (an
+    upload of the identified parameters needs ``CAP_UPLOAD``)."""
+    caps = frozenset(driver.capabilities)
+    for name, camp in cfg.campaigns.items():
+        if camp.upload and CAP_UPLOAD not in caps:
+            raise ConfigError(f"{cfg.path}: campaigns.{name}.upload: driver {driver.name!r} "
+                              f"cannot upload parameters (capabilities: "
+                              f"{', '.join(sorted(caps)) or 'none'}); set upload: false or "
+                              "use a driver that can")
 
 
 def create_run(cfg: DaemonConfig, store: Store, campaign: str, trigger: str) -> str:

@@ -12,8 +12,8 @@ from pathlib import Path
 from typing import Any
 
 from robid_link.config import load_daemon_config
-from robid_link.exceptions import RobidError
-from robid_link.link.control import DaemonUnreachable, request
+from robid_link.exceptions import DaemonUnreachable, RobidError
+from robid_link.link.control import request
 
 __all__ = ["dispatch", "wait_for_run", "format_runs", "format_results"]
 

@@ -17,9 +17,9 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
-from robid_link.exceptions import ConfigError, RobidError
+from robid_link.exceptions import ConfigError, DaemonUnreachable, RobidError
 
-__all__ = ["ControlServer", "request", "DaemonUnreachable"]
+__all__ = ["ControlServer", "request"]
 
 log = logging.getLogger("robid.control")
 
@@ -29,10 +29,6 @@ MAX_LINE = 1 << 16
 MAX_DEPTH = 16
 MAX_CLIENTS = 64
 IDLE_S = 120.0
-
-
-class DaemonUnreachable(RobidError, ConnectionError):
-    """No daemon answers on the control socket."""
 
 
 def _alive(path: Path) -> bool:

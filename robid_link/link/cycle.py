@@ -13,21 +13,17 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
-from robid_link.exceptions import DataError, DriverError, RobidError
+from robid_link.exceptions import CycleError, DataError, DriverError
 from robid_link.link.driver import Done, Driver, MotionProgram
 from robid_link.link.store import Store
 
-__all__ = ["CycleError", "CyclePolicy", "run_cycle", "new_nonce"]
+__all__ = ["CyclePolicy", "run_cycle", "new_nonce"]
 
 log = logging.getLogger("robid.cycle")
 
 #: test hook: ``ROBID_FAULT_KILL_AFTER=step[:n]`` SIGKILLs the daemon right after the n-th
 #: journal entry of that step (proves resumption at every point of the cycle)
 KillHook = Callable[[str], None]
-
-
-class CycleError(RobidError):
-    """An experiment failed after its retries."""
 
 
 @dataclass(frozen=True)

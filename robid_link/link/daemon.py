@@ -84,6 +84,8 @@ def _kill_hook(spec: str | None) -> Any:
 
 
 class Daemon:
+    """The link daemon; ``async with Daemon(cfg) as d: await d.wait_stopped()``."""
+
     def __init__(self, cfg: DaemonConfig, env: Mapping[str, str] | None = None) -> None:
         self.cfg = cfg
         env = os.environ if env is None else env
@@ -93,6 +95,7 @@ class Daemon:
         if cfg.worker_start_method == "forkserver":
             # children fork with the numerical stack imported (numba kernels come from cache)
             self.ctx.set_forkserver_preload(["robid_link.link.worker", "robid_link.link.program",
+                                             "robid_link.ident.experiments",
                                              "robid_link.ident.identify",
                                              "robid_link.ident.diagnose"])
         self.store: Store | None = None
@@ -102,65 +105,71 @@ class Daemon:
         self._current: str | None = None
         self._stop = asyncio.Event()
         self.ready = asyncio.Event()
+        self._tasks: list[asyncio.Task[None]] = []
+        self._stack: contextlib.AsyncExitStack | None = None
 
     def stop(self) -> None:
+        """Ask ``wait_stopped`` to return (the signal handlers of ``run_daemon`` call it)."""
         self._stop.set()
 
-    async def start(self) -> asyncio.Task[None]:
-        """``serve`` in a task, returned once the daemon is ready (its start-up error, if
-        any, is raised here)."""
-        task = asyncio.create_task(self.serve(), name="robid-daemon")
-        ready = asyncio.create_task(self.ready.wait())
-        await asyncio.wait({task, ready}, return_when=asyncio.FIRST_COMPLETED)
-        if task.done():
-            ready.cancel()
-            await task
-        return task
+    async def wait_stopped(self) -> None:
+        await self._stop.wait()
 
-    async def serve(self) -> None:
+    async def __aenter__(self) -> Daemon:
+        """Open the store, check the robot and the driver, open the driver and the control
+        socket, start ``_runner_loop`` (and ``_watchdog_loop``) in a TaskGroup; READY. A
+        start-up error is raised here with everything opened so far closed again."""
         cfg = self.cfg
-        self.store = Store(cfg.state_dir)
+        stack = contextlib.AsyncExitStack()
         try:
+            self.store = Store(cfg.state_dir)
+            stack.callback(self._closed_store)
             self.robot = await run_in_worker(self.ctx, robot_info, str(cfg.robot), cfg.lock)
             self.driver = make_driver(cfg.driver)
+            cp.check_capabilities(cfg, self.driver)  # before anything can move
             self.driver.bind_robot(self.robot)
-            loop = asyncio.get_running_loop()
-            for sig in (signal.SIGTERM, signal.SIGINT):
-                loop.add_signal_handler(sig, self.stop)
-            try:
-                async with self.driver, ControlServer(cfg.control_socket, self.handle,
-                                                      cfg.socket_mode):
-                    await self._main()
-            finally:
-                for sig in (signal.SIGTERM, signal.SIGINT):
-                    loop.remove_signal_handler(sig)
-        finally:
-            self.store.close()
-            log.info("daemon stopped")
-
-    async def _main(self) -> None:
-        assert self.store is not None
-        for run_id in self.store.unfinished_runs():
-            log.info("run=%s resuming", run_id)
-            self._queue.put_nowait(run_id)
-        async with asyncio.TaskGroup() as tg:
-            tasks = [tg.create_task(self._runner_loop(), name="robid-runner")]
+            await stack.enter_async_context(self.driver)
+            await stack.enter_async_context(ControlServer(cfg.control_socket, self.handle,
+                                                          cfg.socket_mode))
+            tg = await stack.enter_async_context(asyncio.TaskGroup())
+            for run_id in self.store.unfinished_runs():
+                log.info("run=%s resuming", run_id)
+                self._queue.put_nowait(run_id)
+            self._tasks = [tg.create_task(self._runner_loop(), name="robid-runner")]
             if self.notifier.watchdog_s:
-                tasks.append(tg.create_task(self._watchdog_loop(), name="robid-watchdog"))
-            self.notifier.send(READY=1, STATUS=self._status_line())
-            self.ready.set()
-            log.info("daemon ready robot=%s joints=%d driver=%s socket=%s pid=%d",
-                     self.robot.name, self.robot.n, self.cfg.driver["name"],
-                     self.cfg.control_socket, os.getpid())
-            await self._stop.wait()
-            log.info("stopping: the current step is journaled; an unfinished run resumes "
-                     "at the next start")
-            self.notifier.send(STOPPING=1, STATUS="stopping")
-            for task in tasks:
+                self._tasks.append(tg.create_task(self._watchdog_loop(), name="robid-watchdog"))
+        except BaseException:
+            for task in self._tasks:
                 task.cancel()
+            await stack.aclose()
+            raise
+        self._stack = stack
+        self.notifier.send(READY=1, STATUS=self._status_line())
+        self.ready.set()
+        log.info("daemon ready robot=%s joints=%d driver=%s socket=%s pid=%d", self.robot.name,
+                 self.robot.n, cfg.driver["name"], cfg.control_socket, os.getpid())
+        return self
+
+    async def __aexit__(self, *exc: Any) -> None:
+        """Cancel the loops (the current step is journaled: an unfinished run resumes at the
+        next start), then close the control socket, the driver and the store. The body's own
+        exception goes on unchanged (not wrapped into the TaskGroup's ExceptionGroup)."""
+        log.info("stopping: the current step is journaled; an unfinished run resumes at the "
+                 "next start")
+        self.notifier.send(STOPPING=1, STATUS="stopping")
+        for task in self._tasks:
+            task.cancel()
+        stack, self._stack = self._stack, None
+        assert stack is not None
+        await stack.aclose()
+
+    def _closed_store(self) -> None:
+        assert self.store is not None
+        self.store.close()
+        log.info("daemon stopped")
 
     async def _runner_loop(self) -> None:
-        assert self.store is not None
+        assert self.store is not None and self.robot is not None
         while True:
             run_id = await self._queue.get()
             self._current = run_id
@@ -237,8 +246,15 @@ class Daemon:
 
 
 async def run_daemon(cfg: DaemonConfig) -> int:
+    """``robid daemon``: serve until SIGTERM or SIGINT."""
     setup_logging(cfg.log_level)
-    daemon = Daemon(cfg)
-    with contextlib.suppress(asyncio.CancelledError):
-        await daemon.serve()
+    loop = asyncio.get_running_loop()
+    async with Daemon(cfg) as daemon:
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, daemon.stop)
+        try:
+            await daemon.wait_stopped()
+        finally:
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.remove_signal_handler(sig)
     return 0

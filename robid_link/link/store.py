@@ -18,10 +18,10 @@ from pathlib import Path
 from typing import Any
 
 from robid_link.atomic import atomic_write, fsync_dir
-from robid_link.exceptions import ConfigError, RobidError, StoreFullError
+from robid_link.exceptions import ConfigError, RobidError, StoreFullError, StoreLockedError
 from robid_link.link.driver import MotionProgram
 
-__all__ = ["Store", "StoreLockedError", "RUN_STATES"]
+__all__ = ["Store", "RUN_STATES"]
 
 RUN_STATES = ("queued", "running", "completed", "failed")
 
@@ -57,10 +57,6 @@ CREATE TABLE IF NOT EXISTS param_uploads (
     seq INTEGER PRIMARY KEY AUTOINCREMENT, robot TEXT NOT NULL, sha256 TEXT NOT NULL,
     time REAL NOT NULL, run_id TEXT, state TEXT NOT NULL, error TEXT);
 """
-
-
-class StoreLockedError(RobidError):
-    """Another daemon holds the state directory."""
 
 
 #: free bytes the store keeps in reserve: below it no new motion starts

@@ -8,6 +8,7 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+from robid_link.exceptions import RobidError, WorkerError
 from robid_link.link.driver import MotionProgram
 
 __all__ = ["generate_program", "check_log", "identify_run"]
@@ -23,10 +24,11 @@ def generate_program(robot_path: str, lock: tuple[str, ...], exp_id: str, kind: 
                      options: dict[str, Any], base_dir: str,
                      reduced_speed: float | None = None) -> MotionProgram:
     """Generate, check (limits) and render one experiment's program."""
+    from robid_link.ident.experiments import experiment_trajectory
     from robid_link.link import program as pg
 
     robot = _robot(robot_path, lock)
-    traj = pg.experiment_trajectory(robot, kind, options, Path(base_dir))
+    traj = experiment_trajectory(robot, kind, options, Path(base_dir))
     meta: dict[str, Any] = {"kind": kind, "trajectory_kind": traj.kind}
     if reduced_speed is not None:
         traj = pg.reduced_speed(traj, reduced_speed)
@@ -79,18 +81,39 @@ def identify_run(job: dict[str, Any]) -> dict[str, Any]:
 # ----------------------------------------------------------------------------- process runner
 
 
-def _child(conn: Any, func: Any, args: tuple[Any, ...]) -> None:
-    from robid_link.exceptions import RobidError
+def _error_name(err: BaseException) -> str:
+    cls = type(err)
+    return f"{cls.__module__}:{cls.__qualname__}"
 
+
+def _error_class(name: str) -> type[RobidError]:
+    """The RobidError subclass a worker named (``module:Class``); RobidError itself for a
+    name that is not one (the pipe carries names, never code)."""
+    import importlib
+    import sys
+
+    module_name, _, qualname = name.partition(":")
+    if module_name not in sys.modules and not module_name.startswith("robid_link."):
+        return RobidError
+    try:
+        obj: Any = importlib.import_module(module_name)
+        for part in qualname.split("."):
+            obj = getattr(obj, part)
+    except (ImportError, AttributeError):
+        return RobidError
+    return obj if isinstance(obj, type) and issubclass(obj, RobidError) else RobidError
+
+
+def _child(conn: Any, func: Any, args: tuple[Any, ...]) -> None:
     try:
         result: tuple[str, Any, str] = ("ok", func(*args), "")
     except RobidError as err:
-        result = ("error", type(err).__name__, str(err))
+        result = ("error", _error_name(err), str(err))
     except Exception as err:  # a bug: report it with where it happened; the daemon lives on
         import traceback
 
         where = traceback.extract_tb(err.__traceback__)[-1]
-        result = ("error", "RobidError", f"worker {func.__name__} crashed: "
+        result = ("error", _error_name(WorkerError()), f"worker {func.__name__} crashed: "
                   f"{type(err).__name__}: {err} ({Path(where.filename).name}:{where.lineno})")
     conn.send(result)
     conn.close()
@@ -98,11 +121,9 @@ def _child(conn: Any, func: Any, args: tuple[Any, ...]) -> None:
 
 async def run_in_worker(ctx: Any, func: Any, *args: Any) -> Any:
     """Run ``func(*args)`` in a fresh process of the multiprocessing context ``ctx``; a
-    cancelled caller terminates the process. Errors come back as RobidError."""
+    cancelled caller terminates the process. A RobidError comes back as its own class
+    (``UnsafeProgramError`` stays one); a crash or a dead process as WorkerError."""
     import asyncio
-
-    from robid_link import exceptions
-    from robid_link.exceptions import RobidError
 
     recv, send = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(send, func, args), name=f"robid-{func.__name__}",
@@ -114,15 +135,18 @@ async def run_in_worker(ctx: Any, func: Any, *args: Any) -> Any:
             status, value, message = await asyncio.to_thread(recv.recv)
         except EOFError:
             await asyncio.to_thread(proc.join, 5.0)
-            raise RobidError(f"worker process {func.__name__} died (exit code "
-                             f"{proc.exitcode})") from None
+            raise WorkerError(f"worker process {func.__name__} died (exit code "
+                              f"{proc.exitcode})") from None
     finally:
         if proc.is_alive():
             proc.terminate()
         await asyncio.to_thread(proc.join, 5.0)
         recv.close()
     if status != "ok":
-        cls = getattr(exceptions, value, RobidError)
-        raise (cls if isinstance(cls, type) and issubclass(cls, RobidError) else RobidError)(
-            message)
+        cls = _error_class(value)
+        try:
+            error = cls(message)
+        except TypeError:  # a subclass with another constructor: keep the message
+            error = RobidError(message)
+        raise error
     return value

@@ -1,3 +1,2 @@
-"""Driver tests share the link tests' leak check (threads of observers, notifiers, peers)."""
-
-from tests.link.conftest import no_leaked_threads  # noqa: F401
+"""Driver tests: the leak check (threads, asyncio tasks) is the autouse fixture of
+``tests/conftest.py``."""

@@ -226,3 +226,18 @@ def test_a_parameter_set_the_controller_refuses_is_an_error(tmp_path: Path) -> N
     with peer, pytest.raises(DriverError, match="does not match its sha256"):
         asyncio.run(go())
     assert peer.core.feedforward is None
+
+
+def test_upload_needs_the_capability(tmp_path: Path) -> None:
+    class NoUpload(FileShareDriver):
+        capabilities = frozenset()
+
+    async def go() -> None:
+        share = tmp_path / "share"
+        share.mkdir()
+        async with NoUpload(share=share, canary_interval_s=0) as driver:
+            with pytest.raises(DriverError, match="cannot upload parameters"):
+                await driver.upload_parameters({"robot": "arm3"})
+        assert not (share / "params").exists()
+
+    asyncio.run(go())

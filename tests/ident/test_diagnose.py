@@ -4,32 +4,19 @@ from __future__ import annotations
 
 import os
 import warnings
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from robid_link.exceptions import ConditioningWarning, DataWarning, ExcitationWarning
+from robid_link.exceptions import ConditioningWarning, DataWarning
 from robid_link.ident.diagnose import diagnose
 from robid_link.ident.effects import DEFAULT_MODEL, EffectSpec, Model
 from robid_link.ident.identify import identify, load_logs
 from robid_link.ident.robot import load_robot
 
 from ..conftest import ROBOTS, simulate
-
-
-@contextmanager
-def _expected_warnings() -> Iterator[None]:
-    """Short simulated logs are weakly excited and their validation block may leave the
-    training range: those warnings are expected here; any other one still fails the test."""
-    with warnings.catch_warnings():
-        for category in (ConditioningWarning, ExcitationWarning, DataWarning):
-            warnings.filterwarnings("ignore", category=category)
-        yield
-
 
 VISCOUS = {"name": "viscous", "fv": 2.0}
 COULOMB = {"name": "coulomb", "fc": 1.5}
@@ -88,12 +75,22 @@ def _spec(s) -> EffectSpec:
     return EffectSpec(s.effect, s.joint, tuple(sorted(opts.items())))
 
 
+def _expected_warnings() -> None:
+    """What simulated logs are known to raise here: weakly excited columns (a spring, a
+    ripple) and a joint whose torque differs much from the a-priori model's (arm3's light
+    wrist, perturbed inertials). Anything else still fails the test."""
+    warnings.simplefilter("ignore", ConditioningWarning)
+    warnings.filterwarnings("ignore", r".*(the a-priori model's torque|has the opposite sign of "
+                            r"the a-priori model)", DataWarning)
+
+
 def _run_case(robot, case: Case, tmp: Path, seed: int, duration: float = 40.0):
     model = Model.parse(list(case.model))
     kw = {"noise": 0.3, "seed": seed, "duration": duration, "rate": 250.0}
     hidden = simulate(robot, tmp / "hidden.csv", effects=(*case.base, case.hidden), **kw)
     clean = simulate(robot, tmp / "clean.csv", effects=case.base, **kw)
-    with _expected_warnings():
+    with warnings.catch_warnings():
+        _expected_warnings()
         logs = load_logs(robot, [hidden.path])
         dg = diagnose(robot, logs, model)
         assert dg.verdict == "missing_effect", dg.summary()
@@ -139,7 +136,8 @@ def test_matrix_every_effect(tmp_path, name, robot_name, seed):
 def test_clean_log_is_adequate(robot_name, tmp_path):
     robot = load_robot(ROBOTS / f"{robot_name}.yaml")
     sim = simulate(robot, tmp_path / "c.csv", noise=0.3, seed=7, duration=40.0, rate=250.0)
-    with _expected_warnings():
+    with warnings.catch_warnings():
+        _expected_warnings()
         dg = diagnose(robot, load_logs(robot, [sim.path]), DEFAULT_MODEL)
     assert dg.verdict == "adequate", dg.summary()
     assert dg.to_dict()["suggestions"] == []
@@ -155,7 +153,8 @@ def test_false_alarm_rate_over_clean_seeds(arm3, tmp_path):
     for seed in range(20):
         sim = simulate(arm3, tmp_path / f"c{seed}.csv", noise=0.3, seed=100 + seed,
                        duration=40.0, rate=250.0)
-        with _expected_warnings():
+        with warnings.catch_warnings():
+            _expected_warnings()
             dg = diagnose(arm3, load_logs(arm3, [sim.path]), DEFAULT_MODEL)
         alarms.append(dg.verdict != "adequate")
     print(f"false alarms: {sum(alarms)} of 20 clean seeds")
@@ -169,7 +168,8 @@ def test_two_hidden_effects_one_after_the_other(arm3, tmp_path):
                    effects=(VISCOUS, COULOMB, *hidden))
     model = DEFAULT_MODEL
     found = []
-    with _expected_warnings():
+    with warnings.catch_warnings():
+        _expected_warnings()
         logs = load_logs(arm3, [sim.path])
         for _ in range(3):
             dg = diagnose(arm3, logs, model)
@@ -223,7 +223,8 @@ def test_closed_form_effects_on_an_unseen_robot(tmp_path, extra, joint, accept):
     tau[:, joint - 1] += extra(t, q, qd)
     path = tmp_path / "log.csv"
     write_log_csv(path, t, log["q"], tau)
-    with _expected_warnings():
+    with warnings.catch_warnings():
+        _expected_warnings()
         dg = diagnose(robot, load_logs(robot, [path]), DEFAULT_MODEL)
     top = dg.suggestions[0]
     assert top.effect in accept and top.joint == joint, dg.summary()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -61,10 +63,12 @@ def test_urdf_lock_removes_joints(kuka_dir):
 @pytest.mark.parametrize(
     ("text", "message"),
     [
-        ("joints: [{alpha: 0, a: 0, theta: 0}]", "joints[0].d: missing"),
+        ("joints: [{alpha: 0, a: 0, theta: 0}]", "joints[0]: missing key 'd'"),
         ("joints: [{alpha: x, a: 0, theta: 0, d: 0}]", "joints[0].alpha: expected a finite number"),
         ("joints: [{alpha: 0, a: 0, theta: 0, d: 0, type: ball}]", "joints[0].type: expected"),
-        ("joints: [{alpha: 0, a: 0, theta: 0, d: 0, colour: red}]", "unknown key 'colour'"),
+        ("joints: [{alpha: 0, a: 0, theta: 0, d: 0, colour: red}]",
+         "joints[0]: unknown key 'colour' (known: a, alpha, d,"),
+        ("joints: [[0, 0, 0, 0]]", "joints[0]: expected a mapping, got list"),
         ("joints: []", "joints: expected a non-empty list"),
         ("joints: [{alpha: 0, a: 0, theta: 0, d: 0, limits: {q: [10, -10]}}]",
          "joints[0].limits.q: lower limit"),
@@ -79,7 +83,7 @@ def test_urdf_lock_removes_joints(kuka_dir):
 def test_bad_mdh_files_name_the_key(tmp_path, text, message):
     p = tmp_path / "bad.yaml"
     p.write_text(text)
-    with pytest.raises(RobotError, match=message.replace("[", r"\[").replace("]", r"\]")) as e:
+    with pytest.raises(RobotError, match=re.escape(message)) as e:
         load_robot(p)
     assert str(p) in str(e.value) and "\n" not in str(e.value)
 

@@ -113,7 +113,8 @@ def process(*args: str, env: dict[str, str] | None = None, log: Path | None = No
 
 def wait_socket(path: Path, proc: subprocess.Popen[bytes] | None = None,
                 timeout_s: float = 60.0) -> None:
-    from robid_link.link.control import DaemonUnreachable, request
+    from robid_link.exceptions import DaemonUnreachable
+    from robid_link.link.control import request
 
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
@@ -133,18 +134,3 @@ async def wait_run(daemon: Any, run_id: str, timeout_s: float = 120.0) -> dict[s
             if run["state"] in ("completed", "failed"):
                 return run
             await asyncio.sleep(0.05)
-
-
-@pytest.fixture(autouse=True)
-def no_leaked_threads() -> Iterator[None]:
-    """A test that leaves a thread (observer, fake controller, worker bridge) running fails."""
-    before = set(threading.enumerate())
-    yield
-    end = time.monotonic() + 5.0
-    while time.monotonic() < end:
-        left = [t for t in set(threading.enumerate()) - before
-                if t.is_alive() and not t.name.startswith(("asyncio_", "ThreadPoolExecutor"))]
-        if not left:
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"test leaked threads: {[t.name for t in left]}")

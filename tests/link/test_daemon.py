@@ -5,6 +5,7 @@ runs, unsafe programs refused before they reach the share, the control socket.""
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import re
 import stat
@@ -18,6 +19,7 @@ from robid_link.config import load_daemon_config
 from robid_link.exceptions import ConfigError
 from robid_link.link.control import request
 from robid_link.link.daemon import Daemon
+from robid_link.link.driver import Done, Driver, MotionProgram
 
 from .conftest import QUICK, wait_run, write_config
 
@@ -28,14 +30,8 @@ ONE = {"experiments": [QUICK["experiments"][0]], "identify": False, "timeout_s":
 def with_daemon(cfg_path: Path, body: Callable[[Daemon], Awaitable[Any]],
                 env: dict[str, str] | None = None) -> Any:
     async def go() -> Any:
-        daemon = Daemon(load_daemon_config(cfg_path), env=env or {})
-        async with asyncio.timeout(60):
-            task = await daemon.start()  # raises the start-up error
-        try:
-            return await body(daemon)
-        finally:
-            daemon.stop()
-            await asyncio.wait_for(task, 30)
+        async with asyncio.timeout(120), Daemon(load_daemon_config(cfg_path), env=env or {}) as d:
+            return await body(d)
 
     return asyncio.run(go())
 
@@ -46,7 +42,7 @@ async def start(daemon: Daemon, campaign: str = "one", trigger: str = "operator"
 
 
 def test_campaign_runs_to_completion(tmp_path: Path, controller: Any) -> None:
-    cfg = write_config(tmp_path, {"quick": {**QUICK, "diagnose": True}})
+    cfg = write_config(tmp_path, {"quick": {**QUICK, "diagnose": True, "upload": True}})
 
     async def body(d: Daemon) -> tuple[dict, list]:
         run = await start(d, "quick")
@@ -64,6 +60,12 @@ def test_campaign_runs_to_completion(tmp_path: Path, controller: Any) -> None:
     assert {d["sha256"] for d in rec["data"]} == {e["log_sha"] for e in run["experiments"]}
     report = tmp_path / "state" / "reports" / run["run_id"]
     assert (report / "summary.txt").is_file() and (report / "identify.json").is_file()
+    uploaded = list((tmp_path / "share" / "params").glob("arm3.*.json"))  # upload: true
+    assert len(uploaded) == 1
+    params = json.loads(uploaded[0].read_text())
+    assert params["run_id"] == run["run_id"] and params["robot"] == "arm3"
+    identified = json.loads((report / "identify.json").read_text())["parameters"]
+    assert params["parameters"] == identified and len(identified) > 0
 
 
 @pytest.mark.parametrize("fault, journal_error", [
@@ -298,3 +300,94 @@ def test_resume_after_a_failed_attempt_takes_back_its_ready(tmp_path: Path,
     run, gone = with_daemon(cfg, body)
     assert gone
     assert run["state"] == "completed" and run["experiments"][0]["attempt"] == 2
+
+
+class _NoUploadDriver(Driver):
+    """A plug-in driver that cannot upload parameters: its hooks must never be reached."""
+
+    name = "no_upload"
+    capabilities = frozenset()
+    opened = 0
+
+    async def _open(self) -> None:
+        type(self).opened += 1
+
+    async def _close(self) -> None:
+        return None
+
+    async def _put_program(self, program: MotionProgram) -> None:
+        raise AssertionError("a program reached a driver that was refused")
+
+    async def _give_ready(self, exp_id: str, nonce: str) -> None:
+        raise AssertionError("'ready' given by a driver that was refused")
+
+    async def _wait_done(self, exp_id: str, nonce: str) -> Done:
+        raise AssertionError("unreachable")
+
+    async def _fetch_logs(self, done: Done) -> bytes:
+        raise AssertionError("unreachable")
+
+
+def test_upload_with_a_driver_that_cannot_is_refused_at_start(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A campaign with ``upload: true`` over a driver without CAP_UPLOAD: one line naming the
+    campaign key, before the driver is opened (nothing can move), and the store is released."""
+    from robid_link.link import daemon as daemon_module
+    from robid_link.link.store import Store
+
+    cfg = write_config(tmp_path, {"one": ONE, "up": {**ONE, "identify": True, "upload": True}})
+    monkeypatch.setattr(daemon_module, "make_driver", lambda options: _NoUploadDriver())
+
+    async def body(d: Daemon) -> None:
+        raise AssertionError("the daemon started")
+
+    with pytest.raises(ConfigError) as err:
+        with_daemon(cfg, body)
+    msg = str(err.value)
+    assert "campaigns.up.upload: driver 'no_upload' cannot upload parameters" in msg, msg
+    assert "\n" not in msg and str(cfg) in msg
+    assert _NoUploadDriver.opened == 0
+    assert not (tmp_path / "ctl.sock").exists()
+    with Store(tmp_path / "state"):  # the lock was released
+        pass
+
+
+def test_upload_needs_identify(tmp_path: Path) -> None:
+    cfg = write_config(tmp_path, {"up": {**ONE, "upload": True}})  # ONE: identify false
+    with pytest.raises(ConfigError, match=r"campaigns\.up\.upload: needs identify: true"):
+        load_daemon_config(cfg)
+
+
+def test_daemon_context_leaves_nothing_running(tmp_path: Path) -> None:
+    """``async with Daemon(...)``: its loops run while inside, and leaving cancels and awaits
+    them, removes the socket and releases the store."""
+    from robid_link.link.store import Store
+
+    cfg = write_config(tmp_path, {"one": ONE})
+
+    async def go() -> tuple[list[str], list[asyncio.Task]]:
+        async with Daemon(load_daemon_config(cfg), env={}) as d:
+            names = sorted(t.get_name() for t in asyncio.all_tasks() if not t.done())
+            tasks = list(d._tasks)
+        return names, tasks
+
+    names, tasks = asyncio.run(go())
+    assert "robid-runner" in names
+    assert all(t.done() for t in tasks)
+    assert not (tmp_path / "ctl.sock").exists()
+    with Store(tmp_path / "state"):
+        pass
+
+
+def test_an_error_in_the_body_leaves_the_daemon_as_itself(tmp_path: Path) -> None:
+    """``async with Daemon(...)``: the body's exception comes out as it was raised (not in an
+    ExceptionGroup) and the daemon is closed behind it."""
+    cfg = write_config(tmp_path, {"one": ONE})
+
+    async def go() -> None:
+        async with Daemon(load_daemon_config(cfg), env={}):
+            raise ConfigError("campaign 'x': not in the config")
+
+    with pytest.raises(ConfigError, match="campaign 'x'"):
+        asyncio.run(go())
+    assert not (tmp_path / "ctl.sock").exists()

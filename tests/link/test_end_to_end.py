@@ -56,7 +56,7 @@ def test_bad_config_is_one_line(tmp_path: Path) -> None:
     out = robid("daemon", "--config", str(cfg))
     assert out.returncode == 2
     assert out.stderr.strip().count("\n") == 0
-    assert "control_sock: unknown key" in out.stderr
+    assert "unknown key 'control_sock'" in out.stderr
     out = robid("status", "--config", str(tmp_path / "nope.yaml"))
     assert out.returncode == 2 and "daemon config not found" in out.stderr
 

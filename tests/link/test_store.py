@@ -10,9 +10,9 @@ import pytest
 import yaml
 
 from robid_link.config import load_daemon_config
-from robid_link.exceptions import ConfigError, RobidError
+from robid_link.exceptions import ConfigError, RobidError, StoreLockedError
 from robid_link.link.driver import MotionProgram
-from robid_link.link.store import Store, StoreLockedError
+from robid_link.link.store import Store
 
 from .conftest import QUICK, write_config
 
@@ -77,9 +77,14 @@ def test_readonly_store_needs_one(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("change, message", [
-    ({"robot": None}, "robot: missing"),
-    ({"colour": 1}, "colour: unknown key"),
-    ({"driver": {"share": "x"}}, "driver.name: missing"),
+    ({"robot": None}, "missing key 'robot'"),
+    ({"colour": 1}, r"unknown key 'colour' \(known: campaigns, control_socket, driver, "),
+    ({"driver": {"share": "x"}}, "driver: missing key 'name'"),
+    ({"driver": ["file_share"]}, "driver: expected a mapping, got list"),
+    ({"campaigns": {"q": {**QUICK, "colour": 1}}},
+     r"campaigns\.q: unknown key 'colour' \(known: add, backoff_s, "),
+    ({"campaigns": {"q": {"retries": 1}}}, r"campaigns\.q: missing key 'experiments'"),
+    ({"campaigns": {"q": ["rigid_body"]}}, r"campaigns\.q: expected a mapping, got list"),
     ({"socket_mode": "rw"}, "socket_mode: expected octal"),
     ({"campaigns": {}}, "campaigns: expected a mapping"),
     ({"campaigns": {"a b": QUICK}}, "campaigns.a b: names are"),
