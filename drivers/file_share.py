@@ -14,6 +14,7 @@ import json
 import logging
 import os
 import re
+import secrets
 import time
 from pathlib import Path
 from typing import Any
@@ -167,6 +168,7 @@ class FileShareDriver(Driver):
         self._canary_seen: asyncio.Event | None = None
         self._canary_name = ""
         self._tasks: list[asyncio.Task[None]] = []
+        self._param_attempts: dict[str, tuple[str, str]] = {}
 
     # -- lifecycle
     async def _open(self) -> None:
@@ -329,28 +331,33 @@ class FileShareDriver(Driver):
         await asyncio.to_thread((self.sem / sem_name(exp_id, nonce, "ready")).unlink, True)
 
     async def _upload_parameters(self, doc: Any, body: bytes) -> None:
-        """``params/<robot>.<sha16>.json``, then ``sem/params-<robot>.<sha16>.ready``; the
+        """``params/params-<robot>.<nonce>.json``, then its ``ready`` semaphore; the
         controller loads the set and answers ``.done`` with the file's SHA-256 (or
-        ``.failed`` with the reason)."""
-        exp_id, nonce = self._param_names(doc, body)
+        ``.failed`` with the reason). The nonce is the set's hash plus a fresh token, so the
+        same set uploaded again (a rollback) is a new attempt."""
+        sha = hashlib.sha256(body).hexdigest()
+        exp_id, nonce = self._param_names(doc), f"{sha[:12]}{secrets.token_hex(2)}"
+        self._param_attempts[sha] = (exp_id, nonce)
         folder = self.share / "params"
         await asyncio.to_thread(folder.mkdir, exist_ok=True)
         await asyncio.to_thread(atomic_write, folder / f"{exp_id}.{nonce}.json", body)
         await self._give_ready(exp_id, nonce)
         done = await self._wait_done(exp_id, nonce)
-        if done.sha256 != hashlib.sha256(body).hexdigest():
-            raise DriverError(f"controller acknowledged parameter set {nonce[:12]} with "
+        if done.sha256 != sha:
+            raise DriverError(f"controller acknowledged parameter set {sha[:12]} with "
                               "another checksum: it loaded something else")
         await self._acknowledge(done)
 
     async def _withdraw_parameters(self, doc: Any, body: bytes) -> None:
-        exp_id, nonce = self._param_names(doc, body)
+        attempt = self._param_attempts.pop(hashlib.sha256(body).hexdigest(), None)
+        if attempt is None:
+            return
+        exp_id, nonce = attempt
         await self._withdraw(exp_id, nonce)
         await asyncio.to_thread((self.share / "params" / f"{exp_id}.{nonce}.json").unlink,
                                 True)
 
     @staticmethod
-    def _param_names(doc: Any, body: bytes) -> tuple[str, str]:
+    def _param_names(doc: Any) -> str:
         robot = str(doc.get("robot", "robot")) if isinstance(doc, dict) else "robot"
-        safe = re.sub(r"[^A-Za-z0-9_\-]", "_", robot)[:40]
-        return f"params-{safe}", hashlib.sha256(body).hexdigest()[:16]
+        return "params-" + re.sub(r"[^A-Za-z0-9_\-]", "_", robot)[:40]

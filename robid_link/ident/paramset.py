@@ -79,8 +79,8 @@ def _projected(robot: Robot, effects: list[str], base: list[dict[str, Any]]
     """θ = θ₀ + K⁺(β − K·θ₀) over the rigid-body columns; None without a-priori inertials."""
     if robot.nominal is None:
         return None
-    from robid_link.ident.effects import Model
     from robid_link.ident.design import base_set_for
+    from robid_link.ident.effects import Model
 
     model = Model.parse([e for e in effects if e == "rigid_body"] or ["rigid_body"])
     bs, _ = base_set_for(robot, model.blocks(robot))

@@ -14,7 +14,7 @@ from typing import Any
 from robid_link.config import CampaignDef, DaemonConfig, ExperimentDef
 from robid_link.exceptions import ApprovalError, ConfigError, RobidError, StoreFullError
 from robid_link.link.cycle import CyclePolicy, run_cycle
-from robid_link.link.driver import CAP_UPLOAD, Driver, MotionProgram
+from robid_link.link.driver import CAP_UPLOAD, Driver, MotionProgram, parameter_bytes
 from robid_link.link.store import Store
 from robid_link.link.worker import check_log, generate_program, identify_run, run_in_worker
 
@@ -172,6 +172,37 @@ async def _identify(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, r
         store.add_result(run_id, out["robot"], kind, rec)
     log.info("run=%s identified: rmse %s", run_id,
              " ".join(f"{x:.3g}" for x in out["records"]["identify"]["rmse"] or []))
+    pset = out["parameter_set"]
+    body = parameter_bytes(pset)
+    version = store.add_param_set(pset, body)
+    log.info("run=%s parameter set %d of %s: %s", run_id, version, out["robot"],
+             pset["sha256"][:12])
     if camp.upload:
-        await driver.upload_parameters({"robot": out["robot"], "run_id": run_id,
-                                        "parameters": out["parameters"]})
+        trigger = store.run(run_id)["trigger"]
+        await upload_set(store, driver, out["robot"], pset["sha256"], run_id,
+                         unattended=trigger == "timer")
+
+
+async def upload_set(store: Store, driver: Driver, robot: str, sha: str, run_id: str | None,
+                     *, unattended: bool, timeout_s: float = 120.0) -> None:
+    """Send a stored parameter set to the controller. Unattended runs send only a set an
+    operator approved; every attempt is recorded; the controller's acknowledgement (or its
+    absence: the set is withdrawn, the controller keeps its old one) is the outcome."""
+    row = next((s for s in store.param_sets(robot) if s["sha256"] == sha), None)
+    if row is None:
+        raise ConfigError(f"robot {robot}: no parameter set {sha[:12]}")
+    if unattended and not row["approved"]:
+        raise ApprovalError(f"unattended upload refused: parameter set {row['version']} of "
+                            f"{robot} ({sha[:12]}) is not approved; run: robid params approve "
+                            f"{row['version']} --robot {robot} --config C")
+    import json
+
+    store.record_upload(robot, sha, run_id, "sent")
+    try:
+        await driver.upload_parameters(json.loads(row["body"]), timeout_s=timeout_s)
+    except RobidError as err:
+        store.record_upload(robot, sha, run_id, "failed", str(err))
+        raise
+    store.record_upload(robot, sha, run_id, "acknowledged")
+    log.info("robot=%s parameter set %d (%s) loaded by the controller", robot, row["version"],
+             sha[:12])

@@ -233,7 +233,34 @@ class Daemon:
             return {"ok": True, "approved": [{"experiment": e, "sha256": p.sha256,
                                               "duration_s": p.duration_s}
                                              for e, p in programs]}
+        if cmd in ("params_approve", "params_rollback"):
+            return await self._params(cmd, str(req.get("robot")), req.get("set"),
+                                      str(req.get("by", "operator")))
         raise ConfigError(f"unknown command {cmd!r}")
+
+    async def _params(self, cmd: str, robot: str, ref: Any, by: str) -> dict[str, Any]:
+        """Approve a parameter set for unattended uploads, or give the controller back the
+        set it had before the one in use (byte for byte)."""
+        assert self.store is not None
+        sets = self.store.param_sets(robot)
+        if not sets:
+            raise ConfigError(f"robot {robot}: no parameter set stored yet")
+        if cmd == "params_approve":
+            row = self.store.param_set(robot, str(ref)) if ref else sets[-1]
+            self.store.approve_param_set(row["sha256"], by)
+            return {"ok": True, "message": f"approved parameter set {row['version']} of "
+                    f"{robot} ({row['sha256'][:16]}…) for unattended uploads"}
+        if self._current is not None:
+            raise ConfigError(f"rollback refused: run {self._current} is in progress; roll "
+                              "back when it has ended")
+        active = self.store.active_param_sets(robot)
+        if len(active) < 2:
+            raise ConfigError(f"robot {robot}: the controller has had no earlier set to roll "
+                              "back to")
+        await cp.upload_set(self.store, self.driver, robot, active[-2], None, unattended=False)
+        row = next(s for s in sets if s["sha256"] == active[-2])
+        return {"ok": True, "message": f"rolled {robot} back to parameter set {row['version']} "
+                f"({active[-2][:16]}…), acknowledged by the controller"}
 
     def _campaigns(self) -> list[dict[str, Any]]:
         out = []

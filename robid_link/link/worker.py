@@ -74,8 +74,12 @@ def identify_run(job: dict[str, Any]) -> dict[str, Any]:
         rec["run_id"] = job["run_id"]
         rec["warnings"] = notes
     (out / "summary.txt").write_text("\n\n".join(summaries) + "\n")
+    from robid_link.ident.paramset import make_parameter_set
+
+    pset = make_parameter_set(robot, doc, run_id=job["run_id"])
     return {"records": records, "summary": "\n\n".join(summaries),
-            "parameters": doc.get("parameters", []), "robot": robot.name}
+            "parameters": doc.get("parameters", []), "robot": robot.name,
+            "parameter_set": pset}
 
 
 # ----------------------------------------------------------------------------- process runner

@@ -60,12 +60,14 @@ def test_campaign_runs_to_completion(tmp_path: Path, controller: Any) -> None:
     assert {d["sha256"] for d in rec["data"]} == {e["log_sha"] for e in run["experiments"]}
     report = tmp_path / "state" / "reports" / run["run_id"]
     assert (report / "summary.txt").is_file() and (report / "identify.json").is_file()
-    uploaded = list((tmp_path / "share" / "params").glob("arm3.*.json"))  # upload: true
+    uploaded = list((tmp_path / "share" / "params").glob("params-arm3.*.json"))  # upload
     assert len(uploaded) == 1
     params = json.loads(uploaded[0].read_text())
     assert params["run_id"] == run["run_id"] and params["robot"] == "arm3"
     identified = json.loads((report / "identify.json").read_text())["parameters"]
-    assert params["parameters"] == identified and len(identified) > 0
+    assert [(p["name"], p["value"]) for p in params["base_parameters"]] == [
+        (p["name"], p["value"]) for p in identified] and len(identified) > 0
+    assert ctrl.core.feedforward.sha256 == params["sha256"]  # the controller loaded it
 
 
 @pytest.mark.parametrize("fault, journal_error", [
