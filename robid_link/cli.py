@@ -85,12 +85,38 @@ def _parser() -> argparse.ArgumentParser:
                    help="length in seconds, whole periods (default 20)")
     p.add_argument("--harmonics", type=int, default=8, metavar="K")
     p.add_argument("--base-hz", type=float, default=0.1, help="Fourier base frequency")
-    p.add_argument("--rate", type=float, default=250.0, metavar="HZ",
-                   help="controller rate of the trajectory file (default 250)")
+    p.add_argument("--rate", type=float, metavar="HZ",
+                   help="controller rate of the trajectory file (default 250; 2000 for "
+                        "--kind elasticity)")
     p.add_argument("--model", help="model file whose base set is excited (default model)")
     p.add_argument("--evaluations", type=int, default=2500,
                    help="optimizer budget per restart (3 restarts)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--kind", choices=("fourier", "elasticity"), default="fourier",
+                   help="elasticity: stepped sines per --joint around --pose (schedule in the "
+                        "header)")
+    p.add_argument("--joint", type=int, action="append", default=[], metavar="J",
+                   help="elasticity: axis to excite (1-based); repeatable; default all")
+    p.add_argument("--pose", type=float, nargs="+", metavar="DEG", help="elasticity: the pose")
+    p.add_argument("--f-min", type=float, default=2.0, metavar="HZ")
+    p.add_argument("--f-max", type=float, default=60.0, metavar="HZ")
+    p.add_argument("--steps", type=int, default=24, help="elasticity: frequencies per axis")
+
+    p = sub.add_parser("elasticity", help="joint elasticity (two-mass / coupled) from "
+                       "stepped-sine logs")
+    p.add_argument("--robot", required=True)
+    p.add_argument("--lock", action="append", default=[], metavar="NAME")
+    p.add_argument("--data", action="append", required=True, metavar="LOG")
+    p.add_argument("--fs", type=float, help="sampling rate in Hz (needed for .mat logs)")
+    p.add_argument("--joint", type=int, action="append", default=[], metavar="J")
+    p.add_argument("--joints", metavar="J1,J2", help="a pair of axes for the coupled fit")
+    p.add_argument("--schedule", metavar="TRAJ_YAML",
+                   help="the trajectory header with the step schedule; default: detect the "
+                        "steps in the log")
+    p.add_argument("--motor-side", action="store_true",
+                   help="logs on the motor side: results in motor units (no conversion)")
+    p.add_argument("--json", metavar="FILE")
+    p.add_argument("--out", metavar="DIR", help="Bode figures")
 
     p = sub.add_parser("simulate", help="run a trajectory on the simulated robot, write a log")
     p.add_argument("--robot", required=True)
@@ -192,6 +218,8 @@ def _dispatch(args: argparse.Namespace) -> int:
         return _excite(args)
     if args.cmd == "simulate":
         return _simulate(args)
+    if args.cmd == "elasticity":
+        return _elasticity(args)
     from robid_link.link.commands import dispatch
 
     return dispatch(args)
@@ -336,6 +364,9 @@ def _excite(args: argparse.Namespace) -> int:
     from robid_link.ident.robot import load_robot
 
     robot = load_robot(args.robot, args.lock)
+    if args.kind == "elasticity":
+        return _excite_elasticity(args, robot)
+    args.rate = args.rate or 250.0
     model = load_model(args.model)
     if args.harmonics < 1 or args.base_hz <= 0 or args.rate <= 0 or args.duration <= 0:
         raise RobidError("--harmonics, --base-hz, --rate and --duration must be positive")
@@ -358,6 +389,54 @@ def _excite(args: argparse.Namespace) -> int:
     print(f"  condition number {cond:.3g} (median of 20 random trajectories of the same "
           f"structure: {np.median(rand):.3g}, {np.median(rand) / cond:.2f}× better)")
     print(f"wrote {csv_path} and {yaml_path}")
+    return 0
+
+
+def _excite_elasticity(args: argparse.Namespace, robot: Any) -> int:
+    from robid_link.ident.excitation import write_trajectory
+    from robid_link.ident.frequency import ElasticityOptions, elasticity_trajectory
+
+    pose = tuple(np.radians(args.pose)) if args.pose else None
+    opts = ElasticityOptions(joints=tuple(args.joint), pose=pose, f_min_hz=args.f_min,
+                             f_max_hz=args.f_max, steps=args.steps, rate_hz=args.rate or 2000.0)
+    traj = elasticity_trajectory(robot, opts)
+    csv_path, yaml_path = write_trajectory(args.out, traj)
+    print(f"stepped sines for {robot.name}: {len(traj.header['schedule'])} steps, "
+          f"{args.f_min:g}–{args.f_max:g} Hz, {traj.t[-1]:.4g} s at {traj.rate_hz:g} Hz")
+    print(f"wrote {csv_path} and {yaml_path}")
+    return 0
+
+
+def _elasticity(args: argparse.Namespace) -> int:
+    from robid_link.config import read_yaml_mapping
+    from robid_link.ident.data import load_log
+    from robid_link.ident.elasticity import elasticity_figures, identify_elasticity
+    from robid_link.ident.report import write_json
+    from robid_link.ident.robot import load_robot
+
+    robot = load_robot(args.robot, args.lock)
+    logs = [load_log(p, robot.n, args.fs) for p in args.data]
+    pair = None
+    if args.joints:
+        try:
+            a, b = (int(x) for x in args.joints.split(","))
+        except ValueError as err:
+            raise RobidError(f"--joints {args.joints}: expected two axes J1,J2") from err
+        pair = (a, b)
+    joints = args.joint or ([] if pair else list(range(1, robot.n + 1)))
+    schedule = None
+    if args.schedule:
+        schedule = read_yaml_mapping(args.schedule, "trajectory header").get("schedule")
+        if not isinstance(schedule, list):
+            raise RobidError(f"{args.schedule}: schedule: missing (not a stepped-sine header)")
+    res = identify_elasticity(robot, logs, joints=joints, pair=pair, schedule=schedule,
+                              side="motor" if args.motor_side else "joint")
+    print(res.summary())
+    if args.json:
+        write_json(args.json, res.to_dict())
+    if args.out:
+        paths = elasticity_figures(res, args.out)
+        print(f"\n  wrote {len(paths)} figure(s) to {args.out}")
     return 0
 
 

@@ -266,60 +266,76 @@ def _assemble(joints: tuple[int, ...], by_f: dict[float, list[Any]], source: str
 # ----------------------------------------------------------------------------- from the log
 
 
-def detect_steps(t: np.ndarray, q: np.ndarray, tau: np.ndarray, *, window_s: float = 0.25,
-                 min_steps_s: float = 0.4, rel_tol: float = 0.03) -> list[dict[str, Any]]:
+def detect_steps(t: np.ndarray, q: np.ndarray, tau: np.ndarray, *,
+                 windows_s: Sequence[float] = (2.0, 0.8, 0.3), rel_tol: float = 0.03
+                 ) -> list[dict[str, Any]]:
     """Steps of constant-frequency sinusoidal motion found in the log alone (an operator's own
-    log): per window the dominant frequency of the summed, normalized torques; runs of windows
-    whose frequency agrees within ``rel_tol`` become steps, the first 40 % of each discarded as
-    settling, the frequency refined on the rest. Returns schedule-like dicts with ``joint``
-    (the joint with the largest relative torque amplitude)."""
+    log). Per window the dominant frequency of the summed, normalized torques; runs of windows
+    whose frequency agrees within ``rel_tol`` become steps. Windows of several lengths (a step
+    must hold ≥ 4 periods of its window; longer windows first, overlaps dropped). The first
+    40 % of each step is discarded as settling, the frequency refined on the rest. Returns
+    schedule-like dicts with ``joint`` (the joint with the largest relative torque amplitude)."""
     fs = 1.0 / float(np.median(np.diff(t)))
-    n = int(window_s * fs)
-    hop = max(1, n // 4)
-    if len(t) < 4 * n:
+    if t[-1] - t[0] < 2 * min(windows_s):
         raise DataError(f"log of {t[-1] - t[0]:.3g} s is too short for a stepped-sine analysis")
-    x = tau - tau.mean(axis=0)
-    scale = np.maximum(np.percentile(np.abs(np.diff(x, axis=0)), 90, axis=0), 1e-12)
-    x = x / scale
-    nfft = 8 * n
-    freqs = np.fft.rfftfreq(nfft, 1.0 / fs)
-    han = np.hanning(n)[:, None]
-    starts = np.arange(0, len(t) - n, hop)
-    f_win = np.empty(starts.size)
-    quality = np.empty(starts.size)
-    for i, s in enumerate(starts):
-        seg = x[s:s + n] - x[s:s + n].mean(axis=0)
-        spec = (np.abs(np.fft.rfft(seg * han, nfft, axis=0)) ** 2).sum(axis=1)
-        spec[freqs < 2.0 / window_s] = 0.0
-        k = int(np.argmax(spec))
-        f_win[i] = freqs[k]
-        quality[i] = spec[k] / max(spec.sum(), 1e-300)
-    good = quality > 0.2
-    runs: list[tuple[int, int]] = []
-    a = 0
-    for i in range(1, starts.size + 1):
-        if (i == starts.size or not good[i] or not good[a]
-                or abs(f_win[i] - f_win[a]) > rel_tol * f_win[a] + fs / nfft):
-            if good[a] and (i - a) * hop / fs >= min_steps_s:
-                runs.append((a, i))
-            a = i
+    # torque (strong at the antiresonance) and motor acceleration (strong at the resonance)
+    acc = np.gradient(np.gradient(q, axis=0), axis=0)
+    x = np.column_stack((tau - tau.mean(axis=0), acc))
+    x = x / np.maximum(x.std(axis=0), 1e-300)
+    spans: list[tuple[float, float, float, float]] = []
+    for win in windows_s:
+        for t0, t1, f in _runs(t, x, fs, win, rel_tol):
+            if f * win < 4 or any(min(t1, b) - max(t0, a) > 0.3 * (t1 - t0)
+                                  for a, b, _, _ in spans):
+                continue
+            spans.append((t0, t1, f, win))
     steps = []
-    for a, b in runs:
-        t0, t1 = t[starts[a]], t[starts[b - 1] + n - 1]
+    m = tau.shape[1]
+    for t0, t1, f0, win in sorted(spans):
+        t1 -= 0.5 * win  # the last windows straddle the ramp out
         t_meas = t0 + 0.4 * (t1 - t0)
         sel = (t >= t_meas) & (t <= t1)
-        f = _refine(t[sel], x[sel], float(np.median(f_win[a:b])))
+        f = _refine(t[sel], x[sel], f0)
         periods = math.floor((t1 - t_meas) * f)
         if periods < 4:
             continue
-        t_end = t_meas + periods / f
-        amps = np.abs(sine_amplitudes(t[sel], x[sel], f)[0])
+        amps = np.abs(sine_amplitudes(t[sel], x[sel, :m], f)[0])
         steps.append({"joint": int(np.argmax(amps)) + 1, "f_hz": f, "t_measure": float(t_meas),
-                      "t_end": float(t_end)})
+                      "t_end": float(t_meas + periods / f)})
     if not steps:
         raise DataError("no sinusoidal steps found in the log (no stretch of constant-frequency "
                         "motion): is it a stepped-sine log?")
     return steps
+
+
+def _runs(t: np.ndarray, x: np.ndarray, fs: float, win: float, rel_tol: float
+          ) -> list[tuple[float, float, float]]:
+    """(t0, t1, f) of runs of windows of length ``win`` dominated by one steady frequency."""
+    n = int(win * fs)
+    hop = max(1, n // 8)
+    nfft = 8 * n
+    freqs = np.fft.rfftfreq(nfft, 1.0 / fs)
+    han = np.hanning(n)[:, None]
+    starts = np.arange(0, max(len(t) - n, 1), hop)
+    f_win = np.zeros(starts.size)
+    good = np.zeros(starts.size, dtype=bool)
+    for i, s in enumerate(starts):
+        seg = x[s:s + n] - x[s:s + n].mean(axis=0)
+        spec = (np.abs(np.fft.rfft(seg * han, nfft, axis=0)) ** 2).sum(axis=1)
+        spec[freqs < 3.0 / win] = 0.0
+        k = int(np.argmax(spec))
+        f_win[i] = freqs[k]
+        good[i] = spec[max(k - 24, 0): k + 25].sum() > 0.8 * max(spec.sum(), 1e-300)
+    out = []
+    a = 0
+    for i in range(1, starts.size + 1):
+        if (i == starts.size or not good[i] or not good[a]
+                or abs(f_win[i] - f_win[a]) > rel_tol * f_win[a] + fs / nfft):
+            if good[a] and i - a >= 4:
+                out.append((float(t[starts[a]]), float(t[starts[i - 1] + n - 1]),
+                            float(np.median(f_win[a:i]))))
+            a = i
+    return out
 
 
 def _refine(t: np.ndarray, x: np.ndarray, f0: float) -> float:
