@@ -38,7 +38,9 @@ EFFECT_PARAMS: dict[str, tuple[tuple[str, ...], dict[str, float]]] = {
     "load_friction": (("mu",), {}),
     "delay": (("seconds",), {}),
     "payload": (("mass",), {"com": 0.0}),
-    "elasticity": (("k", "d", "jm"), {}),
+    # two-mass joint: motor inertia jm (joint units) behind spring k, damper d; optionally a
+    # third mass j2 hung on the arm by k2, d2 (a second resonance: three-mass check)
+    "elasticity": (("k", "d", "jm"), {"j2": 0.0, "k2": 0.0, "d2": 0.0}),
 }
 GLOBAL_EFFECTS = {"delay", "payload"}
 #: parameters that must be > 0 (a division or an exponent) or ≥ 0 (a physical magnitude)
@@ -478,6 +480,8 @@ class Plant:
         sticky = [(e, j) for e, j in rest if e["name"] in _COULOMB_LIKE]
         q, v = np.array(q0, dtype=float), np.array(v0, dtype=float)
         th, thd = q.copy(), v.copy()  # motor side of elastic joints (joint units)
+        th2, thd2 = q.copy(), v.copy()  # third masses (elastic joints with j2 > 0)
+        third = {j: e for j, e in elastic.items() if e["j2"] > 0}
         logs = [np.empty((t.size, n)) for _ in range(4)]  # q, qd, qdd, tau
         one = np.zeros(1)
 
@@ -496,6 +500,10 @@ class Plant:
                 tau_arm = np.array(tau_cmd, dtype=float)
                 for j, e in elastic.items():  # the arm feels the spring, the motor drives it
                     tau_arm[j] = e["k"] * (th[j] - q[j]) + e["d"] * (thd[j] - v[j])
+                tau_third = {j: e["k2"] * (q[j] - th2[j]) + e["d2"] * (v[j] - thd2[j])
+                             for j, e in third.items()}
+                for j, t3 in tau_third.items():
+                    tau_arm[j] -= t3
                 f_smooth = fv * v
                 if smooth:
                     sig = Signals(one + t[k], q[None], v[None], np.zeros((1, n)), tau_cmd[None])
@@ -516,6 +524,9 @@ class Plant:
                 for j, e in elastic.items():
                     thd[j] += h * (tau_cmd[j] - tau_arm[j]) / e["jm"]
                     th[j] += h * thd[j]
+                for j, e in third.items():
+                    thd2[j] += h * tau_third[j] / e["j2"]
+                    th2[j] += h * thd2[j]
                 if step == 0:
                     logs[0][k], logs[1][k] = q_meas, qd_meas
                     logs[2][k] = (v_new - v) / h
@@ -523,6 +534,20 @@ class Plant:
                 v = v_new
                 q = q + h * v
         return tuple(logs)
+
+    def elastic_truth(self, q: np.ndarray) -> dict[int, dict[str, float]]:
+        """Per elastic joint (1-based) at the pose q: jm, k, d, the arm inertia ja = M_jj(q) and
+        the coupled inertia ``jcop`` {other elastic joint: M_ij(q)} (the rigid body's mass
+        matrix couples the arms of two elastic axes)."""
+        m = pin.crba(self.model, self.data, self.robot.pin_q(np.asarray(q)[None])[0])
+        m = np.triu(m) + np.triu(m, 1).T
+        elastic = {e["joint"] if e.get("joint") else j + 1: e
+                   for e in self.truth.effects if e["name"] == "elasticity"
+                   for j in ([e["joint"] - 1] if e.get("joint") else range(self.robot.n))}
+        return {j: {"jm": float(e["jm"]), "k": float(e["k"]), "d": float(e["d"]),
+                    "ja": float(m[j - 1, j - 1]),
+                    "jcop": {i: float(m[j - 1, i - 1]) for i in elastic if i != j}}
+                for j, e in sorted(elastic.items())}
 
     def with_truth(self, **changes: Any) -> Plant:
         return Plant(self.robot, replace(self.truth, **changes))

@@ -115,12 +115,45 @@ def _parser() -> argparse.ArgumentParser:
                    help="Fourier harmonics per joint (default 8)")
     p.add_argument("--base-hz", type=positive_float(100.0), default=0.1, metavar="HZ",
                    help="Fourier base frequency (default 0.1)")
-    p.add_argument("--rate", type=positive_float(100_000.0), default=250.0, metavar="HZ",
-                   help="controller rate of the trajectory file (default 250)")
+    p.add_argument("--rate", type=positive_float(100_000.0), metavar="HZ",
+                   help="controller rate of the trajectory file (default 250; 2000 for "
+                   "--kind elasticity)")
     p.add_argument("--model", help="model file whose base set is excited (default model)")
     p.add_argument("--evaluations", type=bounded_int(1, 1_000_000), default=2500, metavar="N",
                    help="optimizer budget per restart (3 restarts; default 2500)")
     p.add_argument("--seed", type=bounded_int(0, 2**32 - 1), default=0, help=_SEED_HELP)
+    p.add_argument("--kind", choices=("fourier", "elasticity"), default="fourier",
+                   help="elasticity: stepped sines per --joint around --pose (schedule in the "
+                        "header)")
+    p.add_argument("--joint", type=bounded_int(1, 64), action="append", default=[], metavar="J",
+                   help="elasticity: axis to excite (1-based); repeatable; default all")
+    p.add_argument("--pose", type=finite_float, nargs="+", metavar="DEG", help="elasticity: the pose")
+    p.add_argument("--f-min", type=positive_float(1000.0), default=2.0, metavar="HZ",
+                   help="elasticity: lowest frequency (default 2)")
+    p.add_argument("--f-max", type=positive_float(1000.0), default=60.0, metavar="HZ",
+                   help="elasticity: highest frequency (default 60)")
+    p.add_argument("--steps", type=bounded_int(2, 500), default=24,
+                   help="elasticity: frequencies per axis (default 24)")
+
+    p = sub.add_parser("elasticity", help="joint elasticity (two-mass / coupled) from "
+                       "stepped-sine logs")
+    p.add_argument("--robot", required=True, help="MDH YAML or URDF robot description")
+    p.add_argument("--lock", action="append", default=[], metavar="NAME",
+                   help="URDF joint to lock; repeatable")
+    p.add_argument("--data", action="append", required=True, metavar="LOG",
+                   help="stepped-sine log (.csv, .npz, .mat); repeatable")
+    p.add_argument("--fs", type=positive_float(1e6), help="sampling rate in Hz (.mat logs)")
+    p.add_argument("--joint", type=bounded_int(1, 64), action="append", default=[], metavar="J",
+                   help="axis to fit (1-based); repeatable; default every excited axis")
+    p.add_argument("--joints", metavar="J1,J2", help="a pair of axes for the coupled fit")
+    p.add_argument("--schedule", metavar="TRAJ_YAML",
+                   help="the trajectory header with the step schedule; default: detect the "
+                        "steps in the log")
+    p.add_argument("--motor-side", action="store_true",
+                   help="logs on the motor side: results in motor units (no conversion)")
+    p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
+                   help="write the result as JSON")
+    p.add_argument("--out", metavar="DIR", type=output_path("dir"), help="Bode figures")
 
     p = sub.add_parser("simulate", help="run a trajectory on the simulated robot, write a log")
     _robot_options(p)
@@ -268,6 +301,8 @@ def _dispatch(args: argparse.Namespace) -> int:
         return _excite(args)
     if args.cmd == "simulate":
         return _simulate(args)
+    if args.cmd == "elasticity":
+        return _elasticity(args)
     from robid_link.link.commands import dispatch
 
     return dispatch(args)
@@ -396,6 +431,10 @@ def _excite(args: argparse.Namespace) -> int:
     from robid_link.ident.effects import load_model
     from robid_link.ident.robot import load_robot
 
+    robot = load_robot(args.robot, args.lock, allow_unlimited=args.allow_unlimited)
+    if args.kind == "elasticity":
+        return _excite_elasticity(args, robot)
+    args.rate = args.rate or 250.0
     periods = max(1, round(args.duration * args.base_hz))
     samples = periods / args.base_hz * args.rate
     if samples > MAX_SAMPLES:
@@ -405,7 +444,6 @@ def _excite(args: argparse.Namespace) -> int:
     yaml_out = Path(args.out).with_suffix(".yaml")
     if yaml_out.is_dir() or yaml_out == Path(args.out):
         raise RobidError(f"{args.out}: the header {yaml_out} would not be a file beside it")
-    robot = load_robot(args.robot, args.lock, allow_unlimited=args.allow_unlimited)
     model = load_model(args.model)
     print(f"optimizing the excitation of {robot.name}: 3 restarts × {args.evaluations} "
           "evaluations", flush=True)
@@ -428,6 +466,54 @@ def _excite(args: argparse.Namespace) -> int:
     print(f"  condition number {cond:.3g} (median of 20 random trajectories of the same "
           f"structure: {np.median(rand):.3g}, {np.median(rand) / cond:.2f}× better)")
     print(f"wrote {csv_path} and {yaml_path}")
+    return 0
+
+
+def _excite_elasticity(args: argparse.Namespace, robot: Any) -> int:
+    from robid_link.ident.excitation import write_trajectory
+    from robid_link.ident.frequency import ElasticityOptions, elasticity_trajectory
+
+    pose = tuple(np.radians(args.pose)) if args.pose else None
+    opts = ElasticityOptions(joints=tuple(args.joint), pose=pose, f_min_hz=args.f_min,
+                             f_max_hz=args.f_max, steps=args.steps, rate_hz=args.rate or 2000.0)
+    traj = elasticity_trajectory(robot, opts)
+    csv_path, yaml_path = write_trajectory(args.out, traj)
+    print(f"stepped sines for {robot.name}: {len(traj.header['schedule'])} steps, "
+          f"{args.f_min:g}–{args.f_max:g} Hz, {traj.t[-1]:.4g} s at {traj.rate_hz:g} Hz")
+    print(f"wrote {csv_path} and {yaml_path}")
+    return 0
+
+
+def _elasticity(args: argparse.Namespace) -> int:
+    from robid_link.config import read_yaml_mapping
+    from robid_link.ident.data import load_log
+    from robid_link.ident.elasticity import elasticity_figures, identify_elasticity
+    from robid_link.ident.report import write_json
+    from robid_link.ident.robot import load_robot
+
+    robot = load_robot(args.robot, args.lock)
+    logs = [load_log(p, robot.n, args.fs) for p in args.data]
+    pair = None
+    if args.joints:
+        try:
+            a, b = (int(x) for x in args.joints.split(","))
+        except ValueError as err:
+            raise RobidError(f"--joints {args.joints}: expected two axes J1,J2") from err
+        pair = (a, b)
+    joints = args.joint or ([] if pair else list(range(1, robot.n + 1)))
+    schedule = None
+    if args.schedule:
+        schedule = read_yaml_mapping(args.schedule, "trajectory header").get("schedule")
+        if not isinstance(schedule, list):
+            raise RobidError(f"{args.schedule}: schedule: missing (not a stepped-sine header)")
+    res = identify_elasticity(robot, logs, joints=joints, pair=pair, schedule=schedule,
+                              side="motor" if args.motor_side else "joint")
+    print(res.summary())
+    if args.json:
+        write_json(args.json, res.to_dict())
+    if args.out:
+        paths = elasticity_figures(res, args.out)
+        print(f"\n  wrote {len(paths)} figure(s) to {args.out}")
     return 0
 
 

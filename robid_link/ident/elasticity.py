@@ -1,0 +1,408 @@
+"""Joint elasticity from frequency responses: the two-mass fit per joint and the coupled fit of a
+pair of axes (H11, H12, H21, H22 with the coupled inertia Jcop), results, summary and figures.
+
+Model (motor side measured): Jm·q̈m + D(q̇m − q̇a) + K(qm − qa) = τ,
+Ja·q̈a + Jcop·q̈a2 + D(q̇a − q̇m) + K(qa − qm) = 0. Fitted by weighted least squares on the
+log-magnitude and phase of the complex FRF (log Ĝ − log G), started from the antiresonance
+and resonance read off the measured points.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from robid_link.exceptions import EstimationError
+from robid_link.ident.data import Log
+from robid_link.ident.frequency import Frf, frf_from_log, frf_from_schedule
+from robid_link.ident.robot import Robot
+
+__all__ = ["two_mass_frf", "coupled_frf", "JointElasticity", "CoupledElasticity",
+           "ElasticityResult", "fit_two_mass", "fit_coupled", "identify_elasticity",
+           "elasticity_figures"]
+
+_NAMES = ("jm", "ja", "k", "d")
+
+
+def two_mass_frf(f_hz: np.ndarray, jm: float, ja: float, k: float, d: float) -> np.ndarray:
+    """G = qm/τ = (Ja s² + Ds + K) / (s² (Jm Ja s² + (Jm + Ja)(Ds + K)))."""
+    s = 2j * np.pi * np.asarray(f_hz)
+    z = d * s + k
+    return (ja * s * s + z) / (s * s * (jm * ja * s * s + (jm + ja) * z))
+
+
+def coupled_frf(f_hz: np.ndarray, jm: Sequence[float], ja: Sequence[float], jcop: float,
+                k: Sequence[float], d: Sequence[float]) -> np.ndarray:
+    """2×2 G (K, 2, 2): [Jm s² + Z − Z (Ja s² + Z)⁻¹ Z]⁻¹, Ja = [[Ja1, Jcop], [Jcop, Ja2]],
+    Z = diag(D s + K)."""
+    s = 2j * np.pi * np.asarray(f_hz)[:, None, None]
+    eye = np.eye(2)
+    z = (np.asarray(d)[None, :] * s[:, :, 0] + np.asarray(k)[None, :])[:, :, None] * eye
+    jam = np.array([[ja[0], jcop], [jcop, ja[1]]])
+    arm = np.linalg.solve(jam * s * s + z, z)
+    dyn = np.asarray(jm)[:, None] * eye * s * s + z - z @ arm
+    return np.linalg.inv(dyn)
+
+
+@dataclass(frozen=True)
+class JointElasticity:
+    """Two-mass parameters of one joint (units of the log's side)."""
+
+    joint: int
+    jm: float
+    ja: float
+    k: float
+    d: float
+    std: dict[str, float]
+    fit_rms: float  # RMS of the weighted log-FRF residual (≈ relative error)
+    measures: str | None = None  # the campaign entry that measures it (set by the daemon)
+
+    @property
+    def f_res_hz(self) -> float:
+        return math.sqrt(self.k * (self.jm + self.ja) / (self.jm * self.ja)) / (2 * math.pi)
+
+    @property
+    def f_antires_hz(self) -> float:
+        return math.sqrt(self.k / self.ja) / (2 * math.pi)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"joint": self.joint, "jm": self.jm, "ja": self.ja, "k": self.k, "d": self.d,
+                "f_res_hz": self.f_res_hz, "f_antires_hz": self.f_antires_hz,
+                "std": dict(self.std), "fit_rms": self.fit_rms, "measures": self.measures}
+
+
+@dataclass(frozen=True)
+class CoupledElasticity:
+    joints: tuple[int, int]
+    jcop: float
+    std: dict[str, float]
+    fit_rms: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"joints": list(self.joints), "jcop": self.jcop, "std": dict(self.std),
+                "fit_rms": self.fit_rms}
+
+
+@dataclass
+class ElasticityResult:
+    """What ``robid elasticity`` reports; keeps the FRFs it was fitted on (for the figures)."""
+
+    robot: str
+    joints: list[JointElasticity]
+    frfs: list[Frf]
+    coupled: CoupledElasticity | None = None
+    side: str = "joint"
+    notes: list[str] = field(default_factory=list)
+    data_files: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        doc: dict[str, Any] = {"robot": self.robot, "side": self.side,
+                               "joints": [j.as_dict() for j in self.joints],
+                               "notes": list(self.notes), "data_files": list(self.data_files)}
+        if self.coupled is not None:
+            doc["coupled"] = self.coupled.as_dict()
+        return doc
+
+    def summary(self) -> str:
+        unit = "kg·m²" if self.side == "joint" else "kg·m² (motor side)"
+        lines = [f"Elasticity of {self.robot} ({len(self.joints)} joint(s), inertias in {unit}, "
+                 "K in N·m/rad, D in N·m·s/rad)",
+                 f"  {'joint':>5} {'Jm':>10} {'Ja':>10} {'K':>11} {'D':>9} {'f_res Hz':>9} "
+                 f"{'f_anti Hz':>9} {'fit rms':>8}"]
+        for j in self.joints:
+            lines.append(f"  {j.joint:>5} {j.jm:>10.4g} {j.ja:>10.4g} {j.k:>11.5g} {j.d:>9.4g} "
+                         f"{j.f_res_hz:>9.4g} {j.f_antires_hz:>9.4g} {j.fit_rms:>8.3g}")
+            lines.append(f"  {'±':>5} {j.std['jm']:>10.2g} {j.std['ja']:>10.2g} "
+                         f"{j.std['k']:>11.2g} {j.std['d']:>9.2g}")
+        if self.coupled is not None:
+            c = self.coupled
+            lines.append(f"  coupled {c.joints[0]}–{c.joints[1]}: Jcop {c.jcop:.4g} "
+                         f"± {c.std['jcop']:.2g}, fit rms {c.fit_rms:.3g}")
+        lines += [f"  [{i}] {n}" for i, n in enumerate(self.notes, 1)]
+        return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- start values
+
+
+def _extrema(mag: np.ndarray, kind: str) -> list[int]:
+    """Interior local minima/maxima standing out by ≥ 15 % from both neighbours' range."""
+    out = []
+    for i in range(1, mag.size - 1):
+        a, b, c = mag[i - 1], mag[i], mag[i + 1]
+        if kind == "min" and b < a and b < c and b < 0.87 * max(a, c):
+            out.append(i)
+        if kind == "max" and b > a and b > c and b > 1.15 * min(a, c):
+            out.append(i)
+    return out
+
+
+def _peak_f(f: np.ndarray, mag: np.ndarray, i: int) -> float:
+    """Parabolic interpolation in log-log around point i."""
+    x, y = np.log(f[i - 1: i + 2]), np.log(mag[i - 1: i + 2])
+    den = y[0] - 2 * y[1] + y[2]
+    if den == 0:
+        return float(f[i])
+    step = 0.5 * (y[0] - y[2]) / den
+    return float(np.exp(x[1] + np.clip(step, -1, 1) * (x[2] - x[0]) / 2))
+
+
+def _start_and_band(frf_f: np.ndarray, acc: np.ndarray, joint: int, notes: list[str]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Start values (jm, ja, k, d) from the FRF's antiresonance and resonance, and the mask of
+    points to fit (below a second resonance, which is flagged)."""
+    mag = np.abs(acc)
+    f_max = float(frf_f[-1])
+    mins, maxs = _extrema(mag, "min"), _extrema(mag, "max")
+    if not mins:
+        if np.argmin(mag) == mag.size - 1 or mag[-1] < mag[0]:
+            raise EstimationError(f"joint {joint}: no antiresonance below {f_max:.3g} Hz: "
+                                  "extend --f-max")
+        raise EstimationError(f"joint {joint}: no antiresonance between {frf_f[0]:.3g} and "
+                              f"{f_max:.3g} Hz: lower --f-min or check the log's excitation")
+    ia = mins[0]
+    after = [i for i in maxs if i > ia]
+    if not after:
+        raise EstimationError(f"joint {joint}: antiresonance at {frf_f[ia]:.3g} Hz but no "
+                              f"resonance below {f_max:.3g} Hz: extend --f-max")
+    ir = after[0]
+    band = np.ones(frf_f.size, dtype=bool)
+    later = [i for i in mins if i > ir]
+    if later:
+        second = [i for i in maxs if i > later[0]]
+        f2 = _peak_f(frf_f, mag, second[0]) if second else None
+        band = frf_f < frf_f[later[0]]
+        if f2 is not None:
+            notes.append(f"joint {joint}: a second resonance at {f2:.3g} Hz (antiresonance near "
+                         f"{frf_f[later[0]]:.3g} Hz): a three-mass model is needed; the two-mass "
+                         f"fit uses the points below {frf_f[later[0]]:.3g} Hz")
+    fa, fr = _peak_f(frf_f, mag, ia), _peak_f(frf_f, mag, ir)
+    near = int(np.sum((frf_f > fa / 1.6) & (frf_f < fr * 1.6) & band))
+    if near < 4:
+        raise EstimationError(f"joint {joint}: only {near} steps between {fa / 1.6:.3g} and "
+                              f"{fr * 1.6:.3g} Hz around the resonance: raise --steps")
+    low = frf_f < 0.5 * fa
+    j_tot = float(1.0 / np.median(mag[low])) if low.any() else float(1.0 / mag[0])
+    ratio = (fa / fr) ** 2
+    jm = j_tot * ratio
+    ja = j_tot - jm
+    k = ja * (2 * math.pi * fa) ** 2
+    d = 2 * 0.05 * math.sqrt(k * ja)
+    return np.array([jm, ja, k, d]), band
+
+
+# ----------------------------------------------------------------------------- fits
+
+
+def _weights(frf: Frf) -> np.ndarray:
+    """Per-point weight: coherence over the relative noise (1/snr), capped so that a few
+    very clean points do not carry the fit."""
+    rel = 1.0 / np.maximum(frf.snr, 1.0)
+    w = np.sqrt(np.clip(frf.coherence, 0.0, 1.0)) / np.sqrt(rel**2 + 0.01**2)
+    return w / np.median(w)
+
+
+def _logres(model: np.ndarray, meas: np.ndarray) -> np.ndarray:
+    r = np.log(model / meas)
+    return np.concatenate((r.real.ravel(), r.imag.ravel()))
+
+
+def _solve(fun: Any, x0: np.ndarray, names: Sequence[str], log_scale: Sequence[bool]
+           ) -> tuple[np.ndarray, dict[str, float], float]:
+    from scipy.optimize import least_squares
+
+    res = least_squares(fun, x0, method="lm", x_scale="jac")
+    dof = max(res.fun.size - x0.size, 1)
+    s2 = float(res.fun @ res.fun) / dof
+    try:
+        cov = np.linalg.inv(res.jac.T @ res.jac) * s2
+    except np.linalg.LinAlgError as err:
+        raise EstimationError("elasticity fit: singular Jacobian (too few or too noisy "
+                              "points)") from err
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    vals = np.where(log_scale, np.exp(res.x), res.x)
+    std = {n: float(v * s if lg else s) for n, v, s, lg in zip(names, vals, sd, log_scale,
+                                                              strict=True)}
+    return vals, std, math.sqrt(s2)
+
+
+def fit_two_mass(frf: Frf, notes: list[str] | None = None) -> JointElasticity:
+    """Two-mass fit of one joint's FRF (weighted LS on log-magnitude and phase)."""
+    notes = notes if notes is not None else []
+    joint = frf.joints[0]
+    if frf.f_hz.size < 6:
+        raise EstimationError(f"joint {joint}: {frf.f_hz.size} FRF points, need at least 6: "
+                              "raise --steps")
+    x0, band = _start_and_band(frf.f_hz, frf.accel, joint, notes)
+    f, g, w = frf.f_hz[band], frf.g[band], _weights(frf)[band]
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        p = np.exp(x)
+        return np.tile(w, 2) * _logres(two_mass_frf(f, *p), g)
+
+    vals, std, rms = _solve(fun, np.log(x0), _NAMES, [True] * 4)
+    return JointElasticity(joint, *map(float, vals), std=std, fit_rms=rms)
+
+
+def fit_coupled(frf: Frf, notes: list[str] | None = None
+                ) -> tuple[list[JointElasticity], CoupledElasticity]:
+    """Coupled fit of a pair's 2×2 FRF: Jm, Ja, K, D per axis and the coupled inertia Jcop."""
+    notes = notes if notes is not None else []
+    j1, j2 = frf.joints
+    singles = []
+    for i, j in enumerate((j1, j2)):
+        sub = Frf((j,), frf.f_hz, frf.g[:, i, i], frf.coherence, frf.snr, frf.source)
+        singles.append(_start_and_band(sub.f_hz, sub.accel, j, notes)[0])
+    # Jcop from the low-frequency inertia matrix: (s² G)⁻¹ → Jm + Ja (2×2)
+    low = frf.f_hz < 0.5 * frf.f_hz[np.argmin(np.abs(frf.accel[:, 0, 0]))]
+    inert = np.linalg.inv(frf.accel[low if low.any() else slice(0, 1)]).real.mean(axis=0)
+    jcop0 = float(0.5 * (inert[0, 1] + inert[1, 0]))
+    x0 = np.array([*np.log(singles[0]), *np.log(singles[1]), jcop0])
+    scale = math.sqrt(singles[0][1] * singles[1][1])
+    w = _weights(frf)
+    g = frf.g
+    norm = np.sqrt(np.abs(g[:, 0, 0] * g[:, 1, 1]))
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        a, b = np.exp(x[:4]), np.exp(x[4:8])
+        model = coupled_frf(frf.f_hz, (a[0], b[0]), (a[1], b[1]), x[8] * scale / scale,
+                            (a[2], b[2]), (a[3], b[3]))
+        diag = [_logres(model[:, i, i], g[:, i, i]) for i in range(2)]
+        off = [(model[:, i, 1 - i] - g[:, i, 1 - i]) / norm for i in range(2)]
+        offr = [np.concatenate((o.real, o.imag)) for o in off]
+        return np.tile(w, 8) * np.concatenate(diag + offr)
+
+    names = [f"{n}{i}" for i in (1, 2) for n in _NAMES] + ["jcop"]
+    vals, std, rms = _solve(fun, x0, names, [True] * 8 + [False])
+    joints = [JointElasticity(j, *map(float, vals[4 * i: 4 * i + 4]),
+                              std={n: std[f"{n}{i + 1}"] for n in _NAMES}, fit_rms=rms)
+              for i, j in enumerate((j1, j2))]
+    return joints, CoupledElasticity((j1, j2), float(vals[8]), {"jcop": std["jcop"]}, rms)
+
+
+# ----------------------------------------------------------------------------- job
+
+
+def identify_elasticity(robot: Robot, logs: Sequence[Log], *, joints: Sequence[int] = (),
+                        pair: tuple[int, int] | None = None,
+                        schedule: Sequence[dict[str, Any]] | None = None,
+                        tau_model: Sequence[np.ndarray] | None = None,
+                        side: str = "joint") -> ElasticityResult:
+    """Elasticity of ``joints`` (1-based, each its own two-mass fit) and/or a coupled ``pair``
+    from stepped-sine logs. ``schedule``: the steps from the trajectory header (else detected
+    in each log); ``tau_model``: per log, the identified rigid-body + friction torque."""
+    if not logs:
+        raise EstimationError("elasticity: no logs")
+    for j in (*joints, *(pair or ())):
+        if not 1 <= j <= robot.n:
+            raise EstimationError(f"elasticity: joint {j} not in 1..{robot.n}")
+    notes: list[str] = []
+    frfs: list[Frf] = []
+    fitted: list[JointElasticity] = []
+    coupled = None
+    targets: list[tuple[int, ...]] = [(j,) for j in joints] + ([tuple(pair)] if pair else [])
+    for target in targets:
+        frf = _merged_frf(logs, target, schedule, tau_model)
+        frfs.append(frf)
+        if len(target) == 1:
+            fitted.append(fit_two_mass(frf, notes))
+        else:
+            pj, coupled = fit_coupled(frf, notes)
+            fitted += pj
+    if schedule is None:
+        notes.append("steps detected from the log alone (no schedule given)")
+    return ElasticityResult(robot.name, fitted, frfs, coupled, side, notes,
+                            [log.path for log in logs])
+
+
+def _merged_frf(logs: Sequence[Log], target: tuple[int, ...],
+                schedule: Sequence[dict[str, Any]] | None,
+                tau_model: Sequence[np.ndarray] | None) -> Frf:
+    parts = []
+    for i, log in enumerate(logs):
+        tm = tau_model[i] if tau_model is not None else None
+        try:
+            if schedule is not None:
+                parts.append(frf_from_schedule(log.t, log.q, log.tau, schedule, target, tm))
+            else:
+                parts.append(frf_from_log(log.t, log.q, log.tau, target, tm))
+        except Exception as err:  # one log without this joint's steps is fine if another has
+            if len(logs) == 1:
+                raise
+            last = err
+    if not parts:
+        raise last
+    order = np.argsort(np.concatenate([p.f_hz for p in parts]))
+    cat = [np.concatenate([getattr(p, a) for p in parts])[order]
+           for a in ("f_hz", "g", "coherence", "snr")]
+    return Frf(target, *cat, source=parts[0].source)
+
+
+# ----------------------------------------------------------------------------- figures
+
+
+def elasticity_figures(res: ElasticityResult, out_dir: str | Path) -> list[Path]:
+    """Bode magnitude and phase of q̈m/τ per fitted FRF: measured circles shaded by coherence,
+    the model as a line, parameters and resonances under the plot; the 2×2 grid for a pair."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    by_joint = {j.joint: j for j in res.joints}
+    paths = []
+    for frf in res.frfs:
+        fine = np.geomspace(frf.f_hz[0], frf.f_hz[-1], 400)
+        s2 = -(2 * np.pi * fine) ** 2
+        if len(frf.joints) == 1:
+            p = by_joint[frf.joints[0]]
+            cells = {(0, 0): (frf.accel, s2 * two_mass_frf(fine, p.jm, p.ja, p.k, p.d))}
+            text = _param_text([p])
+        else:
+            a, b = (by_joint[j] for j in frf.joints)
+            assert res.coupled is not None
+            model = s2[:, None, None] * coupled_frf(fine, (a.jm, b.jm), (a.ja, b.ja),
+                                                    res.coupled.jcop, (a.k, b.k), (a.d, b.d))
+            cells = {(r, c): (frf.accel[:, r, c], model[:, r, c]) for r in range(2)
+                     for c in range(2)}
+            text = _param_text([a, b]) + f"\nJcop {res.coupled.jcop:.4g}"
+        nr, nc = (1, 1) if len(cells) == 1 else (2, 2)
+        fig = plt.figure(figsize=(6.5 * nc, 5.5 * nr))
+        grid = fig.add_gridspec(2 * nr, nc, height_ratios=[2, 1] * nr, hspace=0.35)
+        for (r, c), (meas, line) in cells.items():
+            am = fig.add_subplot(grid[2 * r, c])
+            ap = fig.add_subplot(grid[2 * r + 1, c], sharex=am)
+            shade = np.clip(frf.coherence, 0, 1)
+            am.loglog(fine, np.abs(line), "-", color="C0", label="model")
+            am.scatter(frf.f_hz, np.abs(meas), c=shade, cmap="Greys", vmin=0, vmax=1,
+                       edgecolors="C3", label="measured")
+            ap.semilogx(fine, np.degrees(np.angle(line)), "-", color="C0")
+            ap.scatter(frf.f_hz, np.degrees(np.angle(meas)), c=shade, cmap="Greys", vmin=0,
+                       vmax=1, edgecolors="C3")
+            name = (f"H{frf.joints[r]}{frf.joints[c]}" if len(frf.joints) == 2
+                    else f"joint {frf.joints[0]}")
+            am.set_title(f"{name}: motor acceleration / motor torque")
+            am.set_ylabel("|q̈m/τ|")
+            ap.set_ylabel("phase (deg)")
+            ap.set_xlabel("frequency (Hz)")
+            am.legend(fontsize=8)
+        fig.text(0.02, 0.005, text, fontsize=8, family="monospace", va="bottom")
+        fig.subplots_adjust(bottom=0.2 if nr == 1 else 0.12)
+        path = out / f"elasticity_{'_'.join(map(str, frf.joints))}.png"
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def _param_text(params: Sequence[JointElasticity]) -> str:
+    return "\n".join(f"joint {p.joint}: Jm {p.jm:.4g}  Ja {p.ja:.4g}  K {p.k:.5g}  D {p.d:.4g}  "
+                     f"f_res {p.f_res_hz:.4g} Hz  f_antires {p.f_antires_hz:.4g} Hz"
+                     for p in params)

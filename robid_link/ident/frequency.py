@@ -1,0 +1,421 @@
+"""Frequency responses: the stepped-sine elasticity experiment, FRF estimation (known schedule,
+steps detected from the log alone, H1 and reference-based for sweeps), resonance finding.
+
+Convention: an FRF point is G(jω) = Qm(jω)/T(jω), motor position over motor torque, from the
+complex amplitudes x(t) = Re(X e^{jωt}) of one step. Both amplitudes are projections on the
+frequency the reference was driven at, so noise and the position loop's feedback of it average
+out (the indirect / joint input-output estimate, unbiased in closed loop).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from robid_link.exceptions import ConfigError, DataError
+from robid_link.ident.excitation import Trajectory, check_limits
+from robid_link.ident.robot import Robot
+
+__all__ = [
+    "ElasticityOptions",
+    "Frf",
+    "stepped_sine_schedule",
+    "elasticity_trajectory",
+    "sine_amplitudes",
+    "frf_from_schedule",
+    "detect_steps",
+    "frf_from_log",
+    "frf_h1",
+    "frf_reference",
+    "spectral_peaks",
+]
+
+
+@dataclass(frozen=True)
+class ElasticityOptions:
+    """The stepped-sine experiment around a pose (radians, SI units).
+
+    Each step: the reference drifts at ``drift_fraction`` of the joint's speed limit (so the arm
+    never reverses and Coulomb friction stays a constant torque, invisible at the step's
+    frequency), a sine rides on it with a velocity amplitude of drift/``drift_over_sine``;
+    ``settle_periods`` (at least ``settle_s``) are ramped in and discarded, then
+    ``measure_periods`` (at least ``measure_s``) are measured. Steps alternate the drift
+    direction so the pose stays within one step's travel.
+    """
+
+    joints: tuple[int, ...] = ()  # 1-based; empty = every joint
+    pairs: tuple[tuple[int, int], ...] = ()  # informational: axes fitted as coupled pairs
+    pose: tuple[float, ...] | None = None  # rad; default mid-range
+    f_min_hz: float = 2.0
+    f_max_hz: float = 60.0
+    steps: int = 24
+    rate_hz: float = 2000.0
+    settle_periods: float = 3.0
+    settle_s: float = 0.3
+    measure_periods: float = 6.0
+    measure_s: float = 0.5
+    drift_fraction: float = 0.04
+    drift_over_sine: float = 8.0
+    accel_fraction: float = 0.5  # of the acceleration limit, caps the sine at high frequency
+
+
+@dataclass
+class Frf:
+    """Measured FRF points of one excited joint (or of a pair: ``g`` is then (K, 2, 2)).
+
+    ``g`` motor position / motor torque (rad/(N·m)); ``coherence`` per point from the
+    period-by-period blocks (1 = noise-free); ``snr`` |T| over its standard error.
+    """
+
+    joints: tuple[int, ...]
+    f_hz: np.ndarray
+    g: np.ndarray
+    coherence: np.ndarray
+    snr: np.ndarray
+    source: str = "schedule"  # schedule | detected | h1 | reference
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def accel(self) -> np.ndarray:
+        """Motor acceleration over torque: (jω)²·G."""
+        s2 = -(2 * np.pi * self.f_hz) ** 2
+        return self.g * (s2 if self.g.ndim == 1 else s2[:, None, None])
+
+
+# ----------------------------------------------------------------------------- experiment
+
+
+def _limit(x: np.ndarray, j: int, default: float) -> float:
+    v = float(x[j])
+    return v if math.isfinite(v) else default
+
+
+def stepped_sine_schedule(robot: Robot, opts: ElasticityOptions) -> list[dict[str, Any]]:
+    """The steps of the experiment: per joint, log-spaced frequencies, each step a dict with
+    ``joint`` (1-based), ``f_hz``, ``amplitude_rad``, ``drift_rad_s``, ``t_start``,
+    ``t_measure`` (end of settling), ``t_end`` (end of the measured whole periods), ``t_next``."""
+    if not 0 < opts.f_min_hz < opts.f_max_hz:
+        raise ConfigError(f"elasticity: need 0 < f_min ({opts.f_min_hz}) < f_max "
+                          f"({opts.f_max_hz})")
+    if opts.f_max_hz > 0.2 * opts.rate_hz:
+        raise ConfigError(f"elasticity: f_max {opts.f_max_hz:g} Hz above 20 % of the rate "
+                          f"{opts.rate_hz:g} Hz: raise --rate")
+    if opts.steps < 3:
+        raise ConfigError(f"elasticity: {opts.steps} steps is too few (at least 3)")
+    joints = opts.joints or tuple(range(1, robot.n + 1))
+    for j in joints:
+        if not 1 <= j <= robot.n:
+            raise ConfigError(f"elasticity: joint {j} not in 1..{robot.n}")
+    freqs = np.geomspace(opts.f_min_hz, opts.f_max_hz, opts.steps)
+    lim = robot.limits
+    out: list[dict[str, Any]] = []
+    t = 0.0
+    for j in joints:
+        drift = opts.drift_fraction * _limit(lim.qd_max, j - 1, 2.0)
+        acc = opts.accel_fraction * _limit(lim.qdd_max, j - 1, 10.0)
+        sign = 1.0
+        for f in freqs:
+            w = 2 * math.pi * f
+            v_amp = min(drift / opts.drift_over_sine, acc / w)
+            settle = max(opts.settle_periods / f, opts.settle_s)
+            measure = math.ceil(max(opts.measure_periods, opts.measure_s * f)) / f
+            ramp = min(0.25, settle / 2)
+            step = {"joint": int(j), "f_hz": float(f), "amplitude_rad": float(v_amp / w),
+                    "drift_rad_s": float(sign * drift), "t_start": float(t),
+                    "t_measure": float(t + settle), "t_end": float(t + settle + measure),
+                    "t_next": float(t + settle + measure + ramp)}
+            out.append(step)
+            t = step["t_next"]
+            sign = -sign
+    return out
+
+
+def _smooth_ramp(x: np.ndarray) -> np.ndarray:
+    """0 → 1 on [0, 1] with zero slope at both ends."""
+    x = np.clip(x, 0.0, 1.0)
+    return 0.5 - 0.5 * np.cos(np.pi * x)
+
+
+def elasticity_trajectory(robot: Robot, opts: ElasticityOptions) -> Trajectory:
+    """The stepped-sine trajectory (kind ``stepped_sine``), limits checked, with the schedule
+    and the options in the header (what the FRF estimation reads back)."""
+    sched = stepped_sine_schedule(robot, opts)
+    lo, hi = robot.limits.q_min, robot.limits.q_max
+    pose = (np.asarray(opts.pose, dtype=float) if opts.pose is not None else
+            np.where(np.isfinite(lo) & np.isfinite(hi), 0.5 * (lo + hi), 0.0))
+    if pose.shape != (robot.n,):
+        raise ConfigError(f"elasticity: pose needs {robot.n} values, got {pose.size}")
+    h = 1.0 / opts.rate_hz
+    t = np.arange(0.0, sched[-1]["t_next"] + 0.5 + h / 2, h)
+    q = np.tile(pose, (t.size, 1))
+    offset = np.zeros(robot.n)
+    for st in sched:
+        j = st["joint"] - 1
+        k0 = int(round(st["t_start"] / h))
+        k1 = int(round(st["t_next"] / h))
+        tt = t[k0:k1] - st["t_start"]
+        ramp = min(0.25, (st["t_measure"] - st["t_start"]) / 2)
+        t_end = st["t_end"] - st["t_start"]
+        env = _smooth_ramp(tt / ramp) * _smooth_ramp((t_end + ramp - tt) / ramp)
+        # drift velocity v·env integrated exactly enough on the grid (cumulative trapezoid)
+        vel = st["drift_rad_s"] * env
+        pos = np.concatenate(([0.0], np.cumsum(0.5 * (vel[1:] + vel[:-1]) * h)))
+        sine = st["amplitude_rad"] * env * np.sin(2 * math.pi * st["f_hz"] * tt)
+        q[k0:k1, j] = pose[j] + offset[j] + pos + sine
+        offset[j] += pos[-1] if pos.size else 0.0
+        q[k1:, j] = pose[j] + offset[j]
+    qd = np.gradient(q, h, axis=0)
+    check_limits(robot, q, qd, np.gradient(qd, h, axis=0), where="elasticity trajectory")
+    header = {"schedule": sched, "pose": pose.tolist(),
+              "elasticity": {"joints": list(opts.joints), "pairs": [list(p) for p in opts.pairs],
+                             "f_min_hz": opts.f_min_hz, "f_max_hz": opts.f_max_hz,
+                             "steps": opts.steps},
+              "limits_checked": True}
+    return Trajectory(t, q, opts.rate_hz, "stepped_sine", robot.name, header)
+
+
+# ----------------------------------------------------------------------------- estimation
+
+
+def sine_amplitudes(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Complex amplitudes X (x ≈ a + b·t + Re(X e^{jωt})) per column of ``x``, by least squares
+    on [1, t, cos, sin] (the drift's ramp removed), over the whole window and over ``blocks``
+    equal sub-windows. Returns (X (m,), X per block (blocks, m))."""
+    x = x.reshape(len(t), -1)
+    tc = t - t.mean()
+
+    def fit(sl: slice) -> np.ndarray:
+        w = 2 * math.pi * f_hz * t[sl]
+        a = np.column_stack((np.ones(w.size), tc[sl], np.cos(w), np.sin(w)))
+        coef = np.linalg.lstsq(a, x[sl], rcond=None)[0]
+        return coef[2] - 1j * coef[3]
+
+    whole = fit(slice(None))
+    edges = np.linspace(0, len(t), blocks + 1).astype(int)
+    per = np.array([fit(slice(a, b)) for a, b in zip(edges[:-1], edges[1:], strict=True)])
+    return whole, per
+
+
+def _point(t: np.ndarray, qm: np.ndarray, tau: np.ndarray, f: float, periods: float
+           ) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """(Y (m,), U (m,), coherence, snr) of one step window; blocks of whole periods."""
+    blocks = int(max(2, min(10, periods // 2)))
+    y, yb = sine_amplitudes(t, qm, f, blocks)
+    u, ub = sine_amplitudes(t, tau, f, blocks)
+    # coherence of the first channel pair from the blocks (Welch-like, 1 = noise-free)
+    sy, su = yb[:, 0], ub[:, 0]
+    coh = float(abs(np.sum(sy * su.conj())) ** 2
+                / max(np.sum(abs(sy) ** 2) * np.sum(abs(su) ** 2), 1e-300))
+    spread = float(np.std(su) / math.sqrt(blocks))
+    snr = float(abs(u[0]) / max(spread, 1e-300))
+    return y, u, coh, snr
+
+
+def frf_from_schedule(t: np.ndarray, q: np.ndarray, tau: np.ndarray,
+                      schedule: Sequence[dict[str, Any]], joints: Sequence[int],
+                      tau_model: np.ndarray | None = None) -> Frf:
+    """FRF points of ``joints`` (1-based; one joint → SISO, two → the 2×2 matrix) from the
+    steps of a known schedule. ``tau_model``: the identified rigid-body + friction torque to
+    subtract (same shape as ``tau``). Log times are those of the trajectory."""
+    cols = [j - 1 for j in joints]
+    if tau_model is not None:
+        tau = tau - tau_model
+    by_f: dict[float, list[tuple[np.ndarray, np.ndarray, float, float]]] = {}
+    for st in schedule:
+        if st["joint"] not in joints:
+            continue
+        a, b = np.searchsorted(t, [st["t_measure"], st["t_end"]])
+        if b - a < 8 or b > len(t) - 1:
+            raise DataError(f"step at {st['f_hz']:.4g} Hz of joint {st['joint']} "
+                            f"({st['t_measure']:.4g}–{st['t_end']:.4g} s) is not in the log")
+        f = float(st["f_hz"])
+        periods = (st["t_end"] - st["t_measure"]) * f
+        by_f.setdefault(round(float(st.get("f_key", f)), 9), []).append(
+            _point(t[a:b], q[a:b][:, cols], tau[a:b][:, cols], f, periods))
+    return _assemble(tuple(joints), by_f, "schedule")
+
+
+def _assemble(joints: tuple[int, ...], by_f: dict[float, list[Any]], source: str) -> Frf:
+    fs, gs, cohs, snrs = [], [], [], []
+    for f in sorted(by_f):
+        pts = by_f[f]
+        if len(joints) == 1:
+            y = np.array([p[0][0] for p in pts])
+            u = np.array([p[1][0] for p in pts])
+            g = np.sum(y * u.conj()) / np.sum(abs(u) ** 2)
+        else:
+            if len(pts) < len(joints):
+                continue  # a 2×2 FRF needs one independent input per axis
+            ym = np.column_stack([p[0] for p in pts])
+            um = np.column_stack([p[1] for p in pts])
+            g = ym @ np.linalg.pinv(um)
+        fs.append(f)
+        gs.append(g)
+        cohs.append(min(p[2] for p in pts))
+        snrs.append(min(p[3] for p in pts))
+    if not fs:
+        raise DataError(f"no steps of joint(s) {', '.join(map(str, joints))} in the log")
+    return Frf(joints, np.array(fs), np.array(gs), np.array(cohs), np.array(snrs), source)
+
+
+# ----------------------------------------------------------------------------- from the log
+
+
+def detect_steps(t: np.ndarray, q: np.ndarray, tau: np.ndarray, *,
+                 windows_s: Sequence[float] = (2.0, 0.8, 0.3), rel_tol: float = 0.03
+                 ) -> list[dict[str, Any]]:
+    """Steps of constant-frequency sinusoidal motion found in the log alone (an operator's own
+    log). Per window the dominant frequency of the summed, normalized torques; runs of windows
+    whose frequency agrees within ``rel_tol`` become steps. Windows of several lengths (a step
+    must hold ≥ 4 periods of its window; longer windows first, overlaps dropped). The first
+    40 % of each step is discarded as settling, the frequency refined on the rest. Returns
+    schedule-like dicts with ``joint`` (the joint with the largest relative torque amplitude)."""
+    fs = 1.0 / float(np.median(np.diff(t)))
+    if t[-1] - t[0] < 2 * min(windows_s):
+        raise DataError(f"log of {t[-1] - t[0]:.3g} s is too short for a stepped-sine analysis")
+    # torque (strong at the antiresonance) and motor acceleration (strong at the resonance)
+    acc = np.gradient(np.gradient(q, axis=0), axis=0)
+    x = np.column_stack((tau - tau.mean(axis=0), acc))
+    x = x / np.maximum(x.std(axis=0), 1e-300)
+    spans: list[tuple[float, float, float, float]] = []
+    for win in windows_s:
+        for t0, t1, f in _runs(t, x, fs, win, rel_tol):
+            if f * win < 4 or any(min(t1, b) - max(t0, a) > 0.3 * (t1 - t0)
+                                  for a, b, _, _ in spans):
+                continue
+            spans.append((t0, t1, f, win))
+    steps = []
+    m = tau.shape[1]
+    for t0, t1, f0, win in sorted(spans):
+        t1 -= 0.5 * win  # the last windows straddle the ramp out
+        t_meas = t0 + 0.4 * (t1 - t0)
+        sel = (t >= t_meas) & (t <= t1)
+        f = _refine(t[sel], x[sel], f0)
+        periods = math.floor((t1 - t_meas) * f)
+        if periods < 4:
+            continue
+        amps = np.abs(sine_amplitudes(t[sel], x[sel, :m], f)[0])
+        steps.append({"joint": int(np.argmax(amps)) + 1, "f_hz": f, "t_measure": float(t_meas),
+                      "t_end": float(t_meas + periods / f)})
+    if not steps:
+        raise DataError("no sinusoidal steps found in the log (no stretch of constant-frequency "
+                        "motion): is it a stepped-sine log?")
+    return steps
+
+
+def _runs(t: np.ndarray, x: np.ndarray, fs: float, win: float, rel_tol: float
+          ) -> list[tuple[float, float, float]]:
+    """(t0, t1, f) of runs of windows of length ``win`` dominated by one steady frequency."""
+    n = int(win * fs)
+    hop = max(1, n // 8)
+    nfft = 8 * n
+    freqs = np.fft.rfftfreq(nfft, 1.0 / fs)
+    han = np.hanning(n)[:, None]
+    starts = np.arange(0, max(len(t) - n, 1), hop)
+    f_win = np.zeros(starts.size)
+    good = np.zeros(starts.size, dtype=bool)
+    for i, s in enumerate(starts):
+        seg = x[s:s + n] - x[s:s + n].mean(axis=0)
+        spec = (np.abs(np.fft.rfft(seg * han, nfft, axis=0)) ** 2).sum(axis=1)
+        spec[freqs < 3.0 / win] = 0.0
+        k = int(np.argmax(spec))
+        f_win[i] = freqs[k]
+        good[i] = spec[max(k - 24, 0): k + 25].sum() > 0.8 * max(spec.sum(), 1e-300)
+    out = []
+    a = 0
+    for i in range(1, starts.size + 1):
+        if (i == starts.size or not good[i] or not good[a]
+                or abs(f_win[i] - f_win[a]) > rel_tol * f_win[a] + fs / nfft):
+            if good[a] and i - a >= 4:
+                out.append((float(t[starts[a]]), float(t[starts[i - 1] + n - 1]),
+                            float(np.median(f_win[a:i]))))
+            a = i
+    return out
+
+
+def _refine(t: np.ndarray, x: np.ndarray, f0: float) -> float:
+    """The frequency maximizing the sinusoid's projected power near f0 (golden section)."""
+    from scipy.optimize import minimize_scalar
+
+    def neg(f: float) -> float:
+        return -float(np.sum(np.abs(sine_amplitudes(t, x, f)[0]) ** 2))
+
+    span = 1.5 / (t[-1] - t[0])
+    res = minimize_scalar(neg, bounds=(f0 - span, f0 + span), method="bounded",
+                          options={"xatol": 1e-5 * f0})
+    return float(res.x)
+
+
+def frf_from_log(t: np.ndarray, q: np.ndarray, tau: np.ndarray, joints: Sequence[int],
+                 tau_model: np.ndarray | None = None) -> Frf:
+    """As :func:`frf_from_schedule`, with the steps detected in the log alone."""
+    if tau_model is not None:
+        tau = tau - tau_model
+    cols = [j - 1 for j in joints]
+    steps = detect_steps(t, q[:, cols], tau[:, cols])
+    for st in steps:
+        st["joint"] = joints[st["joint"] - 1]
+    frf = frf_from_schedule(t, q, tau, _merge_close(steps), joints)
+    frf.source = "detected"
+    return frf
+
+
+def _merge_close(steps: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Steps of two joints at the same nominal frequency share one key for the 2×2 estimate."""
+    out = sorted(steps, key=lambda s: s["f_hz"])
+    for a, b in zip(out[:-1], out[1:], strict=True):
+        if abs(b["f_hz"] - a["f_hz"]) < 0.005 * a["f_hz"]:
+            b["f_key"] = a.get("f_key", a["f_hz"])
+    return out
+
+
+# ----------------------------------------------------------------------------- broadband
+
+
+def frf_h1(u: np.ndarray, y: np.ndarray, fs: float, nperseg: int = 4096
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """H1 = S_yu/S_uu with the coherence, for sweeps and multisines (open loop, or closed loop
+    when the noise on y is small): (f, H, γ²)."""
+    import scipy.signal as sig
+
+    f, syu = sig.csd(u, y, fs=fs, nperseg=nperseg)
+    _, suu = sig.welch(u, fs=fs, nperseg=nperseg)
+    _, syy = sig.welch(y, fs=fs, nperseg=nperseg)
+    return f, syu / suu, np.abs(syu) ** 2 / np.maximum(suu * syy, 1e-300)
+
+
+def frf_reference(r: np.ndarray, u: np.ndarray, y: np.ndarray, fs: float, nperseg: int = 4096
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """G = S_yr/S_ur with the excitation r as instrument: unbiased under the position loop's
+    feedback (noise is uncorrelated with r). Returns (f, G, γ²_ur)."""
+    import scipy.signal as sig
+
+    f, syr = sig.csd(r, y, fs=fs, nperseg=nperseg)
+    _, sur = sig.csd(r, u, fs=fs, nperseg=nperseg)
+    _, srr = sig.welch(r, fs=fs, nperseg=nperseg)
+    _, suu = sig.welch(u, fs=fs, nperseg=nperseg)
+    return f, syr / sur, np.abs(sur) ** 2 / np.maximum(srr * suu, 1e-300)
+
+
+# ----------------------------------------------------------------------------- resonances
+
+
+def spectral_peaks(f: np.ndarray, spec: np.ndarray, band: np.ndarray, *,
+                   min_prominence: float = 20.0) -> tuple[float, float] | None:
+    """The highest peak of a power spectrum inside ``band`` (a mask), when it stands
+    ``min_prominence``× above the median of its ±50 % neighbourhood: (f_peak, prominence).
+    The resonance finder of the diagnosis (a residual's spectrum)."""
+    idx = np.flatnonzero(band)
+    if idx.size < 20:
+        return None
+    k = idx[int(np.argmax(spec[idx]))]
+    near = (f >= f[k] / 1.5) & (f <= f[k] * 1.5) & (np.abs(np.arange(f.size) - k) > 2)
+    if k in (idx[0], idx[-1]) or not near.any():
+        return None
+    prominence = float(spec[k] / np.median(spec[near]))
+    return (float(f[k]), prominence) if prominence > min_prominence else None

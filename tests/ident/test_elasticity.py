@@ -1,0 +1,131 @@
+"""Elasticity: two-mass fits on synthetic FRFs, bad inputs, and the closed-loop plant."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from robid_link.exceptions import DataError, EstimationError
+from robid_link.fakes.plant import Plant, Truth
+from robid_link.ident.data import Log, write_log_csv
+from robid_link.ident.elasticity import fit_two_mass, identify_elasticity, two_mass_frf
+from robid_link.ident.excitation import trajectory_states, write_trajectory
+from robid_link.ident.frequency import ElasticityOptions, Frf, detect_steps, elasticity_trajectory
+from robid_link.ident.robot import load_robot
+
+ROBOT = "examples/robots/industrial6.yaml"
+POSE = tuple(np.radians([0, 20, -90, -90, -30, 0]))  # axis 1 decoupled from the others
+TRUE = {"jm": 3.0, "k": 3.0e4, "d": 30.0}
+
+
+def _frf(f: np.ndarray, g: np.ndarray, noise: float = 0.0, seed: int = 0) -> Frf:
+    rng = np.random.default_rng(seed)
+    g = g * (1 + noise * (rng.normal(size=f.size) + 1j * rng.normal(size=f.size)))
+    return Frf((1,), f, g, np.ones(f.size), np.full(f.size, 200.0))
+
+
+def test_two_mass_fit_recovers_parameters():
+    f = np.geomspace(2, 60, 24)
+    frf = _frf(f, two_mass_frf(f, 3.0, 7.0, 3e4, 30.0), noise=0.002)
+    p = fit_two_mass(frf)
+    assert (p.jm, p.ja, p.k, p.d) == pytest.approx((3.0, 7.0, 3e4, 30.0), rel=0.01)
+    assert p.f_antires_hz == pytest.approx(math.sqrt(3e4 / 7.0) / (2 * math.pi), rel=0.01)
+    assert p.std["k"] > 0
+
+
+@pytest.mark.xfail(reason="a weak second mode (a bump of a few % on the motor side) is not yet "
+                   "detected: _extrema needs 15 %", strict=True)
+def test_second_resonance_is_flagged_not_fitted_away():
+    f = np.geomspace(2, 120, 40)
+    s = 2j * np.pi * f
+    # a third mass (5.0) on the arm behind a stiffer spring: arm impedance seen by the spring
+    z3 = (2.0 * s + 4e5) * 5.0 * s * s / (5.0 * s * s + 2.0 * s + 4e5)
+    arm = 7.0 * s * s + z3
+    z = 30.0 * s + 3e4
+    g = 1.0 / (3.0 * s * s + z - z * z / (arm + z))
+    notes: list[str] = []
+    p = fit_two_mass(_frf(f, g), notes)
+    assert any("second resonance" in n and "three-mass" in n for n in notes)
+    assert p.k == pytest.approx(3e4, rel=0.1)
+
+
+def test_missing_antiresonance_names_the_option():
+    f = np.geomspace(2, 8, 12)  # below the antiresonance (~10 Hz)
+    with pytest.raises(EstimationError, match="no antiresonance below 8 Hz: extend --f-max"):
+        fit_two_mass(_frf(f, two_mass_frf(f, 3.0, 7.0, 3e4, 30.0)))
+
+
+def test_too_few_steps_around_the_resonance():
+    f = np.array([2.0, 3.0, 4.0, 5.0, 11.0, 25.0, 60.0, 80.0])
+    with pytest.raises(EstimationError, match="raise --steps"):
+        fit_two_mass(_frf(f, two_mass_frf(f, 3.0, 7.0, 3e4, 30.0)))
+
+
+def test_log_without_sinusoids_is_refused():
+    t = np.arange(0, 10, 0.001)
+    rng = np.random.default_rng(0)
+    with pytest.raises(DataError, match="no sinusoidal steps"):
+        detect_steps(t, np.cumsum(rng.normal(size=(t.size, 1)), axis=0) * 1e-4,
+                     rng.normal(size=(t.size, 1)))
+
+
+@pytest.fixture(scope="module")
+def plant_log(tmp_path_factory):
+    """Axis 1 of the 6-axis example, elastic, closed loop, friction, noise, encoder."""
+    robot = load_robot(ROBOT)
+    effects = ({"name": "elasticity", "joint": 1, **TRUE},
+               {"name": "viscous", "fv": 3.0}, {"name": "coulomb", "fc": 2.0})
+    truth = Truth(robot.nominal, effects=effects, noise_tau=0.3, q_resolution=5e-7,
+                  mode="closed_loop", rate_hz=2000.0, controller={"rate_hz": 2000.0})
+    traj = elasticity_trajectory(robot, ElasticityOptions(joints=(1,), pose=POSE, steps=14,
+                                                          f_min_hz=3.0))
+    plant = Plant(robot, truth)
+    log = plant.run(*trajectory_states(traj, 2000.0), seed=1)
+    tmp = tmp_path_factory.mktemp("elast")
+    write_log_csv(tmp / "log.csv", log["t"], log["q"], log["tau"])
+    write_trajectory(tmp / "traj.csv", traj)
+    ja = plant.elastic_truth(np.array(POSE))[1]["ja"]
+    return robot, traj, log, tmp, ja
+
+
+def test_plant_axis_within_one_percent(plant_log):
+    robot, traj, log, _, ja = plant_log
+    res = identify_elasticity(robot, [Log("sim", log["t"], log["q"], log["tau"])], joints=[1],
+                              schedule=traj.header["schedule"])
+    p = res.joints[0]
+    assert p.jm == pytest.approx(TRUE["jm"], rel=0.01)
+    assert p.ja == pytest.approx(ja, rel=0.01)
+    assert p.k == pytest.approx(TRUE["k"], rel=0.01)
+    assert p.d == pytest.approx(TRUE["d"], rel=0.02)
+
+
+def test_cli_elasticity_json_and_figure(plant_log):
+    from robid_link.cli import main
+
+    _, _, _, tmp, ja = plant_log
+    rc = main(["elasticity", "--robot", ROBOT, "--data", str(tmp / "log.csv"), "--joint", "1",
+               "--schedule", str(tmp / "traj.yaml"), "--json", str(tmp / "e.json"),
+               "--out", str(tmp / "figs")])
+    assert rc == 0
+    doc = json.loads((tmp / "e.json").read_text())
+    j = doc["joints"][0]
+    assert j["joint"] == 1 and set(j["std"]) == {"jm", "ja", "k", "d"}
+    assert j["k"] == pytest.approx(TRUE["k"], rel=0.01)
+    assert (tmp / "figs" / "elasticity_1.png").is_file()
+
+
+def test_cli_excite_elasticity_header(tmp_path):
+    from robid_link.cli import main
+    from robid_link.ident.excitation import read_trajectory
+
+    out = tmp_path / "traj.csv"
+    assert main(["excite", "--robot", ROBOT, "--kind", "elasticity", "--joint", "2",
+                 "--steps", "6", "--out", str(out)]) == 0
+    traj = read_trajectory(out)
+    assert traj.kind == "stepped_sine" and traj.rate_hz == 2000.0
+    sched = traj.header["schedule"]
+    assert len(sched) == 6 and {s["joint"] for s in sched} == {2}
+    assert sched[0]["f_hz"] == pytest.approx(2.0) and sched[-1]["f_hz"] == pytest.approx(60.0)
