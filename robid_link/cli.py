@@ -127,7 +127,8 @@ def _parser() -> argparse.ArgumentParser:
                         "header)")
     p.add_argument("--joint", type=bounded_int(1, 64), action="append", default=[], metavar="J",
                    help="elasticity: axis to excite (1-based); repeatable; default all")
-    p.add_argument("--pose", type=finite_float, nargs="+", metavar="DEG", help="elasticity: the pose")
+    p.add_argument("--pose", type=finite_float, nargs="+", metavar="DEG",
+                   help="elasticity: the pose (degrees per joint)")
     p.add_argument("--f-min", type=positive_float(1000.0), default=2.0, metavar="HZ",
                    help="elasticity: lowest frequency (default 2)")
     p.add_argument("--f-max", type=positive_float(1000.0), default=60.0, metavar="HZ",
