@@ -51,6 +51,9 @@ from robid_link.link.driver import CAP_UPLOAD, Done, Driver, MotionProgram, Robo
 __all__ = ["CanopenDrivesDriver", "log_bytes"]
 
 log = logging.getLogger("robid.driver.canopen")
+# python-can's socketcand client warns at every frame split across two TCP reads, which a
+# stream does all the time; it recovers the frame, so this is not worth a line per SYNC
+logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
 
 _INT32 = 2**31 - 1
 

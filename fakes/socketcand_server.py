@@ -21,7 +21,7 @@ __all__ = ["SocketcandServer", "frame_line", "parse_send"]
 log = logging.getLogger("robid.fake_controller")
 
 #: the client reads its two ``< ok >`` answers with one recv each: frames to a new client wait
-#: this long after the raw-mode answer, so no frame lands in the same read as that answer
+#: until it sends its first frame (it has read the answer then), or this long after the answer
 _SETTLE_S = 0.2
 
 
@@ -165,6 +165,7 @@ class SocketcandServer:
 
     def _command(self, client: _Client, body: str, opened: bool) -> bool:
         if body.startswith("send ") and client.raw_since is not None:
+            client.raw_since = min(client.raw_since, time.monotonic())
             try:
                 msg = parse_send(body)
             except ValueError as err:
