@@ -169,6 +169,8 @@ class Cia402Peer(Peer):
     """
 
     driver = "canopen_drives"
+    #: the contract suite runs over the in-process virtual bus and over socketcand on loopback
+    contract_variants = ({}, {"interface": "socketcand"})
     faults = ("drive_fault", "no_boot", "heartbeat_loss", "following_error", "dropped_frames")
     unsupported = {
         "never_answer": "the daemon streams every setpoint itself: a drive that does not "
