@@ -8,12 +8,10 @@ setpoint per SYNC and records the drives' answers as the experiment's log (CSV +
 from __future__ import annotations
 
 import asyncio
-import copy
 import hashlib
 import logging
 import math
 import os
-import queue
 import struct
 import tempfile
 import threading
@@ -44,81 +42,20 @@ from robid_link.drivers.cia402 import (
     drive_state,
     error_words,
 )
+from robid_link.drivers.cia402_feedforward import TorqueFeedforward
 from robid_link.drivers.cia402_master import Axis, Job, SyncMaster, quintic, ramp_to_rest
+from robid_link.drivers.cia402_record import BlfTap, log_bytes
 from robid_link.exceptions import ConfigError, DriverError
-from robid_link.link.driver import Done, Driver, MotionProgram, RobotInfo
+from robid_link.link.driver import CAP_UPLOAD, Done, Driver, MotionProgram, RobotInfo
 
 __all__ = ["CanopenDrivesDriver", "log_bytes"]
 
 log = logging.getLogger("robid.driver.canopen")
+# python-can's socketcand client warns at every frame split across two TCP reads, which a
+# stream does all the time; it recovers the frame, so this is not worth a line per SYNC
+logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
 
 _INT32 = 2**31 - 1
-
-
-def log_bytes(job: Job, axes: Sequence[Axis]) -> bytes:
-    """The recorded samples as the project's CSV log (``t,q1..qn,tau1..taun``, rad and N·m)."""
-    n = len(axes)
-    head = ",".join(["t"] + [f"q{j}" for j in range(1, n + 1)]
-                    + [f"tau{j}" for j in range(1, n + 1)])
-    cpr = [a.counts_per_rad for a in axes]
-    scale = [a.rated_torque_nm / 1000.0 for a in axes]
-    lines = [head]
-    for t, pos, tq in job.rows:
-        cells = [f"{t:.6f}"] + [f"{p / c:.10g}" for p, c in zip(pos, cpr, strict=True)]
-        cells += [f"{x * s:.10g}" for x, s in zip(tq, scale, strict=True)]
-        lines.append(",".join(cells))
-    return ("\n".join(lines) + "\n").encode()
-
-
-class _Tap(can.Listener):
-    """Every frame of an experiment, both directions, into its BLF file, written off the
-    motion master's thread (python-can's BLFWriter compresses in chunks)."""
-
-    def __init__(self) -> None:
-        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
-        self._writer: can.BLFWriter | None = None
-        self._thread = threading.Thread(target=self._run, name="canopen-blf", daemon=True)
-        self._thread.start()
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if self._writer is not None:
-            self._queue.put(msg)
-
-    def begin(self, path: Path) -> None:
-        self._queue.put(("begin", path))
-
-    def end(self) -> Future[None]:
-        fut: Future[None] = Future()
-        self._queue.put(("end", fut))
-        return fut
-
-    def stop(self) -> None:
-        self._queue.put(("quit", None))
-        self._thread.join(5.0)
-
-    def _run(self) -> None:
-        writer: can.BLFWriter | None = None
-        while True:
-            item = self._queue.get()
-            if isinstance(item, can.Message):
-                if writer is not None:
-                    frame = copy.copy(item)
-                    frame.channel = 1  # BLF numbers its channels
-                    try:
-                        writer.on_message_received(frame)
-                    except (struct.error, ValueError, OSError) as err:
-                        log.warning("BLF: frame not written (%s)", err)
-                continue
-            kind, arg = item
-            if writer is not None and kind in ("begin", "end", "quit"):
-                writer.stop()
-                writer = self._writer = None
-            if kind == "begin":
-                writer = self._writer = can.BLFWriter(str(arg))
-            elif kind == "end":
-                arg.set_result(None)
-            else:
-                return
 
 
 def _number(key: str, value: Any, *, low: float = 0.0, high: float = math.inf) -> float:
@@ -140,17 +77,24 @@ def _vector(key: str, value: Any) -> tuple[float, ...] | None:
 class CanopenDrivesDriver(Driver):
     """One CiA 402 drive per joint; the daemon streams the trajectory (see module docstring).
 
-    Options: ``interface``, ``channel``, ``bitrate`` (python-can bus), ``nodes`` (node id per
+    Options: ``interface``, ``channel``, ``bitrate`` (python-can bus; ``host`` and ``port``
+    of the server with ``interface: socketcand``), ``nodes`` (node id per
     joint), ``sync_period_s`` (≥ 1 ms), ``counts_per_rad`` and ``rated_torque_nm`` (per joint:
     encoder counts per joint radian — per metre for prismatic joints — and the joint torque of
     1000 per mille; default from 0x6076), ``eds``, ``record_dir`` (logs and BLF files),
     ``following_error_rad``, ``heartbeat_ms``, ``heartbeat_timeout_s``, ``boot_timeout_s``,
     ``state_timeout_s``, ``settle_timeout_s``, ``standstill_rad_s``, ``max_missed``,
-    ``overrun_streak``, ``max_approach_rad``, ``bus_options`` (extra python-can arguments).
+    ``overrun_streak``, ``max_approach_rad``, ``bus_options`` (extra python-can arguments),
+    ``robot_file`` (the robot description: the feedforward's inverse dynamics needs it).
+
+    An uploaded parameter set is the driver's own feedforward: every setpoint carries the set's
+    model torque as torque offset 0x60B2 (see ``cia402_feedforward``).
     """
 
     name = "canopen_drives"
-    options = frozenset({"interface", "channel", "bitrate", "nodes", "sync_period_s",
+    capabilities = frozenset({CAP_UPLOAD})
+    options = frozenset({"interface", "channel", "bitrate", "host", "port", "robot_file",
+                         "nodes", "sync_period_s",
                          "counts_per_rad", "rated_torque_nm", "eds", "record_dir",
                          "following_error_rad", "heartbeat_ms", "heartbeat_timeout_s",
                          "boot_timeout_s", "state_timeout_s", "settle_timeout_s",
@@ -166,12 +110,14 @@ class CanopenDrivesDriver(Driver):
                  boot_timeout_s: float = 2.0, state_timeout_s: float = 0.5,
                  settle_timeout_s: float = 2.0, standstill_rad_s: float = 0.01,
                  max_missed: int = 3, overrun_streak: int = 5, max_approach_rad: float = 1.0,
-                 bus_options: dict[str, Any] | None = None) -> None:
+                 bus_options: dict[str, Any] | None = None, host: str | None = None,
+                 port: int | None = None, robot_file: str | None = None) -> None:
         super().__init__()
         for key, val in (("interface", interface), ("channel", channel)):
             if not isinstance(val, str) or not val:
                 raise ConfigError(f"driver.{key}: expected a name, got {val!r}")
         self.interface, self.channel = interface, channel
+        self.server = _server(interface, host, port)
         self.bitrate = int(_number("bitrate", bitrate, low=10_000, high=1_000_000))
         if not isinstance(nodes, list | tuple) or not nodes:
             raise ConfigError("driver.nodes: expected a list of node ids, one per joint")
@@ -210,10 +156,15 @@ class CanopenDrivesDriver(Driver):
         if bus_options is not None and not isinstance(bus_options, dict):
             raise ConfigError("driver.bus_options: expected a mapping of python-can arguments")
         self.bus_options = dict(bus_options or {})
+        if robot_file is not None and (not isinstance(robot_file, str)
+                                       or not Path(robot_file).is_file()):
+            raise ConfigError(f"driver.robot_file: {robot_file!r}: file not found")
+        self.robot_file = robot_file
+        self.feedforward: TorqueFeedforward | None = None
         self.network: canopen.Network | None = None
         self.axes: list[Axis] = []
         self.master: SyncMaster | None = None
-        self._tap: _Tap | None = None
+        self._tap: BlfTap | None = None
         self._writer: ThreadPoolExecutor | None = None
         self._programs: dict[str, tuple[np.ndarray, float]] = {}
         self._jobs: dict[tuple[str, str], Job] = {}
@@ -242,6 +193,10 @@ class CanopenDrivesDriver(Driver):
         if self.robot is None:
             raise DriverError(f"{self.name}: no robot bound (bind_robot before open)")
         self.record_dir.mkdir(parents=True, exist_ok=True)
+        self.feedforward = TorqueFeedforward(self.robot_file, self.robot.joint_names,
+                                             self.record_dir / "parameters.json")
+        if self.robot_file is not None:
+            await asyncio.to_thread(self.feedforward.restore)
         try:
             await asyncio.to_thread(self._bring_up)
         except BaseException:
@@ -253,13 +208,13 @@ class CanopenDrivesDriver(Driver):
         assert self.robot is not None and self.counts_per_rad is not None
         try:
             bus = can.Bus(interface=self.interface, channel=self.channel, bitrate=self.bitrate,
-                          **self.bus_options)
+                          **self.server, **self.bus_options)
         except (can.CanError, OSError, ValueError, ImportError) as err:
             raise DriverError(f"driver.channel: cannot open CAN channel {self.channel} on "
                               f"{self.interface} ({err})") from err
         self.network = net = canopen.Network(bus)
         net.connect()
-        self._tap = _Tap()
+        self._tap = BlfTap()
         assert net.notifier is not None
         net.notifier.add_listener(self._tap)
         self._writer = ThreadPoolExecutor(1, thread_name_prefix="ThreadPoolExecutor-canopen")
@@ -379,7 +334,7 @@ class CanopenDrivesDriver(Driver):
             self.network.bus, self.axes, self.period, heartbeat_timeout_s=self.hb_timeout,
             max_missed=self.max_missed, overrun_streak=self.overrun_streak,
             standstill_rad_s=self.standstill, decel_rad_s2=0.5 * qdd, on_end=self._job_ended,
-            tap=self._tap.on_message_received)
+            tap=self._tap.on_message_received, send_lock=self.network.send_lock)
         net = self.network
         for i, a in enumerate(self.axes):
             net.subscribe(0x180 + a.node, lambda _c, d, _t, i=i: master.on_tpdo1(i, d))
@@ -479,7 +434,10 @@ class CanopenDrivesDriver(Driver):
                               "restarts with the cause cleared")
         if exp_id not in self._programs:
             raise DriverError(f"experiment {exp_id}: no program put before give")
-        job = self._job(exp_id, nonce, master)
+        # the feedforward of a whole program is numerical work: off the loop
+        job = await asyncio.to_thread(self._job, exp_id, nonce, master)
+        if (exp_id, nonce) in self._jobs:
+            return
         assert self._tap is not None
         self._tap.begin(self.record_dir / f"{exp_id}.{nonce}.blf")
         try:
@@ -508,8 +466,12 @@ class CanopenDrivesDriver(Driver):
         cap_a = 0.5 * np.array([x if math.isfinite(x) else 2.0 for x in self.robot.qdd_max])
         approach = np.rint(quintic(here, start, cap_v, cap_a, self.period) * cpr)
         targets = np.vstack([approach.astype(np.int64), counts])
+        offsets = None
+        if self.feedforward is not None:
+            offsets = self.feedforward.offsets(targets, cpr, [a.rated_torque_nm
+                                                              for a in self.axes], self.period)
         return Job(exp_id, nonce, targets, len(approach), t0, self.period,
-                   self.settle_timeout + 0.0)
+                   self.settle_timeout + 0.0, offsets)
 
     def _job_ended(self, job: Job) -> None:
         """From the master thread: write the log (or what was captured) off that thread."""
@@ -559,6 +521,14 @@ class CanopenDrivesDriver(Driver):
         except FileNotFoundError as err:
             raise DriverError(f"{path}: recorded log missing") from err
 
+    async def _upload_parameters(self, doc: Any, body: bytes) -> None:
+        """The set becomes this driver's feedforward (the daemon is the motion master, so its
+        acknowledgement is the driver's own): checked, saved to ``record_dir``, used from the
+        next experiment given on. A refused set leaves the previous one in use."""
+        if self.feedforward is None:
+            raise DriverError(f"{self.name}: not open")
+        await asyncio.to_thread(self.feedforward.load, body)
+
     async def _withdraw(self, exp_id: str, nonce: str) -> None:
         job = self._jobs.get((exp_id, nonce))
         master = self.master
@@ -566,6 +536,23 @@ class CanopenDrivesDriver(Driver):
             return
         master.request_rest(then="hold", reason="withdrawn")
         await asyncio.to_thread(master.idle.wait, 10.0)
+
+
+def _server(interface: str, host: Any, port: Any) -> dict[str, Any]:
+    """python-can's socketcand arguments (``host``, ``port``), only with that interface."""
+    if interface != "socketcand":
+        for key, val in (("host", host), ("port", port)):
+            if val is not None:
+                raise ConfigError(f"driver.{key}: only for interface socketcand (a socketcand "
+                                  f"server), not {interface}")
+        return {}
+    if not isinstance(host, str) or not host:
+        raise ConfigError(f"driver.host: expected the socketcand server's host name or "
+                          f"address, got {host!r}")
+    if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
+        raise ConfigError(f"driver.port: expected the socketcand server's TCP port "
+                          f"(1..65535), got {port!r}")
+    return {"host": host, "port": port, "tcp_tune": True}  # TCP_NODELAY: no Nagle delay
 
 
 async def _wait_future(fut: Future[Any]) -> Any:

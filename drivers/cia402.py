@@ -27,7 +27,7 @@ SYNC_ID = 0x80
 NMT_START, NMT_PRE_OPERATIONAL, NMT_RESET_COMM = 0x01, 0x80, 0x82
 
 # robid's PDO layout: one RPDO and two TPDOs per drive, all synchronous (transmission type 1)
-RPDO1 = struct.Struct("<Hi")  # controlword 0x6040, target position 0x607A
+RPDO1 = struct.Struct("<Hih")  # controlword 0x6040, target position 0x607A, torque offset 0x60B2
 TPDO1 = struct.Struct("<Hih")  # statusword 0x6041, position actual 0x6064, torque actual 0x6077
 TPDO2 = struct.Struct("<iH")  # velocity actual 0x606C, error code 0x603F
 
@@ -37,7 +37,7 @@ def pdo_entry(index: int, subindex: int, bits: int) -> int:
     return (index << 16) | (subindex << 8) | bits
 
 
-RPDO1_MAP = (pdo_entry(0x6040, 0, 16), pdo_entry(0x607A, 0, 32))
+RPDO1_MAP = (pdo_entry(0x6040, 0, 16), pdo_entry(0x607A, 0, 32), pdo_entry(0x60B2, 0, 16))
 TPDO1_MAP = (pdo_entry(0x6041, 0, 16), pdo_entry(0x6064, 0, 32), pdo_entry(0x6077, 0, 16))
 TPDO2_MAP = (pdo_entry(0x606C, 0, 32), pdo_entry(0x603F, 0, 16))
 
@@ -67,7 +67,7 @@ _ERRORS = {
     0x6010: "software reset (watchdog)", 0x7121: "motor blocked",
     0x7305: "incremental sensor 1 fault", 0x7500: "communication error",
     0x8110: "CAN overrun (frames lost)", 0x8120: "CAN in error passive mode",
-    0x8130: "life guard or heartbeat error", 0x8140: "recovered from bus-off",
+    0x8130: "life guard or heartbeat error (master lost)", 0x8140: "recovered from bus-off",
     0x8611: "following error", 0x8612: "reference limit", 0xFF00: "manufacturer-specific",
 }
 _CLASSES = {0x1: "generic", 0x2: "current", 0x3: "voltage", 0x4: "temperature",

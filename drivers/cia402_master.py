@@ -70,6 +70,7 @@ class Job:
     t0: float
     period: float
     settle_timeout_s: float
+    offsets: np.ndarray | None = None  # (N, n) torque offsets 0x60B2, per mille; None: zero
     rows: list[tuple[float, tuple[int, ...], tuple[int, ...]]] = field(default_factory=list)
     k: int = 0
     sync0: int | None = None
@@ -124,8 +125,12 @@ class SyncMaster:
     def __init__(self, bus: can.BusABC, axes: Sequence[Axis], period: float, *,
                  heartbeat_timeout_s: float, max_missed: int, overrun_streak: int,
                  standstill_rad_s: float, decel_rad_s2: np.ndarray,
-                 on_end: Callable[[Job], None], tap: Callable[[can.Message], None]) -> None:
+                 on_end: Callable[[Job], None], tap: Callable[[can.Message], None],
+                 send_lock: threading.Lock | None = None) -> None:
         self.bus, self.axes, self.period = bus, list(axes), period
+        # one frame at a time on the bus: SDO and NMT go out from other threads (a socketcand
+        # client writes each frame to one TCP stream)
+        self.send_lock = send_lock or threading.Lock()
         self.heartbeat_timeout_s, self.max_missed = heartbeat_timeout_s, max_missed
         self.overrun_streak, self.on_end, self.tap = overrun_streak, on_end, tap
         cpr = np.array([a.counts_per_rad for a in axes])
@@ -136,6 +141,7 @@ class SyncMaster:
         self.hold = np.zeros(len(axes), dtype=np.int64)
         self.cmd = self.hold.copy()
         self.cmd_prev = self.hold.copy()
+        self.offset = np.zeros(len(axes), dtype=np.int64)  # kept after a job: no torque step
         self.job: Job | None = None
         self.ramp: np.ndarray | None = None
         self.ramp_then = "hold"
@@ -340,22 +346,28 @@ class SyncMaster:
                                 "trajectory ended")
 
     def _send(self, cw: int, target: np.ndarray) -> None:
-        if self.mode == "job" and self.job is not None and self.job.k < len(self.job.targets):
-            self.job.k += 1
+        job = self.job
+        if self.mode == "job" and job is not None and job.k < len(job.targets):
+            if job.offsets is not None:
+                self.offset = job.offsets[job.k]
+            job.k += 1
         self.cmd_prev, self.cmd = self.cmd, np.asarray(target, dtype=np.int64)
         stamp = time.time()
         try:
             for a in self.axes:
+                j = a.joint - 1
                 msg = can.Message(arbitration_id=0x200 + a.node, is_extended_id=False,
-                                  data=RPDO1.pack(cw, int(self.cmd[a.joint - 1])),
+                                  data=RPDO1.pack(cw, int(self.cmd[j]), int(self.offset[j])),
                                   timestamp=stamp, is_rx=False)
-                self.bus.send(msg)
+                with self.send_lock:
+                    self.bus.send(msg)
                 self.tap(msg)
             sync = can.Message(arbitration_id=SYNC_ID, is_extended_id=False, data=b"",
                                timestamp=stamp, is_rx=False)
-            self.bus.send(sync)
+            with self.send_lock:
+                self.bus.send(sync)
             self.tap(sync)
-        except can.CanError as err:
+        except (can.CanError, OSError) as err:  # socketcand: a lost TCP link
             if self.mode != "halted":
                 raise _Stop(None, f"CAN bus error ({err}): bus-off or no bus") from err
             return

@@ -1,6 +1,7 @@
-"""Fake CiA 402 drives on a CAN bus (python-can's virtual bus by default): one
-``canopen.LocalNode`` per joint with the shipped EDS, the power state machine, and TPDOs
-answering each SYNC from the simulated robot following the streamed setpoints.
+"""Fake CiA 402 drives on a CAN bus (python-can's virtual bus, served over socketcand on
+loopback when the daemon is another process): one ``canopen.LocalNode`` per joint with the
+shipped EDS, the power state machine, and TPDOs answering each SYNC from the simulated robot
+following the streamed setpoints. Drives that lose the master's SYNC quick-stop by themselves.
 
 The axis follows its targets with a three-SYNC lag (its position loop); velocity and
 acceleration come from a seven-point local fit, as a drive's observer would estimate them; the
@@ -13,6 +14,8 @@ import collections
 import logging
 import math
 import struct
+import threading
+import time
 import uuid
 from importlib import resources
 from pathlib import Path
@@ -30,7 +33,9 @@ from robid_link.drivers.cia402 import (
     SYNC_ID,
     error_words,
 )
+from robid_link.exceptions import RobidError
 from robid_link.fakes.controller import ControllerCore, Peer
+from robid_link.fakes.socketcand_server import SocketcandServer
 
 __all__ = ["Cia402Peer", "EDS"]
 
@@ -45,6 +50,7 @@ _STATUS = {"Switch on disabled": 0x0240, "Ready to switch on": 0x0231,
            "Switched on": 0x0233, "Operation enabled": 0x0237,
            "Quick stop active": 0x0217, "Fault": 0x0208}
 _FAULT_CODE = 0x2310  # continuous over-current
+_MASTER_LOST = 0x8130  # life guard or heartbeat error: here, no SYNC from the master
 
 
 class _Drive:
@@ -61,6 +67,7 @@ class _Drive:
         self.silent = self.frozen = False
         self.drop_until = -1
         self.decel = 1.0  # rad/s², from 0x6085
+        self.received: list[tuple[int, int, int]] = []  # per SYNC: k, target, torque offset
         self._put(0x1018, 4, joint, "<I")
         self._put(0x6076, 0, round(rated_nm * 1000 / 1), "<I")  # mN·m of 1000 per mille
         self._status()
@@ -130,6 +137,12 @@ class _Drive:
             self.node.set_data(index, sub, data[at: at + bits // 8])
             at += bits // 8
 
+    def record(self, k: int) -> None:
+        """What this SYNC's setpoint was (the torque offset is kept for tests: the fake's
+        position loop is ideal, the plant's inverse dynamics, so it needs no feedforward)."""
+        if self.state == "Operation enabled":
+            self.received.append((k, self._get(0x607A, 0, "<i"), self._get(0x60B2, 0, "<h")))
+
     def target(self) -> float:
         return self._get(0x607A, 0, "<i") / self.cpr
 
@@ -145,13 +158,19 @@ class _Drive:
 class Cia402Peer(Peer):
     """The drives of one robot (node ids 1..n) on a CAN bus, over a ``ControllerCore``.
 
-    Options: ``interface`` and ``channel`` (python-can; default a fresh virtual channel),
-    ``sync_period_s`` (default 1/truth.rate_hz), ``fault_node`` (joint number the faults hit),
-    ``fault_after_s`` (into the motion). A run starts with the first moving setpoint after a
-    rest of ten SYNCs; the core's fault schedule is consumed per run.
+    Options: ``interface``: ``virtual`` (the daemon in this process) or ``socketcand`` (a
+    virtual bus served over socketcand on 127.0.0.1:``port``, 0 = a free one; the default when
+    the peer is its own process, ``robid fake-controller``), ``channel`` (default a fresh
+    virtual channel), ``sync_period_s`` (default 1/truth.rate_hz, at least 4 ms over
+    socketcand), ``sync_timeout_s`` (no SYNC that long while enabled: quick stop),
+    ``fault_node`` (joint number the faults hit), ``fault_after_s`` (into the motion). A run
+    starts with the first moving setpoint after a rest of ten SYNCs; the core's fault schedule
+    is consumed per run.
     """
 
     driver = "canopen_drives"
+    #: the contract suite runs over the in-process virtual bus and over socketcand on loopback
+    contract_variants = ({}, {"interface": "socketcand"})
     faults = ("drive_fault", "no_boot", "heartbeat_loss", "following_error", "dropped_frames")
     unsupported = {
         "never_answer": "the daemon streams every setpoint itself: a drive that does not "
@@ -166,15 +185,31 @@ class Cia402Peer(Peer):
         "nan_log": "PDO values are integers (counts, per mille): no NaN on the bus",
     }
 
-    def __init__(self, core: ControllerCore, workdir: Path, *, interface: str = "virtual",
-                 channel: str | None = None, sync_period_s: float | None = None,
-                 fault_node: int | None = None, fault_after_s: float = 0.2) -> None:
+    def __init__(self, core: ControllerCore, workdir: Path, *, interface: str | None = None,
+                 channel: str | None = None, port: int = 0, sync_period_s: float | None = None,
+                 sync_timeout_s: float | None = None, fault_node: int | None = None,
+                 fault_after_s: float = 0.2) -> None:
         super().__init__(core, workdir)
         robot = core.robot
         self.n = robot.n
-        self.interface = interface
+        # a peer in its own process (exit_on_die: the CLI) must be reachable from another one
+        self.interface = interface or ("socketcand" if core.exit_on_die else "virtual")
+        if self.interface not in ("virtual", "socketcand"):
+            raise RobidError(f"--option interface: expected virtual or socketcand, got "
+                             f"{self.interface!r}")
         self.channel = channel or f"robid-cia402-{uuid.uuid4().hex[:8]}"
-        self.period = float(sync_period_s or max(0.001, 1.0 / core.rate_hz))
+        self.port = port
+        self.server: SocketcandServer | None = None
+        floor = 0.004 if self.interface == "socketcand" else 0.001
+        self.period = float(sync_period_s or max(floor, 1.0 / core.rate_hz))
+        # lenient by default: a loaded test host, and in-process one GIL with the master
+        self.sync_timeout = float(sync_timeout_s or (1.0 if self.interface == "socketcand"
+                                                     else 2.0))
+        self.last_sync = math.inf  # no SYNC yet: nothing to supervise
+        self.lock = threading.Lock()  # SYNC handling (notifier) and the supervisor
+        self._quit = threading.Event()
+        self._watch: threading.Thread | None = None
+        self.master_lost = 0  # how many times the drives quick-stopped for a lost master
         self.cpr = [2**20 / (2 * math.pi)] * self.n
         tau = [float(x) if math.isfinite(x) else 100.0 for x in robot.limits.tau_max]
         self.rated = [t / 3.0 for t in tau]  # peak ≈ 3 × rated, as servo drives are sized
@@ -194,8 +229,13 @@ class Cia402Peer(Peer):
         self.delay_buf = collections.deque(maxlen=max(1, round(delay / self.period) + 1))
 
     def driver_options(self) -> dict[str, Any]:
-        return {"name": "canopen_drives", "interface": self.interface, "channel": self.channel,
-                "bitrate": 1_000_000, "nodes": [d.id for d in self.drives],
+        bus: dict[str, Any] = {"interface": self.interface, "channel": self.channel}
+        if self.server is not None:
+            bus.update(channel="can0", host="127.0.0.1", port=self.server.port)
+        source = Path(self.core.robot.source)
+        robot_file = {"robot_file": str(source.resolve())} if source.is_file() else {}
+        return {"name": "canopen_drives", **bus, **robot_file, "bitrate": 1_000_000,
+                "nodes": [d.id for d in self.drives],
                 "sync_period_s": self.period, "counts_per_rad": self.cpr,
                 "rated_torque_nm": self.rated, "eds": str(EDS),
                 "record_dir": str(self.workdir / "records"),
@@ -209,7 +249,7 @@ class Cia402Peer(Peer):
     def start(self) -> None:
         if self.network is not None:
             return
-        bus = can.Bus(interface=self.interface, channel=self.channel)
+        bus = can.Bus(interface="virtual", channel=self.channel)
         self.network = net = canopen.Network(bus)
         for d in self.drives:
             if self.core.fault == "no_boot" and d.joint == self.fault_joint:
@@ -222,12 +262,28 @@ class Cia402Peer(Peer):
         for d in self.drives:
             if d.node.has_network():
                 self._boot(d)
+        if self.interface == "socketcand":
+            self.server = SocketcandServer(can.Bus(interface="virtual", channel=self.channel),
+                                           "can0", self.port)
+            self.server.start()
+        self._quit.clear()
+        self._watch = threading.Thread(target=self._watch_loop, name="cia402-sync-watch",
+                                       daemon=True)
+        self._watch.start()
 
     def _boot(self, d: _Drive) -> None:
         d.node.nmt.send_command(NMT_RESET_COMM)  # boot-up message
         d.node.nmt.send_command(NMT_PRE_OPERATIONAL)  # heartbeat producer starts (0x1017)
 
     def stop(self) -> None:
+        self._quit.set()
+        if self._watch is not None:
+            self._watch.join(5.0)
+            self._watch = None
+        server, self.server = self.server, None
+        if server is not None:
+            server.stop()
+            server.bus.shutdown()
         net, self.network = self.network, None
         if net is not None:
             for d in self.drives:
@@ -253,15 +309,18 @@ class Cia402Peer(Peer):
     # -- one SYNC: setpoints take effect, the robot moves, the drives report
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         try:
-            self._sync()
+            with self.lock:
+                self.last_sync = time.monotonic()
+                self._sync()
         except Exception:  # a bug in the fake must show, not kill the notifier quietly
             log.exception("fake drives: SYNC handling failed")
             raise
 
-    def _sync(self) -> None:
+    def _sync(self, send: bool = True) -> None:
         self.k += 1
         for d in self.drives:
             d.apply_rpdo()
+            d.record(self.k)
         cmd = self._commands()
         self._runs(cmd)
         self.hist = np.vstack([self.hist[1:], cmd])
@@ -275,7 +334,42 @@ class Cia402Peer(Peer):
             d._put(0x606C, 0, int(round(qd[j] * d.cpr)), "<i")
             d._put(0x6077, 0, int(np.clip(round(tau[j] / d.rated_nm * 1000), -32767, 32767)),
                    "<h")
-            d.send_tpdos(self.k, twice)
+            if send:
+                d.send_tpdos(self.k, twice)
+
+    # -- the master lost: what a drive's SYNC supervision does
+    def _watch_loop(self) -> None:
+        while not self._quit.wait(min(0.05, self.sync_timeout / 4)):
+            with self.lock:
+                silent = time.monotonic() - self.last_sync
+                enabled = [d for d in self.drives if d.state == "Operation enabled"]
+                if silent <= self.sync_timeout or not enabled:
+                    continue
+                self.last_sync = math.inf
+                self.master_lost += 1
+                log.warning("fake drives: no SYNC from the master for %.3g s: quick stop on "
+                            "nodes %s (%s)", silent, [d.id for d in enabled],
+                            error_words(_MASTER_LOST))
+                for d in enabled:
+                    d.state = "Quick stop active"
+                    d._status()
+                    if not d.silent:
+                        d.node.network.send_message(0x80 + d.id,
+                                                    struct.pack("<HB5x", _MASTER_LOST, 0x11))
+            self._brake()
+
+    def _brake(self) -> None:
+        """The quick-stop ramp on the drives' own clock (no SYNC comes to pace it)."""
+        v0 = np.abs(self.hist[-1] - self.hist[-2]) / self.period
+        for _ in range(100_000):
+            with self.lock:
+                if not any(d.state == "Quick stop active" for d in self.drives):
+                    break
+                self._sync(send=False)
+            if self._quit.wait(self.period):
+                return
+        log.warning("fake drives: at rest after the quick stop (from %s rad/s), now %s",
+                    np.array2string(v0, precision=3), sorted(set(self.states().values())))
 
     def _commands(self) -> np.ndarray:
         last, prev = self.hist[-1], self.hist[-2]
@@ -338,4 +432,9 @@ class Cia402Peer(Peer):
     def states(self) -> dict[int, str]:
         """Each node's power state (tests)."""
         return {d.id: d.state for d in self.drives}
+
+    def velocity(self) -> np.ndarray:
+        """The axes' last velocity in rad/s (tests)."""
+        with self.lock:
+            return (self.hist[-1] - self.hist[-2]) / self.period
 
