@@ -426,19 +426,21 @@ class Plant:
         n = self.robot.n
         wn = float(ctrl.get("bandwidth_hz", 8.0)) * 2 * math.pi
         kp, kd, ki = 3 * wn * wn, 3 * wn, wn**3  # PID with a triple pole at the bandwidth
-        inertials = self.robot.nominal
-        if feedforward is not None and feedforward.inertials is not None:
-            inertials = feedforward.inertials
-        nominal = (self.robot.model.copy() if inertials is None
-                   else _with_inertials(self.robot.model, inertials))
+        nominal = (self.robot.model.copy() if self.robot.nominal is None
+                   else _with_inertials(self.robot.model, self.robot.nominal))
         ndata = nominal.createData()
+        theta = None if feedforward is None else feedforward.inertials
         integral = np.zeros(n)
 
         def command(k: int, h: float, q_meas: np.ndarray, qd_meas: np.ndarray) -> np.ndarray:
             err = q_ref[k] - q_meas
             integral[:] += h * err
             acc = qdd_ref[k] + kp * err + kd * (qd_ref[k] - qd_meas) + ki * integral
-            tau = np.array(pin.rnea(nominal, ndata, self.robot.pin_q(q_meas), qd_meas, acc))
+            pq = self.robot.pin_q(q_meas)
+            if theta is None:
+                tau = np.array(pin.rnea(nominal, ndata, pq, qd_meas, acc))
+            else:  # the uploaded parameters: Y(q, q̇, q̈)·θ, linear, no body needed
+                tau = pin.computeJointTorqueRegressor(nominal, ndata, pq, qd_meas, acc) @ theta
             if feedforward is not None:  # friction of the reference motion, as controllers do
                 tau += feedforward.friction(qd_ref[k])
             return tau

@@ -121,9 +121,23 @@ def _experiments(raw: Any, where: str) -> tuple[ExperimentDef, ...]:
     return tuple(out)
 
 
+def _upload_step(raw: dict[str, Any], w: str) -> dict[str, Any]:
+    """``experiments: [rigid_body, friction, upload, verify]``: the ``upload`` step is the
+    campaign's ``upload: true``; a ``verify`` after it runs before the upload too."""
+    exps = raw.get("experiments")
+    if not isinstance(exps, list) or "upload" not in exps:
+        return raw
+    if raw.get("upload") is False:
+        raise ConfigError(f"{w}.upload: false, but the experiments list an 'upload' step")
+    if exps.count("upload") > 1:
+        raise ConfigError(f"{w}.experiments: 'upload' listed twice")
+    return {**raw, "upload": True, "experiments": [e for e in exps if e != "upload"]}
+
+
 def _campaign(name: str, raw: Any, base: Path) -> CampaignDef:
     w = f"campaigns.{name}"
     check_keys(raw, w, required=("experiments",), optional=_CAMPAIGN_OPTIONAL)
+    raw = _upload_step(raw, w)
     method = raw.get("method", "ols")
     if method not in ("ols", "wls", "irls"):
         raise ConfigError(f"{w}.method: expected ols, wls or irls, got {method!r}")

@@ -195,3 +195,24 @@ register_kind(ExperimentKind(
 register_kind(ExperimentKind(
     "custom", {"trajectory": None}, _custom, _check_custom, required=("trajectory",),
     summary="a trajectory file given by the user"))
+
+
+# ----------------------------------------------------------------------------- verify
+
+
+def _check_verify(opts: dict[str, Any], where: str) -> None:
+    sp = opts["speed"]
+    if isinstance(sp, bool) or not isinstance(sp, int | float) or not 0 < sp <= 1:
+        raise ConfigError(f"{where}.speed: expected a fraction of the limits in (0, 1], "
+                          f"got {sp!r}")
+
+
+def _verify(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) -> Trajectory:
+    from robid_link.ident.verify import verify_trajectory
+
+    return verify_trajectory(robot, speed=float(opts["speed"]), rate_hz=float(opts["rate_hz"]))
+
+
+register_kind(ExperimentKind(
+    "verify", {"speed": 0.6, "rate_hz": 250.0}, _verify, _check_verify,
+    summary="a fixed, fast path run before and after an upload: tracking and tool error"))

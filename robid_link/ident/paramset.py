@@ -23,7 +23,7 @@ from robid_link.exceptions import ModelError
 from robid_link.ident.robot import Robot
 
 __all__ = ["FORMAT", "make_parameter_set", "canonical_bytes", "set_sha256", "Feedforward",
-           "feedforward", "diff_sets"]
+           "feedforward", "diff_sets", "physical_problem"]
 
 #: the document's format name and version (a controller refuses what it does not know)
 FORMAT = "robid-parameter-set/1"
@@ -60,7 +60,11 @@ def make_parameter_set(robot: Robot, identify_doc: Mapping[str, Any], *, run_id:
         "run_id": run_id, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "effects": effects, "base_parameters": base,
         "friction": _friction(robot, base),
-        "standard_inertials": _projected(robot, effects, base),
+        "standard_inertials": (theta := _projected(robot, effects, base)),
+        # inverse dynamics (feedforward) is linear in θ and needs no physical body; a
+        # controller that simulates or checks the model wants one: say which it is
+        "physically_consistent": None if theta is None else physical_problem(
+            np.asarray(theta)) is None,
         "elasticity": [dict(e) for e in (elasticity or {}).get("joints", [])],
         "relative_error": identify_doc.get("relative_error"),
     }
@@ -69,9 +73,14 @@ def make_parameter_set(robot: Robot, identify_doc: Mapping[str, Any], *, run_id:
 
 
 def _friction(robot: Robot, base: list[dict[str, Any]]) -> dict[str, list[float]]:
+    """Joint friction for the feedforward; a negative viscous or Coulomb coefficient (an
+    estimate that is noise, or another effect's stand-in) would push the joint: zero it."""
     values = {p["name"]: float(p["value"]) for p in base}
-    return {kind: [values.get(f"{prefix}_{j}", 0.0) for j in range(1, robot.n + 1)]
-            for prefix, kind in _FRICTION.items()}
+    out = {kind: [values.get(f"{prefix}_{j}", 0.0) for j in range(1, robot.n + 1)]
+           for prefix, kind in _FRICTION.items()}
+    for kind in ("viscous", "coulomb"):
+        out[kind] = [max(v, 0.0) for v in out[kind]]
+    return out
 
 
 def _projected(robot: Robot, effects: list[str], base: list[dict[str, Any]]
@@ -95,10 +104,29 @@ def _projected(robot: Robot, effects: list[str], base: list[dict[str, Any]]
     return [float(x) for x in theta]
 
 
+def physical_problem(theta: np.ndarray) -> str | None:
+    """Why standard parameters (10 per link: m, m·c, inertia about the joint frame) describe
+    no rigid body, or None: positive mass, inertia about the centre of mass physical."""
+    from robid_link.ident.robot_check import inertia_problem
+
+    for j in range(len(theta) // 10):
+        m, h = theta[10 * j], theta[10 * j + 1: 10 * j + 4]
+        xx, xy, yy, xz, yz, zz = theta[10 * j + 4: 10 * j + 10]
+        if not m > 0:
+            return f"link {j + 1}: mass {m:.4g} is not positive"
+        i_o = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+        c = h / m
+        i_c = i_o - m * (np.dot(c, c) * np.eye(3) - np.outer(c, c))
+        why = inertia_problem(i_c)
+        if why is not None:
+            return f"link {j + 1}: {why}"
+    return None
+
+
 @dataclass(frozen=True)
 class Feedforward:
-    """What a controller computes from a parameter set: link inertials for its inverse
-    dynamics plus joint friction (viscous, Coulomb, offset) per joint."""
+    """What a controller computes from a parameter set: standard parameters θ for its inverse
+    dynamics (τ = Y(q, q̇, q̈)·θ, linear in θ) plus joint friction per joint."""
 
     sha256: str
     inertials: np.ndarray | None
@@ -125,6 +153,10 @@ def feedforward(doc: Mapping[str, Any], n_joints: int) -> Feedforward:
     if any(a.shape != (n_joints,) for a in arrays.values()) or (
             theta is not None and theta.shape != (10 * n_joints,)):
         raise ModelError(f"parameter set: sizes do not fit a {n_joints}-joint robot")
+    if theta is not None and not np.all(np.isfinite(theta)):
+        raise ModelError("parameter set: standard inertials hold a non-finite number")
+    if any(np.any(~np.isfinite(a)) for a in arrays.values()):
+        raise ModelError("parameter set: friction holds a non-finite number")
     return Feedforward(str(doc["sha256"]), theta, **arrays)
 
 

@@ -16,7 +16,13 @@ from robid_link.exceptions import ApprovalError, ConfigError, RobidError, StoreF
 from robid_link.link.cycle import CyclePolicy, run_cycle
 from robid_link.link.driver import CAP_UPLOAD, Driver, MotionProgram, parameter_bytes
 from robid_link.link.store import Store
-from robid_link.link.worker import check_log, generate_program, identify_run, run_in_worker
+from robid_link.link.worker import (
+    check_log,
+    generate_program,
+    identify_run,
+    run_in_worker,
+    verify_run,
+)
 
 __all__ = ["TRIGGERS", "plan", "check_capabilities", "create_run", "prepare_programs",
            "execute_run"]
@@ -24,17 +30,29 @@ __all__ = ["TRIGGERS", "plan", "check_capabilities", "create_run", "prepare_prog
 log = logging.getLogger("robid.campaign")
 
 TRIGGERS = ("operator", "timer")
+BEFORE_SUFFIX = "-before"
 SLOW_SUFFIX = "-slow"
 
 
 def plan(camp: CampaignDef) -> list[tuple[str, ExperimentDef, float | None]]:
-    """The run's experiments in order: ``(exp_id, definition, reduced speed or None)``."""
+    """The run's experiments in order: ``(exp_id, definition, reduced speed or None)``. With
+    an upload, each ``verify`` runs first as ``<id>-before`` (the controller's old model) and
+    again after the upload under its own id."""
     out: list[tuple[str, ExperimentDef, float | None]] = []
-    for exp in camp.experiments:
+    before = [e for e in camp.experiments if camp.upload and e.kind == "verify"]
+    for exp_id, exp in [(e.exp_id + BEFORE_SUFFIX, e) for e in before] + [
+            (e.exp_id, e) for e in camp.experiments]:
         if camp.reduced_speed_first:
-            out.append((exp.exp_id + SLOW_SUFFIX, exp, camp.reduced_speed_first))
-        out.append((exp.exp_id, exp, None))
+            out.append((exp_id + SLOW_SUFFIX, exp, camp.reduced_speed_first))
+        out.append((exp_id, exp, None))
     return out
+
+
+def after_upload(camp: CampaignDef, exp_id: str) -> bool:
+    """A verify experiment run after the upload (the rest run before identification)."""
+    return camp.upload and any(e.kind == "verify" and exp_id in (e.exp_id,
+                                                                 e.exp_id + SLOW_SUFFIX)
+                               for e in camp.experiments)
 
 
 def check_capabilities(cfg: DaemonConfig, driver: Driver) -> None:
@@ -120,15 +138,27 @@ async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any,
         async def check(path: str) -> dict[str, Any]:
             return await run_in_worker(ctx, check_log, n_joints, path)
 
-        shas = []
-        for k, (exp_id, program) in enumerate(programs, 1):
+        kinds = {e: d.kind for e, d, _ in plan(camp)}
+        first = [(e, p) for e, p in programs if not after_upload(camp, e)]
+        then = [(e, p) for e, p in programs if after_upload(camp, e)]
+        shas: dict[str, str] = {}
+
+        async def cycle(k: int, exp_id: str, program: MotionProgram) -> None:
             store.set_run(run_id, "running", step=f"experiment {k}/{len(programs)} {exp_id}")
             policy = CyclePolicy(camp.timeout_s or 2 * program.duration_s + 60.0, camp.retries,
                                  camp.backoff_s)
-            shas.append(await run_cycle(store, driver, run_id, exp_id, program, policy, check,
-                                        kill_hook))
+            shas[exp_id] = await run_cycle(store, driver, run_id, exp_id, program, policy,
+                                           check, kill_hook)
+
+        for k, (exp_id, program) in enumerate(first, 1):
+            await cycle(k, exp_id, program)
         if camp.identify:
-            await _identify(cfg, store, driver, ctx, run_id, camp, shas, kill_hook)
+            data = [s for e, s in shas.items() if kinds.get(e) != "verify"]
+            await _identify(cfg, store, driver, ctx, run_id, camp, data, kill_hook)
+        for k, (exp_id, program) in enumerate(then, len(first) + 1):
+            await cycle(k, exp_id, program)
+        await _tracking(cfg, store, ctx, run_id, camp, [(e, p, shas[e]) for e, p in programs
+                                                        if kinds.get(e) == "verify"])
     except StoreFullError:
         raise  # not the run's fault: it waits, journaled as it is, until space returns
     except RobidError as err:
@@ -181,6 +211,28 @@ async def _identify(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, r
         trigger = store.run(run_id)["trigger"]
         await upload_set(store, driver, out["robot"], pset["sha256"], run_id,
                          unattended=trigger == "timer")
+
+
+async def _tracking(cfg: DaemonConfig, store: Store, ctx: Any, run_id: str,
+                    camp: CampaignDef, runs: list[tuple[str, MotionProgram, str]]) -> None:
+    """How the robot followed each verification path (before / after the upload)."""
+    if not runs:
+        return
+
+    def phase(exp_id: str) -> str:
+        if exp_id.removesuffix(SLOW_SUFFIX).endswith(BEFORE_SUFFIX):
+            return "before"
+        return "after" if camp.upload else "check"
+
+    job = {"robot": str(cfg.robot), "lock": list(cfg.lock), "runs": [
+        {"exp_id": e, "phase": phase(e), "log": str(store.check_log(sha)),
+         "files": dict(p.files)} for e, p, sha in runs]}
+    out = await run_in_worker(ctx, verify_run, job)
+    for rec in out["records"]:
+        rec["run_id"] = run_id
+        store.add_result(run_id, out["robot"], f"verify_{rec['phase']}", rec)
+        log.info("run=%s %s: tool RMS %.3f mm, max %.3f mm", run_id, rec["experiment"],
+                 rec["tracking"]["tool_rms_mm"], rec["tracking"]["tool_max_mm"])
 
 
 async def upload_set(store: Store, driver: Driver, robot: str, sha: str, run_id: str | None,

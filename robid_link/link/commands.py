@@ -139,6 +139,12 @@ def format_results(results: list[dict[str, Any]]) -> str:
     previous: dict[str, list[float]] = {}
     for r in results:
         rec = r["record"]
+        if "tracking" in rec:  # a verification path: how well the robot followed it
+            tr = rec["tracking"]
+            lines.append(f"{r['run_id']:<24} {r['robot']:<14} {r['kind']:<9} tool RMS "
+                         f"{tr['tool_rms_mm']:.3f} mm, max {tr['tool_max_mm']:.3f} mm, after "
+                         f"the stop {tr['residual_mm']:.3f} mm")
+            continue
         rmse = " ".join(f"{x:7.3g}" for x in rec.get("rmse") or [])
         rel = rec.get("relative_error")
         extra = f"  {rec['verdict']}" if rec.get("verdict") else ""

@@ -6,6 +6,7 @@ an earlier attempt is recognised as stale. Every state is resumable after a cras
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import random
 import secrets
@@ -42,6 +43,8 @@ async def run_cycle(store: Store, driver: Driver, run_id: str, exp_id: str,
                     check_log: Callable[[str], Awaitable[dict[str, Any]]],
                     kill_hook: KillHook = lambda step: None) -> str:
     """Run (or resume) one experiment; returns the SHA-256 of its stored, checked log."""
+    if program.exp_id != exp_id:  # a cached program shared by two experiments (same content)
+        program = dataclasses.replace(program, exp_id=exp_id)
     row = store.experiment(run_id, exp_id)
     if row["log_sha"]:
         return str(row["log_sha"])

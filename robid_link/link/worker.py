@@ -82,6 +82,27 @@ def identify_run(job: dict[str, Any]) -> dict[str, Any]:
             "parameter_set": pset}
 
 
+def verify_run(job: dict[str, Any]) -> dict[str, Any]:
+    """Tracking of each verification log against the path it was given."""
+    from robid_link.ident.data import load_log
+    from robid_link.ident.excitation import Trajectory
+    from robid_link.ident.verify import tracking
+    from robid_link.link.driver import MotionProgram
+
+    robot = _robot(job["robot"], tuple(job["lock"]))
+    records = []
+    for run in job["runs"]:
+        tr = MotionProgram(run["exp_id"], run["files"], 0.0).trajectory()
+        ref = Trajectory(tr.t - tr.t[0], tr.q, tr.rate_hz, tr.kind, tr.robot, dict(tr.header))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # resampling notes: the log itself was checked
+            log = load_log(run["log"], robot.n)
+        res = tracking(robot, ref, log.t, log.q)
+        records.append({"kind": "verify", "experiment": run["exp_id"], "phase": run["phase"],
+                        "robot": robot.name, "tracking": res.as_dict()})
+    return {"robot": robot.name, "records": records}
+
+
 # ----------------------------------------------------------------------------- process runner
 
 
