@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from robid_link.exceptions import ConditioningWarning, DataError, DataWarning, ExcitationWarning
+from robid_link.ident.consistent import ConsistentFit, fit_consistent
 from robid_link.ident.data import Log, file_sha256, load_log
 from robid_link.ident.effects import Block, Model, States
 from robid_link.ident.estimate import Grams, accumulate, fit
@@ -209,7 +210,8 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
     check_counts(int(grams.n_rows.sum()), design.p, Path(data[0].path).name)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        f, grams = fit(design, pb.train, pb.interval, pb.block_len, method, weight,
+        f, grams = fit(design, pb.train, pb.interval, pb.block_len,
+                       "ols" if method == "consistent" else method, weight,
                        base.base_names, grams)
     notes = list(pb.notes)
     for w in caught:
@@ -231,6 +233,10 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
     var = np.maximum(ms - f.mean_res**2, 0.0)
     fit_err = ErrorStats(np.sqrt(ms), np.sqrt(var), var, int(n_rows[0]))
     val, nom, traces = _validate(pb, design, f.theta)
+    cons = None
+    if method == "consistent":  # issue 15 item 6 (ident/consistent.py) — hook begins
+        cons, params, fit_err, val, traces = _consistent(pb, names, val, notes, int(n_rows[0]))
+    # hook ends
     notes += _sanity_checks(pb, nominal=robot.nominal is not None)
     if pb.valid:
         notes += _extrapolation(pb)
@@ -258,9 +264,43 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
         validation_source=pb.validation_source,
         notes=notes,
         traces=traces,
-        theta=f.theta,
-        cov=f.cov,
+        theta=f.theta if cons is None else cons.theta,
+        cov=f.cov if cons is None else cons.cov,
+        consistent=cons,
     )
+
+
+def _consistent(pb: Problem, names: list[str], val_ols: ErrorStats | None, notes: list[str],
+                n: int) -> tuple[ConsistentFit, list[Parameter], ErrorStats, ErrorStats | None,
+                           list[dict[str, Any]]]:
+    """The physically consistent fit with the CAD prior on all standard columns (hook of
+    ``method="consistent"``; the base-parameter OLS fit stays for conditioning and notes)."""
+    cols = np.arange(len(names))
+    full = Design(pb.robot, tuple(pb.blocks), cols,
+                  structural_mask(pb.robot, pb.blocks, cols, pb.transmission))
+    cons = fit_consistent(full, pb.train, names, nominal=pb.robot.nominal,
+                          interval=pb.interval, block_len=pb.block_len)
+    val, _, traces = _validate(pb, full, cons.theta)
+    cons.validation_ols = None if val_ols is None else val_ols.as_dict()
+    std = np.sqrt(np.clip(np.diag(cons.cov), 0.0, None))
+    n_rigid = cons.theta_cad.size
+    params = [Parameter(nm, float(v), float(s), nm,
+                        float(cons.theta_cad[k]) if k < n_rigid else None)
+              for k, (nm, v, s) in enumerate(zip(cons.names, cons.theta, std, strict=True))]
+    ms = cons.rss / max(n, 1)
+    var = np.maximum(ms - cons.mean_res**2, 0.0)
+    lam = ("∞ (the CAD inertials; the data did not support moving away from them)"
+           if not math.isfinite(cons.lam) else f"{cons.lam:.3g} (N·m)² ({cons.lam_rel:.3g} × "
+           "the mean squared training torque)")
+    notes.append(f"consistent fit: prior weight λ = {lam}, chosen by {cons.cv_scheme} on the "
+                 "training data only (largest λ within one standard error of the best CV "
+                 "score); every link's pseudo-inertia is positive definite (smallest "
+                 f"eigenvalue {cons.min_eig.min():.3g})")
+    if val is not None and val_ols is not None and val_ols.relative_error is not None:
+        notes.append(f"consistent fit validates at {100 * (val.relative_error or 0):.2f} %; "
+                     f"OLS of the base parameters on the same inputs at "
+                     f"{100 * val_ols.relative_error:.2f} %")
+    return cons, params, ErrorStats(np.sqrt(ms), np.sqrt(var), var, n), val, traces
 
 
 def _nominal_base(robot: Robot, base: BaseSet, names: list[str]) -> list[float | None] | None:

@@ -106,6 +106,7 @@ class IdentResult:
     traces: list[dict[str, Any]] = field(default_factory=list, repr=False)
     theta: np.ndarray | None = field(default=None, repr=False)
     cov: np.ndarray | None = field(default=None, repr=False)
+    consistent: Any = field(default=None, repr=False)  # ConsistentFit of method "consistent"
 
     @property
     def rmse(self) -> np.ndarray:
@@ -139,6 +140,7 @@ class IdentResult:
                               "interval": self.interval},
             "data_files": self.data_files,
             "notes": self.notes,
+            "consistent": None if self.consistent is None else self.consistent.as_dict(),
         }
 
     def summary(self) -> str:
