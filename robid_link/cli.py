@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from robid_link.exceptions import RobidError
+from robid_link.exceptions import ConfigError, RobidError
 
 __all__ = ["main"]
 
@@ -48,7 +48,11 @@ def _parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("identify", help="identify the dynamic model from logs")
     _shared_inputs(p)
-    p.add_argument("--method", choices=("ols", "wls", "irls"), default="ols")
+    p.add_argument("--method", choices=("ols", "wls", "irls", "consistent"), default="ols",
+                   help="consistent: standard parameters kept physically realizable, with the "
+                        "CAD inertials as prior (weight chosen by cross-validation)")
+    p.add_argument("--export-urdf", metavar="FILE", help="with --method consistent: write the "
+                   "robot's URDF with the identified inertials")
     p.add_argument("--weight", default="bisquare",
                    help="IRLS weight: andrews, bisquare, cauchy, fair, huber, logistic, "
                         "talwar, welsch")
@@ -260,6 +264,8 @@ def _identify(args: argparse.Namespace) -> int:
     from robid_link.ident.report import write_json, write_report
 
     robot, model, data, valid = _inputs(args)
+    if args.export_urdf and args.method != "consistent":
+        raise ConfigError("--export-urdf needs --method consistent (standard parameters)")
     res = identify(robot, data, model, validate=valid, cutoff_hz=args.cutoff,
                    interval=args.interval, method=args.method, weight=args.weight,
                    motor_side=args.motor_side)
@@ -270,6 +276,13 @@ def _identify(args: argparse.Namespace) -> int:
     if args.out:
         paths = write_report(res, args.out)
         print(f"\n  wrote {len(paths)} files to {args.out}")
+    if args.export_urdf:  # issue 15 item 6
+        from robid_link.ident.urdf_export import export_urdf
+
+        cons = res.consistent
+        export_urdf(robot, cons.standard, args.export_urdf, dict(zip(cons.names, cons.theta,
+                                                                     strict=True)))
+        print(f"\n  wrote the identified model as URDF to {args.export_urdf}")
     _record(args, "identify", doc)
     return 0
 

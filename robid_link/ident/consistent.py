@@ -9,11 +9,11 @@ Math (numbered as in the notes of a result):
    frame, h = m·c) is J = U Uᵀ with U = e^α [[e^d₁, s₁₂, s₁₃, t₁], [0, e^d₂, s₂₃, t₂],
    [0, 0, e^d₃, t₃], [0, 0, 0, 1]] (Rucker & Wensing 2022): J ≻ 0 (physically realizable:
    m > 0, triangle inequalities of the principal moments) for every φ = (α, d, s, t).
-2. Objective: (1/N)‖τ − Y θ‖² + λ Σ_links ‖J₀^{-½}(J − J₀)J₀^{-½}‖²_F, the second-order
-   form of Lee & Park's entropic (log-det Bregman) divergence of pseudo-inertias around the
-   CAD J₀: frame- and unit-invariant. The data term is θᵀAθ − 2bᵀθ + c from the training
-   Grams, so no regressor is rebuilt while iterating: the data residual is S^½Vᵀθ − S^-½Vᵀb
-   with A = VSVᵀ.
+2. Objective: (1/N)‖τ − Y θ‖² + λ Σ_links [tr(J₀⁻¹J) − log det(J₀⁻¹J) − 4], Lee & Park's
+   entropic (log-det Bregman) divergence of pseudo-inertias from the CAD J₀: frame- and
+   unit-invariant, and a barrier that keeps each J strictly positive definite. The data term
+   is θᵀAθ − 2bᵀθ + c from the training Grams, so no regressor is rebuilt while iterating;
+   tr(J₀⁻¹J) is linear in θ and log det J linear in φ (Levenberg–Marquardt on 10 n unknowns).
 3. The other effects' parameters (friction, offsets, …) enter linearly without a prior and
    are eliminated (variable projection: Schur complement of the Gram), then recovered.
 4. λ by cross-validation on the training data only: leave one motion out when the files hold
@@ -42,6 +42,8 @@ __all__ = ["ConsistentFit", "fit_consistent", "pseudo_inertia", "standard_from_p
 
 #: λ / (mean squared training torque) candidates; ∞ (the CAD inertials) is added
 LAMBDA_GRID = tuple(10.0 ** e for e in np.arange(-7.0, 1.01, 0.5))
+#: LM stops when a step lowers the objective by less than this × mean squared torque
+TOL_REL = 1e-10
 #: blocked CV folds within one motion
 N_FOLDS = 5
 #: relative eigenvalue floor of the (scaled) Grams
@@ -230,47 +232,80 @@ def _reduce(q: _Quad, n_rigid: int) -> _Reduced:
     return _Reduced(0.5 * (a_red + a_red.T), q.b[r] - q.a[r, e] @ back_b, back, back_b)
 
 
-def _solve(red: _Reduced, lam: float, m_full: np.ndarray, m0: np.ndarray,
-           phi0: np.ndarray, max_iter: int = 300) -> tuple[np.ndarray, np.ndarray, int]:
+@dataclass
+class _Prior:
+    """The entropic divergence of note 2 per link: tr(J₀⁻¹J) − log det(J₀⁻¹J) − 4 with
+    tr(J₀⁻¹J) = wᵀπ (linear) and log det J = 2(4α + d₁ + d₂ + d₃) (linear in φ)."""
+
+    w: np.ndarray  # (10 n,)
+    l0_inv: np.ndarray  # (n, 4, 4): tr(J₀⁻¹UUᵀ) = ‖L₀⁻¹U‖²
+    logdet0: np.ndarray  # (n,)
+
+    @classmethod
+    def of(cls, j0: np.ndarray) -> _Prior:
+        j0_inv = np.linalg.inv(j0)
+        basis = pseudo_inertia(np.eye(10))
+        w = np.einsum("nab,kba->nk", j0_inv, basis).ravel()
+        l0_inv = np.linalg.inv(np.linalg.cholesky(j0))
+        return cls(w, l0_inv, np.linalg.slogdet(j0)[1])
+
+    def value(self, pi: np.ndarray, phi: np.ndarray) -> np.ndarray:
+        """Per link divergence at π = π(φ)."""
+        tr = (self.w * pi).reshape(-1, 10).sum(axis=1)
+        logdet = 2.0 * (4.0 * phi[:, 0] + phi[:, 1:4].sum(axis=1))
+        return tr - logdet + self.logdet0 - 4.0
+
+
+#: d log det J / dφ (per link)
+_LOGDET_GRAD = 2.0 * np.array([4.0, 1.0, 1.0, 1.0, 0, 0, 0, 0, 0, 0])
+
+
+def _solve(red: _Reduced, lam: float, prior: _Prior, phi0: np.ndarray, tol: float,
+           max_iter: int = 200) -> tuple[np.ndarray, np.ndarray, int]:
     """Levenberg–Marquardt in φ for one λ on the compact normal equations.
 
-    The residual is R π(φ) − r with R fixed, so only H = RᵀR = A + λMᵀM and g = Rᵀr enter:
-    JᵀJ = DᵀHD and Jᵀres = Dᵀ(Hπ − g) with D = dπ/dφ block-diagonal (10 × 10 per link).
+    F(φ) = πᵀAπ − 2bᵀπ + λ(wᵀπ − log det J): the data term's Gauss–Newton Hessian is DᵀAD
+    with D = dπ/dφ block-diagonal (10 × 10 per link), the prior's is that of ‖L₀⁻¹U‖².
+    Stops when an accepted step lowers F by less than ``tol`` ((N·m)², absolute).
     Returns φ, π and the number of objective evaluations.
     """
     n = phi0.shape[0]
-    h = red.a + lam * (m_full.T @ m_full)
-    g = red.b + lam * (m_full.T @ m0)
+    lin = np.tile(_LOGDET_GRAD, n)
 
-    def objective(pi: np.ndarray) -> float:
-        return float(pi @ h @ pi - 2.0 * g @ pi)
+    def objective(pi: np.ndarray, phi: np.ndarray) -> float:
+        return float(pi @ red.a @ pi - 2.0 * red.b @ pi
+                     + lam * (prior.w @ pi - lin @ phi.ravel()))
 
     phi = phi0.copy()
     pi, d = from_log_cholesky(phi)
     pi = pi.ravel()
-    f = objective(pi)
+    f = objective(pi, phi)
     mu, nfev = 1e-4, 1
     dfull = np.zeros((10 * n, 10 * n))
-    scale = max(abs(f), float(g @ g) ** 0.5, 1e-300)
+    hp = np.zeros((10 * n, 10 * n))
     for _ in range(max_iter):
+        _, du = _u_and_derivatives(phi)
+        ju = np.einsum("nab,nkbc->nack", prior.l0_inv, du).reshape(n, 16, 10)
         for i in range(n):
-            dfull[10 * i: 10 * i + 10, 10 * i: 10 * i + 10] = d[i]
-        hd = h @ dfull
-        jtj = dfull.T @ hd
-        grad = dfull.T @ (h @ pi - g)
-        diag = np.maximum(np.diag(jtj), 1e-12 * max(float(np.diag(jtj).max()), 1e-300))
+            sl = slice(10 * i, 10 * i + 10)
+            dfull[sl, sl] = d[i]
+            hp[sl, sl] = ju[i].T @ ju[i]
+        hess = 2.0 * (dfull.T @ red.a @ dfull + lam * hp)
+        grad = dfull.T @ (2.0 * (red.a @ pi - red.b) + lam * prior.w) - lam * lin
+        diag = np.maximum(np.diag(hess), 1e-12 * max(float(np.diag(hess).max()), 1e-300))
         improved = False
         for _ in range(30):
             try:
-                step = np.linalg.solve(jtj + mu * np.diag(diag), -grad)
+                step = np.linalg.solve(hess + mu * np.diag(diag), -grad)
             except np.linalg.LinAlgError:
                 mu *= 10.0
                 continue
             trial = phi + step.reshape(n, 10)
-            th, d_new = from_log_cholesky(trial)
-            f_new = objective(th.ravel())
+            with np.errstate(all="ignore"):
+                th, d_new = from_log_cholesky(trial)
+                f_new = objective(th.ravel(), trial)
             nfev += 1
-            if np.isfinite(f_new) and f_new <= f:
+            if np.isfinite(f_new) and np.all(np.isfinite(d_new)) and f_new <= f:
                 improved = True
                 break
             mu *= 4.0
@@ -279,7 +314,7 @@ def _solve(red: _Reduced, lam: float, m_full: np.ndarray, m0: np.ndarray,
         decrease = f - f_new
         phi, pi, d, f = trial, th.ravel(), d_new, f_new
         mu = max(mu / 3.0, 1e-12)
-        if decrease <= 1e-12 * scale and np.abs(step).max() < 1e-6:
+        if decrease <= tol:
             break
     return phi, pi, nfev
 
@@ -310,11 +345,11 @@ class ConsistentFit:
         return self.theta[: self.theta_cad.size]
 
     def divergence(self) -> np.ndarray:
-        """Per link ‖J₀^{-½}(J − J₀)J₀^{-½}‖²_F (note 2) from the CAD prior."""
-        per_link, _ = _whitened_map(_realizable(pseudo_inertia(self.theta_cad.reshape(-1, 10))))
-        d = np.einsum("nkp,np->nk", per_link,
-                      (self.standard - self.theta_cad).reshape(-1, 10))
-        return (d * d).sum(axis=1)
+        """Per link entropic divergence (note 2) of the estimate from the CAD prior."""
+        j0 = _realizable(pseudo_inertia(self.theta_cad.reshape(-1, 10)))
+        j = pseudo_inertia(self.standard.reshape(-1, 10))
+        m = np.linalg.solve(j0, j)
+        return np.trace(m, axis1=-2, axis2=-1) - np.linalg.slogdet(m)[1] - 4.0
 
     def as_dict(self) -> dict[str, Any]:
         fin = math.isfinite(self.lam)
@@ -365,8 +400,8 @@ def fit_consistent(design: Design, train: Sequence[Piece], names: Sequence[str],
     grams = [accumulate(design, pcs, interval, block_len) for pcs in per_file]
     theta_cad = np.asarray(nominal, dtype=float)
     j0 = _realizable(pseudo_inertia(theta_cad.reshape(-1, 10)))
-    per_link, m_full = _whitened_map(j0)
-    m0 = m_full @ standard_from_pseudo(j0).ravel()
+    _, m_full = _whitened_map(j0)
+    prior = _Prior.of(j0)
     phi_cad = log_cholesky(j0)
     total = _total(grams)
     scale = max(total.c, 1e-300)
@@ -374,7 +409,7 @@ def fit_consistent(design: Design, train: Sequence[Piece], names: Sequence[str],
     folds, scheme = _folds(grams, groups)
     nfev = 0
     if lam is None:
-        curve, nfev = _cv_curve(folds, n_rigid, m_full, m0, phi_cad, scale, theta_cad)
+        curve, nfev = _cv_curve(folds, n_rigid, prior, phi_cad, scale, theta_cad)
         lam_rel = _one_se_choice(curve)
     else:
         lam_rel = lam / scale
@@ -382,7 +417,7 @@ def fit_consistent(design: Design, train: Sequence[Piece], names: Sequence[str],
     lam_abs = lam_rel * scale
     red = _reduce(total, n_rigid)
     if math.isfinite(lam_abs):
-        phi, pi, k = _solve(red, lam_abs, m_full, m0, phi_cad)
+        phi, pi, k = _solve(red, lam_abs, prior, phi_cad, TOL_REL * scale)
         nfev += k
     else:
         phi, pi = phi_cad, standard_from_pseudo(j0).ravel()
@@ -392,8 +427,8 @@ def fit_consistent(design: Design, train: Sequence[Piece], names: Sequence[str],
     g_tot = sum(gr.total() for gr in grams)
     rss, mean_res = _joint_stats(g_tot, theta)
     cov = _covariance(total, g_tot, theta, rss, n_rigid, lam_abs, m_full)
-    return ConsistentFit(theta, [names[int(c)] for c in design.cols], theta_cad, lam_abs, lam_rel, scheme, curve, min_eig,
-                         nfev, design, rss, mean_res, cov)
+    return ConsistentFit(theta, [names[int(c)] for c in design.cols], theta_cad, lam_abs,
+                         lam_rel, scheme, curve, min_eig, nfev, design, rss, mean_res, cov)
 
 
 def _total(grams: Sequence[Grams]) -> _Quad:
@@ -432,8 +467,8 @@ def _folds(grams: Sequence[Grams], groups: list[list[int]]
                    f"({what}; the same time span held out of every file)")
 
 
-def _cv_curve(folds: list[tuple[_Quad, _Quad]], n_rigid: int, m_full: np.ndarray,
-              m0: np.ndarray, phi_cad: np.ndarray, scale: float, theta_cad: np.ndarray
+def _cv_curve(folds: list[tuple[_Quad, _Quad]], n_rigid: int, prior: _Prior,
+              phi_cad: np.ndarray, scale: float, theta_cad: np.ndarray
               ) -> tuple[list[dict[str, float | None]], int]:
     """Held-out mean squared torque error (N·m)² per λ, largest λ first (warm starts)."""
     grid = sorted(LAMBDA_GRID, reverse=True)
@@ -444,7 +479,7 @@ def _cv_curve(folds: list[tuple[_Quad, _Quad]], n_rigid: int, m_full: np.ndarray
         scores[0, f] = te.value(np.concatenate((theta_cad, red.back_b - red.back @ theta_cad)))
         phi = phi_cad
         for gi, rel in enumerate(grid, 1):
-            phi, pi, k = _solve(red, rel * scale, m_full, m0, phi)
+            phi, pi, k = _solve(red, rel * scale, prior, phi, TOL_REL * scale)
             nfev += k
             scores[gi, f] = te.value(np.concatenate((pi, red.back_b - red.back @ pi)))
     weights = np.array([te.n for _, te in folds])
