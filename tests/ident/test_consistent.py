@@ -159,3 +159,24 @@ def test_kuka_repeated_trajectory_beats_the_peer_and_exports(kuka_dir, tmp_path)
     assert cons.validation.relative_error < 0.0281
     assert cons.consistent.cv_scheme.startswith("leave one motion out")
     assert _urdf_reproduces(robot, cons, d, v, tmp_path / "kuka_ident.urdf") < 0.01
+
+
+def test_cli_consistent_with_urdf_export(sim_fit, capsys):
+    import json
+
+    from robid_link.cli import main
+    from tests.conftest import ROBOTS
+
+    *_, tmp = sim_fit
+    args = ["identify", "--robot", str(ROBOTS / "industrial6.yaml"), "--data",
+            str(tmp / "a.csv"), "--data", str(tmp / "b.csv"), "--validate", str(tmp / "c.csv")]
+    assert main([*args, "--export-urdf", str(tmp / "x.urdf")]) != 0  # needs --method consistent
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rc = main([*args, "--method", "consistent", "--export-urdf", str(tmp / "cli.urdf"),
+                   "--json", str(tmp / "cli.json")])
+    assert rc == 0 and load_robot(tmp / "cli.urdf").n == 6
+    doc = json.loads((tmp / "cli.json").read_text())
+    assert doc["consistent"]["physically_consistent"]
+    assert doc["relative_error"] < doc["relative_error_nominal"]
+    assert "robid: error: --export-urdf needs --method consistent" in capsys.readouterr().err
