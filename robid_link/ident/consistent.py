@@ -424,7 +424,7 @@ def fit_consistent(design: Design, train: Sequence[Piece], names: Sequence[str],
     theta = np.concatenate((pi, red.back_b - red.back @ pi))
     u, _ = _u_and_derivatives(phi)
     min_eig = np.linalg.eigvalsh(u @ np.swapaxes(u, -1, -2))[:, 0]
-    g_tot = sum(gr.total() for gr in grams)
+    g_tot = np.sum([gr.total() for gr in grams], axis=0)
     rss, mean_res = _joint_stats(g_tot, theta)
     cov = _covariance(total, g_tot, theta, rss, n_rigid, lam_abs, m_full)
     return ConsistentFit(theta, [names[int(c)] for c in design.cols], theta_cad, lam_abs,

@@ -94,11 +94,11 @@ def urdf_with_inertials(robot: Robot, standard: np.ndarray) -> str:
         if parent is not None:
             children.setdefault(str(parent.get("link")), []).append(jt)
     for j, name in enumerate(robot.joint_names):
-        jt = joints.get(name)
-        if jt is None or jt.get("type") == "fixed":
+        moving = joints.get(name)
+        if moving is None or moving.get("type") == "fixed":
             raise RobotError(f"{src}: joint '{name}' not found as a moving joint (locked "
                              "joints cannot be exported)")
-        child = jt.find("child")
+        child = moving.find("child")
         link = links[str(None if child is None else child.get("link"))]
         _set_inertial(link, _inertial_xml(standard[10 * j: 10 * j + 10]))
         stack = list(children.get(str(link.get("name")), []))
