@@ -152,7 +152,7 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--samples", type=int, default=1_000_000)
     ap.add_argument("--only", choices=("identify", "regressor", "plant", "diagnose", "handoff",
-                                        "canopen", "rws"))
+                                        "canopen", "rws", "consistent"))
     args = ap.parse_args()
     print("robid_link benchmarks (2-core machine; ratios are against baselines run here)\n")
     if args.only in (None, "handoff"):
@@ -195,6 +195,11 @@ def main() -> int:
             print(f"diagnose, 6 axes, 60 s at 1 kHz, {label}: {r['diagnose_s']:.2f} s vs one "
                   f"identify {r['identify_s']:.2f} s → {r['ratio']:.1f}× (target ≤ 3×); "
                   f"verdict: {r['top']}")
+    if args.only in (None, "consistent"):  # issue 15 item 6
+        from benchmarks.consistent import bench_consistent
+        from benchmarks.consistent import report as report_consistent
+
+        report_consistent(bench_consistent(ROBOT, _make_npz))
     if args.only in (None, "identify"):
         r = bench_identify(args.samples)
         print(f"identify end to end, {r['samples']:,} samples at 1 kHz, 6 axes, no decimation: "

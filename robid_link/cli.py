@@ -20,7 +20,7 @@ from robid_link.cli_types import (
     output_path,
     positive_float,
 )
-from robid_link.exceptions import RobidError
+from robid_link.exceptions import ConfigError, RobidError
 
 __all__ = ["main"]
 
@@ -69,8 +69,13 @@ def _parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("identify", help="identify the dynamic model from logs")
     _shared_inputs(p)
-    p.add_argument("--method", choices=("ols", "wls", "irls"), default="ols",
-                   help="least squares: ols (default), wls (per-joint weights) or irls (robust)")
+    p.add_argument("--method", choices=("ols", "wls", "irls", "consistent"), default="ols",
+                   help="least squares: ols (default), wls (per-joint weights), irls (robust) "
+                   "or consistent (standard parameters kept physically realizable, with the "
+                   "CAD inertials as prior, weight chosen by cross-validation)")
+    p.add_argument("--export-urdf", metavar="FILE", type=output_path("file"),
+                   help="with --method consistent: write the robot's URDF with the "
+                   "identified inertials")
     p.add_argument("--weight", default="bisquare",
                    help="IRLS weight: andrews, bisquare, cauchy, fair, huber, logistic, "
                         "talwar, welsch")
@@ -337,6 +342,8 @@ def _identify(args: argparse.Namespace) -> int:
     from robid_link.ident.jobs import run_job
 
     robot, model, data, valid = _inputs(args)
+    if args.export_urdf and args.method != "consistent":
+        raise ConfigError("--export-urdf needs --method consistent (standard parameters)")
     job = run_job(robot, data, model, validate=valid, cutoff_hz=args.cutoff,
                   interval=args.interval, method=args.method, weight=args.weight,
                   motor_side=args.motor_side, json_files={"identify": args.json} if args.json
@@ -344,6 +351,13 @@ def _identify(args: argparse.Namespace) -> int:
     print(job.result.summary())
     if args.out:
         print(f"\n  wrote {len(job.report_files['identify'])} files to {args.out}")
+    if args.export_urdf:  # issue 15 item 6
+        from robid_link.ident.urdf_export import export_urdf
+
+        cons = job.result.consistent
+        export_urdf(robot, cons.standard, args.export_urdf, dict(zip(cons.names, cons.theta,
+                                                                     strict=True)))
+        print(f"\n  wrote the identified model as URDF to {args.export_urdf}")
     return 0
 
 

@@ -18,9 +18,6 @@ ROOT = Path(__file__).resolve().parent.parent
 PACKAGE_DIRS = {"robid_link": ROOT / "robid_link", "robid_link.drivers": ROOT / "drivers",
                 "robid_link.fakes": ROOT / "fakes"}
 
-#: the one known circle outside the worker: config.py validates names against link.driver and
-#: link.program, which import config (being removed on another branch; then flip the xfail)
-KNOWN_CYCLE_REASON = "robid_link.config imports robid_link.link (driver, program) at call time"
 #: private names still used across modules outside robid_link.ident (owned by other branches)
 
 
@@ -166,12 +163,6 @@ def test_no_import_cycle_in_the_worker() -> None:
     assert _cycles({m for m in MODULES if m.startswith("robid_link.ident")}) == []
 
 
-def test_no_import_cycle_outside_the_known_one() -> None:
-    known = {"robid_link.config", "robid_link.link.driver", "robid_link.link.program"}
-    assert [c for c in _cycles(set(MODULES)) if not set(c) & known] == []
-
-
-@pytest.mark.xfail(strict=True, reason=KNOWN_CYCLE_REASON)
 def test_no_import_cycle_in_the_package() -> None:
     assert _cycles(set(MODULES)) == []
 

@@ -60,83 +60,22 @@ def _graph() -> dict[str, set[str]]:
     return graph
 
 
-def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
-    """Strongly connected components with more than one module (Tarjan, iterative)."""
-    index: dict[str, int] = {}
-    low: dict[str, int] = {}
-    stack: list[str] = []
-    on: set[str] = set()
-    out: list[list[str]] = []
-    for root in graph:
-        if root in index:
-            continue
-        work = [(root, iter(sorted(graph[root])))]
-        index[root] = low[root] = len(index)
-        stack.append(root)
-        on.add(root)
-        while work:
-            v, it = work[-1]
-            for w in it:
-                if w not in index:
-                    index[w] = low[w] = len(index)
-                    stack.append(w)
-                    on.add(w)
-                    work.append((w, iter(sorted(graph[w]))))
-                    break
-                if w in on:
-                    low[v] = min(low[v], index[w])
-            else:
-                work.pop()
-                if work:
-                    low[work[-1][0]] = min(low[work[-1][0]], low[v])
-                if low[v] == index[v]:
-                    comp = []
-                    while True:
-                        w = stack.pop()
-                        on.discard(w)
-                        comp.append(w)
-                        if w == v:
-                            break
-                    if len(comp) > 1:
-                        out.append(sorted(comp))
-    return out
-
-
-def test_the_graph_sees_the_package() -> None:
-    graph = _graph()
-    assert {"robid_link.config", "robid_link.link.daemon", "robid_link.drivers.file_share",
-            "robid_link.fakes.plant", "robid_link.ident.experiments"} <= set(graph)
-    assert "robid_link.link.driver" in graph["robid_link.drivers.file_share"]
-    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
 
 #: the one circle left, inside the worker's numerical core (identify's load-friction
 #: pre-fit borrows diagnose.attach_predictions); the ident/jobs.py refactor removes it
-KNOWN_CIRCLES = [["robid_link.ident.diagnose", "robid_link.ident.identify"]]
-
-
-def test_no_import_circle_but_the_known_one() -> None:
-    cycles = _cycles(_graph())
-    new = [c for c in cycles if c not in KNOWN_CIRCLES]
-    assert not new, "import circles: " + "; ".join(" ⇄ ".join(c) for c in new)
-
-
-@pytest.mark.xfail(reason="ident.identify ⇄ ident.diagnose until the ident/jobs.py refactor "
-                   "is merged; then drop KNOWN_CIRCLES and this mark", strict=True)
-def test_no_import_circle_in_the_package() -> None:
-    cycles = _cycles(_graph())
-    assert not cycles, "import circles: " + "; ".join(" ⇄ ".join(c) for c in cycles)
-
-
 def test_config_and_neutral_modules_import_no_wing_back() -> None:
     """config → ident.experiments and config → link.driver are its only wing edges, one-way;
-    yamlio, atomic and exceptions import nothing of the package but exceptions."""
+    yamlio, safeyaml, atomic and exceptions import nothing of the package but each other's
+    neutral modules. (Import circles: ``test_architecture.py``.)"""
     graph = _graph()
     assert graph["robid_link.config"] <= {"robid_link.exceptions", "robid_link.yamlio",
                                           "robid_link.ident.experiments",
                                           "robid_link.link.driver"}
-    for neutral in ("robid_link.yamlio", "robid_link.atomic", "robid_link.exceptions"):
-        assert graph[neutral] <= {"robid_link.exceptions"}, neutral
+    neutral = {"robid_link.yamlio", "robid_link.safeyaml", "robid_link.atomic",
+               "robid_link.exceptions"}
+    for module in neutral:
+        assert graph[module] <= neutral - {module}, module
 
 
 def test_the_product_never_imports_the_fakes() -> None:

@@ -5,6 +5,7 @@ Orchestrates preprocess → regressor/effects → base set → estimate → vali
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -12,13 +13,14 @@ from pathlib import Path
 import numpy as np
 
 from robid_link.exceptions import ConditioningWarning, DataWarning, ExcitationWarning
+from robid_link.ident.consistent import ConsistentFit, fit_consistent
 from robid_link.ident.data import Log, file_sha256, load_log
-from robid_link.ident.design import attach_predictions, make_design
+from robid_link.ident.design import Design, attach_predictions, make_design, structural_mask
 from robid_link.ident.effects import Block, Model
 from robid_link.ident.estimate import Grams, accumulate, fit
 from robid_link.ident.preprocess import Piece, Problem, build_problem, check_counts
 from robid_link.ident.regressor import BaseSet, rigid_regressor
-from robid_link.ident.results import ErrorStats, IdentResult, Parameter
+from robid_link.ident.results import ErrorStats, IdentResult, Parameter, evaluate_held_out
 from robid_link.ident.robot import Robot
 
 __all__ = ["identify", "load_logs"]
@@ -81,7 +83,8 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
     check_counts(int(grams.n_rows.sum()), design.p, Path(data[0].path).name)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        f, grams = fit(design, pb.train, pb.interval, pb.block_len, method, weight,
+        f, grams = fit(design, pb.train, pb.interval, pb.block_len,
+                       "ols" if method == "consistent" else method, weight,
                        base.base_names, grams)
     notes = list(pb.notes)
     for w in caught:
@@ -102,6 +105,11 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
     ms = f.rss / np.maximum(n_rows, 1)
     var = np.maximum(ms - f.mean_res**2, 0.0)
     fit_err = ErrorStats(np.sqrt(ms), np.sqrt(var), var, int(n_rows[0]))
+    cons = None
+    if method == "consistent":  # issue 15 item 6 (ident/consistent.py) — hook begins
+        cons, params, fit_err, design = _consistent(pb, names, design, f.theta, notes,
+                                                    int(n_rows[0]))
+    # hook ends
     notes += _sanity_checks(pb, nominal=robot.nominal is not None)
     if pb.valid:
         notes += _extrapolation(pb)
@@ -126,11 +134,48 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
                     for lg in logs],
         validation_source=pb.validation_source,
         notes=notes,
-        theta=f.theta,
-        cov=f.cov,
+        theta=f.theta if cons is None else cons.theta,
+        cov=f.cov if cons is None else cons.cov,
         problem=pb,
         design=design,
+        consistent=cons,
     )
+
+
+def _consistent(pb: Problem, names: list[str], base_design: Design, beta: np.ndarray,
+                notes: list[str], n: int
+                ) -> tuple[ConsistentFit, list[Parameter], ErrorStats, Design]:
+    """The physically consistent fit with the CAD prior on all standard columns (hook of
+    ``method="consistent"``; the base-parameter OLS fit stays for conditioning and notes).
+    Returns the fit, its parameters and errors, and the full design its θ belongs to (the
+    result's held-out figures are computed on it)."""
+    cols = np.arange(len(names))
+    full = Design(pb.robot, tuple(pb.blocks), cols,
+                  structural_mask(pb.robot, pb.blocks, cols, pb.transmission))
+    cons = fit_consistent(full, pb.train, names, nominal=pb.robot.nominal,
+                          interval=pb.interval, block_len=pb.block_len)
+    val = evaluate_held_out(pb, full, cons.theta).validation
+    val_ols = evaluate_held_out(pb, base_design, beta).validation
+    cons.validation_ols = None if val_ols is None else val_ols.as_dict()
+    std = np.sqrt(np.clip(np.diag(cons.cov), 0.0, None))
+    n_rigid = cons.theta_cad.size
+    params = [Parameter(nm, float(v), float(s), nm,
+                        float(cons.theta_cad[k]) if k < n_rigid else None)
+              for k, (nm, v, s) in enumerate(zip(cons.names, cons.theta, std, strict=True))]
+    ms = cons.rss / max(n, 1)
+    var = np.maximum(ms - cons.mean_res**2, 0.0)
+    lam = ("∞ (the CAD inertials; the data did not support moving away from them)"
+           if not math.isfinite(cons.lam) else f"{cons.lam:.3g} (N·m)² ({cons.lam_rel:.3g} × "
+           "the mean squared training torque)")
+    notes.append(f"consistent fit: prior weight λ = {lam}, chosen by {cons.cv_scheme} on the "
+                 "training data only (largest λ within one standard error of the best CV "
+                 "score); every link's pseudo-inertia is positive definite (smallest "
+                 f"eigenvalue {cons.min_eig.min():.3g})")
+    if val is not None and val_ols is not None and val_ols.relative_error is not None:
+        notes.append(f"consistent fit validates at {100 * (val.relative_error or 0):.2f} %; "
+                     f"OLS of the base parameters on the same inputs at "
+                     f"{100 * val_ols.relative_error:.2f} %")
+    return cons, params, ErrorStats(np.sqrt(ms), np.sqrt(var), var, n), full
 
 
 def _nominal_base(robot: Robot, base: BaseSet, names: list[str]) -> list[float | None] | None:

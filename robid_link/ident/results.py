@@ -200,6 +200,7 @@ class IdentResult:
         pb, _, _ = self._fitted()
         prep = pb.preps[0] if prep is None else prep
         return prep.tau - self.predict(prep)
+    consistent: Any = field(default=None, repr=False)  # ConsistentFit of method "consistent"
 
     @property
     def rmse(self) -> np.ndarray:
@@ -233,6 +234,7 @@ class IdentResult:
                               "interval": self.interval},
             "data_files": self.data_files,
             "notes": self.notes,
+            "consistent": None if self.consistent is None else self.consistent.as_dict(),
         }
 
     def summary(self) -> str:
