@@ -442,7 +442,7 @@ class Plant:
             else:  # the uploaded parameters: Y(q, q̇, q̈)·θ, linear, no body needed
                 tau = pin.computeJointTorqueRegressor(nominal, ndata, pq, qd_meas, acc) @ theta
             if feedforward is not None:  # friction of the reference motion, as controllers do
-                tau += feedforward.friction(qd_ref[k])
+                tau += feedforward.extra(q_ref[k], qd_ref[k])
             return tau
 
         out = self._integrate(t, command, q_ref[0], qd_ref[0])

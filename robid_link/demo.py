@@ -25,10 +25,15 @@ __all__ = ["run_demo", "DEMO_ROBOT", "HIDDEN"]
 DEMO_ROBOT = Path(str(resources.files("robid_link.examples.robots") / "industrial6.yaml"))
 #: what the default model does not know: cogging on axis 1 (0.6 N·m, every 0.1 rad)
 HIDDEN = {"name": "ripple", "joint": 1, "amplitude": 0.6, "period": 0.1}
-CAMPAIGN = {"experiments": [{"kind": "rigid_body", "duration_s": 40, "harmonics": 8,
-                             "base_hz": 0.1, "evaluations": 600, "restarts": 1,
-                             "rate_hz": 250}],
-            "diagnose": True, "timeout_s": 120, "retries": 1, "backoff_s": 1.0}
+RIGID = {"kind": "rigid_body", "duration_s": 40, "harmonics": 8, "base_hz": 0.1,
+         "evaluations": 600, "restarts": 1, "rate_hz": 250}
+#: first: excite, identify, diagnose (what is the model missing?)
+CAMPAIGN = {"experiments": [RIGID], "diagnose": True, "timeout_s": 180, "retries": 1,
+            "backoff_s": 1.0}
+#: then, with the effect added: the verification path on the controller's CAD model (20 %
+#: off, no friction), identify, hand the parameter set over, the verification path again
+CALIBRATE = {**CAMPAIGN, "experiments": [RIGID, "upload", {"kind": "verify"}],
+             "diagnose": False}
 
 
 def _setup(work: Path, out: Path, driver: dict[str, Any]) -> tuple[Path, Path]:
@@ -42,7 +47,8 @@ def _setup(work: Path, out: Path, driver: dict[str, Any]) -> tuple[Path, Path]:
     cfg = {"robot": str(DEMO_ROBOT), "state_dir": str(work / "state"),
            "control_socket": str(work / "control.sock"),
            "driver": driver,
-           "campaigns": {"demo": {**CAMPAIGN, "model": str(model)}}}
+           "campaigns": {"demo": {**CAMPAIGN, "model": str(model)},
+                         "calibrate": {**CALIBRATE, "model": str(model)}}}
     path = work / "daemon.yaml"
     path.write_text(yaml.safe_dump(cfg, sort_keys=False))
     return path, model
@@ -59,12 +65,13 @@ def _controller(driver: str, workdir: Path) -> Any:
                         effects=({"name": "viscous", "fv": 3.0},
                                  {"name": "coulomb", "fc": 2.0}, HIDDEN),
                         noise_tau=0.3, q_resolution=2 * 3.141592653589793 / 2**20,
-                        rate_hz=250.0)
+                        rate_hz=1000.0, mode="closed_loop",
+                        controller={"rate_hz": 1000.0, "bandwidth_hz": 8.0})
     workdir.mkdir(parents=True)
     return ctrl.make_peer(driver, robot, truth, workdir, seed=3)
 
 
-async def _campaign(cfg_path: Path, log_file: Path) -> dict[str, Any]:
+async def _campaign(cfg_path: Path, log_file: Path, name: str = "demo") -> dict[str, Any]:
     from robid_link.link.commands import wait_for_run
     from robid_link.link.control import request
     from robid_link.link.daemon import Daemon, setup_logging
@@ -76,8 +83,8 @@ async def _campaign(cfg_path: Path, log_file: Path) -> dict[str, Any]:
             async with Daemon(cfg, env={}):
                 sock = cfg.control_socket
                 ans = await asyncio.to_thread(request, sock, {"cmd": "start",
-                                                              "campaign": "demo"})
-                print(f"  campaign 'demo' started: run {ans['run_id']}")
+                                                              "campaign": name})
+                print(f"  campaign '{name}' started: run {ans['run_id']}")
                 run = await asyncio.to_thread(wait_for_run, sock, ans["run_id"])
                 res = await asyncio.to_thread(request, sock, {"cmd": "results",
                                                               "run_id": run["run_id"]})
@@ -86,9 +93,33 @@ async def _campaign(cfg_path: Path, log_file: Path) -> dict[str, Any]:
             setup_logging("info")  # the log file closes with this block
 
 
+def _add_suggestion(doc: dict[str, Any], model_file: Path) -> Any:
+    """The diagnosis's top suggestion added to the model file (with its hyper-parameters)."""
+    from robid_link.ident.effects import EffectSpec, load_model, save_model
+
+    diag = next(r["record"] for r in doc["results"] if r["kind"] == "diagnose")
+    if not diag["suggestions"]:
+        return None
+    top = diag["suggestions"][0]
+    spec = EffectSpec(top["effect"], top["joint"],
+                      tuple(sorted((top.get("hyper_parameters") or {}).items())))
+    save_model(model_file, load_model(model_file).with_added(spec))
+    print(f"  the diagnosis suggests {spec.label()}: added to {model_file}")
+    return spec
+
+
+def _tracking(results: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """``{before: {tool_rms_mm, tool_max_mm, joint_rms, …}, after: {…}}`` of the run."""
+    by = {r["kind"]: r["record"]["tracking"] for r in results
+          if r["kind"] in ("verify_before", "verify_after")}
+    if len(by) != 2:
+        return None
+    return {"before": by["verify_before"], "after": by["verify_after"]}
+
+
 def run_demo(work: Path, out: Path, json_path: str | None = None,
              driver: str = "file_share") -> int:
-    from robid_link.ident.effects import EffectSpec, load_model, save_model
+    from robid_link.ident.effects import load_model
     from robid_link.ident.history import read_history
     from robid_link.ident.identify import load_logs
     from robid_link.ident.jobs import run_job
@@ -103,29 +134,28 @@ def run_demo(work: Path, out: Path, json_path: str | None = None,
     with _controller(driver, work / "cell") as peer:
         cfg_path, model_file = _setup(work, out, peer.driver_options())
         doc = asyncio.run(_campaign(cfg_path, out / "daemon.log"))
-    run = doc["run"]
-    if run["state"] != "completed":
-        raise RobidError(f"demo campaign failed: {run['error']}")
-    report = work / "state" / "reports" / run["run_id"]
+        run = doc["run"]
+        if run["state"] != "completed":
+            raise RobidError(f"demo campaign failed: {run['error']}")
+        report = work / "state" / "reports" / run["run_id"]
+        print((report / "summary.txt").read_text())
+        spec = _add_suggestion(doc, model_file)
+        print("  calibrate and verify: the verification path on the controller's CAD model, "
+              "identification" + (f" with {spec.label()}" if spec else "") + ", upload, the "
+              "path again")
+        cal = asyncio.run(_campaign(cfg_path, out / "daemon.log", "calibrate"))
     files = []
     for f in sorted(report.iterdir()):
         shutil.copy2(f, out / f.name)
         files.append(out / f.name)
-    print((report / "summary.txt").read_text())
-    diag = next(r["record"] for r in doc["results"] if r["kind"] == "diagnose")
     first = next(r["record"] for r in doc["results"] if r["kind"] == "identify")
     robot = load_robot(DEMO_ROBOT)
     model = load_model(model_file)
     final_rmse = first["rmse"]
-    if diag["suggestions"]:
-        top = diag["suggestions"][0]
-        spec = EffectSpec(top["effect"], top["joint"],
-                          tuple(sorted((top.get("hyper_parameters") or {}).items())))
-        model = model.with_added(spec)
-        save_model(model_file, model)
-        print(f"  adding {spec.label()} to {model_file} and identifying the stored logs again")
+    if spec is not None:
+        print(f"  identifying the first run's logs again with {spec.label()}")
         logs = [str(work / "state" / "logs" / e["log_sha"][:2] / f"{e['log_sha']}.csv")
-                for e in run["experiments"]]
+                for e in run["experiments"] if e["kind"] != "verify"]
         final = run_job(robot, load_logs(robot, logs), model, report_dir=out / "final",
                         history=model_file)
         files += final.report_files["identify"]
@@ -133,10 +163,25 @@ def run_demo(work: Path, out: Path, json_path: str | None = None,
     files.append(history_figure(read_history(model_file), out / "error_ladder.png"))
     print("\n  error ladder, validation RMSE per joint [N·m]:")
     print("    default model : " + " ".join(f"{x:7.3f}" for x in first["rmse"]))
-    if diag["suggestions"]:
+    if spec is not None:
         print(f"    + {model.labels()[-1]:<12}: " + " ".join(f"{x:7.3f}" for x in final_rmse))
+    if cal["run"]["state"] != "completed":
+        raise RobidError(f"demo calibration failed: {cal['run']['error']}")
+    tracking = _tracking(cal["results"])
+    if tracking:
+        from robid_link.ident.report import tracking_figure
+
+        files.append(tracking_figure(tracking, out / "tracking.png"))
+        b, a = tracking["before"], tracking["after"]
+        print("\n  verification path, tool position error (controller on CAD → on the "
+              "identified parameter set):")
+        print(f"    RMS {b['tool_rms_mm']:.3f} → {a['tool_rms_mm']:.3f} mm "
+              f"({b['tool_rms_mm'] / max(a['tool_rms_mm'], 1e-12):.1f}× lower), max "
+              f"{b['tool_max_mm']:.3f} → {a['tool_max_mm']:.3f} mm, after the stop "
+              f"{b['residual_mm']:.3f} → {a['residual_mm']:.3f} mm")
     print(f"\nrobid demo: run {run['run_id']} completed; {len(files)} report files in {out}/")
     if json_path:
         write_json(json_path, {"run": run, "results": doc["results"], "hidden": HIDDEN,
-                               "model": model.labels(), "final_rmse": final_rmse})
+                               "model": model.labels(), "final_rmse": final_rmse,
+                               "tracking": tracking})
     return 0

@@ -34,8 +34,8 @@ import numpy as np
 
 from robid_link.exceptions import EstimationError
 from robid_link.ident.data import Log
-from robid_link.ident.estimate import Grams, accumulate
 from robid_link.ident.design import Design
+from robid_link.ident.estimate import Grams, accumulate
 from robid_link.ident.preprocess import Piece
 
 __all__ = ["ConsistentFit", "fit_consistent", "pseudo_inertia", "standard_from_pseudo",

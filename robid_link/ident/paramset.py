@@ -43,9 +43,11 @@ def set_sha256(doc: Mapping[str, Any]) -> str:
 
 
 def make_parameter_set(robot: Robot, identify_doc: Mapping[str, Any], *, run_id: str,
-                       elasticity: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                       elasticity: Mapping[str, Any] | None = None,
+                       periods: Mapping[int, float] | None = None) -> dict[str, Any]:
     """The parameter set of one identification (``IdentResult.to_dict()``), with the
-    projected standard inertials when the robot has a-priori ones."""
+    projected standard inertials when the robot has a-priori ones. ``periods``: the ripple
+    period (rad) per joint (from 1) of the model's ``ripple`` effects, when it has some."""
     params = identify_doc.get("parameters") or []
     if not params:
         raise ModelError(f"run {run_id}: the identification has no parameters to hand over")
@@ -65,11 +67,29 @@ def make_parameter_set(robot: Robot, identify_doc: Mapping[str, Any], *, run_id:
         # controller that simulates or checks the model wants one: say which it is
         "physically_consistent": None if theta is None else physical_problem(
             np.asarray(theta)) is None,
+        "ripple": _ripple(base, identify_doc, periods or {}),
         "elasticity": [dict(e) for e in (elasticity or {}).get("joints", [])],
         "relative_error": identify_doc.get("relative_error"),
     }
     doc["sha256"] = set_sha256(doc)
     return doc
+
+
+def _ripple(base: list[dict[str, Any]], doc: Mapping[str, Any], periods: Mapping[int, float]
+            ) -> list[dict[str, float]]:
+    """Position-periodic torque (cogging) per joint: s·sin(2πq/P) + c·cos(2πq/P)."""
+    values = {p["name"]: float(p["value"]) for p in base}
+    hypers = doc.get("hyper_parameters") or {}
+    out = []
+    for name, s in values.items():
+        if not name.startswith("rps_"):
+            continue
+        j = int(name.split("_", 1)[1])
+        period = periods.get(j, (hypers.get(f"ripple@{j}") or {}).get("period"))
+        if period is None or f"rpc_{j}" not in values:
+            continue
+        out.append({"joint": j, "period": float(period), "sin": s, "cos": values[f"rpc_{j}"]})
+    return out
 
 
 def _friction(robot: Robot, base: list[dict[str, Any]]) -> dict[str, list[float]]:
@@ -89,12 +109,17 @@ def _projected(robot: Robot, effects: list[str], base: list[dict[str, Any]]
     if robot.nominal is None:
         return None
     from robid_link.ident.design import base_set_for
+    from robid_link.ident.robot import standard_parameter_names
+
+    values = {p["name"]: float(p["value"]) for p in base}
+    standard = standard_parameter_names(robot.n)
+    if all(n in values for n in standard):  # a consistent fit: the standard parameters
+        return [values[n] for n in standard]
     from robid_link.ident.effects import Model
 
     model = Model.parse([e for e in effects if e == "rigid_body"] or ["rigid_body"])
     bs, _ = base_set_for(robot, model.blocks(robot))
     names = list(bs.base_names)
-    values = {p["name"]: float(p["value"]) for p in base}
     if not all(n in values for n in names):
         return None  # a model without rigid_body: keep CAD
     beta = np.array([values[n] for n in names])
@@ -133,10 +158,19 @@ class Feedforward:
     viscous: np.ndarray
     coulomb: np.ndarray
     offset: np.ndarray
+    ripple: tuple[tuple[int, float, float, float], ...] = ()  # (joint index, P, sin, cos)
 
     def friction(self, qd: np.ndarray) -> np.ndarray:
         moving = np.abs(qd) > 1e-6
         return self.viscous * qd + self.coulomb * np.sign(qd) * moving + self.offset
+
+    def extra(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        """Friction plus the position-periodic terms: what is added to inverse dynamics."""
+        tau = self.friction(qd)
+        for j, period, s, c in self.ripple:
+            ph = 2 * np.pi * q[j] / period
+            tau[j] += s * np.sin(ph) + c * np.cos(ph)
+        return tau
 
 
 def feedforward(doc: Mapping[str, Any], n_joints: int) -> Feedforward:
@@ -157,7 +191,14 @@ def feedforward(doc: Mapping[str, Any], n_joints: int) -> Feedforward:
         raise ModelError("parameter set: standard inertials hold a non-finite number")
     if any(np.any(~np.isfinite(a)) for a in arrays.values()):
         raise ModelError("parameter set: friction holds a non-finite number")
-    return Feedforward(str(doc["sha256"]), theta, **arrays)
+    ripple = []
+    for r in doc.get("ripple") or []:
+        j, period = int(r["joint"]), float(r["period"])
+        if not 1 <= j <= n_joints or not period > 0:
+            raise ModelError(f"parameter set: ripple of joint {j} (period {period}) does not "
+                             f"fit a {n_joints}-joint robot")
+        ripple.append((j - 1, period, float(r["sin"]), float(r["cos"])))
+    return Feedforward(str(doc["sha256"]), theta, **arrays, ripple=tuple(ripple))
 
 
 def diff_sets(a: Mapping[str, Any], b: Mapping[str, Any]) -> list[str]:

@@ -16,7 +16,7 @@ from robid_link.ident.results import IdentResult
 from robid_link.ident.robot import Robot
 
 __all__ = ["write_report", "draw_robot", "write_json", "residual_figures", "history_figure",
-           "trend_figure"]
+           "trend_figure", "tracking_figure"]
 
 
 def _pyplot() -> Any:
@@ -229,6 +229,35 @@ def trend_figure(trend: Any, names: list[str], path: str | Path) -> Path:
     ax.legend(fontsize=7, ncol=3)
     fig.tight_layout()
     p = Path(path)
-    fig.savefig(p, dpi=100)
+    _save_figure(fig, p, 100)
+    plt.close(fig)
+    return p
+
+
+def tracking_figure(tracking: dict[str, Any], path: str | Path) -> Path:
+    """Before/after the upload: tool error (RMS, max, after the stop) and per-joint RMS."""
+    plt = _pyplot()
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    b, a = tracking["before"], tracking["after"]
+    keys = [("tool_rms_mm", "tool RMS"), ("tool_max_mm", "tool max"),
+            ("residual_mm", "after stop")]
+    x = np.arange(len(keys))
+    ax1.bar(x - 0.2, [b[k] for k, _ in keys], 0.4, label="controller on CAD")
+    ax1.bar(x + 0.2, [a[k] for k, _ in keys], 0.4, label="identified set uploaded")
+    ax1.set_xticks(x)
+    ax1.set_xticklabels([lbl for _, lbl in keys])
+    ax1.set_ylabel("tool position error [mm]")
+    ax1.legend(fontsize=8)
+    j = np.arange(1, len(b["joint_rms"]) + 1)
+    ax2.bar(j - 0.2, np.degrees(b["joint_rms"]), 0.4, label="before")
+    ax2.bar(j + 0.2, np.degrees(a["joint_rms"]), 0.4, label="after")
+    ax2.set_xlabel("joint")
+    ax2.set_ylabel("tracking error RMS [deg]")
+    ax2.legend(fontsize=8)
+    fig.suptitle(f"verification path: tool RMS {b['tool_rms_mm']:.3f} → "
+                 f"{a['tool_rms_mm']:.3f} mm")
+    fig.tight_layout()
+    p = Path(path)
+    _save_figure(fig, p, 100)
     plt.close(fig)
     return p

@@ -194,7 +194,7 @@ async def _identify(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, r
            "logs": [str(store.check_log(s)) for s in shas],
            "model": str(camp.model) if camp.model else None, "add": list(camp.add),
            "method": camp.method, "diagnose": camp.diagnose, "cutoff_hz": camp.cutoff_hz,
-           "motor_side": camp.motor_side,
+           "motor_side": camp.motor_side, "upload": camp.upload,
            "report_dir": str(store.dir / "reports" / run_id)}
     kill_hook("identifying")
     out = await run_in_worker(ctx, identify_run, job)

@@ -76,7 +76,20 @@ def identify_run(job: dict[str, Any]) -> dict[str, Any]:
     (out / "summary.txt").write_text("\n\n".join(summaries) + "\n")
     from robid_link.ident.paramset import make_parameter_set
 
-    pset = make_parameter_set(robot, doc, run_id=job["run_id"])
+    periods = {s.joint: float(s.opts["period"]) for s in model.specs
+               if s.name == "ripple" and s.joint and "period" in s.opts}
+    pset_doc = doc
+    if job.get("upload") and robot.nominal is not None:
+        # what a controller runs its computed torque on must be a body that can exist
+        # (an inconsistent θ can make its mass matrix indefinite): the consistent fit
+        from robid_link.ident.identify import identify
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the same notes as the fit above
+            pset_doc = identify(robot, data, model, cutoff_hz=job.get("cutoff_hz"),
+                                method="consistent",
+                                motor_side=job.get("motor_side", False)).to_dict()
+    pset = make_parameter_set(robot, pset_doc, run_id=job["run_id"], periods=periods)
     return {"records": records, "summary": "\n\n".join(summaries),
             "parameters": doc.get("parameters", []), "robot": robot.name,
             "parameter_set": pset}

@@ -18,7 +18,7 @@ from robid_link.link.daemon import Daemon
 
 from .conftest import QUICK, wait_run, write_config
 
-RIGID = {"kind": "rigid_body", "duration_s": 30, "harmonics": 5, "evaluations": 80,
+RIGID = {"kind": "rigid_body", "duration_s": 40, "harmonics": 8, "evaluations": 300,
          "rate_hz": 200}
 CAL = {**QUICK, "experiments": [RIGID, "upload", {"kind": "verify", "rate_hz": 200}],
        "timeout_s": 120}
