@@ -202,6 +202,10 @@ async def _identify(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, r
         store.add_result(run_id, out["robot"], kind, rec)
     log.info("run=%s identified: rmse %s", run_id,
              " ".join(f"{x:.3g}" for x in out["records"]["identify"]["rmse"] or []))
+    for flag in drift_flags(store, out["robot"], run_id):
+        store.note(run_id, None, "drift", parameter=flag.parameter, kind=flag.kind,
+                   change=round(flag.change, 4), sigmas=round(flag.sigmas, 1))
+        log.warning("run=%s drift: %s", run_id, flag.message)
     pset = out["parameter_set"]
     body = parameter_bytes(pset)
     version = store.add_param_set(pset, body)
@@ -233,6 +237,18 @@ async def _tracking(cfg: DaemonConfig, store: Store, ctx: Any, run_id: str,
         store.add_result(run_id, out["robot"], f"verify_{rec['phase']}", rec)
         log.info("run=%s %s: tool RMS %.3f mm, max %.3f mm", run_id, rec["experiment"],
                  rec["tracking"]["tool_rms_mm"], rec["tracking"]["tool_max_mm"])
+
+
+def drift_flags(store: Store, robot: str, run_id: str | None = None) -> list[Any]:
+    """Drift flags of ``robot``'s stored identifications (of one run, or all)."""
+    from robid_link.exceptions import ModelError
+    from robid_link.ident.drift import trend
+
+    try:
+        tr = trend(store.results(robot), robot)
+    except ModelError:  # no identification with parameters yet
+        return []
+    return [f for f in tr.flags if run_id is None or f.run_id == run_id]
 
 
 async def upload_set(store: Store, driver: Driver, robot: str, sha: str, run_id: str | None,

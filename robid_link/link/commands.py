@@ -58,16 +58,21 @@ def dispatch(args: argparse.Namespace) -> int:
             ans = request(cfg.control_socket, {"cmd": "status"})
         except DaemonUnreachable as err:
             print(f"robid: {err}; reading the store", file=sys.stderr)
+            from robid_link.link.campaign import drift_flags
             from robid_link.link.store import Store
 
             with Store(cfg.state_dir, readonly=True) as store:
-                ans = {"runs": store.runs(), "status": "daemon not running"}
+                ans = {"runs": store.runs(), "status": "daemon not running",
+                       "drift": [f.message for f in drift_flags(store, _robot_name(cfg))]}
         if args.json:
             from robid_link.ident.report import write_json
 
-            write_json(args.json, {"runs": ans["runs"], "status": ans["status"]})
+            write_json(args.json, {"runs": ans["runs"], "status": ans["status"],
+                                   "drift": ans.get("drift", [])})
         print(f"daemon: {ans['status']}")
         print(format_runs(ans["runs"]))
+        for line in ans.get("drift", []):
+            print(f"drift: {line}")
         return 0
     if args.cmd == "params":
         return _params(args, cfg)
@@ -162,6 +167,16 @@ def format_results(results: list[dict[str, Any]]) -> str:
         lines.append(f"{r['run_id']:<24} {r['robot']:<14} {r['kind']:<9} RMSE [{rmse}] N·m"
                      + (f"  rel {100 * rel:.2f} %" if rel is not None else "") + extra)
     return "\n".join(lines)
+
+
+def _robot_name(cfg: Any) -> str:
+    """The robot's name as the store records it (the description's name, else the stem)."""
+    from robid_link.ident.robot import load_robot
+
+    try:
+        return str(load_robot(cfg.robot, cfg.lock).name)
+    except RobidError:
+        return Path(cfg.robot).stem
 
 
 def _params(args: argparse.Namespace, cfg: Any) -> int:

@@ -216,8 +216,10 @@ class Daemon:
         if cmd == "status":
             runs = ([self.store.run(req["run_id"])] if req.get("run_id")
                     else self.store.runs(int(req.get("limit", 20))))
+            drift = [f.message for f in cp.drift_flags(self.store, self.robot.name)] \
+                if self.robot else []
             return {"ok": True, "runs": runs, "current": self._current,
-                    "status": self._status_line()}
+                    "status": self._status_line(), "drift": drift}
         if cmd == "results":
             return {"ok": True, "results": self.store.results(req.get("robot"),
                                                               req.get("run_id"))}

@@ -115,3 +115,28 @@ def test_results_trend_and_compare_from_the_cli(arm3: Robot, tmp_path: Path,
     assert "r1 (run r1-03) vs r2 (run r2-00)" in capsys.readouterr().out
     assert main(["results", "--config", str(cfg), "--trend"]) == 2
     assert "--trend: name the robot with --robot NAME" in capsys.readouterr().err
+
+
+def test_status_names_the_drift(arm3: Robot, tmp_path: Path,
+                                capsys: pytest.CaptureFixture[str]) -> None:
+    import yaml
+
+    from robid_link.cli import main
+    from robid_link.link.campaign import drift_flags
+    from robid_link.link.store import Store
+
+    rows = _nightly(arm3, tmp_path, [1.0, 1.0, 1.0, 1.4], "arm3", 21)
+    with Store(tmp_path / "state") as store:
+        for r in rows:
+            store.add_result(r["run_id"], r["robot"], "identify", r["record"])
+        assert {f.run_id for f in drift_flags(store, "arm3", "arm3-03")} == {"arm3-03"}
+        assert drift_flags(store, "arm3", "arm3-02") == []
+    cfg = tmp_path / "link.yaml"
+    cfg.write_text(yaml.safe_dump({
+        "robot": str(Path(__file__).resolve().parents[2] / "examples/robots/arm3.yaml"),
+        "state_dir": str(tmp_path / "state"), "control_socket": str(tmp_path / "no.sock"),
+        "driver": {"name": "file_share", "share": str(tmp_path)},
+        "campaigns": {"nightly": {"experiments": ["rigid_body"]}}}))
+    assert main(["status", "--config", str(cfg)]) == 0
+    out = capsys.readouterr().out
+    assert "drift: " in out and "friction rose (wear or lubrication)" in out
