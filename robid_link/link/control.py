@@ -50,6 +50,8 @@ class ControlServer:
         self._server: asyncio.Server | None = None
         self._max_clients, self._idle_s = max_clients, idle_s
         self.clients = 0
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._writers: set[asyncio.StreamWriter] = set()
 
     def _clear_stale(self) -> None:
         """Remove a dead daemon's socket; refuse anything that is not a socket (a typo in
@@ -85,6 +87,13 @@ class ControlServer:
     async def __aexit__(self, *exc: object) -> None:
         if self._server is not None:
             self._server.close()
+            # the server does not wait for its client handlers: close their connections (a
+            # handler then reads EOF and ends) and await them, so nothing of the operator
+            # interface outlives the daemon (cancelling them makes asyncio log an error)
+            for writer in list(self._writers):
+                writer.close()
+            if self._tasks:
+                await asyncio.wait(list(self._tasks), timeout=5.0)
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(self._server.wait_closed(), 2.0)
             self._server = None
@@ -92,6 +101,11 @@ class ControlServer:
             self.path.unlink()
 
     async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        if task is not None:
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+        self._writers.add(writer)
         self.clients += 1
         try:
             if self.clients > self._max_clients:
@@ -115,6 +129,7 @@ class ControlServer:
             pass
         finally:
             self.clients -= 1
+            self._writers.discard(writer)
             writer.close()
             # the server closing under us cancels this wait: the client is done either way
             with contextlib.suppress(Exception, asyncio.CancelledError):
