@@ -7,6 +7,7 @@ the file and the line. Imports no wing.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +57,14 @@ class _BoundedLoader(yaml.SafeLoader):
         finally:
             if nested:
                 self._depth -= 1
+
+
+# YAML 1.2 floats: PyYAML (YAML 1.1) reads ``-4e-06`` or ``1e3`` (no dot) as strings; a robot
+# file's friction or a truth file's noise written that way is a number
+_BoundedLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"))
 
 
 class _Limit(Exception):
