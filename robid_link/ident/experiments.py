@@ -216,3 +216,48 @@ def _verify(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) -> Tra
 register_kind(ExperimentKind(
     "verify", {"speed": 0.6, "rate_hz": 250.0}, _verify, _check_verify,
     summary="a fixed, fast path run before and after an upload: tracking and tool error"))
+
+
+# ----------------------------------------------------------------------------- elasticity
+
+
+def _check_elasticity(opts: dict[str, Any], where: str) -> None:
+    joints = opts["joints"]
+    if joints is not None and (not isinstance(joints, list) or not joints or not all(
+            isinstance(j, int) and not isinstance(j, bool) and 1 <= j <= 64 for j in joints)):
+        raise ConfigError(f"{where}.joints: expected a list of joint numbers (from 1)")
+    pose = opts["pose_deg"]
+    if pose is not None and (not isinstance(pose, list) or not all(
+            isinstance(x, int | float) and not isinstance(x, bool) and abs(x) <= 3600
+            for x in pose)):
+        raise ConfigError(f"{where}.pose_deg: expected one angle (degrees) per joint")
+    lo, hi = opts["f_min_hz"], opts["f_max_hz"]
+    if not (isinstance(lo, int | float) and isinstance(hi, int | float) and 0 < lo < hi <= 500):
+        raise ConfigError(f"{where}.f_max_hz: expected 0 < f_min_hz < f_max_hz ≤ 500, got "
+                          f"{lo!r}, {hi!r}")
+    steps = opts["steps"]
+    if isinstance(steps, bool) or not isinstance(steps, int) or not 4 <= steps <= 200:
+        raise ConfigError(f"{where}.steps: expected a whole number in 4..200, got {steps!r}")
+
+
+def _elasticity(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) -> Trajectory:
+    import math
+
+    from robid_link.ident.frequency import ElasticityOptions, elasticity_trajectory
+
+    pose = opts["pose_deg"]
+    if pose is not None and len(pose) != robot.n:
+        raise ConfigError(f"pose_deg: {len(pose)} angles, the robot has {robot.n} joints")
+    if opts["joints"] and max(opts["joints"]) > robot.n:
+        raise ConfigError(f"joints: {max(opts['joints'])} is not a joint of {robot.name}")
+    return elasticity_trajectory(robot, ElasticityOptions(
+        joints=tuple(opts["joints"] or ()),
+        pose=None if pose is None else tuple(math.radians(x) for x in pose),
+        f_min_hz=float(opts["f_min_hz"]), f_max_hz=float(opts["f_max_hz"]),
+        steps=int(opts["steps"]), rate_hz=float(opts["rate_hz"])))
+
+
+register_kind(ExperimentKind(
+    "elasticity", {"joints": None, "pose_deg": None, "f_min_hz": 2.0, "f_max_hz": 60.0,
+                   "steps": 24, "rate_hz": 2000.0}, _elasticity, _check_elasticity,
+    summary="stepped sines per axis around a pose: FRFs, two-mass fit (Jm, Ja, K, D)"))

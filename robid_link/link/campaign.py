@@ -18,6 +18,7 @@ from robid_link.link.driver import CAP_UPLOAD, Driver, MotionProgram, parameter_
 from robid_link.link.store import Store
 from robid_link.link.worker import (
     check_log,
+    elasticity_run,
     generate_program,
     identify_run,
     run_in_worker,
@@ -153,12 +154,14 @@ async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any,
         for k, (exp_id, program) in enumerate(first, 1):
             await cycle(k, exp_id, program)
         if camp.identify:
-            data = [s for e, s in shas.items() if kinds.get(e) != "verify"]
+            data = [s for e, s in shas.items() if kinds.get(e) not in ("verify", "elasticity")]
             await _identify(cfg, store, driver, ctx, run_id, camp, data, kill_hook)
         for k, (exp_id, program) in enumerate(then, len(first) + 1):
             await cycle(k, exp_id, program)
         await _tracking(cfg, store, ctx, run_id, camp, [(e, p, shas[e]) for e, p in programs
                                                         if kinds.get(e) == "verify"])
+        await _elasticity(cfg, store, ctx, run_id, [(e, p, shas[e]) for e, p in programs
+                                                    if kinds.get(e) == "elasticity"])
     except StoreFullError:
         raise  # not the run's fault: it waits, journaled as it is, until space returns
     except RobidError as err:
@@ -249,6 +252,25 @@ def drift_flags(store: Store, robot: str, run_id: str | None = None) -> list[Any
     except ModelError:  # no identification with parameters yet
         return []
     return [f for f in tr.flags if run_id is None or f.run_id == run_id]
+
+
+async def _elasticity(cfg: DaemonConfig, store: Store, ctx: Any, run_id: str,
+                      runs: list[tuple[str, MotionProgram, str]]) -> None:
+    """Two-mass fits of each elasticity experiment (its schedule from the program header)."""
+    if not runs:
+        return
+    store.set_run(run_id, "running", step="elasticity")
+    job = {"robot": str(cfg.robot), "lock": list(cfg.lock), "runs": [
+        {"exp_id": e, "log": str(store.check_log(sha)), "files": dict(p.files)}
+        for e, p, sha in runs]}
+    out = await run_in_worker(ctx, elasticity_run, job)
+    rec = {"kind": "elasticity", "run_id": run_id, "robot": out["robot"],
+           "experiments": out["results"]}
+    store.add_result(run_id, out["robot"], "elasticity", rec)
+    for res in out["results"]:
+        for j in res["result"].get("joints", []):
+            log.info("run=%s %s joint %d: K %.4g, D %.4g, f_res %.3g Hz", run_id,
+                     res["experiment"], j["joint"], j["k"], j["d"], j["f_res_hz"])
 
 
 async def upload_set(store: Store, driver: Driver, robot: str, sha: str, run_id: str | None,

@@ -142,8 +142,21 @@ def format_results(results: list[dict[str, Any]]) -> str:
         return "no results yet"
     lines = []
     previous: dict[str, list[float]] = {}
+    previous_k: dict[tuple[str, int], float] = {}
     for r in results:
         rec = r["record"]
+        if r["kind"] == "elasticity":  # K, D, f_res per joint, against the previous run
+            for res in rec.get("experiments", []):
+                for j in res["result"].get("joints", []):
+                    key = (r["robot"], j["joint"])
+                    was = previous_k.get(key)
+                    change = (f"  K vs previous {100 * (j['k'] - was) / was:+.1f} %"
+                              if was else "")
+                    previous_k[key] = j["k"]
+                    lines.append(f"{r['run_id']:<24} {r['robot']:<14} {'elastic':<9} joint "
+                                 f"{j['joint']}: K {j['k']:.4g}, D {j['d']:.4g}, f_res "
+                                 f"{j['f_res_hz']:.3g} Hz{change}")
+            continue
         if "tracking" in rec:  # a verification path: how well the robot followed it
             tr = rec["tracking"]
             lines.append(f"{r['run_id']:<24} {r['robot']:<14} {r['kind']:<9} tool RMS "

@@ -116,6 +116,29 @@ def verify_run(job: dict[str, Any]) -> dict[str, Any]:
     return {"robot": robot.name, "records": records}
 
 
+def elasticity_run(job: dict[str, Any]) -> dict[str, Any]:
+    """Elasticity of each stepped-sine log, from the schedule its program carried."""
+    from robid_link.ident.data import load_log
+    from robid_link.ident.elasticity import identify_elasticity
+    from robid_link.link.driver import MotionProgram
+
+    robot = _robot(job["robot"], tuple(job["lock"]))
+    results = []
+    for run in job["runs"]:
+        head = MotionProgram(run["exp_id"], run["files"], 0.0).trajectory().header
+        schedule = head.get("schedule")
+        joints = tuple(sorted({int(s["joint"]) for s in schedule or [] if "joint" in s}))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # resampling notes: the log itself was checked
+            log = load_log(run["log"], robot.n)
+        res = identify_elasticity(robot, [log], joints=joints, schedule=schedule)
+        doc = res.to_dict()
+        for j in doc.get("joints", []):
+            j["measures"] = {"experiment": run["exp_id"], "kind": "elasticity"}
+        results.append({"experiment": run["exp_id"], "result": doc})
+    return {"robot": robot.name, "results": results}
+
+
 # ----------------------------------------------------------------------------- process runner
 
 

@@ -129,3 +129,28 @@ def test_cli_excite_elasticity_header(tmp_path):
     sched = traj.header["schedule"]
     assert len(sched) == 6 and {s["joint"] for s in sched} == {2}
     assert sched[0]["f_hz"] == pytest.approx(2.0) and sched[-1]["f_hz"] == pytest.approx(60.0)
+
+
+def test_campaign_kind_and_worker(plant_log):
+    """The ``elasticity`` experiment kind makes the same program; the daemon's worker fits
+    the log with the schedule its program carried and names the entry that measured it."""
+    from robid_link.exceptions import ConfigError
+    from robid_link.ident.experiments import experiment_options, experiment_trajectory
+    from robid_link.link.program import make_program
+    from robid_link.link.worker import elasticity_run
+
+    robot, traj, _, tmp, _ = plant_log
+    opts = experiment_options("elasticity", {"joints": [1], "steps": 14, "f_min_hz": 3.0,
+                                             "pose_deg": list(np.degrees(POSE))}, "e")
+    made = experiment_trajectory(robot, "elasticity", opts)
+    np.testing.assert_allclose(made.q, traj.q, atol=1e-9)
+    program = make_program(robot, made, "stiff")
+    out = elasticity_run({"robot": ROBOT, "lock": [], "runs": [
+        {"exp_id": "stiff", "log": str(tmp / "log.csv"), "files": dict(program.files)}]})
+    joint = out["results"][0]["result"]["joints"][0]
+    assert joint["joint"] == 1 and joint["k"] == pytest.approx(TRUE["k"], rel=0.01)
+    assert joint["measures"] == {"experiment": "stiff", "kind": "elasticity"}
+    for bad, key in [({"steps": 2}, "steps"), ({"f_min_hz": 80.0}, "f_max_hz"),
+                     ({"joints": [0]}, "joints"), ({"pose_deg": "up"}, "pose_deg")]:
+        with pytest.raises(ConfigError, match=rf"e\.{key}: expected"):
+            experiment_options("elasticity", bad, "e")

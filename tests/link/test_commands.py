@@ -39,3 +39,18 @@ def test_runs_table_and_progress(monkeypatch) -> None:  # type: ignore[no-untype
     text = out.getvalue()
     assert "[##########..........] 1/2 logs  running: experiment 2/2 friction" in text
     assert "run r1 failed: unsafe program refused: x" in text
+
+
+def test_results_compare_stiffness_with_the_previous_run() -> None:
+    from robid_link.link.commands import format_results
+
+    def rec(k: float) -> dict:
+        return {"experiments": [{"experiment": "stiff", "result": {"joints": [
+            {"joint": 1, "k": k, "d": 30.0, "f_res_hz": 14.0}]}}]}
+
+    text = format_results([
+        {"run_id": "r1", "robot": "arm", "kind": "elasticity", "record": rec(3.0e4)},
+        {"run_id": "r2", "robot": "arm", "kind": "elasticity", "record": rec(2.7e4)}])
+    lines = text.splitlines()
+    assert "joint 1: K 3e+04, D 30, f_res 14 Hz" in lines[0]
+    assert lines[1].endswith("K vs previous -10.0 %")
