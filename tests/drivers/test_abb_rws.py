@@ -74,7 +74,9 @@ def test_restart_mid_program_subscribes_again_and_asks(tmp_path: Path, robot: Ro
         arr = _parse(_cycle(driver, program))
     assert arr.shape[0] >= 0.5 * RATE_HZ
     assert peer.logins == 2 and len(peer.core.handled) == 1  # a new session, no second run
-    assert "subscription lost" in caplog.text
+    # the restart is seen as a lost subscription or, when a read comes first, as the
+    # controller answering 503 while it starts: either way it is noticed, not waited out
+    assert "subscription lost" in caplog.text or "HTTP 503" in caplog.text
 
 
 @VERSIONS
