@@ -149,7 +149,8 @@ def bench_diagnose(seconds: float, ripple: float = 0.0) -> dict[str, float]:
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--samples", type=int, default=1_000_000)
-    ap.add_argument("--only", choices=("identify", "regressor", "plant", "diagnose", "handoff"))
+    ap.add_argument("--only", choices=("identify", "regressor", "plant", "diagnose", "handoff",
+                                       "modbus", "serial"))
     args = ap.parse_args()
     print("robid_link benchmarks (2-core machine; ratios are against baselines run here)\n")
     if args.only in (None, "handoff"):
@@ -161,6 +162,10 @@ def main() -> int:
             print(f"give→take hand-off, {name:<20}: median {v['median_ms']:8.2f} ms, p99 "
                   f"{v['p99_ms']:8.2f} ms over {v['n']:.0f} ({base / v['median_ms']:.0f}× faster "
                   "than the 1 s loop)" + (" (target median ≤ 5 ms)" if name == "inotify" else ""))
+    if args.only in (None, "modbus", "serial"):  # links to a PLC / a serial controller
+        from benchmarks.modbus_serial import report
+
+        report(args.only)
     if args.only in (None, "regressor"):
         r = bench_regressor(100_000, 2048)
         print(f"regressor, 6 axes: {r['ours_us_per_sample']:.2f} µs/sample vs per-sample "

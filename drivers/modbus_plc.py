@@ -23,6 +23,7 @@ error. Modbus has no events: the status is polled every ``poll_interval_s`` whil
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import random
@@ -172,6 +173,8 @@ class ModbusPlcDriver(Driver):
         self._snap: dict[str, int] = {}
         self._fault: DriverError | None = None
         self._tick = asyncio.Event()
+        self._wake = asyncio.Event()
+        self._closing = False
         self._waiting = 0
         self._beat = 0
         self._hb_seen: tuple[int, float] | None = None
@@ -199,6 +202,10 @@ class ModbusPlcDriver(Driver):
         self._tasks.append(asyncio.create_task(self._poll_loop(), name="modbus_plc-poll"))
 
     async def _close(self) -> None:
+        # the flag as well as the cancel: Python 3.11's wait_for (inside pymodbus) drops a
+        # cancellation that meets a reply in the same instant
+        self._closing = True
+        self._wake.set()
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
@@ -276,7 +283,7 @@ class ModbusPlcDriver(Driver):
         """Read the map (every ``poll_interval_s`` while someone waits, else every heartbeat
         period), count our heartbeat up, watch the PLC's; reconnect when the link drops."""
         next_beat = 0.0
-        while True:
+        while not self._closing:
             try:
                 now = time.monotonic()
                 if now >= next_beat:
@@ -302,7 +309,11 @@ class ModbusPlcDriver(Driver):
                 raise
             self._tick.set()
             self._tick = asyncio.Event()
-            await asyncio.sleep(self.poll_s if self._waiting else self.hb_period_s)
+            # a waiter that arrives during a long idle sleep wakes the loop up
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(self.poll_s if self._waiting else self.hb_period_s):
+                    await self._wake.wait()
+            self._wake.clear()
 
     def _heartbeat_fault(self, snap: dict[str, int]) -> DriverError | None:
         value, now = snap["plc_heartbeat"], time.monotonic()
@@ -390,6 +401,7 @@ class ModbusPlcDriver(Driver):
         n, tag = int(key), nonce_tag(nonce)
         missing_since: float | None = None
         self._waiting += 1
+        self._wake.set()
         try:
             snap = await self._fresh()
             while True:
@@ -442,6 +454,8 @@ class ModbusPlcDriver(Driver):
             await self._write(command=command)
 
     async def _acknowledge(self, done: Done) -> None:
+        n, tag = self._numbers.get(done.exp_id, 0), nonce_tag(done.nonce)
+        self._warned.add((n, tag >> 16, tag & 0xFFFF))  # its DONE lingers a scan: not stale
         await self._release(done.exp_id, done.nonce, Command.IDLE)
         await self.transfer.remove(*self._keys(done.exp_id, done.nonce), "done")
 

@@ -16,6 +16,7 @@ import contextlib
 import logging
 import random
 import threading
+import time
 import zlib
 from collections.abc import Callable
 from typing import Any
@@ -112,6 +113,7 @@ class SerialLineDriver(Driver):
         self._partial: dict[tuple[str, str], bytearray] = {}
         self._tasks: list[asyncio.Task[None]] = []
         self.bad_frames = 0
+        self._rx_at = 0.0  # time.monotonic() of the last bytes read (the loop's clock)
         self.reopened = 0
 
     # -- the port and its reader thread
@@ -141,6 +143,7 @@ class SerialLineDriver(Driver):
                 data = port.read(max(1, min(port.in_waiting, 65536)))
                 if not data:
                     continue
+                self._rx_at = time.monotonic()
                 buf += data
                 while (k := buf.find(b"\n")) >= 0:
                     line, buf = bytes(buf[: k + 1]), buf[k + 1:]
@@ -218,15 +221,19 @@ class SerialLineDriver(Driver):
         if kind == "NAK":
             if self._pending is not None:
                 self._pending.resend.set()
-        elif kind in ("DONE", "ERR") and len(fields) >= 3:
-            self._on_answer(fields)
-        if self._pending is not None and not self._pending.future.done() and \
-                self._pending.match(fields):
-            self._pending.future.set_result(fields)
+            return
+        reply = self._pending is not None and not self._pending.future.done() and \
+            self._pending.match(fields)
+        if kind in ("DONE", "ERR") and len(fields) >= 3:
+            self._on_answer(fields, quiet=reply)  # a STAT's reply repeats a pushed answer
+        if reply:
+            self._pending.future.set_result(fields)  # type: ignore[union-attr]
 
-    def _on_answer(self, fields: list[str]) -> None:
+    def _on_answer(self, fields: list[str], quiet: bool = False) -> None:
         key = (fields[1], fields[2])
-        if key in self._taken:
+        if key in self._taken and (quiet or self._answers.get(key) == fields):
+            log.debug("serial %s repeated answer %s %s %s", self.port, *fields[:3])
+        elif key in self._taken:
             log.warning("serial %s duplicate answer %s %s %s (already taken; ignored)",
                         self.port, *fields[:3])
         elif key not in self._waiting and any(k[0] == key[0] for k in self._waiting):
@@ -263,23 +270,36 @@ class SerialLineDriver(Driver):
                 self._pending = pending = _Pending(match)
                 try:
                     await self._send(line)
-                    async with asyncio.timeout(self.io_timeout_s + wire_s):
-                        resend = asyncio.ensure_future(pending.resend.wait())
-                        try:
-                            await asyncio.wait({pending.future, resend},
-                                               return_when=asyncio.FIRST_COMPLETED)
-                        finally:
-                            resend.cancel()
-                    if pending.future.done():
+                    if await self._reply(pending, self.io_timeout_s + wire_s):
                         return pending.future.result()
-                except TimeoutError:
-                    pass
                 finally:
                     self._pending = None
             if self._fault is not None:
                 raise self._fault
             raise DriverError(f"serial port {self.port}: no valid answer to {what} after "
                               f"{self.retries + 1} tries (line noise or no controller)")
+
+    async def _reply(self, pending: _Pending, timeout_s: float) -> bool:
+        """True once the answer came, False on a NAK, a damaged frame or silence. Bytes still
+        arriving (earlier answers queued on a slow line) are not silence: resending then would
+        only lengthen the queue."""
+        loop = asyncio.get_running_loop()
+        deadline, limit = loop.time() + timeout_s, loop.time() + timeout_s * (self.retries + 1)
+        resend = asyncio.ensure_future(pending.resend.wait())
+        try:
+            while True:
+                left = deadline - loop.time()
+                if left > 0:
+                    done, _ = await asyncio.wait({pending.future, resend}, timeout=left,
+                                                 return_when=asyncio.FIRST_COMPLETED)
+                    if done:
+                        return pending.future.done()
+                busy = loop.time() - self._rx_at < min(self.io_timeout_s, 0.2)
+                if not busy or loop.time() >= limit:
+                    return False
+                deadline = loop.time() + 0.05
+        finally:
+            resend.cancel()
 
     # -- the cycle
     async def _put_program(self, program: MotionProgram) -> None:

@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import logging
 import threading
+import time
 import zlib
 from pathlib import Path
 from typing import Any
@@ -58,6 +59,8 @@ class ModbusPeer(Peer):
         self._job: asyncio.Task[None] | None = None
         self._last: tuple[int, int, int] | None = None
         self._frozen_until = 0.0
+        #: nonce tag (8 hex digits) → time.perf_counter() when DONE was set (benchmarks)
+        self.answer_times: dict[str, float] = {}
 
     # -- register image (touched only on the server's loop)
     def get(self, name: str) -> int:
@@ -203,6 +206,7 @@ class ModbusPeer(Peer):
                                 done_text(sha, size))
         self.set(status=Status.DONE, exp_echo=n, nonce_echo_hi=tag >> 16,
                  nonce_echo_lo=tag & 0xFFFF)
+        self.answer_times[nkey] = time.perf_counter()
 
     def _fail(self, key: str, nkey: str, code: int, reason: str) -> None:
         atomic_write(self.share.sem_path(key, nkey, "failed"), f"{reason}\n".encode())
