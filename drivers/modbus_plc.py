@@ -165,7 +165,7 @@ class ModbusPlcDriver(Driver):
         self.io_timeout_s = _number("io_timeout_s", io_timeout_s, 0.01, 60)
         self.connect_retries = connect_retries
         if rapid:
-            self.capabilities = frozenset({CAP_UPLOAD, CAP_RAPID})
+            self.capabilities = frozenset({CAP_UPLOAD, CAP_RAPID})  # type: ignore[misc]
         self.transfer = ShareTransfer(Path(share), rapid=rapid)
         self._index_path = self.transfer.inbox / "experiments.json"
         self._numbers: dict[str, int] = {}

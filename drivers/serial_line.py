@@ -21,7 +21,7 @@ import zlib
 from collections.abc import Callable
 from typing import Any
 
-import serial
+import serial  # type: ignore[import-untyped]
 
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.link.driver import Done, Driver, MotionProgram
@@ -90,10 +90,10 @@ class SerialLineDriver(Driver):
             if isinstance(val, bool) or not isinstance(val, int) or not lo <= val <= hi:
                 raise ConfigError(f"driver.{key}: expected an integer between {lo} and {hi}, "
                                   f"got {val!r}")
-        for key, val in (("io_timeout_s", io_timeout_s), ("reopen_s", reopen_s),
+        for key, sec in (("io_timeout_s", io_timeout_s), ("reopen_s", reopen_s),
                          ("stat_period_s", stat_period_s)):
-            if isinstance(val, bool) or not isinstance(val, int | float) or not val > 0:
-                raise ConfigError(f"driver.{key}: expected a positive number, got {val!r}")
+            if isinstance(sec, bool) or not isinstance(sec, int | float) or not sec > 0:
+                raise ConfigError(f"driver.{key}: expected a positive number, got {sec!r}")
         self.port, self.baudrate, self.chunk = port, baudrate, chunk_bytes
         self.io_timeout_s, self.retries = float(io_timeout_s), retries
         self.reopen_s, self.stat_period_s = float(reopen_s), float(stat_period_s)
@@ -285,12 +285,13 @@ class SerialLineDriver(Driver):
         only lengthen the queue."""
         loop = asyncio.get_running_loop()
         deadline, limit = loop.time() + timeout_s, loop.time() + timeout_s * (self.retries + 1)
-        resend = asyncio.ensure_future(pending.resend.wait())
+        resend: asyncio.Future[Any] = asyncio.ensure_future(pending.resend.wait())
+        either: set[asyncio.Future[Any]] = {pending.future, resend}
         try:
             while True:
                 left = deadline - loop.time()
                 if left > 0:
-                    done, _ = await asyncio.wait({pending.future, resend}, timeout=left,
+                    done, _ = await asyncio.wait(either, timeout=left,
                                                  return_when=asyncio.FIRST_COMPLETED)
                     if done:
                         return pending.future.done()

@@ -71,7 +71,7 @@ class ModbusPeer(Peer):
             self.image[self.addr[name] - self._lo] = v & 0xFFFF
 
     async def _action(self, fc: int, start: int, address: int, count: int, regs: list[int],
-                      values: list[int] | None) -> None:
+                      values: list[int] | list[bool] | None) -> Any:
         """pymodbus hook on every access: writes land in the image, reads see the image."""
         if values is not None:
             for k, v in enumerate(values):
