@@ -28,7 +28,7 @@ test: $(DEVSTAMP)
 validate: $(DEVSTAMP)
 	ROBID_VALIDATE=1 $(BIN)/python -m pytest -q -m slow --timeout=3600
 
-bench: $(STAMP)
+bench: $(DEVSTAMP)  # the link benches need the drivers' extras (modbus, serial)
 	$(BIN)/python benchmarks/run.py
 
 # the README's systemd route: a built wheel in a fresh venv, `robid demo` from outside the checkout

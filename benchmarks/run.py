@@ -152,7 +152,7 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--samples", type=int, default=1_000_000)
     ap.add_argument("--only", choices=("identify", "regressor", "plant", "diagnose", "handoff",
-                                        "canopen", "rws", "consistent"))
+                                        "canopen", "rws", "consistent", "modbus", "serial"))
     args = ap.parse_args()
     print("robid_link benchmarks (2-core machine; ratios are against baselines run here)\n")
     if args.only in (None, "handoff"):
@@ -179,6 +179,10 @@ def main() -> int:
                       f"{v['p99_ms']:7.2f} ms over {v['n']:.0f}; {r['log_mb']:.1f} MB log "
                       f"(60 s, 6 axes, 1 kHz) at {v['mb_s']:6.1f} MB/s "
                       f"({v['mb_s'] / base['mb_s']:.2f}× the file share)")
+    if args.only in (None, "modbus", "serial"):  # links to a PLC / a serial controller
+        from benchmarks.modbus_serial import report
+
+        report(args.only)
     if args.only in (None, "regressor"):
         r = bench_regressor(100_000, 2048)
         print(f"regressor, 6 axes: {r['ours_us_per_sample']:.2f} µs/sample vs per-sample "

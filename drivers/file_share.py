@@ -26,8 +26,8 @@ from robid_link.drivers.rapid import MAX_AXES, render_rapid
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver, MotionProgram
 
-__all__ = ["FileShareDriver", "sem_name", "parse_sem", "network_fs", "done_text", "read_done",
-           "log_name"]
+__all__ = ["FileShareDriver", "ShareTransfer", "sem_name", "parse_sem", "network_fs",
+           "done_text", "read_done", "log_name"]
 
 log = logging.getLogger("robid.driver.file_share")
 
@@ -102,6 +102,70 @@ def read_done(path: Path, exp_id: str, nonce: str) -> Done | None:
     return Done(exp_id, nonce, sha, size)
 
 
+class ShareTransfer:
+    """The transfer half of the file-share protocol, shared by every driver that moves programs
+    and logs over a folder (``file_share``; ``modbus_plc`` with its handshake in registers).
+
+    Files are keyed by ``key`` (the name a controller sees: the experiment id, or the PLC's
+    experiment number) and ``nkey`` (the nonce as the controller sees it): programs
+    ``inbox/<key>.<suffix>``, logs ``outbox/<key>.<nkey>.log.csv``, semaphores
+    ``sem/<key>.<nkey>.ready|done|failed``. Blocking file work runs in a thread.
+    """
+
+    def __init__(self, share: Path, *, rapid: bool) -> None:
+        self.share, self.rapid = share, rapid
+        self.inbox, self.outbox, self.sem = (share / d for d in ("inbox", "outbox", "sem"))
+
+    def prepare(self) -> None:
+        """The share must exist; its three folders are made when missing."""
+        if not self.share.is_dir():
+            raise DriverError(f"{self.share}: shared folder not found")
+        for d in (self.inbox, self.outbox, self.sem):
+            d.mkdir(exist_ok=True)
+
+    async def put_program(self, program: MotionProgram, key: str | None = None) -> None:
+        """Each program file written atomically as ``inbox/<key>.<suffix>`` (+ RAPID ``.mod``)."""
+        key = key or program.exp_id
+        files = dict(program.files)
+        if self.rapid:
+            files["mod"] = render_rapid(program)
+
+        def write() -> None:
+            for suffix, data in files.items():
+                if not re.fullmatch(r"[a-z]+(\.[a-z]+)?", suffix):
+                    raise DriverError(f"program file suffix {suffix!r} is not allowed")
+                atomic_write(self.inbox / f"{key}.{suffix}", data)
+
+        await asyncio.to_thread(write)
+
+    def sem_path(self, key: str, nkey: str, kind: str) -> Path:
+        return self.sem / sem_name(key, nkey, kind)
+
+    def done(self, key: str, nkey: str, exp_id: str, nonce: str) -> Done | None:
+        """The 'done' of ``key``/``nkey`` as the daemon's ``Done`` of ``exp_id``/``nonce``."""
+        return read_done(self.sem_path(key, nkey, "done"), exp_id, nonce)
+
+    def failed(self, key: str, nkey: str) -> str | None:
+        """The reason in a 'failed' semaphore ('' when it gives none), None without one."""
+        path = self.sem_path(key, nkey, "failed")
+        try:
+            return path.read_text(errors="replace").strip()[:200]
+        except FileNotFoundError:
+            return None
+
+    async def fetch_log(self, key: str, nkey: str) -> bytes:
+        path = self.outbox / log_name(key, nkey)
+        try:
+            return await asyncio.to_thread(path.read_bytes)
+        except FileNotFoundError as err:
+            raise DriverError(f"{path}: log missing although 'done' was given") from err
+
+    async def remove(self, key: str, nkey: str, *kinds: str) -> None:
+        for kind in kinds:
+            await asyncio.to_thread(self.sem_path(key, nkey, kind).unlink, True)
+
+
+
 class _Bridge(FileSystemEventHandler):
     """watchdog handler: hands file names from the observer thread to the event loop."""
 
@@ -156,7 +220,9 @@ class FileShareDriver(Driver):
             if isinstance(val, bool) or not isinstance(val, int | float) or val < 0:
                 raise ConfigError(f"driver.{key}: expected a non-negative number, got {val!r}")
         self.share = Path(share)
-        self.inbox, self.outbox, self.sem = (self.share / d for d in ("inbox", "outbox", "sem"))
+        self.transfer = ShareTransfer(self.share, rapid=rapid)
+        self.inbox, self.outbox, self.sem = (self.transfer.inbox, self.transfer.outbox,
+                                             self.transfer.sem)
         self._observer_choice = observer
         self._poll_s = float(poll_interval_s) or 0.1
         self._canary_s = float(canary_interval_s)
@@ -172,10 +238,7 @@ class FileShareDriver(Driver):
 
     # -- lifecycle
     async def _open(self) -> None:
-        if not self.share.is_dir():
-            raise DriverError(f"{self.share}: shared folder not found")
-        for d in (self.inbox, self.outbox, self.sem):
-            d.mkdir(exist_ok=True)
+        self.transfer.prepare()
         kind = self._observer_choice
         if kind == "auto":
             fs = network_fs(self.share)
@@ -272,17 +335,7 @@ class FileShareDriver(Driver):
 
     # -- the cycle
     async def _put_program(self, program: MotionProgram) -> None:
-        files = dict(program.files)
-        if self.rapid:
-            files["mod"] = render_rapid(program)
-
-        def write() -> None:
-            for suffix, data in files.items():
-                if not re.fullmatch(r"[a-z]+(\.[a-z]+)?", suffix):
-                    raise DriverError(f"program file suffix {suffix!r} is not allowed")
-                atomic_write(self.inbox / f"{program.exp_id}.{suffix}", data)
-
-        await asyncio.to_thread(write)
+        await self.transfer.put_program(program)
 
     async def _give_ready(self, exp_id: str, nonce: str) -> None:
         path = self.sem / sem_name(exp_id, nonce, "ready")
@@ -295,18 +348,16 @@ class FileShareDriver(Driver):
         key = (exp_id, nonce)
         event = asyncio.Event()
         self._waiters[key] = event
-        done_path = self.sem / sem_name(exp_id, nonce, "done")
-        failed_path = self.sem / sem_name(exp_id, nonce, "failed")
         try:
             while True:
                 # look right after subscribing, and after every event: an answer written
                 # before the subscription raised no event we could see
-                if failed_path.exists():
-                    reason = failed_path.read_text(errors="replace").strip()[:200]
+                reason = self.transfer.failed(exp_id, nonce)
+                if reason is not None:
                     self._taken.add(key)
                     raise DriverError(f"controller reports experiment {exp_id} failed: "
                                       f"{reason or 'no reason given'}")
-                done = read_done(done_path, exp_id, nonce)
+                done = self.transfer.done(exp_id, nonce, exp_id, nonce)
                 if done is not None:
                     self._taken.add(key)
                     return done
@@ -316,19 +367,13 @@ class FileShareDriver(Driver):
             self._waiters.pop(key, None)
 
     async def _fetch_logs(self, done: Done) -> bytes:
-        path = self.outbox / log_name(done.exp_id, done.nonce)
-        try:
-            return await asyncio.to_thread(path.read_bytes)
-        except FileNotFoundError as err:
-            raise DriverError(f"{path}: log missing although 'done' was given") from err
+        return await self.transfer.fetch_log(done.exp_id, done.nonce)
 
     async def _acknowledge(self, done: Done) -> None:
-        for kind in ("ready", "done"):
-            await asyncio.to_thread((self.sem / sem_name(done.exp_id, done.nonce, kind)).unlink,
-                                    True)
+        await self.transfer.remove(done.exp_id, done.nonce, "ready", "done")
 
     async def _withdraw(self, exp_id: str, nonce: str) -> None:
-        await asyncio.to_thread((self.sem / sem_name(exp_id, nonce, "ready")).unlink, True)
+        await self.transfer.remove(exp_id, nonce, "ready")
 
     async def _upload_parameters(self, doc: Any, body: bytes) -> None:
         """``params/params-<robot>.<nonce>.json``, then its ``ready`` semaphore; the

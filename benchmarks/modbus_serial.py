@@ -1,0 +1,174 @@
+"""Modbus PLC and serial line against the file share, in one run on loopback: the give→take
+hand-off (the controller's answer → ``take_done`` returning) and the transfer rate of a 60 s
+6-axis 1 kHz log (``fetch_logs``, checksum included). A pty ignores the baud rate: the serial
+figures at 115200 and 921600 baud are paced by the fake controller (10 bits per byte) over a
+slice of the log and extrapolated; "unpaced" is the pty's own speed."""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from robid_link.fakes.controller import default_truth, log_csv, make_peer
+from robid_link.ident import excitation as ex
+from robid_link.ident.robot import load_robot
+from robid_link.link import program as pg
+from robid_link.link import registry
+from robid_link.link.driver import Done, Driver, RobotInfo
+
+__all__ = ["bench_handoffs", "bench_transfer", "sixty_second_log"]
+
+ROOT = Path(__file__).resolve().parent.parent
+ARM3 = ROOT / "examples" / "robots" / "arm3.yaml"
+
+
+def sixty_second_log() -> bytes:
+    """A 6-axis log, 60 s at 1 kHz, in the project's CSV format (what a real cell records)."""
+    rng = np.random.default_rng(0)
+    t = np.arange(60_000) / 1000.0
+    q = np.sin(np.outer(t, [0.3, 0.5, 0.7, 1.1, 1.3, 1.7])) + 1e-6 * rng.normal(size=(60_000, 6))
+    tau = 40 * np.cos(np.outer(t, [0.3, 0.5, 0.7, 1.1, 1.3, 1.7])) + rng.normal(size=(60_000, 6))
+    return log_csv(t, q, tau)
+
+
+def _cell(name: str, work: Path, **opts: Any) -> tuple[Any, Driver]:
+    robot = load_robot(ARM3)
+    peer = make_peer(name, robot, default_truth(robot, rate_hz=100.0), work, **opts)
+    peer.start()
+    driver = registry.make_driver(peer.driver_options())
+    driver.bind_robot(RobotInfo.of(robot))
+    return peer, driver
+
+
+async def _handoffs(peer: Any, driver: Driver, n: int) -> list[float]:
+    robot = load_robot(ARM3)
+    t = np.arange(0.0, 0.05, 0.01)
+    prog = pg.make_program(robot, ex.Trajectory(t, np.zeros((len(t), 3)), 100.0, "custom",
+                                                robot.name), "bench")
+    out = []
+    async with driver:
+        await driver.put_program(prog)
+        for i in range(n + 3):  # the first three warm up
+            nonce = f"{0x1000 + i:08x}"
+            await driver.give_ready("bench", nonce)
+            done = await driver.take_done("bench", nonce, timeout_s=30)
+            t1 = time.perf_counter()
+            await driver.acknowledge(done)
+            if i >= 3:
+                out.append(t1 - peer.answer_times[nonce])
+    return out
+
+
+def bench_handoffs(n: int = 60) -> dict[str, dict[str, float]]:
+    """Median and p99 of the hand-off per driver, the file share's inotify path alongside."""
+    from benchmarks.handoff import _driver_latencies
+
+    res: dict[str, list[float]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        share = Path(tmp) / "share"
+        share.mkdir()
+        res["file_share (inotify)"] = asyncio.run(_driver_latencies(share, "inotify", n))
+        for name in ("modbus_plc", "serial_line"):
+            work = Path(tmp) / name
+            work.mkdir()
+            peer, driver = _cell(name, work)
+            try:
+                res[name] = asyncio.run(_handoffs(peer, driver, n))
+            finally:
+                peer.stop()
+    return {k: {"median_ms": 1e3 * float(np.median(v)),
+                "p99_ms": 1e3 * float(np.percentile(v, 99)), "n": len(v)}
+            for k, v in res.items()}
+
+
+async def _fetch(driver: Driver, done: Done) -> float:
+    async with driver:
+        t0 = time.perf_counter()
+        await driver.fetch_logs(done)
+        return time.perf_counter() - t0
+
+
+def _share_rate(name: str, work: Path, data: bytes) -> float:
+    from robid_link.drivers.file_share import done_text, log_name
+
+    sha = hashlib.sha256(data).hexdigest()
+    peer, driver = _cell(name, work)
+    try:
+        key, nkey = ("1", "0000abcd") if name == "modbus_plc" else ("exp", "0000abcd")
+        (work / "outbox" / log_name(key, nkey)).write_bytes(data)
+        (work / "sem" / f"{key}.{nkey}.done").write_bytes(done_text(sha, len(data)))
+        if name == "modbus_plc":  # the experiment must have its number on the share
+            (work / "inbox" / "experiments.json").write_text('{"exp": 1}')
+        wall = asyncio.run(_fetch(driver, Done("exp", "0000abcd", sha, len(data))))
+    finally:
+        peer.stop()
+    return len(data) / wall / 1e6
+
+
+def _serial_rate(work: Path, data: bytes, pace_baud: int) -> float:
+    peer, driver = _cell("serial_line", work, pace_baud=pace_baud,
+                         baudrate=pace_baud or 921600)
+    try:
+        peer.offer_log("exp", "0000abcd", data)
+        sha = hashlib.sha256(data).hexdigest()
+        wall = asyncio.run(_fetch(driver, Done("exp", "0000abcd", sha, len(data))))
+    finally:
+        peer.stop()
+    return len(data) / wall / 1e6
+
+
+def bench_transfer(slice_115200: int = 96_000, slice_921600: int = 768_000
+                   ) -> dict[str, dict[str, float]]:
+    """MB/s of ``fetch_logs`` per link; the paced serial lines over a slice of the log."""
+    data = sixty_second_log()
+    out: dict[str, dict[str, float]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for k, (label, fn) in enumerate((
+                ("file_share", lambda w: _share_rate("file_share", w, data)),
+                ("modbus_plc (share)", lambda w: _share_rate("modbus_plc", w, data)),
+                ("serial_line unpaced pty", lambda w: _serial_rate(w, data, 0)),
+                ("serial_line 921600 baud", lambda w: _serial_rate(w, data[:slice_921600],
+                                                                   921600)),
+                ("serial_line 115200 baud", lambda w: _serial_rate(w, data[:slice_115200],
+                                                                   115200)))):
+            work = Path(tmp) / f"c{k}"
+            work.mkdir()
+            rate = fn(work)
+            size = (len(data) if "baud" not in label else
+                    slice_921600 if "921600" in label else slice_115200)
+            out[label] = {"mb_s": rate, "measured_bytes": size,
+                          "full_log_s": len(data) / 1e6 / rate, "log_bytes": len(data)}
+    return out
+
+
+def report(only: str | None = None) -> None:
+    """Print the section of ``make bench`` (``--only modbus|serial`` narrows it)."""
+    import logging
+
+    logging.getLogger("robid").setLevel(logging.ERROR)  # the bench's own leftovers, not news
+    h = bench_handoffs()
+    base = h["file_share (inotify)"]["median_ms"]
+    for name, v in h.items():
+        if only and only not in name and "file_share" not in name:
+            continue
+        print(f"give→take hand-off, {name:<22}: median {v['median_ms']:7.2f} ms, p99 "
+              f"{v['p99_ms']:7.2f} ms over {v['n']:.0f} ({v['median_ms'] / base:.1f}× the "
+              "file share's median)")
+    t = bench_transfer()
+    ref = t["file_share"]["mb_s"]
+    for name, v in t.items():
+        if only and only not in name and "file_share" not in name:
+            continue
+        baud = int(name.split()[1]) if "baud" in name else 0
+        how = ("" if not baud else
+               f"; paced, measured on {v['measured_bytes'] / 1e3:.0f} kB and extrapolated; "
+               f"{100 * v['mb_s'] * 1e6 / (baud / 10):.0f} % of the line's {baud / 1e4:.1f} kB/s")
+        print(f"log transfer, 60 s 6-axis 1 kHz log ({v['log_bytes'] / 1e6:.1f} MB), "
+              f"{name:<24}: {v['mb_s']:8.3f} MB/s, {v['full_log_s']:8.1f} s for the log "
+              f"({v['mb_s'] / ref:.2g}× the file share{how})")

@@ -1,0 +1,425 @@
+"""Small controllers on a serial line: the line protocol of ``docs/serial_line_protocol.md``
+(CRC-checked text frames; programs up and logs down in chunks with ack and retransmit).
+
+The blocking pyserial port is read by one thread that hands whole frames to the event loop
+(``call_soon_threadsafe``); writes go through ``asyncio.to_thread``. A port that vanishes
+(USB adapter pulled, pty closed) is reopened within ``reopen_s``; a log fetch resumes from its
+last good offset.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import binascii
+import contextlib
+import logging
+import random
+import threading
+import time
+import zlib
+from collections.abc import Callable
+from typing import Any
+
+import serial  # type: ignore[import-untyped]
+
+from robid_link.exceptions import ConfigError, DriverError
+from robid_link.link.driver import Done, Driver, MotionProgram
+
+__all__ = ["SerialLineDriver", "encode_frame", "decode_frame", "ERROR_CODES", "MAX_LINE"]
+
+log = logging.getLogger("robid.driver.serial_line")
+
+#: what a controller's ERR code means (docs/serial_line_protocol.md)
+ERROR_CODES = {1: "program missing or incomplete", 2: "motion supervision triggered",
+               3: "joint limit reached", 4: "emergency stop", 5: "not in automatic mode",
+               6: "log storage full", 7: "aborted by the daemon", 8: "busy with another program",
+               9: "no log for this experiment and nonce"}
+#: the longest frame either side accepts (a 16 KiB chunk in base64 plus its header)
+MAX_LINE = 24_000
+
+
+def encode_frame(*fields: object) -> bytes:
+    """One frame: the fields joined by spaces, ``*`` and the body's CRC-32 in 8 hex digits."""
+    body = " ".join(str(f) for f in fields).encode("ascii", "replace")
+    return body + b"*%08X\n" % zlib.crc32(body)
+
+
+def decode_frame(line: bytes) -> list[str] | None:
+    """The fields of a frame, None when its CRC fails or it is not a frame (line noise)."""
+    body, star, crc = line.rstrip(b"\r\n").rpartition(b"*")
+    if not star or crc != b"%08X" % zlib.crc32(body):  # exact: a flipped case bit counts too
+        return None
+    try:
+        return body.decode("ascii").split(" ")
+    except UnicodeDecodeError:
+        return None
+
+
+class _Pending:
+    """The one request in flight: a predicate on answer frames and the future it resolves."""
+
+    def __init__(self, match: Callable[[list[str]], bool]) -> None:
+        self.match = match
+        self.future: asyncio.Future[list[str]] = asyncio.get_running_loop().create_future()
+        self.resend = asyncio.Event()
+
+
+class SerialLineDriver(Driver):
+    """Daemon side of the serial line protocol.
+
+    Options: ``port`` (device path), ``baudrate`` (115200), ``chunk_bytes`` (2048: payload per
+    data frame), ``io_timeout_s`` (1: per frame, on top of its transmission time at the baud
+    rate), ``retries`` (8 per frame), ``reopen_s`` (5: how long a vanished port is retried),
+    ``stat_period_s`` (0.5: status polls while waiting for 'done').
+    """
+
+    name = "serial_line"
+    options = frozenset({"port", "baudrate", "chunk_bytes", "io_timeout_s", "retries",
+                         "reopen_s", "stat_period_s"})
+
+    def __init__(self, *, port: str | None = None, baudrate: int = 115200,
+                 chunk_bytes: int = 2048, io_timeout_s: float = 1.0, retries: int = 8,
+                 reopen_s: float = 5.0, stat_period_s: float = 0.5) -> None:
+        super().__init__()
+        if not isinstance(port, str) or not port:
+            raise ConfigError("driver.port: missing (the serial device, e.g. /dev/ttyUSB0)")
+        for key, val, lo, hi in (("baudrate", baudrate, 50, 10_000_000),
+                                 ("chunk_bytes", chunk_bytes, 16, 16384),
+                                 ("retries", retries, 0, 100)):
+            if isinstance(val, bool) or not isinstance(val, int) or not lo <= val <= hi:
+                raise ConfigError(f"driver.{key}: expected an integer between {lo} and {hi}, "
+                                  f"got {val!r}")
+        for key, sec in (("io_timeout_s", io_timeout_s), ("reopen_s", reopen_s),
+                         ("stat_period_s", stat_period_s)):
+            if isinstance(sec, bool) or not isinstance(sec, int | float) or not sec > 0:
+                raise ConfigError(f"driver.{key}: expected a positive number, got {sec!r}")
+        self.port, self.baudrate, self.chunk = port, baudrate, chunk_bytes
+        self.io_timeout_s, self.retries = float(io_timeout_s), retries
+        self.reopen_s, self.stat_period_s = float(reopen_s), float(stat_period_s)
+        self._serial: Any = None
+        self._reader: threading.Thread | None = None
+        self._stop_reader = threading.Event()
+        self._up = asyncio.Event()
+        self._lost = asyncio.Event()
+        self._lost_reason = ""
+        self._fault: DriverError | None = None
+        self._lock = asyncio.Lock()
+        self._pending: _Pending | None = None
+        self._answers: dict[tuple[str, str], list[str]] = {}
+        self._waiting: set[tuple[str, str]] = set()
+        self._taken: set[tuple[str, str]] = set()
+        self._tick = asyncio.Event()
+        self._partial: dict[tuple[str, str], bytearray] = {}
+        self._tasks: list[asyncio.Task[None]] = []
+        self.bad_frames = 0
+        self._rx_at = 0.0  # time.monotonic() of the last bytes read (the loop's clock)
+        self.reopened = 0
+
+    # -- the port and its reader thread
+    async def _open(self) -> None:
+        await self._open_port()
+        self._tasks.append(asyncio.create_task(self._link_loop(), name="serial_line-link"))
+        await self._request(["PING", "0"], lambda f: f[:2] == ["PONG", "0"], what="PING")
+
+    async def _open_port(self) -> None:
+        try:
+            self._serial = await asyncio.to_thread(
+                serial.Serial, self.port, self.baudrate, timeout=0.05, write_timeout=30)
+        except (serial.SerialException, OSError, ValueError) as err:
+            raise DriverError(f"serial port {self.port}: cannot open ({_reason(err)})") from err
+        loop = asyncio.get_running_loop()
+        self._stop_reader.clear()
+        self._reader = threading.Thread(target=self._read_thread, args=(self._serial, loop),
+                                        name=f"serial-reader-{self.port}", daemon=True)
+        self._reader.start()
+        self._up.set()
+
+    def _read_thread(self, port: Any, loop: asyncio.AbstractEventLoop) -> None:
+        """Blocking reads, split into lines, each handed to the loop; a dead port is reported."""
+        buf = bytearray()
+        try:
+            while not self._stop_reader.is_set():
+                data = port.read(max(1, min(port.in_waiting, 65536)))
+                if not data:
+                    continue
+                self._rx_at = time.monotonic()
+                buf += data
+                while (k := buf.find(b"\n")) >= 0:
+                    line, buf = bytes(buf[: k + 1]), buf[k + 1:]
+                    loop.call_soon_threadsafe(self._on_line, line)
+                if len(buf) > MAX_LINE:  # noise without a newline
+                    buf.clear()
+        except (serial.SerialException, OSError, TypeError) as err:
+            if not self._stop_reader.is_set():
+                with contextlib.suppress(RuntimeError):
+                    loop.call_soon_threadsafe(self._on_lost, _reason(err))
+
+    async def _close_port(self) -> None:
+        self._up.clear()
+        self._stop_reader.set()
+        if self._reader is not None:
+            await asyncio.to_thread(self._reader.join, 5)
+            self._reader = None
+        if self._serial is not None:
+            port, self._serial = self._serial, None
+            with contextlib.suppress(serial.SerialException, OSError):
+                await asyncio.to_thread(port.close)
+
+    def _on_lost(self, reason: str) -> None:
+        log.warning("serial port %s lost (%s); reopening", self.port, reason)
+        self._up.clear()
+        self._lost_reason = reason
+        self._lost.set()
+        self._tick.set()
+
+    async def _link_loop(self) -> None:
+        """Reopen a vanished port with growing, jittered delays for at most ``reopen_s``."""
+        while True:
+            await self._lost.wait()
+            self._lost.clear()
+            reason = self._lost_reason
+            await self._close_port()
+            loop = asyncio.get_running_loop()
+            end, delay = loop.time() + self.reopen_s, 0.05
+            while not self._up.is_set():
+                try:
+                    await self._open_port()
+                    self.reopened += 1
+                    self._fault = None
+                    log.info("serial port %s reopened", self.port)
+                except DriverError as err:
+                    reason = str(err).rsplit("(", 1)[-1].rstrip(")")
+                    if loop.time() >= end:
+                        self._fault = DriverError(
+                            f"serial device {self.port} gone: not back within "
+                            f"{self.reopen_s:g} s ({reason})")
+                        self._tick.set()
+                        if self._pending and not self._pending.future.done():
+                            self._pending.future.set_exception(self._fault)
+                        await asyncio.sleep(1.0)  # keep trying, slowly: a cable comes back
+                        continue
+                    await asyncio.sleep(delay * random.uniform(0.5, 1.5))
+                    delay = min(2 * delay, 0.5)
+
+    async def _close(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._tasks.clear()
+        await self._close_port()
+
+    # -- frames
+    def _on_line(self, line: bytes) -> None:
+        fields = decode_frame(line)
+        if fields is None:
+            self.bad_frames += 1
+            if self._pending is not None:
+                self._pending.resend.set()
+            return
+        kind = fields[0]
+        if kind == "NAK":
+            if self._pending is not None:
+                self._pending.resend.set()
+            return
+        reply = self._pending is not None and not self._pending.future.done() and \
+            self._pending.match(fields)
+        if kind in ("DONE", "ERR") and len(fields) >= 3:
+            self._on_answer(fields, quiet=reply)  # a STAT's reply repeats a pushed answer
+        if reply:
+            self._pending.future.set_result(fields)  # type: ignore[union-attr]
+
+    def _on_answer(self, fields: list[str], quiet: bool = False) -> None:
+        key = (fields[1], fields[2])
+        if key in self._taken and (quiet or self._answers.get(key) == fields):
+            log.debug("serial %s repeated answer %s %s %s", self.port, *fields[:3])
+        elif key in self._taken:
+            log.warning("serial %s duplicate answer %s %s %s (already taken; ignored)",
+                        self.port, *fields[:3])
+        elif key not in self._waiting and any(k[0] == key[0] for k in self._waiting):
+            log.warning("serial %s stale answer %s %s %s (another nonce; ignored)",
+                        self.port, *fields[:3])
+        else:
+            self._answers[key] = fields
+        self._tick.set()
+        self._tick = asyncio.Event()
+
+    async def _send(self, line: bytes) -> None:
+        if not self._up.is_set():
+            try:
+                async with asyncio.timeout(self.reopen_s + 1):
+                    await self._up.wait()
+            except TimeoutError:
+                pass
+        if self._fault is not None:
+            raise self._fault
+        port = self._serial
+        try:
+            await asyncio.to_thread(port.write, line)
+        except (serial.SerialException, OSError, AttributeError) as err:
+            self._on_lost(_reason(err))
+
+    async def _request(self, fields: list[object], match: Callable[[list[str]], bool],
+                       what: str, reply_bytes: int = 64) -> list[str]:
+        """Send one frame and wait for the answer ``match`` accepts, resending on a NAK, a
+        damaged answer or silence, at most ``retries`` times."""
+        line = encode_frame(*fields)
+        wire_s = 10 * (len(line) + reply_bytes) / self.baudrate
+        async with self._lock:
+            for _ in range(self.retries + 1):
+                self._pending = pending = _Pending(match)
+                try:
+                    await self._send(line)
+                    if await self._reply(pending, self.io_timeout_s + wire_s):
+                        return pending.future.result()
+                finally:
+                    self._pending = None
+            if self._fault is not None:
+                raise self._fault
+            raise DriverError(f"serial port {self.port}: no valid answer to {what} after "
+                              f"{self.retries + 1} tries (line noise or no controller)")
+
+    async def _reply(self, pending: _Pending, timeout_s: float) -> bool:
+        """True once the answer came, False on a NAK, a damaged frame or silence. Bytes still
+        arriving (earlier answers queued on a slow line) are not silence: resending then would
+        only lengthen the queue."""
+        loop = asyncio.get_running_loop()
+        deadline, limit = loop.time() + timeout_s, loop.time() + timeout_s * (self.retries + 1)
+        resend: asyncio.Future[Any] = asyncio.ensure_future(pending.resend.wait())
+        either: set[asyncio.Future[Any]] = {pending.future, resend}
+        try:
+            while True:
+                left = deadline - loop.time()
+                if left > 0:
+                    done, _ = await asyncio.wait(either, timeout=left,
+                                                 return_when=asyncio.FIRST_COMPLETED)
+                    if done:
+                        return pending.future.done()
+                busy = loop.time() - self._rx_at < min(self.io_timeout_s, 0.2)
+                if not busy or loop.time() >= limit:
+                    return False
+                deadline = loop.time() + 0.05
+        finally:
+            resend.cancel()
+
+    # -- the cycle
+    async def _put_program(self, program: MotionProgram) -> None:
+        for name in sorted(program.files):
+            data = program.files[name]
+            sha = _sha256(data)
+            pid = program.exp_id
+            await self._request(["PROG", pid, name, len(data), sha],
+                                _starts("OK", "PROG", pid, name), what=f"PROG {name}")
+            offset = 0
+            while offset < len(data):
+                chunk = data[offset: offset + self.chunk]
+                got = await self._request(
+                    ["PUT", pid, name, offset, base64.b64encode(chunk).decode()],
+                    _starts("ACK", "PUT", pid, name, size=5), what=f"PUT {name} at {offset}")
+                offset = _int(got[4], f"PUT {name}")
+                if offset > len(data):
+                    raise DriverError(f"serial port {self.port}: controller acknowledged "
+                                      f"{offset} bytes of {name}, {len(data)} were sent")
+
+    async def _give_ready(self, exp_id: str, nonce: str) -> None:
+        got = await self._request(["GO", exp_id, nonce],
+                                  lambda f: f[:4] == ["OK", "GO", exp_id, nonce]
+                                  or (f[0] == "ERR" and f[1:3] == [exp_id, nonce]), what="GO")
+        if got[0] == "ERR":
+            raise self._error(exp_id, got)
+
+    async def _wait_done(self, exp_id: str, nonce: str) -> Done:
+        key = (exp_id, nonce)
+        self._waiting.add(key)
+        try:
+            while True:
+                fields = self._answers.get(key)
+                if fields is not None:
+                    self._taken.add(key)
+                    if fields[0] == "ERR":
+                        raise self._error(exp_id, fields)
+                    if len(fields) != 5:
+                        raise DriverError(f"serial port {self.port}: malformed DONE frame")
+                    return Done(exp_id, nonce, fields[4].lower(), _int(fields[3], "DONE"))
+                if self._fault is not None:
+                    raise self._fault
+                tick = self._tick
+                with contextlib.suppress(DriverError):  # a lost STAT: the next one asks again
+                    await self._request(["STAT", exp_id, nonce],
+                                        lambda f: f[0] in ("BUSY", "IDLE", "DONE", "ERR")
+                                        and f[1:3] == [exp_id, nonce], what="STAT")
+                if key not in self._answers:
+                    with contextlib.suppress(TimeoutError):
+                        async with asyncio.timeout(self.stat_period_s):
+                            await tick.wait()
+        finally:
+            self._waiting.discard(key)
+
+    def _error(self, exp_id: str, fields: list[str]) -> DriverError:
+        code = _int(fields[3], "ERR") if len(fields) > 3 else 0
+        text = " ".join(fields[4:])
+        return DriverError(f"controller on {self.port} reports experiment {exp_id} failed: "
+                           f"error {code} ({ERROR_CODES.get(code, 'unknown error code')})"
+                           + (f": {text}" if text else ""))
+
+    async def _fetch_logs(self, done: Done) -> bytes:
+        """GET chunk after chunk from the last good offset (kept across a reopened port)."""
+        key = (done.exp_id, done.nonce)
+        data = self._partial.setdefault(key, bytearray())
+        total = done.size
+        while total is None or len(data) < total:
+            off = len(data)
+            got = await self._request(
+                ["GET", done.exp_id, done.nonce, off, self.chunk],
+                _chunk_at(done.exp_id, done.nonce, off), what=f"GET at {off}",
+                reply_bytes=4 * self.chunk // 3 + 64)
+            if got[0] == "ERR":
+                raise self._error(done.exp_id, got)
+            if got[0] == "EOF" or len(got) < 5:
+                break  # the controller has no more: the base checks size and SHA-256
+            try:
+                data += base64.b64decode(got[4], validate=True)
+            except binascii.Error as err:
+                raise DriverError(f"serial port {self.port}: bad base64 in DATA at {off}"
+                                  ) from err
+        self._partial.pop(key, None)
+        return bytes(data)
+
+    async def _acknowledge(self, done: Done) -> None:
+        await self._request(["CLEAR", done.exp_id, done.nonce],
+                            lambda f: f[:4] == ["OK", "CLEAR", done.exp_id, done.nonce],
+                            what="CLEAR")
+
+    async def _withdraw(self, exp_id: str, nonce: str) -> None:
+        self._partial.pop((exp_id, nonce), None)
+        await self._request(["ABORT", exp_id, nonce],
+                            lambda f: f[:4] == ["OK", "ABORT", exp_id, nonce], what="ABORT")
+
+
+def _starts(*prefix: str, size: int | None = None) -> Callable[[list[str]], bool]:
+    """Accepts the frames that begin with ``prefix`` (and have ``size`` fields, if given)."""
+    want = list(prefix)
+    return lambda f: f[: len(want)] == want and (size is None or len(f) == size)
+
+
+def _chunk_at(exp_id: str, nonce: str, offset: int) -> Callable[[list[str]], bool]:
+    """Accepts the answer to ``GET`` at ``offset``: its DATA or EOF, or an ERR."""
+    return lambda f: len(f) >= 4 and f[1:3] == [exp_id, nonce] and (
+        f[0] == "ERR" or (f[0] in ("DATA", "EOF") and f[3] == str(offset)))
+
+
+def _sha256(data: bytes) -> str:
+    import hashlib
+
+    return hashlib.sha256(data).hexdigest()
+
+
+def _int(text: str, what: str) -> int:
+    try:
+        return int(text)
+    except ValueError as err:
+        raise DriverError(f"{what} frame: {text!r} is not a number") from err
+
+
+def _reason(err: BaseException) -> str:
+    return (str(err).splitlines() or [type(err).__name__])[0][:160] or type(err).__name__

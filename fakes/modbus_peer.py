@@ -1,0 +1,227 @@
+"""The PLC side of the Modbus handshake (``drivers/modbus_plc.py``): a pymodbus TCP server on
+127.0.0.1 whose registers a scan cycle reads and writes like a PLC program, running programs
+from the share on the fake controller and writing logs and ``done`` files back to the share.
+
+Own faults: ``plc_gone`` (the server stops for good once a RUN arrives), ``heartbeat_frozen``
+(the PLC heartbeat stops for ``freeze_s`` while BUSY), ``error_code`` (ERROR with code 4,
+emergency stop), ``register_garbage`` (status and echo registers hold nonsense; nothing runs).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import threading
+import time
+import zlib
+from pathlib import Path
+from typing import Any
+
+from pymodbus.server import ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from robid_link.atomic import atomic_write
+from robid_link.drivers.file_share import ShareTransfer, done_text, log_name
+from robid_link.drivers.modbus_plc import Command, Status, register_map
+from robid_link.exceptions import RobidError
+from robid_link.fakes.controller import ControllerCore, Peer
+
+__all__ = ["ModbusPeer"]
+
+log = logging.getLogger("robid.fake_controller")
+
+
+class ModbusPeer(Peer):
+    """A fake PLC: ``start`` serves in a thread with its own event loop, ``stop`` joins it."""
+
+    driver = "modbus_plc"
+    faults = ("plc_gone", "heartbeat_frozen", "error_code", "register_garbage")
+
+    def __init__(self, core: ControllerCore, workdir: Path, *, port: int = 0,
+                 device_id: int = 1, base_address: int = 0,
+                 registers: dict[str, int] | None = None, scan_s: float = 0.002,
+                 heartbeat_s: float = 0.05, freeze_s: float = 4.0) -> None:
+        super().__init__(core, workdir)
+        self.share = ShareTransfer(Path(workdir), rapid=False)
+        self.share.prepare()
+        self.addr = register_map(base_address, registers)
+        self._lo = min(self.addr.values())
+        self.image = [0] * (max(self.addr.values()) - self._lo + 1)
+        self.port, self.device_id = port, device_id
+        self.scan_s, self.heartbeat_s, self.freeze_s = scan_s, heartbeat_s, freeze_s
+        self._thread: threading.Thread | None = None
+        self._ready = threading.Event()
+        self._stop: asyncio.Event | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._error: BaseException | None = None
+        self._server: Any = None
+        self._job: asyncio.Task[None] | None = None
+        self._last: tuple[int, int, int] | None = None
+        self._frozen_until = 0.0
+        #: nonce tag (8 hex digits) → time.perf_counter() when DONE was set (benchmarks)
+        self.answer_times: dict[str, float] = {}
+
+    # -- register image (touched only on the server's loop)
+    def get(self, name: str) -> int:
+        return self.image[self.addr[name] - self._lo]
+
+    def set(self, **values: int) -> None:
+        for name, v in values.items():
+            self.image[self.addr[name] - self._lo] = v & 0xFFFF
+
+    async def _action(self, fc: int, start: int, address: int, count: int, regs: list[int],
+                      values: list[int] | list[bool] | None) -> Any:
+        """pymodbus hook on every access: writes land in the image, reads see the image."""
+        if values is not None:
+            for k, v in enumerate(values):
+                if 0 <= address - self._lo + k < len(self.image):
+                    self.image[address - self._lo + k] = int(v)
+        else:
+            regs[self._lo - start: self._lo - start + len(self.image)] = self.image
+        return None
+
+    # -- life cycle
+    def driver_options(self) -> dict[str, Any]:
+        return {"name": "modbus_plc", "host": "127.0.0.1", "port": self.port,
+                "device_id": self.device_id, "share": str(self.workdir)}
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._thread = threading.Thread(target=self._run, name="fake-plc", daemon=True)
+        self._thread.start()
+        self._ready.wait(30)
+        if self._error is not None:
+            raise RobidError(f"fake PLC could not start: {self._error}")
+
+    def stop(self) -> None:
+        if self._loop is not None and self._stop is not None:
+            with contextlib.suppress(RuntimeError):  # loop already closed
+                self._loop.call_soon_threadsafe(self._stop.set)
+        if self._thread is not None:
+            self._thread.join(30)
+
+    def _run(self) -> None:
+        try:
+            asyncio.run(self._main())
+        except BaseException as err:  # noqa: B036  # reported by start()
+            self._error = err
+            self._ready.set()
+
+    async def _main(self) -> None:
+        self._loop, self._stop = asyncio.get_running_loop(), asyncio.Event()
+        device = SimDevice(id=self.device_id, action=self._action, simdata=[SimData(
+            self._lo, count=len(self.image), values=0, datatype=DataType.REGISTERS)])
+        self._server = ModbusTcpServer(device, address=("127.0.0.1", self.port))
+        await self._server.serve_forever(background=True)
+        self.port = self._server.transport.sockets[0].getsockname()[1]
+        self._ready.set()
+        scan = asyncio.create_task(self._scan_loop(), name="fake-plc-scan")
+        try:
+            await self._stop.wait()
+        finally:
+            scan.cancel()
+            if self._job is not None:
+                self._job.cancel()
+            await asyncio.gather(scan, *([self._job] if self._job else []),
+                                 return_exceptions=True)
+            await self._go_offline()
+
+    async def _go_offline(self) -> None:
+        if self._server is not None:
+            server, self._server = self._server, None
+            await server.shutdown()
+
+    # -- the PLC program
+    async def _scan_loop(self) -> None:
+        loop = asyncio.get_running_loop()
+        next_beat = 0.0
+        while True:
+            now = loop.time()
+            if now >= next_beat and now >= self._frozen_until:
+                self.set(plc_heartbeat=self.get("plc_heartbeat") + 1)
+                next_beat = now + self.heartbeat_s
+            self._scan()
+            await asyncio.sleep(self.scan_s)
+
+    def _scan(self) -> None:
+        cmd, busy = self.get("command"), self._job is not None and not self._job.done()
+        request = (self.get("exp"), self.get("nonce_hi"), self.get("nonce_lo"))
+        running = (self.get("exp_echo"), self.get("nonce_echo_hi"), self.get("nonce_echo_lo"))
+        if cmd == Command.ABORT and running == request and self.get("status") == Status.BUSY:
+            if self._job is not None:
+                self._job.cancel()
+            self.set(status=Status.IDLE, error_code=0)
+        elif cmd == Command.RUN and not busy and request != self._last and request[0] > 0:
+            self._last = request
+            self.set(status=Status.BUSY, exp_echo=request[0], nonce_echo_hi=request[1],
+                     nonce_echo_lo=request[2], error_code=0)
+            self._job = asyncio.create_task(self._run_program(*request), name="fake-plc-job")
+        elif cmd == Command.IDLE and self.get("status") in (Status.DONE, Status.ERROR):
+            self.set(status=Status.IDLE)  # the daemon acknowledged
+
+    async def _run_program(self, n: int, hi: int, lo: int) -> None:
+        key, nkey = str(n), f"{(hi << 16) | lo:08x}"
+        fault = self.core.take_fault() if self.core.fault in self.faults else None
+        if fault is not None:
+            log.info("plc exp=%s tag=%s playing fault %s", key, nkey, fault)
+            await self._play(fault)
+            return
+        try:
+            csv = (self.share.inbox / f"{key}.traj.csv").read_bytes()
+            header = (self.share.inbox / f"{key}.traj.yaml").read_bytes()
+        except OSError as err:
+            self._fail(key, nkey, 1, f"program {key}: {err.strerror}")
+            return
+        res = await asyncio.to_thread(self.core.run, key, nkey, csv, header)
+        if res.fault == "never_answer":
+            return
+        if res.error is not None:
+            self._fail(key, nkey, 2 if res.fault == "fail" else 1, res.error)
+            return
+        if res.fault == "die":
+            await asyncio.to_thread(self.share.outbox.joinpath(f".{log_name(key, nkey)}.partial")
+                                    .write_bytes, res.log[: len(res.log) // 2])
+            self.core.die()
+            self.died.set()
+            await self._go_offline()
+            return
+        await asyncio.to_thread(atomic_write, self.share.outbox / log_name(key, nkey),
+                                res.delivered)
+        if res.fault == "stale_semaphore":  # an older attempt's answer shows first
+            stale = zlib.crc32(b"0stale0")
+            await self._answer(key, f"{stale:08x}", n, stale, "0" * 64, 1)
+            await asyncio.sleep(0.3)
+        await self._answer(key, nkey, n, (hi << 16) | lo, res.sha256, len(res.log))
+        if res.fault == "answer_twice":
+            await asyncio.sleep(0.05)
+            self.set(status=Status.BUSY)
+            await asyncio.sleep(0.05)
+            await self._answer(key, nkey, n, (hi << 16) | lo, res.sha256, len(res.log))
+
+    async def _answer(self, key: str, nkey: str, n: int, tag: int, sha: str, size: int) -> None:
+        """The 'done' file on the share first, then the registers that point at it."""
+        await asyncio.to_thread(atomic_write, self.share.sem_path(key, nkey, "done"),
+                                done_text(sha, size))
+        self.set(status=Status.DONE, exp_echo=n, nonce_echo_hi=tag >> 16,
+                 nonce_echo_lo=tag & 0xFFFF)
+        self.answer_times[nkey] = time.perf_counter()
+
+    def _fail(self, key: str, nkey: str, code: int, reason: str) -> None:
+        atomic_write(self.share.sem_path(key, nkey, "failed"), f"{reason}\n".encode())
+        self.set(status=Status.ERROR, error_code=code)
+
+    async def _play(self, fault: str) -> None:
+        if fault == "plc_gone":
+            await asyncio.sleep(0.1)
+            self.died.set()
+            await self._go_offline()
+        elif fault == "heartbeat_frozen":
+            self._frozen_until = asyncio.get_running_loop().time() + self.freeze_s
+            await asyncio.sleep(self.freeze_s)
+            self.set(status=Status.IDLE)
+        elif fault == "error_code":
+            self.set(status=Status.ERROR, error_code=4)
+        elif fault == "register_garbage":
+            self.set(status=0xBEEF, exp_echo=0xFFFF, nonce_echo_hi=0x1234, error_code=0xDEAD)
