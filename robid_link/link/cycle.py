@@ -13,7 +13,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
-from robid_link.exceptions import CycleError, DataError, DriverError
+from robid_link.exceptions import CycleError, DataError, DriverError, ProtocolError
 from robid_link.link.driver import Done, Driver, MotionProgram
 from robid_link.link.store import Store
 
@@ -103,6 +103,10 @@ async def run_cycle(store: Store, driver: Driver, run_id: str, exp_id: str,
             except (DriverError, OSError) as werr:
                 log.warning("run=%s exp=%s withdraw failed: %s", run_id, exp_id, werr)
             log.warning("run=%s exp=%s attempt=%d failed: %s", run_id, exp_id, attempt, err)
+            if isinstance(err, ProtocolError):  # the robot may have moved: an operator decides
+                store.step(run_id, exp_id, "failed", error=str(err))
+                raise CycleError(f"experiment {exp_id}: {err} (not retried: the controller "
+                                 "answered, the motion may have run)") from err
             if attempt > policy.retries:
                 store.step(run_id, exp_id, "failed", error=str(err))
                 raise CycleError(f"experiment {exp_id}: {err} (after {attempt} attempt"
