@@ -11,7 +11,7 @@ from typing import Any
 from robid_link.exceptions import RobidError, WorkerError
 from robid_link.link.driver import MotionProgram
 
-__all__ = ["generate_program", "check_log", "identify_run"]
+__all__ = ["generate_program", "check_log", "check_model", "identify_run"]
 
 
 def _robot(robot_path: str, lock: tuple[str, ...]) -> Any:
@@ -45,6 +45,17 @@ def check_log(n_joints: int, log_path: str) -> dict[str, Any]:
         log = load_log(log_path, n_joints)
     return {"samples": int(log.t.size), "duration_s": float(log.t[-1] - log.t[0]),
             "rate_hz": float(log.fs)}
+
+
+def check_model(model_path: str | None, add: list[str]) -> list[str]:
+    """The model a run's identification will use, built now (file, ``add:`` entries): its
+    effect names. Raises the ModelError the identification would raise after the motion."""
+    from robid_link.ident.effects import DEFAULT_MODEL, load_model, parse_effect
+
+    model = load_model(model_path) if model_path else DEFAULT_MODEL
+    for entry in add:
+        model = model.with_added(parse_effect(entry, f"add {entry}"))
+    return [str(e) for e in getattr(model, "effects", ())]
 
 
 def identify_run(job: dict[str, Any]) -> dict[str, Any]:
