@@ -223,7 +223,8 @@ async def _identify(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, r
            "motor_side": camp.motor_side,
            "report_dir": str(store.dir / "reports" / run_id)}
     kill_hook("identifying")
-    out = await run_in_worker(ctx, identify_run, job)
+    out = await run_in_worker(ctx, identify_run, job,
+                              on_start=lambda: kill_hook("identify_started"))
     for kind, rec in out["records"].items():
         store.add_result(run_id, out["robot"], kind, rec)
     log.info("run=%s identified: rmse %s", run_id,
