@@ -265,30 +265,32 @@ class Daemon:
                           name, err)
 
     def _set_full(self, line: str | None) -> None:
-        if line != self._full:
-            if line:
-                log.error("%s; new runs refused, status still served", line)
-            else:
-                log.info("state_dir has room again: resuming %d paused run(s)",
-                         len(self._paused))
+        """One log line when the state_dir fills up, one when room returns."""
+        if line and not self._full:
+            log.error("%s; new runs refused, status still served", line)
+        elif not line and self._full:
+            log.info("state_dir has room again: resuming %d paused run(s)", len(self._paused))
         self._full = line
 
-    async def _space_loop(self, interval_s: float = 5.0) -> None:
-        """While the state_dir is full: check for room every few seconds; re-queue the
-        paused runs when it returns."""
+    #: how often the free space of the state_dir is looked at
+    space_poll_s = 5.0
+
+    async def _space_loop(self) -> None:
+        """Check for room every few seconds (from the start: a daemon started on a full disk
+        serves status and waits); re-queue the paused runs when it returns."""
         assert self.store is not None
         while True:
-            await asyncio.sleep(interval_s if self._full else 0.5 * interval_s)
             try:
                 self.store.require_space()
             except StoreFullError as err:
                 self._set_full(str(err))
-                continue
-            if self._full:
-                self._set_full(None)
-                for run_id in self._paused:
-                    self._queue.put_nowait(run_id)
-                self._paused.clear()
+            else:
+                if self._full:
+                    self._set_full(None)
+                    for run_id in self._paused:
+                        self._queue.put_nowait(run_id)
+                    self._paused.clear()
+            await asyncio.sleep(self.space_poll_s)
 
     async def _watchdog_loop(self) -> None:
         assert self.notifier.watchdog_s is not None

@@ -60,10 +60,14 @@ def test_sigkill_during_identification_leaves_no_worker_and_one_history_record(
             assert run_id, out.stderr
             assert daemon.wait(180) == -signal.SIGKILL, log.read_text()
             daemon_pid = daemon.pid
-        left = _wait_gone(mark)
-        for pid in left:  # do not leak them into other tests
+        left = _wait_gone(mark, timeout_s=3.0)  # well before the identification could end
+        history_file = tmp_path / "model.yaml.history.jsonl"
+        time.sleep(0 if left else 10.0)
+        orphan_wrote = history_file.exists()  # a surviving worker finishes and appends
+        for pid in _marked(mark):  # do not leak them into other tests
             os.kill(pid, signal.SIGKILL)
         assert left == [], f"processes outlived the daemon {daemon_pid}: {left}"
+        assert not orphan_wrote
         with process("daemon", "--config", str(cfg), log=log) as daemon:
             wait_socket(tmp_path / "ctl.sock", daemon)
             end = time.monotonic() + 180
