@@ -44,6 +44,12 @@ async def run_cycle(store: Store, driver: Driver, run_id: str, exp_id: str,
     """Run (or resume) one experiment; returns the SHA-256 of its stored, checked log."""
     row = store.experiment(run_id, exp_id)
     if row["log_sha"]:
+        if row["nonce"] and row["done_sha"]:  # stopped before the share was tidied
+            try:
+                await driver.acknowledge(Done(exp_id, row["nonce"], row["done_sha"],
+                                              row["done_size"]))
+            except (DriverError, OSError) as err:
+                log.warning("run=%s exp=%s acknowledge failed: %s", run_id, exp_id, err)
         return str(row["log_sha"])
     attempt, nonce, state = int(row["attempt"]), row["nonce"], row["state"]
     if state == "attempt_failed" and nonce:  # killed before the old 'ready' was taken back

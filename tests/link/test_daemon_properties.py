@@ -93,7 +93,8 @@ def _check(root: Path, before: dict[str, Any]) -> None:
     with Store(state, readonly=True) as store:
         watching = {(e["exp_id"], e["nonce"]) for r in store.runs(100)
                     if r["state"] in ("queued", "running")
-                    for e in r["experiments"] if e["state"] in ("giving", "given")}
+                    for e in r["experiments"]
+                    if e["state"] in ("giving", "given", "taken", "stored")}
         for name in os.listdir(share / "sem"):
             if name.endswith(".ready"):
                 exp_id, nonce, _ = name.rsplit(".", 2)
