@@ -322,7 +322,7 @@ class Daemon:
             self.store.require_space()
             trigger = req.get("trigger", "operator")
             if str(req.get("campaign")) in self.cfg.campaigns:  # else create_run says so
-                await cp.preflight(self.cfg, self.store, self.ctx, str(req["campaign"]))
+                await cp.preflight(self.cfg, self.store, self.ctx, str(req.get("campaign")))
             run_id = cp.create_run(self.cfg, self.store, str(req.get("campaign")), trigger)
             self._queue.put_nowait(run_id)
             log.info("run=%s queued campaign=%s trigger=%s", run_id, req.get("campaign"), trigger)
