@@ -23,8 +23,9 @@ from watchdog.events import FileSystemEventHandler
 
 from robid_link.atomic import atomic_write
 from robid_link.drivers.rapid import MAX_AXES, render_rapid
-from robid_link.exceptions import ConfigError, DriverError
+from robid_link.exceptions import ConfigError, DriverError, ProtocolError
 from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver, MotionProgram
+from robid_link.link.safeopen import read_regular
 
 __all__ = ["FileShareDriver", "ShareTransfer", "sem_name", "parse_sem", "network_fs",
            "done_text", "read_done", "log_name"]
@@ -37,6 +38,9 @@ NETWORK_FS = {"nfs", "nfs4", "cifs", "smb3", "smbfs", "ncpfs", "afs", "9p", "fus
 _SEM = re.compile(r"^([A-Za-z0-9][A-Za-z0-9_\-]*)\.([A-Za-z0-9][A-Za-z0-9_\-]*)"
                   r"\.(ready|done|failed)$")
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
+#: a semaphore holds one short line; anything longer is not one
+MAX_SEM_BYTES = 4096
+MAX_LOG_BYTES = 256 * 1024 * 1024
 
 
 def sem_name(exp_id: str, nonce: str, kind: str) -> str:
@@ -79,27 +83,57 @@ def done_text(sha256: str, size: int) -> bytes:
 
 def read_done(path: Path, exp_id: str, nonce: str) -> Done | None:
     """Parse a 'done' semaphore: the log's SHA-256 (hex), optionally ``size=N`` after it.
-    None while the file is still empty (a non-atomic writer); DriverError when malformed."""
+    None while the file is absent or still empty (a non-atomic writer); ProtocolError when
+    it is malformed, not a regular file or too large (the controller has answered: the motion
+    may have run, so this is a failed attempt for the operator, never a silent re-run).
+    Blocking: call it through ``asyncio.to_thread``."""
     try:
-        text = path.read_text().strip()
+        raw = read_regular(path, MAX_SEM_BYTES)
     except FileNotFoundError:
         return None
-    except (OSError, UnicodeDecodeError) as err:
-        raise DriverError(f"{path}: unreadable 'done' semaphore ({err})") from err
+    except OSError as err:
+        raise ProtocolError(f"{path}: unreadable 'done' semaphore ({err.strerror or err})"
+                            ) from err
+    try:
+        text = raw.decode("ascii").strip()
+    except UnicodeDecodeError as err:
+        raise ProtocolError(f"{path}: 'done' semaphore is not ASCII text") from err
     if not text:
         return None
     tokens = text.split()
     sha = tokens[0].lower()
     if not _HEX64.match(sha):
-        raise DriverError(f"{path}: 'done' semaphore does not start with the log's SHA-256")
+        raise ProtocolError(f"{path}: 'done' semaphore does not start with the log's SHA-256")
     size = None
     for tok in tokens[1:]:
         if tok.startswith("size="):
             try:
                 size = int(tok[5:])
             except ValueError as err:
-                raise DriverError(f"{path}: bad size field {tok!r}") from err
+                raise ProtocolError(f"{path}: bad size field {tok[:40]!r}") from err
+            if size < 0:
+                raise ProtocolError(f"{path}: bad size field {tok[:40]!r}")
     return Done(exp_id, nonce, sha, size)
+
+
+def read_failed(path: Path) -> str | None:
+    """The reason in a 'failed' semaphore (None when there is none); blocking."""
+    try:
+        raw = read_regular(path, MAX_SEM_BYTES)
+    except FileNotFoundError:
+        return None
+    except OSError as err:
+        return f"unreadable 'failed' semaphore ({err.strerror or err})"
+    return raw.decode("utf-8", errors="replace").strip()[:200]
+
+
+def _identity(path: Path) -> tuple[int, int] | None:
+    """Which file ``path`` is now (inode, change time), None when there is none."""
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return None
+    return (st.st_ino, st.st_ctime_ns)
 
 
 class ShareTransfer:
@@ -112,8 +146,9 @@ class ShareTransfer:
     ``sem/<key>.<nkey>.ready|done|failed``. Blocking file work runs in a thread.
     """
 
-    def __init__(self, share: Path, *, rapid: bool) -> None:
-        self.share, self.rapid = share, rapid
+    def __init__(self, share: Path, *, rapid: bool, max_log_bytes: int = MAX_LOG_BYTES
+                 ) -> None:
+        self.share, self.rapid, self.max_log_bytes = share, rapid, max_log_bytes
         self.inbox, self.outbox, self.sem = (share / d for d in ("inbox", "outbox", "sem"))
 
     def prepare(self) -> None:
@@ -147,22 +182,30 @@ class ShareTransfer:
 
     def failed(self, key: str, nkey: str) -> str | None:
         """The reason in a 'failed' semaphore ('' when it gives none), None without one."""
-        path = self.sem_path(key, nkey, "failed")
-        try:
-            return path.read_text(errors="replace").strip()[:200]
-        except FileNotFoundError:
-            return None
+        return read_failed(self.sem_path(key, nkey, "failed"))
+
+    def identity(self, key: str, nkey: str, kind: str) -> tuple[int, int] | None:
+        return _identity(self.sem_path(key, nkey, kind))
 
     async def fetch_log(self, key: str, nkey: str) -> bytes:
+        """The log through the safe open: no links, regular files, ``max_log_bytes``."""
         path = self.outbox / log_name(key, nkey)
         try:
-            return await asyncio.to_thread(path.read_bytes)
+            return await asyncio.to_thread(read_regular, path, self.max_log_bytes)
         except FileNotFoundError as err:
             raise DriverError(f"{path}: log missing although 'done' was given") from err
+        except OSError as err:
+            raise DriverError(f"{path}: log refused ({err.strerror or err})") from err
 
     async def remove(self, key: str, nkey: str, *kinds: str) -> None:
         for kind in kinds:
             await asyncio.to_thread(self.sem_path(key, nkey, kind).unlink, True)
+
+    async def clear(self, key: str, nkey: str) -> None:
+        """A given-up attempt leaves nothing: 'ready' first (nothing may start it later),
+        then its answers and log."""
+        await self.remove(key, nkey, "ready", "done", "failed")
+        await asyncio.to_thread((self.outbox / log_name(key, nkey)).unlink, True)
 
 
 
@@ -192,18 +235,25 @@ class FileShareDriver(Driver):
     network file systems), ``poll_interval_s`` (polling observer), ``canary_interval_s`` (0 to
     disable the liveness check), ``canary_timeout_s``, ``rapid`` (true: render each program
     as an ABB RAPID module ``inbox/<id>.mod`` beside the neutral trajectory; false for
-    controllers that read only the trajectory file).
+    controllers that read only the trajectory file), ``max_log_bytes`` (a larger log, or
+    anything but a regular file, is refused unread).
     """
 
     name = "file_share"
     capabilities = frozenset({CAP_RAPID, CAP_UPLOAD})
     options = frozenset({"share", "observer", "poll_interval_s", "canary_interval_s",
-                         "canary_timeout_s", "rapid"})
+                         "canary_timeout_s", "rapid", "max_log_bytes"})
 
     def __init__(self, *, share: str | os.PathLike[str] | None = None, observer: str = "auto",
                  poll_interval_s: float = 0.1, canary_interval_s: float = 30.0,
-                 canary_timeout_s: float = 2.0, rapid: bool = True) -> None:
+                 canary_timeout_s: float = 2.0, rapid: bool = True,
+                 max_log_bytes: int = MAX_LOG_BYTES) -> None:
         super().__init__()
+        if (isinstance(max_log_bytes, bool) or not isinstance(max_log_bytes, int)
+                or max_log_bytes <= 0):
+            raise ConfigError(f"driver.max_log_bytes: expected a positive number of bytes, "
+                              f"got {max_log_bytes!r}")
+        self.max_log_bytes = max_log_bytes
         if not isinstance(rapid, bool):
             raise ConfigError(f"driver.rapid: expected true or false, got {rapid!r}")
         self.rapid = rapid
@@ -220,7 +270,7 @@ class FileShareDriver(Driver):
             if isinstance(val, bool) or not isinstance(val, int | float) or val < 0:
                 raise ConfigError(f"driver.{key}: expected a non-negative number, got {val!r}")
         self.share = Path(share)
-        self.transfer = ShareTransfer(self.share, rapid=rapid)
+        self.transfer = ShareTransfer(self.share, rapid=rapid, max_log_bytes=max_log_bytes)
         self.inbox, self.outbox, self.sem = (self.transfer.inbox, self.transfer.outbox,
                                              self.transfer.sem)
         self._observer_choice = observer
@@ -230,7 +280,9 @@ class FileShareDriver(Driver):
         self._observer: Any = None
         self.observer_kind = ""
         self._waiters: dict[tuple[str, str], asyncio.Event] = {}
-        self._taken: set[tuple[str, str]] = set()
+        self._taken: dict[tuple[str, str], tuple[int, int] | None] = {}
+        self._warned: set[tuple[str, tuple[int, int] | None]] = set()
+        self._checks: set[asyncio.Task[None]] = set()
         self._canary_seen: asyncio.Event | None = None
         self._canary_name = ""
         self._tasks: list[asyncio.Task[None]] = []
@@ -246,10 +298,11 @@ class FileShareDriver(Driver):
             if fs:
                 log.info("share=%s fs=%s observer=polling (network file system)", self.share, fs)
         await self._start_observer(kind)
-        for name in sorted(os.listdir(self.sem)):
-            if parse_sem(name) and not name.endswith(".ready"):
-                log.warning("share=%s stale_semaphore=%s (left from an earlier run; ignored)",
-                            self.share, name)
+        # answers already there may be the very ones a resumed run takes next: not stale yet
+        left = [n for n in os.listdir(self.sem) if parse_sem(n) and not n.endswith(".ready")]
+        if left:
+            log.info("share=%s answers=%d already in sem/ (taken if a resumed run wants them)",
+                     self.share, len(left))
         if self.observer_kind == "inotify" and self._canary_s > 0:
             self._tasks.append(asyncio.create_task(self._liveness_loop(),
                                                    name="file_share-liveness"))
@@ -283,9 +336,9 @@ class FileShareDriver(Driver):
             await asyncio.to_thread(obs.join, 5.0)
 
     async def _close(self) -> None:
-        for task in self._tasks:
+        for task in [*self._tasks, *self._checks]:
             task.cancel()
-        await asyncio.gather(*self._tasks, return_exceptions=True)
+        await asyncio.gather(*self._tasks, *self._checks, return_exceptions=True)
         self._tasks.clear()
         await self._stop_observer()
 
@@ -301,11 +354,24 @@ class FileShareDriver(Driver):
         event = self._waiters.get((exp_id, nonce))
         if event is not None:
             event.set()
-        elif (exp_id, nonce) in self._taken:
+        elif (exp_id, nonce) in self._taken or any(k[0] == exp_id for k in self._waiters):
+            # one warning per file, none for the events of the answer just taken
+            task = asyncio.get_running_loop().create_task(self._warn_once(name, (exp_id, nonce)))
+            self._checks.add(task)
+            task.add_done_callback(self._checks.discard)
+
+    async def _warn_once(self, name: str, key: tuple[str, str]) -> None:
+        ident = await asyncio.to_thread(_identity, self.sem / name)
+        if ident is None or (name, ident) in self._warned:
+            return
+        if key in self._taken:
+            if self._taken[key] == ident:
+                return
             log.warning("share=%s duplicate_semaphore=%s (already taken; ignored)",
                         self.share, name)
-        elif any(k[0] == exp_id for k in self._waiters):
+        else:
             log.warning("share=%s stale_semaphore=%s (another nonce; ignored)", self.share, name)
+        self._warned.add((name, ident))
 
     async def _liveness_loop(self) -> None:
         """Prove inotify still delivers: write a canary and wait for its event."""
@@ -352,14 +418,22 @@ class FileShareDriver(Driver):
             while True:
                 # look right after subscribing, and after every event: an answer written
                 # before the subscription raised no event we could see
-                reason = self.transfer.failed(exp_id, nonce)
+                reason = await asyncio.to_thread(self.transfer.failed, exp_id, nonce)
                 if reason is not None:
-                    self._taken.add(key)
+                    self._taken[key] = await asyncio.to_thread(self.transfer.identity, exp_id,
+                                                               nonce, "failed")
                     raise DriverError(f"controller reports experiment {exp_id} failed: "
                                       f"{reason or 'no reason given'}")
-                done = self.transfer.done(exp_id, nonce, exp_id, nonce)
+                try:
+                    done = await asyncio.to_thread(self.transfer.done, exp_id, nonce, exp_id,
+                                                   nonce)
+                except ProtocolError:  # answered, malformed: a failed attempt, no re-run
+                    self._taken[key] = await asyncio.to_thread(self.transfer.identity, exp_id,
+                                                               nonce, "done")
+                    raise
                 if done is not None:
-                    self._taken.add(key)
+                    self._taken[key] = await asyncio.to_thread(self.transfer.identity, exp_id,
+                                                               nonce, "done")
                     return done
                 await event.wait()
                 event.clear()
@@ -373,7 +447,7 @@ class FileShareDriver(Driver):
         await self.transfer.remove(done.exp_id, done.nonce, "ready", "done")
 
     async def _withdraw(self, exp_id: str, nonce: str) -> None:
-        await self.transfer.remove(exp_id, nonce, "ready")
+        await self.transfer.clear(exp_id, nonce)
 
     async def _upload_parameters(self, doc: Any, body: bytes) -> None:
         """``params/params-<robot>.<nonce>.json``, then its ``ready`` semaphore; the

@@ -222,9 +222,19 @@ def _link_parsers(sub: Any) -> None:
                     help="with --wait: write the run and results")
     pc = csub.add_parser("list", help="the campaigns of the config")
     pc.add_argument("--config", required=True, metavar="C", help="daemon config (YAML)")
+    pc = csub.add_parser("cancel", help="drop a queued run, or stop the running one after "
+                         "withdrawing its program")
+    pc.add_argument("run_id", help="the run's id (robid status)")
+    pc.add_argument("--config", required=True, metavar="C", help="daemon config (YAML)")
     pc = csub.add_parser("approve", help="generate, check and approve a campaign's programs "
                          "for unattended runs")
     pc.add_argument("name", help="campaign name (from the config's campaigns:)")
+    pc.add_argument("--config", required=True, metavar="C", help="daemon config (YAML)")
+
+    p = sub.add_parser("config", help="check a daemon config without a daemon")
+    ksub = p.add_subparsers(dest="config_cmd", required=True)
+    pc = ksub.add_parser("check", help="everything each campaign's run will need: one line "
+                         "per campaign, ok or the reason")
     pc.add_argument("--config", required=True, metavar="C", help="daemon config (YAML)")
 
     p = sub.add_parser("status", help="runs, their state and progress")

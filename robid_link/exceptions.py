@@ -8,7 +8,8 @@
      ├── ModelError (ValueError)        unknown effect, bad effect option
      ├── EstimationError (ArithmeticError)  too few samples, rank deficiency
      ├── DriverError                    the controller link failed
-     │    └── DriverTimeoutError (TimeoutError)
+     │    ├── DriverTimeoutError (TimeoutError)
+     │    └── ProtocolError              a malformed answer: the motion may have run, no retry
      ├── CycleError                     an experiment failed after its retries
      ├── ApprovalError                  an unattended run met a program nobody approved
      ├── StoreLockedError (RuntimeError)  the state dir is in use by another daemon
@@ -33,6 +34,7 @@ __all__ = [
     "EstimationError",
     "DriverError",
     "DriverTimeoutError",
+    "ProtocolError",
     "UnsafeProgramError",
     "ApprovalError",
     "CycleError",
@@ -85,6 +87,10 @@ class DriverError(RobidError):
 
 class DriverTimeoutError(DriverError, TimeoutError):
     """The controller did not answer in time."""
+
+
+class ProtocolError(DriverError):
+    """The controller answered, but malformed: it may have moved, so no automatic retry."""
 
 
 class CycleError(RobidError):

@@ -104,6 +104,33 @@ def _rigid_body(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) ->
     return ex.Trajectory(t, q, rate, "fourier", robot.name, ex.fourier_header(four, cond))
 
 
+def _bounded(opts: Mapping[str, Any], where: str, key: str, lo: float, hi: float, *,
+             integer: bool = False) -> None:
+    """``opts[key]`` within [lo, hi] (an integer when ``integer``); absurd values are refused
+    at load, before any motion, instead of misbehaving after it."""
+    v = opts[key]
+    ok_type = isinstance(v, int) if integer else isinstance(v, int | float)
+    if isinstance(v, bool) or not ok_type or not (lo <= v <= hi) or v != v:
+        what = "an integer" if integer else "a number"
+        raise ConfigError(f"{where}.{key}: expected {what} in [{lo:g}, {hi:g}], got {v!r}")
+
+
+def _check_common(opts: Mapping[str, Any], where: str) -> None:
+    if "duration_s" in opts:
+        _bounded(opts, where, "duration_s", 0.1, 3600.0)
+    if "rate_hz" in opts:
+        _bounded(opts, where, "rate_hz", 1.0, 10_000.0)
+
+
+def _check_rigid_body(opts: dict[str, Any], where: str) -> None:
+    _check_common(opts, where)
+    _bounded(opts, where, "harmonics", 1, 50, integer=True)
+    _bounded(opts, where, "base_hz", 1e-3, 10.0)
+    _bounded(opts, where, "evaluations", 1, 100_000, integer=True)
+    _bounded(opts, where, "restarts", 1, 100, integer=True)
+    _bounded(opts, where, "seed", 0, 2**32 - 1, integer=True)
+
+
 # ----------------------------------------------------------------------------- friction
 
 
@@ -118,6 +145,12 @@ def _check_friction(opts: dict[str, Any], where: str) -> None:
     if joints is not None and (not isinstance(joints, list) or not joints or not all(
             isinstance(j, int) and not isinstance(j, bool) and j >= 1 for j in joints)):
         raise ConfigError(f"{where}.joints: expected a list of joint numbers (from 1)")
+    if joints is not None and (len(set(joints)) != len(joints) or max(joints) > 64):
+        raise ConfigError(f"{where}.joints: expected distinct joint numbers (1..64), "
+                          f"got {joints!r}")
+    if len(sp) > 100:
+        raise ConfigError(f"{where}.speeds: at most 100 speeds, got {len(sp)}")
+    _check_common(opts, where)
 
 
 def _friction(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) -> Trajectory:
@@ -188,7 +221,8 @@ def _custom(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) -> Tra
 register_kind(ExperimentKind(
     "rigid_body", {"duration_s": 40.0, "harmonics": 8, "base_hz": 0.1, "rate_hz": 250.0,
                    "evaluations": 600, "restarts": 1, "seed": 0},
-    _rigid_body, summary="optimised Fourier excitation of the rigid-body parameters"))
+    _rigid_body, _check_rigid_body,
+    summary="optimised Fourier excitation of the rigid-body parameters"))
 register_kind(ExperimentKind(
     "friction", {"speeds": [0.05, 0.1, 0.2, 0.4], "joints": None, "rate_hz": 250.0},
     _friction, _check_friction, summary="constant-velocity sweeps, one joint at a time"))

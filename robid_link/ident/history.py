@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -46,9 +47,42 @@ def result_record(kind: str, doc: dict[str, Any]) -> dict[str, Any]:
 
 
 def append_record(model_file: str | Path, record: dict[str, Any]) -> Path:
+    """Append one result record. A record of a daemon run (``run_id``) is appended once per
+    ``(run_id, kind)``: a run identified again after a crash adds no second line."""
+    import fcntl
+
     path = history_path(model_file)
-    append_durable(path, (json.dumps(record) + "\n").encode())
+    if not record.get("run_id"):
+        append_durable(path, (json.dumps(record) + "\n").encode())
+        return path
+    key = (record["run_id"], record.get("kind"))
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)  # check and append as one step between processes
+        if key not in _run_keys(path):
+            append_durable(path, (json.dumps(record) + "\n").encode())
+    finally:
+        os.close(fd)  # releases the lock
     return path
+
+
+def _run_keys(path: Path) -> set[tuple[Any, Any]]:
+    try:
+        with open(path, "rb") as f:
+            text = f.read(MAX_HISTORY_BYTES).decode("utf-8", errors="replace")
+    except OSError:
+        return set()
+    keys = set()
+    for line in text.splitlines():
+        if '"run_id"' not in line:
+            continue
+        try:
+            rec = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(rec, dict) and rec.get("run_id"):
+            keys.add((rec["run_id"], rec.get("kind")))
+    return keys
 
 
 #: a history grows by one short line per run

@@ -47,14 +47,15 @@ def run_job(robot: Robot, data: Sequence[Log], model: Model, *,
             validate: Sequence[Log] | None = None, cutoff_hz: float | None = None,
             interval: int = 1, method: str = "ols", weight: str = "bisquare",
             motor_side: bool = False, json_files: Mapping[str, str | Path] | None = None,
-            report_dir: str | Path | None = None, history: str | Path | None = None
-            ) -> JobOutcome:
+            report_dir: str | Path | None = None, history: str | Path | None = None,
+            run_id: str | None = None) -> JobOutcome:
     """Run the ``analyses`` (``identify``, ``diagnose``) on one set of inputs.
 
     The model is fitted once: a diagnosis reuses the identification (see ``diagnose``).
     ``json_files`` maps an analysis to the file its JSON document goes to; ``report_dir``
     gets identify's report files and the diagnosis' residual figures; ``history`` (a model
-    file) gets one record per analysis, after all of them ran.
+    file) gets one record per analysis, after all of them ran (once per ``run_id`` of a
+    daemon run, so a run resumed after a crash adds no second record).
     """
     unknown = set(analyses) - set(ANALYSES)
     if unknown or not analyses:
@@ -84,6 +85,9 @@ def run_job(robot: Robot, data: Sequence[Log], model: Model, *,
             out.report_files["diagnose"] = residual_figures(dg.residuals, dg.result.joints,
                                                             report_dir)
     out.records = {kind: result_record(kind, doc) for kind, doc in out.docs.items()}
+    if run_id is not None:
+        for rec in out.records.values():
+            rec["run_id"] = run_id
     if history is not None:
         for rec in out.records.values():
             append_record(history, rec)

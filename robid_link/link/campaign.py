@@ -18,6 +18,7 @@ from robid_link.link.driver import CAP_UPLOAD, Driver, MotionProgram, parameter_
 from robid_link.link.store import Store
 from robid_link.link.worker import (
     check_log,
+    check_model,
     elasticity_run,
     generate_program,
     identify_run,
@@ -26,7 +27,7 @@ from robid_link.link.worker import (
 )
 
 __all__ = ["TRIGGERS", "plan", "check_capabilities", "create_run", "prepare_programs",
-           "execute_run"]
+           "preflight", "check_config", "describe_campaigns", "execute_run"]
 
 log = logging.getLogger("robid.campaign")
 
@@ -66,6 +67,53 @@ def check_capabilities(cfg: DaemonConfig, driver: Driver) -> None:
                               f"cannot upload parameters (capabilities: "
                               f"{', '.join(sorted(caps)) or 'none'}); set upload: false or "
                               "use a driver that can")
+
+
+def _check_driver_caps(cfg: DaemonConfig, name: str, caps: frozenset[str], driver: str
+                       ) -> None:
+    if cfg.campaigns[name].upload and CAP_UPLOAD not in caps:
+        raise ConfigError(f"campaigns.{name}.upload: driver {driver!r} cannot upload "
+                          "parameters; set upload: false or use a driver that can")
+
+
+def _model_args(cfg: DaemonConfig, name: str) -> tuple[str | None, list[str]]:
+    camp = cfg.campaigns[name]
+    if camp.model is not None and not camp.model.is_file():
+        raise ConfigError(f"campaigns.{name}.model: {camp.model}: file not found")
+    return (str(camp.model) if camp.model else None), list(camp.add)
+
+
+async def preflight(cfg: DaemonConfig, store: Store, ctx: Any, campaign: str) -> None:
+    """Everything a run of ``campaign`` will need, checked before any program is given: the
+    model file and ``add:`` effects load, every program generates and passes the limits."""
+    await run_in_worker(ctx, check_model, *_model_args(cfg, campaign))
+    await prepare_programs(cfg, store, ctx, campaign)
+
+
+def check_config(cfg: DaemonConfig, driver: Driver) -> dict[str, str | None]:
+    """``robid config check``: the pre-flight of every campaign without a daemon, in this
+    process; campaign name → None (ok) or the reason a run would be refused."""
+    verdict: dict[str, str | None] = {}
+    for name in cfg.campaigns:
+        try:
+            _check_driver_caps(cfg, name, frozenset(driver.capabilities), driver.name)
+            check_model(*_model_args(cfg, name))
+            for exp_id, exp, slow in plan(cfg.campaigns[name]):
+                generate_program(str(cfg.robot), cfg.lock, exp_id, exp.kind, exp.options,
+                                 str(cfg.base_dir), slow)
+            verdict[name] = None
+        except RobidError as err:
+            verdict[name] = str(err)
+    return verdict
+
+
+def describe_campaigns(cfg: DaemonConfig) -> list[dict[str, Any]]:
+    """The campaigns as ``campaign list`` shows them (from the config alone)."""
+    return [{"name": name,
+             "experiments": [{"id": e, "kind": d.kind, "reduced_speed": s}
+                             for e, d, s in plan(camp)],
+             "identify": camp.identify, "diagnose": camp.diagnose}
+            for name, camp in cfg.campaigns.items()]
 
 
 def create_run(cfg: DaemonConfig, store: Store, campaign: str, trigger: str) -> str:
@@ -136,6 +184,9 @@ async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any,
                                     f"is not approved; run: robid campaign approve "
                                     f"{run['campaign']} --config {cfg.path}")
 
+        # the identification's inputs, before the first motion (a config edited since start)
+        await run_in_worker(ctx, check_model, *_model_args(cfg, run["campaign"]))
+
         async def check(path: str) -> dict[str, Any]:
             return await run_in_worker(ctx, check_log, n_joints, path)
 
@@ -200,7 +251,8 @@ async def _identify(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, r
            "motor_side": camp.motor_side, "upload": camp.upload,
            "report_dir": str(store.dir / "reports" / run_id)}
     kill_hook("identifying")
-    out = await run_in_worker(ctx, identify_run, job)
+    out = await run_in_worker(ctx, identify_run, job,
+                              on_start=lambda: kill_hook("identify_started"))
     for kind, rec in out["records"].items():
         store.add_result(run_id, out["robot"], kind, rec)
     log.info("run=%s identified: rmse %s", run_id,

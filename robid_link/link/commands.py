@@ -26,12 +26,19 @@ def dispatch(args: argparse.Namespace) -> int:
     if args.cmd == "fake-controller":
         return _fake_controller(args)
     cfg = load_daemon_config(args.config)
+    if args.cmd == "config":
+        return _config_check(cfg)
     if args.cmd == "campaign":
         if args.campaign_cmd == "start":
             run_id = request(cfg.control_socket, {"cmd": "start", "campaign": args.name,
-                                                  "trigger": args.trigger})["run_id"]
+                                                  "trigger": args.trigger},
+                             timeout_s=600.0)["run_id"]  # the pre-flight generates programs
             print(run_id)
             if not args.wait:
+                if args.json:
+                    from robid_link.ident.report import write_json
+
+                    write_json(args.json, {"run_id": run_id, "state": "queued"})
                 return 0
             run = wait_for_run(cfg.control_socket, run_id)
             results = request(cfg.control_socket, {"cmd": "results", "run_id": run_id})
@@ -41,8 +48,20 @@ def dispatch(args: argparse.Namespace) -> int:
                 write_json(args.json, {"run": run, "results": results["results"]})
             print(format_results(results["results"]))
             return 0 if run["state"] == "completed" else 1
+        if args.campaign_cmd == "cancel":
+            ans = request(cfg.control_socket, {"cmd": "cancel", "run_id": args.run_id},
+                          timeout_s=120.0)
+            print(ans["message"])
+            return 0
         if args.campaign_cmd == "list":
-            for c in request(cfg.control_socket, {"cmd": "list"})["campaigns"]:
+            try:
+                campaigns = request(cfg.control_socket, {"cmd": "list"})["campaigns"]
+            except DaemonUnreachable as err:  # the list is the config's: no daemon needed
+                print(f"robid: {err}; reading {cfg.path}", file=sys.stderr)
+                from robid_link.link.campaign import describe_campaigns
+
+                campaigns = describe_campaigns(cfg)
+            for c in campaigns:
                 exps = ", ".join(f"{e['id']} ({e['kind']})" for e in c["experiments"])
                 print(f"{c['name']}: {exps}; identify {c['identify']}, "
                       f"diagnose {c['diagnose']}")
@@ -62,7 +81,7 @@ def dispatch(args: argparse.Namespace) -> int:
             from robid_link.link.store import Store
 
             with Store(cfg.state_dir, readonly=True) as store:
-                ans = {"runs": store.runs(), "status": "daemon not running",
+                ans = {"runs": store.runs(), "status": _unreachable(err),
                        "drift": [f.message for f in drift_flags(store, _robot_name(cfg))]}
         if args.json:
             from robid_link.ident.report import write_json
@@ -92,6 +111,29 @@ def dispatch(args: argparse.Namespace) -> int:
     raise AssertionError(args.cmd)
 
 
+def _unreachable(err: DaemonUnreachable) -> str:
+    """What the status line says when no answer came: absent and frozen differ."""
+    text = str(err)
+    if "no answer within" in text or "closed the connection" in text:
+        return f"daemon not answering (running but busy or frozen: {text})"
+    if "permission denied" in text:
+        return f"daemon unknown ({text})"
+    return "daemon not running"
+
+
+def _config_check(cfg: Any) -> int:
+    """``robid config check``: one line per campaign, exit 1 when any would be refused."""
+    from robid_link.link.campaign import check_config
+    from robid_link.link.registry import make_driver
+
+    driver = make_driver(cfg.driver)
+    bad = 0
+    for name, reason in check_config(cfg, driver).items():
+        print(f"{name}: {'ok' if reason is None else reason}")
+        bad += reason is not None
+    return 1 if bad else 0
+
+
 def _progress(run: dict[str, Any]) -> str:
     p = run["progress"]
     width = 20
@@ -114,7 +156,7 @@ def wait_for_run(socket_path: Path, run_id: str, poll_s: float = 0.5,
             stream.write(("\r\033[K" if tty else "") + line + ("" if tty else "\n"))
             stream.flush()
             last = line
-        if run["state"] in ("completed", "failed"):
+        if run["state"] in ("completed", "failed", "cancelled"):
             if tty:
                 stream.write("\n")
             if run["state"] == "failed":

@@ -14,7 +14,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
-from robid_link.exceptions import CycleError, DataError, DriverError
+from robid_link.exceptions import CycleError, DataError, DriverError, ProtocolError
 from robid_link.link.driver import Done, Driver, MotionProgram
 from robid_link.link.store import Store
 
@@ -47,6 +47,12 @@ async def run_cycle(store: Store, driver: Driver, run_id: str, exp_id: str,
         program = dataclasses.replace(program, exp_id=exp_id)
     row = store.experiment(run_id, exp_id)
     if row["log_sha"]:
+        if row["nonce"] and row["done_sha"]:  # stopped before the share was tidied
+            try:
+                await driver.acknowledge(Done(exp_id, row["nonce"], row["done_sha"],
+                                              row["done_size"]))
+            except (DriverError, OSError) as err:
+                log.warning("run=%s exp=%s acknowledge failed: %s", run_id, exp_id, err)
         return str(row["log_sha"])
     attempt, nonce, state = int(row["attempt"]), row["nonce"], row["state"]
     if state == "attempt_failed" and nonce:  # killed before the old 'ready' was taken back
@@ -106,6 +112,10 @@ async def run_cycle(store: Store, driver: Driver, run_id: str, exp_id: str,
             except (DriverError, OSError) as werr:
                 log.warning("run=%s exp=%s withdraw failed: %s", run_id, exp_id, werr)
             log.warning("run=%s exp=%s attempt=%d failed: %s", run_id, exp_id, attempt, err)
+            if isinstance(err, ProtocolError):  # the robot may have moved: an operator decides
+                store.step(run_id, exp_id, "failed", error=str(err))
+                raise CycleError(f"experiment {exp_id}: {err} (not retried: the controller "
+                                 "answered, the motion may have run)") from err
             if attempt > policy.retries:
                 store.step(run_id, exp_id, "failed", error=str(err))
                 raise CycleError(f"experiment {exp_id}: {err} (after {attempt} attempt"

@@ -16,10 +16,10 @@ from collections.abc import Mapping
 from typing import Any, TextIO
 
 from robid_link.config import DaemonConfig
-from robid_link.exceptions import ConfigError
+from robid_link.exceptions import ConfigError, DriverError, RobidError, StoreFullError
 from robid_link.link import campaign as cp
 from robid_link.link.control import ControlServer
-from robid_link.link.driver import RobotInfo
+from robid_link.link.driver import Done, RobotInfo
 from robid_link.link.notify import Notifier
 from robid_link.link.registry import make_driver
 from robid_link.link.store import Store
@@ -103,6 +103,11 @@ class Daemon:
         self.robot: RobotInfo | None = None
         self._queue: asyncio.Queue[str] = asyncio.Queue()
         self._current: str | None = None
+        self._run_task: asyncio.Task[None] | None = None
+        self._cancelling: set[str] = set()
+        self._run_ended = asyncio.Event()
+        self._paused: list[str] = []  # runs waiting for space in the state_dir, in order
+        self._full: str | None = None  # the one line while the state_dir is full
         self._stop = asyncio.Event()
         self.ready = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
@@ -132,10 +137,13 @@ class Daemon:
             await stack.enter_async_context(ControlServer(cfg.control_socket, self.handle,
                                                           cfg.socket_mode))
             tg = await stack.enter_async_context(asyncio.TaskGroup())
+            await self._withdraw_orphans()
             for run_id in self.store.unfinished_runs():
                 log.info("run=%s resuming", run_id)
                 self._queue.put_nowait(run_id)
-            self._tasks = [tg.create_task(self._runner_loop(), name="robid-runner")]
+            self._tasks = [tg.create_task(self._runner_loop(), name="robid-runner"),
+                           tg.create_task(self._space_loop(), name="robid-space"),
+                           tg.create_task(self._preflight_all(), name="robid-preflight")]
             if self.notifier.watchdog_s:
                 self._tasks.append(tg.create_task(self._watchdog_loop(), name="robid-watchdog"))
         except BaseException:
@@ -169,21 +177,120 @@ class Daemon:
         log.info("daemon stopped")
 
     async def _runner_loop(self) -> None:
-        assert self.store is not None and self.robot is not None
+        assert self.store is not None
         while True:
             run_id = await self._queue.get()
+            if self.store.run(run_id)["state"] not in ("queued", "running"):
+                continue  # cancelled while it waited
             self._current = run_id
+            self._run_ended.clear()
             self.notifier.send(STATUS=self._status_line())
             try:
-                await cp.execute_run(self.cfg, self.store, self.driver, self.ctx, run_id,
-                                     self.robot.n, self._kill)
-            except Exception as err:  # a bug must fail its run, not the daemon (or resume loop)
-                log.exception("run=%s internal error", run_id)
-                self.store.set_run(run_id, "failed",
-                                   error=f"internal error: {type(err).__name__}: {err}")
+                await self._execute(run_id)
             finally:
-                self._current = None
+                self._current, self._run_task = None, None
+                self._run_ended.set()
                 self.notifier.send(STATUS=self._status_line())
+
+    async def _execute(self, run_id: str) -> None:
+        """One run in its own task (``cancel`` stops it); a full state_dir pauses it."""
+        assert self.store is not None and self.robot is not None
+        self._run_task = asyncio.create_task(
+            cp.execute_run(self.cfg, self.store, self.driver, self.ctx, run_id, self.robot.n,
+                           self._kill), name=f"robid-run-{run_id}")
+        try:
+            await self._run_task
+        except asyncio.CancelledError:
+            current = asyncio.current_task()
+            if run_id not in self._cancelling or (current and current.cancelling()):
+                raise  # the daemon stops: the run resumes at the next start
+            await self._finish_cancel(run_id)
+        except StoreFullError as err:
+            self._paused.append(run_id)
+            self._set_full(str(err))
+        except Exception as err:  # a bug must fail its run, not the daemon (or resume loop)
+            cause = f"{type(err).__name__}: {err}"
+            log.error("run=%s internal error: %s", run_id, cause, exc_info=err)
+            with contextlib.suppress(StoreFullError):
+                self.store.set_run(run_id, "failed", error=f"internal error: {cause}")
+        finally:
+            self._cancelling.discard(run_id)
+
+    async def _finish_cancel(self, run_id: str) -> None:
+        """Withdraw what is still out (so no controller runs it later), keep a log that was
+        already announced, journal, state ``cancelled``."""
+        assert self.store is not None
+        for row in self.store.experiments(run_id):
+            if row["state"] in ("giving", "given", "taken") and row["nonce"]:
+                await self._withdraw_row(row)
+        self.store.set_run(run_id, "cancelled", error="cancelled by the operator")
+        log.info("run=%s cancelled", run_id)
+
+    async def _withdraw_row(self, row: dict[str, Any]) -> None:
+        """Take back an experiment's 'ready'; a log the controller already announced is
+        stored first (a captured log is never lost)."""
+        assert self.store is not None
+        run_id, exp_id, nonce = row["run_id"], row["exp_id"], row["nonce"]
+        try:
+            async with asyncio.timeout(30):
+                if row["state"] == "taken" and not row["log_sha"]:
+                    data = await self.driver.fetch_logs(Done(exp_id, nonce, row["done_sha"],
+                                                             row["done_size"]))
+                    sha = self.store.put_log(data)
+                    self.store.note(run_id, exp_id, "raw_stored", log_sha=sha, size=len(data))
+                await self.driver.withdraw(exp_id, nonce)
+        except (DriverError, OSError, TimeoutError) as err:
+            log.warning("run=%s exp=%s withdraw failed: %s", run_id, exp_id, err)
+            return
+        self.store.step(run_id, exp_id, "withdrawn")
+
+    async def _withdraw_orphans(self) -> None:
+        assert self.store is not None
+        for row in self.store.given_without_run():
+            log.info("run=%s exp=%s withdrawing a 'ready' its run no longer watches",
+                     row["run_id"], row["exp_id"])
+            await self._withdraw_row(row)
+
+    async def _preflight_all(self) -> None:
+        """One line per campaign a run of which would be refused (``start`` checks again)."""
+        assert self.store is not None
+        for name in self.cfg.campaigns:
+            try:
+                await cp.preflight(self.cfg, self.store, self.ctx, name)
+            except StoreFullError as err:
+                self._set_full(str(err))
+                return
+            except RobidError as err:
+                log.error("%s: campaign %s: %s (start refused until fixed)", self.cfg.path,
+                          name, err)
+
+    def _set_full(self, line: str | None) -> None:
+        """One log line when the state_dir fills up, one when room returns."""
+        if line and not self._full:
+            log.error("%s; new runs refused, status still served", line)
+        elif not line and self._full:
+            log.info("state_dir has room again: resuming %d paused run(s)", len(self._paused))
+        self._full = line
+
+    #: how often the free space of the state_dir is looked at
+    space_poll_s = 5.0
+
+    async def _space_loop(self) -> None:
+        """Check for room every few seconds (from the start: a daemon started on a full disk
+        serves status and waits); re-queue the paused runs when it returns."""
+        assert self.store is not None
+        while True:
+            try:
+                self.store.require_space()
+            except StoreFullError as err:
+                self._set_full(str(err))
+            else:
+                if self._full:
+                    self._set_full(None)
+                    for run_id in self._paused:
+                        self._queue.put_nowait(run_id)
+                    self._paused.clear()
+            await asyncio.sleep(self.space_poll_s)
 
     async def _watchdog_loop(self) -> None:
         assert self.notifier.watchdog_s is not None
@@ -192,6 +299,8 @@ class Daemon:
             await asyncio.sleep(self.notifier.watchdog_s)
 
     def _status_line(self) -> str:
+        if self._full:
+            return f"{self._full}; {len(self._paused)} run(s) paused"
         if self._current is None:
             return f"idle, {self._queue.qsize()} run(s) queued"
         assert self.store is not None
@@ -208,7 +317,12 @@ class Daemon:
                     "robot": {"name": self.robot.name, "joints": self.robot.n}
                     if self.robot else None}
         if cmd == "start":
+            if self._full:
+                raise StoreFullError(self._full)
+            self.store.require_space()
             trigger = req.get("trigger", "operator")
+            if str(req.get("campaign")) in self.cfg.campaigns:  # else create_run says so
+                await cp.preflight(self.cfg, self.store, self.ctx, str(req.get("campaign")))
             run_id = cp.create_run(self.cfg, self.store, str(req.get("campaign")), trigger)
             self._queue.put_nowait(run_id)
             log.info("run=%s queued campaign=%s trigger=%s", run_id, req.get("campaign"), trigger)
@@ -220,11 +334,13 @@ class Daemon:
                 if self.robot else []
             return {"ok": True, "runs": runs, "current": self._current,
                     "status": self._status_line(), "drift": drift}
+        if cmd == "cancel":
+            return await self._cancel(str(req.get("run_id")))
         if cmd == "results":
             return {"ok": True, "results": self.store.results(req.get("robot"),
                                                               req.get("run_id"))}
         if cmd == "list":
-            return {"ok": True, "campaigns": self._campaigns()}
+            return {"ok": True, "campaigns": cp.describe_campaigns(self.cfg)}
         if cmd == "approve":
             name = str(req.get("campaign"))
             if name not in self.cfg.campaigns:
@@ -239,6 +355,26 @@ class Daemon:
             return await self._params(cmd, str(req.get("robot")), req.get("set"),
                                       str(req.get("by", "operator")))
         raise ConfigError(f"unknown command {cmd!r}")
+
+    async def _cancel(self, run_id: str) -> dict[str, Any]:
+        """A queued (or paused) run is dropped; the running one stops at its next step,
+        after its 'ready' was withdrawn."""
+        assert self.store is not None
+        state = self.store.run(run_id)["state"]
+        if state not in ("queued", "running"):
+            raise ConfigError(f"run {run_id} is {state}: nothing to cancel")
+        if run_id == self._current and self._run_task is not None:
+            self._cancelling.add(run_id)
+            self._run_task.cancel()
+            async with asyncio.timeout(60):
+                await self._run_ended.wait()
+        else:
+            if run_id in self._paused:
+                self._paused.remove(run_id)
+            await self._finish_cancel(run_id)
+        return {"ok": True, "run_id": run_id, "state": self.store.run(run_id)["state"],
+                "message": f"run {run_id} cancelled; nothing of it is left for the "
+                           "controller"}
 
     async def _params(self, cmd: str, robot: str, ref: Any, by: str) -> dict[str, Any]:
         """Approve a parameter set for unattended uploads, or give the controller back the
@@ -263,15 +399,6 @@ class Daemon:
         row = next(s for s in sets if s["sha256"] == active[-2])
         return {"ok": True, "message": f"rolled {robot} back to parameter set {row['version']} "
                 f"({active[-2][:16]}…), acknowledged by the controller"}
-
-    def _campaigns(self) -> list[dict[str, Any]]:
-        out = []
-        for name, camp in self.cfg.campaigns.items():
-            out.append({"name": name,
-                        "experiments": [{"id": e, "kind": d.kind, "reduced_speed": s}
-                                        for e, d, s in cp.plan(camp)],
-                        "identify": camp.identify, "diagnose": camp.diagnose})
-        return out
 
 
 async def run_daemon(cfg: DaemonConfig) -> int:

@@ -23,7 +23,7 @@ from robid_link.link.driver import MotionProgram
 
 __all__ = ["Store", "RUN_STATES"]
 
-RUN_STATES = ("queued", "running", "completed", "failed")
+RUN_STATES = ("queued", "running", "completed", "failed", "cancelled")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS runs (
@@ -183,7 +183,8 @@ class Store:
             db.execute("UPDATE runs SET state = ?, error = COALESCE(?, error), step = ?, "
                        "started = CASE WHEN ? = 'running' THEN COALESCE(started, ?) "
                        "ELSE started END, "
-                       "finished = CASE WHEN ? IN ('completed', 'failed') THEN ? ELSE NULL END "
+                       "finished = CASE WHEN ? IN ('completed', 'failed', 'cancelled') THEN ? "
+                       "ELSE NULL END "
                        "WHERE run_id = ?",
                        (state, error, step, state, now, state, now, run_id))
             self._journal(db, run_id, None, state, {"error": error} if error else {})
@@ -207,6 +208,15 @@ class Store:
         rows = self.db.execute("SELECT run_id FROM runs WHERE state IN ('queued', 'running') "
                                "ORDER BY created, rowid").fetchall()
         return [r[0] for r in rows]
+
+    def given_without_run(self) -> list[dict[str, Any]]:
+        """Experiments whose 'ready' may still be out although their run no longer runs (a
+        cancel or a failure interrupted by a kill): the daemon withdraws them at start."""
+        rows = self.db.execute(
+            "SELECT e.* FROM experiments e JOIN runs r ON r.run_id = e.run_id "
+            "WHERE e.state IN ('giving', 'given', 'taken') AND e.nonce IS NOT NULL "
+            "AND r.state NOT IN ('queued', 'running')").fetchall()
+        return [dict(r) for r in rows]
 
     def _run_dict(self, row: sqlite3.Row) -> dict[str, Any]:
         d = dict(row)

@@ -5,13 +5,14 @@ forkserver/spawn pool so the event loop never blocks on numerical work."""
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from robid_link.exceptions import RobidError, WorkerError
 from robid_link.link.driver import MotionProgram
 
-__all__ = ["generate_program", "check_log", "identify_run"]
+__all__ = ["generate_program", "check_log", "check_model", "identify_run"]
 
 
 def _robot(robot_path: str, lock: tuple[str, ...]) -> Any:
@@ -47,6 +48,17 @@ def check_log(n_joints: int, log_path: str) -> dict[str, Any]:
             "rate_hz": float(log.fs)}
 
 
+def check_model(model_path: str | None, add: list[str]) -> list[str]:
+    """The model a run's identification will use, built now (file, ``add:`` entries): its
+    effect names. Raises the ModelError the identification would raise after the motion."""
+    from robid_link.ident.effects import DEFAULT_MODEL, load_model, parse_effect
+
+    model = load_model(model_path) if model_path else DEFAULT_MODEL
+    for entry in add:
+        model = model.with_added(parse_effect(entry, f"add {entry}"))
+    return [str(e) for e in getattr(model, "effects", ())]
+
+
 def identify_run(job: dict[str, Any]) -> dict[str, Any]:
     """Identify (and diagnose) a run's logs; write the report; return the result records."""
     from robid_link.ident.effects import DEFAULT_MODEL, load_model, parse_effect
@@ -66,7 +78,7 @@ def identify_run(job: dict[str, Any]) -> dict[str, Any]:
         done = run_job(robot, data, model, analyses=analyses, cutoff_hz=job.get("cutoff_hz"),
                        method=job.get("method", "ols"), motor_side=job.get("motor_side", False),
                        json_files={k: out / f"{k}.json" for k in analyses}, report_dir=out,
-                       history=job.get("model") or None)
+                       history=job.get("model") or None, run_id=job["run_id"])
     notes = sorted({f"{w.category.__name__}: {w.message}" for w in caught})
     records, doc, summaries = done.records, done.docs["identify"], done.summaries()
     for rec in records.values():
@@ -165,7 +177,42 @@ def _error_class(name: str) -> type[RobidError]:
     return obj if isinstance(obj, type) and issubclass(obj, RobidError) else RobidError
 
 
-def _child(conn: Any, func: Any, args: tuple[Any, ...]) -> None:
+def _tie_to_daemon(daemon_pid: int) -> None:
+    """Die with the daemon: the kernel's parent-death signal (the parent is the daemon, or
+    the fork server, which exits with it), and a thread that waits on a pidfd of the daemon
+    itself and ends this process when the daemon is gone (whatever the parent is)."""
+    import ctypes
+    import os
+    import signal
+    import threading
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux: the watchdog thread alone
+        pass
+    try:
+        fd = os.pidfd_open(daemon_pid)
+    except ProcessLookupError:
+        os._exit(1)  # the daemon died before we got here
+    except (OSError, AttributeError):
+        return
+
+    def watch() -> None:
+        import select
+
+        poller = select.poll()
+        poller.register(fd, select.POLLIN)
+        poller.poll()  # readable when the daemon has exited (even before it is reaped)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="robid-daemon-watch", daemon=True).start()
+
+
+def _child(conn: Any, func: Any, args: tuple[Any, ...], daemon_pid: int | None = None
+           ) -> None:
+    if daemon_pid is not None:
+        _tie_to_daemon(daemon_pid)
     try:
         result: tuple[str, Any, str] = ("ok", func(*args), "")
     except RobidError as err:
@@ -180,17 +227,24 @@ def _child(conn: Any, func: Any, args: tuple[Any, ...]) -> None:
     conn.close()
 
 
-async def run_in_worker(ctx: Any, func: Any, *args: Any) -> Any:
+async def run_in_worker(ctx: Any, func: Any, *args: Any,
+                        on_start: Callable[[], None] | None = None) -> Any:
     """Run ``func(*args)`` in a fresh process of the multiprocessing context ``ctx``; a
     cancelled caller terminates the process. A RobidError comes back as its own class
-    (``UnsafeProgramError`` stays one); a crash or a dead process as WorkerError."""
+    (``UnsafeProgramError`` stays one); a crash or a dead process as WorkerError. The child
+    dies with the daemon (``_tie_to_daemon``); ``on_start`` runs once it was started."""
     import asyncio
 
     recv, send = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_child, args=(send, func, args), name=f"robid-{func.__name__}",
+    import os
+
+    proc = ctx.Process(target=_child, args=(send, func, args, os.getpid()),
+                       name=f"robid-{func.__name__}",
                        daemon=True)
     proc.start()
     send.close()
+    if on_start is not None:
+        on_start()
     try:
         try:
             status, value, message = await asyncio.to_thread(recv.recv)

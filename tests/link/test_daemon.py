@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 
 from robid_link.config import load_daemon_config
-from robid_link.exceptions import ConfigError
+from robid_link.exceptions import ConfigError, UnsafeProgramError
 from robid_link.link.control import request
 from robid_link.link.daemon import Daemon
 from robid_link.link.driver import Done, Driver, MotionProgram
@@ -171,12 +171,15 @@ def test_unsafe_program_never_reaches_the_share(tmp_path: Path, controller: Any)
         {"kind": "custom", "id": "wild", "trajectory": str(tmp_path / "wild.csv")}],
         "identify": False}})
 
-    async def body(d: Daemon) -> dict:
-        return await start(d, "wild")
+    async def body(d: Daemon) -> str:
+        with pytest.raises(UnsafeProgramError) as info:  # refused at start: no run at all
+            await start(d, "wild")
+        assert d.store.runs() == []  # type: ignore[union-attr]
+        return str(info.value)
 
     with controller() as ctrl:
-        run = with_daemon(cfg, body)
-    assert run["state"] == "failed"
+        error = with_daemon(cfg, body)
+    run = {"error": error}
     assert run["error"].startswith("unsafe program refused: experiment wild: qd1 = ")
     assert os.listdir(tmp_path / "share" / "inbox") == [] and ctrl.handled == []
     # the refusal quotes the program's peak speed against the robot's own limit

@@ -1,0 +1,155 @@
+"""Issue 14, the daemon's invariants under random controller faults, config variations,
+stops at random journal steps and cancels: no file outside the state_dir and the share is
+touched; after the daemon stops, no 'ready' is left in the share without an unfinished run
+that will take it up; every captured log is stored exactly once and intact. A few examples
+in ``make test``; many more under ``-m slow``. (An in-process stop at a journal step stands
+for a kill: the daemon cleans up nothing on either; the SIGKILL itself is exercised by
+``test_end_to_end.py`` and ``test_harden_process.py``.)"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import pytest
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import strategies as st
+
+from robid_link.config import load_daemon_config
+from robid_link.link.daemon import Daemon
+from robid_link.link.store import Store
+
+from .conftest import ControllerThread, write_config
+
+FAULTS = [None, "never_answer", "truncated_log", "corrupt_log", "answer_twice",
+          "stale_semaphore", "fail", "nan_log"]
+STEPS = [None, "giving", "given", "taken", "raw_stored", "stored"]
+
+scenario = st.fixed_dictionaries({
+    "fault": st.sampled_from(FAULTS),
+    "fault_count": st.integers(1, 3),
+    "retries": st.integers(0, 2),
+    "stop_after": st.sampled_from(STEPS),
+    "cancel": st.booleans(),
+    "rapid": st.booleans(),
+    "observer": st.sampled_from(["inotify", "polling"]),
+    "two_experiments": st.booleans(),
+})
+
+
+def _snapshot(root: Path, skip: tuple[Path, ...]) -> dict[str, tuple[int, int, bytes]]:
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        here = Path(dirpath)
+        dirnames[:] = [d for d in dirnames if here / d not in skip]
+        for name in filenames:
+            p = here / name
+            if p in skip:
+                continue
+            st_ = os.lstat(p)
+            out[str(p)] = (st_.st_mode, st_.st_mtime_ns, p.read_bytes() if p.is_file() else b"")
+    return out
+
+
+def _campaign(sc: dict[str, Any]) -> dict[str, Any]:
+    exps = [{"kind": "friction", "speeds": [0.6], "joints": [1], "rate_hz": 100}]
+    if sc["two_experiments"]:
+        exps.append({"kind": "friction", "id": "second", "speeds": [0.6], "joints": [3],
+                     "rate_hz": 100})
+    return {"experiments": exps, "identify": False, "timeout_s": 1.5, "backoff_s": 0.01,
+            "retries": sc["retries"]}
+
+
+async def _session(cfg: Path, sc: dict[str, Any], first: bool) -> None:
+    """One daemon life: start the run (first life), maybe cancel it, maybe stop at a step."""
+    async with asyncio.timeout(120), Daemon(load_daemon_config(cfg), env={}) as d:
+        assert d.store is not None
+        stop = asyncio.Event()
+        if first and sc["stop_after"]:
+            d._kill = lambda step: stop.set() if step == sc["stop_after"] else None
+        if first:
+            run_id = (await d.handle({"cmd": "start", "campaign": "c"}))["run_id"]
+        else:
+            run_id = d.store.runs(1)[0]["run_id"]
+
+        def over() -> bool:
+            return d.store.run(run_id)["state"] not in ("queued", "running")  # type: ignore
+
+        while not over() and not stop.is_set():
+            if first and sc["cancel"] and any(
+                    e["state"] == "given" for e in d.store.experiments(run_id)):
+                await d.handle({"cmd": "cancel", "run_id": run_id})
+            await asyncio.sleep(0.02)
+
+
+def _check(root: Path, before: dict[str, Any]) -> None:
+    state, share = root / "state", root / "share"
+    assert _snapshot(root, (state, share, root / "ctl.sock")) == before  # nothing else touched
+    with Store(state, readonly=True) as store:
+        watching = {(e["exp_id"], e["nonce"]) for r in store.runs(100)
+                    if r["state"] in ("queued", "running")
+                    for e in r["experiments"]
+                    if e["state"] in ("giving", "given", "taken", "stored")}
+        for name in os.listdir(share / "sem"):
+            if name.endswith(".ready"):
+                exp_id, nonce, _ = name.rsplit(".", 2)
+                assert (exp_id, nonce) in watching, f"{name} left with no run watching it"
+        details = [j["detail"] for j in store.journal() if j["step"] == "raw_stored"]
+        shas = {(json.loads(d) if isinstance(d, str) else d)["log_sha"] for d in details}
+        assert store.log_count() == len(shas)  # each capture once, none unjournaled
+        for sha in shas:
+            assert hashlib.sha256(store.log_path(sha).read_bytes()).hexdigest() == sha
+        for r in store.runs(100):
+            for e in r["experiments"]:
+                assert e["attempt"] <= r["spec"].get("retries", 2) + 1 or e["attempt"] <= 3
+
+
+def _run_scenario(sc: dict[str, Any], robot: Any) -> None:
+    with tempfile.TemporaryDirectory(prefix="robid-prop-") as tmp:
+        root = Path(tmp)
+        (root / "outside").mkdir()
+        secret = root / "outside" / "secret.csv"
+        secret.write_bytes(b"t,q1,q2,q3,tau1,tau2,tau3\n0,0,0,0,0,0,0\n")
+        secret.chmod(0o600)
+        cfg = write_config(root, {"c": _campaign(sc)},
+                           driver={"name": "file_share", "share": str(root / "share"),
+                                   "canary_interval_s": 0, "rapid": sc["rapid"],
+                                   "observer": sc["observer"], "poll_interval_s": 0.02})
+        (root / "share" / "outbox").mkdir()
+        # a controller-side attacker: links in outbox to a private file
+        for exp in ("friction", "second"):
+            for n in range(3):
+                os.symlink(secret, root / "share" / "outbox" / f"{exp}.x{n}.log.csv")
+        before = _snapshot(root, (root / "state", root / "share", root / "ctl.sock"))
+        fault = sc["fault"]
+        with ControllerThread(root / "share", robot, fault=fault,
+                              fault_count=sc["fault_count"] if fault else 0):
+            asyncio.run(_session(cfg, sc, first=True))
+            _check(root, before)
+            asyncio.run(_session(cfg, sc, first=False))  # restart: resume or stay idle
+        _check(root, before)
+
+
+FAST = settings(max_examples=3, deadline=None, derandomize=True,
+                phases=[Phase.explicit, Phase.generate],
+                suppress_health_check=[HealthCheck.function_scoped_fixture,
+                                       HealthCheck.too_slow])
+
+
+@FAST
+@given(sc=scenario)
+def test_daemon_invariants(sc: dict[str, Any], arm3_robot: Any) -> None:
+    _run_scenario(sc, arm3_robot)
+
+
+@pytest.mark.slow
+@settings(max_examples=40, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(sc=scenario)
+def test_daemon_invariants_many(sc: dict[str, Any], arm3_robot: Any) -> None:
+    _run_scenario(sc, arm3_robot)
