@@ -73,7 +73,7 @@ def _controller(driver: str, workdir: Path) -> Any:
 
 async def _campaign(cfg_path: Path, log_file: Path, name: str = "demo") -> dict[str, Any]:
     from robid_link.link.commands import wait_for_run
-    from robid_link.link.control import request
+    from robid_link.link.control import PREFLIGHT_TIMEOUT_S, request
     from robid_link.link.daemon import Daemon, setup_logging
 
     cfg = load_daemon_config(cfg_path)
@@ -83,7 +83,8 @@ async def _campaign(cfg_path: Path, log_file: Path, name: str = "demo") -> dict[
             async with Daemon(cfg, env={}):
                 sock = cfg.control_socket
                 ans = await asyncio.to_thread(request, sock, {"cmd": "start",
-                                                              "campaign": name})
+                                                              "campaign": name},
+                                              PREFLIGHT_TIMEOUT_S)
                 print(f"  campaign '{name}' started: run {ans['run_id']}")
                 run = await asyncio.to_thread(wait_for_run, sock, ans["run_id"])
                 res = await asyncio.to_thread(request, sock, {"cmd": "results",

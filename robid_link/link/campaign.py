@@ -4,6 +4,7 @@ diagnosis) in a worker process; results into the store. Runs resume from the jou
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import json
 import logging
@@ -151,15 +152,40 @@ async def prepare_programs(cfg: DaemonConfig, store: Store, ctx: Any, campaign: 
     out = []
     for exp_id, exp, slow in plan(cfg.campaigns[campaign]):
         key = _program_key(cfg, exp, slow, exp_id)
-        sha = store.program_for(key)
-        if sha is None:
-            prog = await run_in_worker(ctx, generate_program, str(cfg.robot), cfg.lock,
-                                       exp_id, exp.kind, exp.options, str(cfg.base_dir), slow)
-            sha = store.put_program(key, prog)
-            log.info("campaign=%s exp=%s program=%s generated (%.1f s of motion)", campaign,
-                     exp_id, sha[:12], prog.duration_s)
+        sha = await _generated(cfg, store, ctx, campaign, key, exp_id, exp, slow)
         out.append((exp_id, store.load_program(sha)))
     return out
+
+
+# program key (per store) -> the generation under way: a second caller (the start-up pre-flight
+# and a 'start' request, two campaigns sharing an experiment) waits for it instead of spending
+# the same minutes of CPU again next to it
+_generating: dict[tuple[int, str], asyncio.Future[None]] = {}
+
+
+async def _generated(cfg: DaemonConfig, store: Store, ctx: Any, campaign: str, key: str,
+                     exp_id: str, exp: ExperimentDef, slow: float | None) -> str:
+    token = (id(store), key)
+    while True:
+        sha = store.program_for(key)
+        if sha is not None:
+            return sha
+        pending = _generating.get(token)
+        if pending is None:
+            break
+        await asyncio.wait([pending])  # it failed or was cancelled: the cache says which
+    done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+    _generating[token] = done
+    try:
+        prog = await run_in_worker(ctx, generate_program, str(cfg.robot), cfg.lock,
+                                   exp_id, exp.kind, exp.options, str(cfg.base_dir), slow)
+        sha = store.put_program(key, prog)
+    finally:
+        del _generating[token]
+        done.set_result(None)
+    log.info("campaign=%s exp=%s program=%s generated (%.1f s of motion)", campaign,
+             exp_id, sha[:12], prog.duration_s)
+    return sha
 
 
 async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, run_id: str,

@@ -13,7 +13,7 @@ from typing import Any
 
 from robid_link.config import load_daemon_config
 from robid_link.exceptions import DaemonUnreachable, RobidError
-from robid_link.link.control import request
+from robid_link.link.control import PREFLIGHT_TIMEOUT_S, request
 
 __all__ = ["dispatch", "wait_for_run", "format_runs", "format_results"]
 
@@ -32,7 +32,7 @@ def dispatch(args: argparse.Namespace) -> int:
         if args.campaign_cmd == "start":
             run_id = request(cfg.control_socket, {"cmd": "start", "campaign": args.name,
                                                   "trigger": args.trigger},
-                             timeout_s=600.0)["run_id"]  # the pre-flight generates programs
+                             timeout_s=PREFLIGHT_TIMEOUT_S)["run_id"]
             print(run_id)
             if not args.wait:
                 if args.json:

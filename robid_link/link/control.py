@@ -19,7 +19,7 @@ from typing import Any
 
 from robid_link.exceptions import ConfigError, DaemonUnreachable, RobidError
 
-__all__ = ["ControlServer", "request"]
+__all__ = ["ControlServer", "request", "PREFLIGHT_TIMEOUT_S"]
 
 log = logging.getLogger("robid.control")
 
@@ -29,6 +29,9 @@ MAX_LINE = 1 << 16
 MAX_DEPTH = 16
 MAX_CLIENTS = 64
 IDLE_S = 120.0
+# 'start' answers after the pre-flight, which generates (and optimises) every program of the
+# campaign the first time: minutes on a loaded two-core cell PC, not the 30 s of a status
+PREFLIGHT_TIMEOUT_S = 900.0
 
 
 def _alive(path: Path) -> bool:

@@ -398,3 +398,26 @@ def test_an_error_in_the_body_leaves_the_daemon_as_itself(tmp_path: Path) -> Non
     with pytest.raises(ConfigError, match="campaign 'x'"):
         asyncio.run(go())
     assert not (tmp_path / "ctl.sock").exists()
+
+
+def test_a_program_is_generated_once_however_many_ask(tmp_path: Path,
+                                                     caplog: pytest.LogCaptureFixture) -> None:
+    """The start-up pre-flight, a 'start' and a second campaign with the same experiment ask
+    for one program at once: one worker generates it, the others wait for the cache (on a
+    loaded two-core cell PC a duplicate generation doubled the minutes a 'start' waited)."""
+    from robid_link.link import campaign as cp
+
+    cfg = write_config(tmp_path, {"a": ONE, "b": ONE})
+
+    async def body(d: Daemon) -> list[str]:
+        got = await asyncio.gather(*(cp.prepare_programs(d.cfg, d.store, d.ctx, name)
+                                     for name in ("a", "b", "a")))
+        await d.handle({"cmd": "start", "campaign": "b"})  # pre-flight: from the cache
+        return [prog.sha256 for progs in got for _, prog in progs]
+
+    caplog.set_level("INFO", logger="robid.campaign")
+    shas = with_daemon(cfg, body)
+    assert len(set(shas)) == 1
+    generated = [r for r in caplog.records if "generated" in r.getMessage()]
+    assert len(generated) == 1, [r.getMessage() for r in generated]
+    assert not cp._generating
