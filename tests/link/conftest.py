@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
+import json
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -134,3 +137,104 @@ async def wait_run(daemon: Any, run_id: str, timeout_s: float = 120.0) -> dict[s
             if run["state"] in ("completed", "failed"):
                 return run
             await asyncio.sleep(0.05)
+
+
+# ------------------------------------------------------ daemon and controller as processes
+@contextlib.contextmanager
+def peer_process(tmp: Path, driver: str, *options: str) -> Iterator[dict[str, Any]]:
+    """``robid fake-controller --driver D`` as a process on ``tmp/cell``; yields the daemon's
+    ``driver:`` mapping it writes to its ready file. ``options``: ``key=value`` peer options."""
+    work, ready, log = tmp / "cell", tmp / "ready.json", tmp / "controller.log"
+    work.mkdir(exist_ok=True)
+    opts = [a for o in options for a in ("--option", o)]
+    with process("fake-controller", "--driver", driver, "--workdir", str(work), "--robot",
+                 str(ARM3), "--ready-file", str(ready), *opts, log=log) as proc:
+        end = time.monotonic() + 60
+        while not ready.exists():
+            assert proc.poll() is None, log.read_text()
+            assert time.monotonic() < end, f"fake {driver} not ready"
+            time.sleep(0.05)
+        yield dict(json.loads(ready.read_text()))
+
+
+def run_status(cfg: Path, tmp: Path, timeout_s: float = 180.0) -> dict[str, Any]:
+    """Poll ``robid status`` until the newest run ends; its record."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        st = robid("status", "--config", str(cfg), "--json", str(tmp / "s.json"))
+        assert st.returncode == 0, st.stderr
+        runs = json.loads((tmp / "s.json").read_text())["runs"]
+        if runs[0]["state"] in ("completed", "failed"):
+            return dict(runs[0])
+        time.sleep(0.5)
+    raise AssertionError(f"run did not finish within {timeout_s} s")
+
+
+def kill_then_resume(tmp: Path, cfg: Path, kill_points: list[str], during: Any = None,
+                     after_kill: Any = None) -> tuple[str, dict[str, Any]]:
+    """Start the campaign 'quick' on a daemon process and SIGKILL the daemon after each journal
+    step of ``kill_points`` (``ROBID_FAULT_KILL_AFTER``; a point named ``@...`` is the test's
+    own: ``during(point, daemon)`` kills it); ``after_kill(point)`` runs after each kill; then a
+    last daemon finishes the run. Returns the run id and the final run record."""
+    log, run_id = tmp / "daemon.log", None
+    for k, point in enumerate(kill_points):
+        own = point.startswith("@")
+        env = {} if own else {"ROBID_FAULT_KILL_AFTER": f"{point}:1"}
+        with process("daemon", "--config", str(cfg), env=env, log=log) as daemon:
+            if run_id is None:
+                wait_socket(tmp / "ctl.sock", daemon)
+                out = robid("campaign", "start", "quick", "--config", str(cfg))
+                run_id = out.stdout.strip()
+                assert run_id, out.stderr
+            if own:
+                during(point, daemon)
+            rc = daemon.wait(120)
+            assert rc == -signal.SIGKILL, f"kill point {k} ({point}): exit {rc}"
+        if after_kill is not None:
+            after_kill(point)
+    with process("daemon", "--config", str(cfg), log=log) as daemon:
+        wait_socket(tmp / "ctl.sock", daemon)  # a stale socket file was left behind
+        run = run_status(cfg, tmp)
+        daemon.send_signal(signal.SIGTERM)
+        daemon.wait(30)
+    assert run_id is not None
+    return run_id, run
+
+
+def assert_stored_once(state: Path, run_id: str, attempts: list[int] | None = None) -> None:
+    """Every log of the run intact (its file hashes to its name), stored exactly once, and no
+    experiment given more often than ``attempts`` says (default: each once)."""
+    from robid_link.link.store import Store
+
+    with Store(state, readonly=True) as store:
+        exps = store.experiments(run_id)
+        shas = [e["log_sha"] for e in exps]
+        assert all(shas) and len(set(shas)) == len(exps)
+        for sha in shas:
+            assert hashlib.sha256(store.log_path(sha).read_bytes()).hexdigest() == sha
+        assert store.log_count() == len(exps)  # no second copy of any capture
+        assert [e["attempt"] for e in exps] == (attempts or [1] * len(exps))
+
+
+def controller_runs(tmp: Path) -> list[str]:
+    """The fake controller's 'running' lines (one per program it executed)."""
+    return [ln for ln in (tmp / "controller.log").read_text().splitlines()
+            if " running" in ln and "exp=" in ln]
+
+
+def campaign_via_cli(tmp: Path, cfg: Path, *args: str,
+                     while_up: Any = None) -> subprocess.CompletedProcess[str]:
+    """A daemon process runs the campaign 'quick' to completion through ``robid campaign start
+    --wait`` (``args`` added), ``while_up()`` runs before the daemon gets SIGTERM and must exit
+    0; the CLI's output."""
+    log = tmp / "daemon.log"
+    with process("daemon", "--config", str(cfg), log=log) as daemon:
+        wait_socket(tmp / "ctl.sock", daemon)
+        out = robid("campaign", "start", "quick", "--config", str(cfg), "--wait", *args)
+        assert out.returncode == 0, out.stderr + log.read_text()
+        assert "2/2 logs" in out.stdout and "completed" in out.stdout
+        if while_up is not None:
+            while_up()
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(30) == 0
+    return out
