@@ -35,7 +35,7 @@ import numpy as np
 from robid_link.exceptions import EstimationError
 from robid_link.ident.data import Log
 from robid_link.ident.design import Design
-from robid_link.ident.estimate import Grams, accumulate
+from robid_link.ident.estimate import Grams, accumulate, joint_stats
 from robid_link.ident.preprocess import Piece
 
 __all__ = ["ConsistentFit", "fit_consistent", "pseudo_inertia", "standard_from_pseudo",
@@ -426,7 +426,7 @@ def fit_consistent(design: Design, train: Sequence[Piece], names: Sequence[str],
     u, _ = _u_and_derivatives(phi)
     min_eig = np.linalg.eigvalsh(u @ np.swapaxes(u, -1, -2))[:, 0]
     g_tot = np.sum([gr.total() for gr in grams], axis=0)
-    rss, mean_res = _joint_stats(g_tot, theta)
+    rss, mean_res = joint_stats(g_tot, theta)
     cov = _covariance(total, g_tot, theta, rss, n_rigid, lam_abs, m_full)
     return ConsistentFit(theta, [names[int(c)] for c in design.cols], theta_cad, lam_abs,
                          lam_rel, scheme, curve, min_eig, nfev, design, rss, mean_res, cov)
@@ -502,14 +502,6 @@ def _one_se_choice(curve: list[dict[str, float | None]]) -> float:
             lv = c["lambda_relative"]
             return math.inf if lv is None else float(lv)
     return float(curve[best]["lambda_relative"] or math.inf)
-
-
-def _joint_stats(tot: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    p = theta.size
-    v = np.concatenate((-theta, [1.0]))
-    rss = np.einsum("i,jik,k->j", v, tot[:, : p + 1, : p + 1], v)
-    sum_e = tot[:, p + 1, p] - tot[:, p + 1, :p] @ theta
-    return np.maximum(rss, 0.0), sum_e / np.maximum(tot[:, p + 1, p + 1], 1.0)
 
 
 def _covariance(total: _Quad, g_tot: np.ndarray, theta: np.ndarray, rss: np.ndarray,

@@ -20,8 +20,8 @@ from robid_link.ident.design import Design, design_chunks
 if TYPE_CHECKING:  # pieces only pass through to design_chunks
     from robid_link.ident.preprocess import Piece
 
-__all__ = ["WEIGHTS", "TUNING", "RANK_TOL", "Grams", "accumulate", "solve", "Fit", "fit",
-           "long_run_factor"]
+__all__ = ["WEIGHTS", "TUNING", "RANK_TOL", "Grams", "accumulate", "joint_stats", "solve", "Fit",
+           "fit", "long_run_factor"]
 
 #: Robust weight functions of r = residual / (tuning · robust scale), as in MATLAB's
 #: robustfit; the tuning constants give 95 % efficiency at Gaussian noise.
@@ -148,7 +148,7 @@ class Fit:
     iterations: int = 1
 
 
-def _joint_stats(tot: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def joint_stats(tot: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-joint RSS and mean residual from augmented Grams at θ."""
     p = theta.size
     v = np.concatenate((-theta, [1.0]))
@@ -182,7 +182,7 @@ def long_run_factor(grams: Grams, theta: np.ndarray) -> tuple[np.ndarray, np.nda
     gb = grams.g
     sums = gb[:, :, p + 1, p] - gb[:, :, p + 1, :p] @ theta  # (n, K)
     counts = gb[:, :, p + 1, p + 1]
-    rss, mean = _joint_stats(grams.total(), theta)
+    rss, mean = joint_stats(grams.total(), theta)
     n = np.maximum(counts.sum(axis=1), 1.0)
     var = rss / n - mean**2
     lrv = ((sums - counts * mean[:, None]) ** 2).sum(axis=1) / n
@@ -203,14 +203,14 @@ def fit(design: Design, pieces: Sequence[Piece], interval: int, block_len: int,
     wj = np.ones(n)
     theta, cov, _, cond = _weighted_solve(grams, wj, names, warn)
     tot = grams.total()
-    rss, mean_e = _joint_stats(tot, theta)
+    rss, mean_e = joint_stats(tot, theta)
     if method == "wls":
         dof = np.maximum(grams.n_rows - design.p / n, 1.0)
         var = rss / dof
         wj = 1.0 / np.maximum(var, 1e-12 * max(var.max(), 1e-300))
         wj = wj / wj.max()
         theta, cov, _, cond = _weighted_solve(grams, wj, names, warn)
-        rss, mean_e = _joint_stats(tot, theta)
+        rss, mean_e = joint_stats(tot, theta)
     iterations = 1
     if method == "irls":
         if weight not in WEIGHTS:
@@ -230,7 +230,7 @@ def fit(design: Design, pieces: Sequence[Piece], interval: int, block_len: int,
             theta = new
             if step < 1e-6:
                 break
-        rss, mean_e = _joint_stats(tot, theta)
+        rss, mean_e = joint_stats(tot, theta)
     return Fit(theta, cov, cond, rss, mean_e, grams.n_rows, wj, method, iterations), grams
 
 
