@@ -13,33 +13,16 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 
 from robid_link.drivers.abb_rws import AbbRwsDriver
 from robid_link.drivers.rws_api import parse_done, read_credentials, rws_module
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.fakes.controller import default_truth, make_peer
-from robid_link.ident import excitation as ex
-from robid_link.ident.robot import Robot, load_robot
-from robid_link.link import program as pg
+from robid_link.ident.robot import Robot
 from robid_link.link import registry
 from robid_link.link.driver import Driver, MotionProgram, RobotInfo
-from tests.drivers import test_contract as contract
 from tests.drivers.test_contract import RATE_HZ, _cycle, _parse
-
-
-@pytest.fixture(scope="module")
-def robot() -> Robot:
-    return load_robot(contract.ARM3)
-
-
-@pytest.fixture(scope="module")
-def program(robot: Robot) -> MotionProgram:
-    """The contract suite's program (0.6 s, 3 joints, 5 cm peaks)."""
-    t = np.arange(0.0, 0.6, 0.01)
-    q = 0.05 * np.sin(np.pi * t / 0.6)[:, None] ** 2 * np.array([1.0, -1.0, 0.5])
-    return pg.make_program(robot, ex.Trajectory(t, q, 100.0, "custom", robot.name), "exp1")
 
 HAVE_OPENSSL = shutil.which("openssl") is not None
 

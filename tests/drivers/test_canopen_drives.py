@@ -21,26 +21,21 @@ from robid_link.exceptions import ConfigError, DriverError
 from robid_link.fakes.cia402_peer import EDS
 from robid_link.fakes.controller import default_truth, make_peer
 from robid_link.ident import excitation as ex
-from robid_link.ident.robot import Robot, load_robot
+from robid_link.ident.robot import Robot
 from robid_link.link import program as pg
 from robid_link.link import registry
 from robid_link.link.driver import Driver, MotionProgram, RobotInfo
+
+from .conftest import bump_program
 
 ARM3 = Path(__file__).resolve().parents[2] / "examples" / "robots" / "arm3.yaml"
 STOPPED = {"Quick stop active", "Switch on disabled", "Fault", "Ready to switch on"}
 
 
 @pytest.fixture(scope="module")
-def robot() -> Robot:
-    return load_robot(ARM3)
-
-
-@pytest.fixture(scope="module")
 def program(robot: Robot) -> MotionProgram:
     """1.5 s, up to 0.5 rad: long and wide enough for every fault to strike mid-motion."""
-    t = np.arange(0.0, 1.5, 0.01)
-    q = 0.5 * np.sin(np.pi * t / 1.5)[:, None] ** 2 * np.array([1.0, -1.0, 0.5])
-    return pg.make_program(robot, ex.Trajectory(t, q, 100.0, "custom", robot.name), "exp1")
+    return bump_program(robot, 1.5, 0.5)
 
 
 @contextlib.contextmanager

@@ -20,9 +20,7 @@ import pytest
 
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.fakes.controller import default_truth, make_peer
-from robid_link.ident import excitation as ex
-from robid_link.ident.robot import Robot, load_robot
-from robid_link.link import program as pg
+from robid_link.ident.robot import Robot
 from robid_link.link import registry
 from robid_link.link.driver import Done, Driver, MotionProgram, RobotInfo
 
@@ -40,18 +38,6 @@ def _variants() -> list[Any]:
             tag = "-".join(f"{k}{v}" for k, v in opts.items())
             out.append(pytest.param(name, dict(opts), id=f"{name}-{tag}" if tag else name))
     return out
-
-
-@pytest.fixture(scope="module")
-def robot() -> Robot:
-    return load_robot(ARM3)
-
-
-@pytest.fixture(scope="module")
-def program(robot: Robot) -> MotionProgram:
-    t = np.arange(0.0, 0.6, 0.01)
-    q = 0.05 * np.sin(np.pi * t / 0.6)[:, None] ** 2 * np.array([1.0, -1.0, 0.5])
-    return pg.make_program(robot, ex.Trajectory(t, q, 100.0, "custom", robot.name), "exp1")
 
 
 @contextlib.contextmanager

@@ -10,33 +10,18 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 
 from robid_link.drivers.modbus_plc import ModbusPlcDriver, nonce_tag, register_map
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.fakes.controller import default_truth, make_peer
-from robid_link.ident import excitation as ex
 from robid_link.ident.robot import Robot
-from robid_link.link import program as pg
 from robid_link.link import registry
 from robid_link.link.driver import Driver, MotionProgram, RobotInfo
 
 from . import test_contract as contract
 
 RATE_HZ = contract.RATE_HZ
-
-
-@pytest.fixture(scope="module")
-def robot() -> Robot:
-    return contract.load_robot(contract.ARM3)
-
-
-@pytest.fixture(scope="module")
-def program(robot: Robot) -> MotionProgram:
-    t = np.arange(0.0, 0.6, 0.01)
-    q = 0.05 * np.sin(np.pi * t / 0.6)[:, None] ** 2 * np.array([1.0, -1.0, 0.5])
-    return pg.make_program(robot, ex.Trajectory(t, q, 100.0, "custom", robot.name), "exp1")
 
 
 def _peer(tmp_path: Path, robot: Robot, **kw: Any) -> Any:

@@ -10,31 +10,22 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 
 from robid_link.drivers.serial_line import SerialLineDriver, decode_frame, encode_frame
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.fakes.controller import default_truth, make_peer
-from robid_link.ident import excitation as ex
-from robid_link.ident.robot import Robot, load_robot
-from robid_link.link import program as pg
+from robid_link.ident.robot import Robot
 from robid_link.link import registry
 from robid_link.link.driver import Driver, MotionProgram, RobotInfo
 
-from .test_contract import ARM3, RATE_HZ
-
-
-@pytest.fixture(scope="module")
-def robot() -> Robot:
-    return load_robot(ARM3)
+from .conftest import bump_program
+from .test_contract import RATE_HZ
 
 
 @pytest.fixture(scope="module")
 def program(robot: Robot) -> MotionProgram:
-    t = np.arange(0.0, 2.0, 0.01)
-    q = 0.05 * np.sin(np.pi * t / 2.0)[:, None] ** 2 * np.array([1.0, -1.0, 0.5])
-    return pg.make_program(robot, ex.Trajectory(t, q, 100.0, "custom", robot.name), "exp1")
+    return bump_program(robot, 2.0, 0.05)
 
 
 def _peer(tmp_path: Path, robot: Robot, **kw: Any) -> Any:
