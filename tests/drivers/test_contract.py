@@ -88,7 +88,11 @@ class TestContract:
                                                   robot: Robot, program: MotionProgram) -> None:
         with cell(name, tmp_path, robot, variant) as (driver, peer):
             arr = _parse(_cycle(driver, program))
-        assert arr.shape[0] >= 0.5 * RATE_HZ and np.all(np.isfinite(arr))
+        assert np.all(np.isfinite(arr))
+        # the log spans the 0.6 s program; a link may leave holes (a CAN sample whose TPDO came
+        # late under load is dropped, not invented), but not most of it
+        span = arr[-1, 0] - arr[0, 0]
+        assert span >= 0.5 and arr.shape[0] >= 0.5 * span * RATE_HZ
         assert np.abs(arr[:, 1:4]).max() == pytest.approx(0.05, abs=0.01)  # the program's path
         assert len(peer.core.handled) == 1  # one give, one run
 
