@@ -144,24 +144,31 @@ class KnownTorque:
             return
         q = rng.uniform(lo, hi, (32, n))
         qd, qdd = rng.normal(size=(32, n)), rng.normal(size=(32, n))
-        base = self.fixed(q, qd, qdd)
-        unit = {c: self.evaluate(q, qd, qdd, {c: 1.0}) - base for c in self.identify}
-        scale = max(float(np.abs(base).max()), *(float(np.abs(u).max()) for u in unit.values()),
-                    1e-12)
-        for c in self.identify:
-            if np.abs(unit[c]).max() <= 1e-12 * scale:
-                raise ModelError(f"{self.where}.identify: {c} does not change the torque")
-            twice = self.evaluate(q, qd, qdd, {c: 2.0}) - base
-            if np.abs(twice - 2 * unit[c]).max() > 1e-7 * scale:
+        ids = self.identify
+
+        def at(values: dict[str, float]) -> np.ndarray:
+            return self.evaluate(q, qd, qdd, values)
+
+        base = at({})
+        unit = {c: at({c: 1.0}) - base for c in ids}
+        point = {c: float(v) for c, v in zip(ids, rng.uniform(0.5, 2.0, len(ids)), strict=True)}
+        f_point = at(point)
+        scale = max(float(np.abs(base).max()), float(np.abs(f_point).max()),
+                    *(float(np.abs(u).max()) for u in unit.values()), 1e-12)
+        tol = 1e-7 * scale
+        for c in ids:
+            if np.abs(at({c: 2.0}) - base - 2 * unit[c]).max() > tol:
                 raise ModelError(f"{self.where}.identify: {c} enters the torque nonlinearly; "
                                  "only constants that multiply a term (or are added) can be "
                                  f"identified: give {c} in constants")
-        values = {c: float(v) for c, v in zip(self.identify, rng.normal(size=len(self.identify)),
-                                              strict=True)}
-        mixed = self.evaluate(q, qd, qdd, values) - base
-        if np.abs(mixed - sum(values[c] * unit[c] for c in self.identify)).max() > 1e-7 * scale:
-            raise ModelError(f"{self.where}.identify: {', '.join(self.identify)} multiply "
-                             "each other; identify their product as one constant instead")
+        mixed = [c for c in ids
+                 if np.abs(at({**point, c: point[c] + 1.0}) - f_point - unit[c]).max() > tol]
+        if mixed:
+            raise ModelError(f"{self.where}.identify: {', '.join(mixed)} multiply each other; "
+                             "identify their product as one constant instead")
+        for c in ids:
+            if np.abs(unit[c]).max() <= tol:
+                raise ModelError(f"{self.where}.identify: {c} does not change the torque")
 
 
 def known_torque_total(known: tuple[KnownTorque, ...], q: np.ndarray, qd: np.ndarray,
