@@ -246,14 +246,14 @@ def _csv_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.n
         if f"q{j}" not in idx:
             raise DataError(f"{p}: column q{j} missing")
     out["q"] = arr[:, [idx[f"q{j}"] for j in range(1, n + 1)]]
-    torque_cols = []
+    torque_cols: list[str] = []
     for j in range(1, n + 1):
-        have = [c for c in (f"tau{j}", f"i{j}") if c in idx]
-        if not have:
+        given = [c for c in (f"tau{j}", f"i{j}") if c in idx]
+        if not given:
             raise DataError(f"{p}: column tau{j} missing (or i{j}: the drive's current)")
-        if len(have) == 2:
+        if len(given) == 2:
             raise DataError(f"{p}: columns tau{j} and i{j} both given; keep one per joint")
-        torque_cols.append(have[0])
+        torque_cols.append(given[0])
     out["tau"] = arr[:, [idx[c] for c in torque_cols]]
     out["__current__"] = np.array([c.startswith("i") for c in torque_cols])
     for key in ("qd", "qdd"):

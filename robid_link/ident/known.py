@@ -87,7 +87,7 @@ class KnownTorque:
                     raise ModelError(f"{self.where}.expression ({self.name}): cannot evaluate: "
                                      f"{type(err).__name__}: {str(err)[:80]}") from err
                 out = np.zeros((q.shape[0], n))
-                out[:, self.joint - 1] = np.broadcast_to(np.asarray(val, float), q.shape[0])
+                out[:, (self.joint or 1) - 1] = np.broadcast_to(np.asarray(val, float), q.shape[0])
             else:
                 out = self._call(q, qd, qdd, consts)
         bad = ~np.isfinite(out)
@@ -329,7 +329,7 @@ class _Evaluator:
 
     def _node(self, node: ast.AST) -> Any:
         if isinstance(node, ast.Constant):
-            return float(node.value)
+            return float(node.value)  # type: ignore[arg-type]  # numbers only (checked)
         if isinstance(node, ast.Name):
             if node.id not in self.env:
                 raise ModelError(f"{self.where}.expression: unknown name {node.id!r}")

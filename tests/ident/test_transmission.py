@@ -198,3 +198,29 @@ def test_unknown_gain_identified_through_shared_parameters(tmp_path):
     assert value == pytest.approx(0.7, rel=0.01)
     err = _rel_errors(res, _true_base(robot, model, truth, {f"fv_{j}": 2.0 for j in (1, 2, 3)}))
     assert err.max() < 0.03, f"largest parameter error {100 * err.max():.2f} %"
+
+
+def test_current_columns_in_csv_and_npz(tmp_path):
+    from robid_link.ident.data import load_log
+
+    t = np.arange(50) * 0.01
+    q = np.zeros((50, 3))
+    np.savez(tmp_path / "c.npz", t=t, q=q, current=np.ones((50, 3)))
+    log = load_log(tmp_path / "c.npz", 3)
+    assert log.current.all()
+    (tmp_path / "mixed.csv").write_text(
+        "t,q1,q2,q3,tau1,i2,tau3\n" + "".join(f"{k * 0.01},0,0,0,1,2,3\n" for k in range(50)))
+    log = load_log(tmp_path / "mixed.csv", 3)
+    assert log.current.tolist() == [False, True, False]
+    robot = _arm3_with(tmp_path, "transmission: {current_gain: [null, 4.0, null]}")
+    (converted,) = load_logs(robot, [tmp_path / "mixed.csv"])
+    np.testing.assert_allclose(converted.tau[0], [1.0, 8.0, 3.0])
+    assert converted.currents is None
+    (tmp_path / "both.csv").write_text(
+        "t,q1,q2,q3,tau1,i1,tau2,tau3\n" + "".join(f"{k * 0.01},0,0,0,1,1,2,3\n"
+                                                   for k in range(50)))
+    with pytest.raises(DataError, match="columns tau1 and i1 both given"):
+        load_log(tmp_path / "both.csv", 3)
+    np.savez(tmp_path / "two.npz", t=t, q=q, tau=q, current=q)
+    with pytest.raises(DataError, match="arrays 'tau' and 'current' both given"):
+        load_log(tmp_path / "two.npz", 3)
