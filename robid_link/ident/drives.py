@@ -99,9 +99,15 @@ def unidentifiable_gains(robot: Robot, blocks: Sequence[Block], known: Sequence[
 
 def identify_current_gains(pb: Problem, design: Design, known: Sequence[KnownTorque]
                            ) -> list[str]:
-    """Estimate the gains left out, with the model's base parameters, by least squares on
-    the training rows (parallel-filtered, like the torques); then every log's torque is
-    completed with them. Refused, naming the drive, when the data cannot fix a gain."""
+    """Estimate the gains left out, with the model's base parameters, on the training rows
+    (parallel-filtered, like the torques); then every log's torque is completed with them.
+    Refused, naming the drive, when the data cannot fix a gain.
+
+    The fit is in motor space with the current as the measured quantity (output error:
+    i_m = (1/K_m)·(A θ − z)_m, A = M⁻¹ W): an equation-error fit (K_m·i_m = …) would put the
+    current's noise into a regressor column and bias K towards zero wherever only a small
+    part of the torque fixes its scale. Started from the equation-error fit, Gauss-Newton on
+    per-motor Gram matrices (one pass over the data)."""
     preps = [p for p in (*pb.preps, *pb.vpreps) if p.log.currents is not None]
     if not preps:
         return []
@@ -120,51 +126,105 @@ def identify_current_gains(pb: Problem, design: Design, known: Sequence[KnownTor
         raise DataError(f"current_gain of joint {j}{others}: not identifiable from these logs "
                         "(the torque scale needs a known payload or known torque); give "
                         f"{_gain_key(pb.robot)}")
-    p, u = design.p, motors.size
-    gram = np.zeros((p + u, p + u))
-    rhs = np.zeros(p + u)
-    yy, rows = 0.0, 0
-    filtered: dict[int, np.ndarray] = {}
-    for pc in pb.train:
-        prep = pc.prep
-        if prep.log.currents is None:
-            cur = None
-        else:
-            if id(prep) not in filtered:
-                raw = np.zeros_like(prep.log.currents)
-                for seg in prep.log.segments:
-                    if seg.stop - seg.start >= 3 * prep.filt.settle:
-                        raw[seg] = prep.filt.apply(prep.log.currents[seg])
-                filtered[id(prep)] = raw
-            cur = filtered[id(prep)]
-        for c, tau, idx in design_chunks(design, pc, pb.interval):
-            ucols = (np.zeros((idx.size, pb.robot.n, u)) if cur is None
-                     else _current_columns(prep, motors, cur[idx]))
-            for j in range(pb.robot.n):
-                sup = np.concatenate((design.support[j], p + np.arange(u)))
-                x = np.concatenate((c[:, design.joint_slice(j)], -ucols[:, j, :]), axis=1)
-                gram[np.ix_(sup, sup)] += x.T @ x
-                rhs[sup] += x.T @ tau[:, j]
-                yy += float(tau[:, j] @ tau[:, j])
-                rows += idx.size
-    scale = np.sqrt(np.maximum(np.diag(gram), 1e-300))
-    g_s = gram / np.outer(scale, scale)
-    sol_s = np.linalg.lstsq(g_s, rhs / scale, rcond=1e-12)[0]
-    sol = sol_s / scale
-    rss = max(yy - 2 * sol @ rhs + sol @ gram @ sol, 0.0)
-    cov = np.linalg.pinv(g_s, rcond=1e-12) / np.outer(scale, scale) * rss / max(rows - p - u, 1)
-    gains = sol[p:]
-    std = np.sqrt(np.clip(np.diag(cov)[p:], 0.0, None))
+    grams, rows = _motor_grams(pb, design)
+    filt = pb.preps[0].filt
+    # filtered rows are correlated over about fs / (2 fc) samples: fewer independent rows
+    corr = max(1.0, filt.fs / pb.interval / (2.0 * filt.cutoff_hz)) if filt.active else 1.0
+    theta, gains, std = _fit_gains(grams, rows / corr, motors, design.p)
     for prep in (*pb.preps, *pb.vpreps):
         if prep.log.currents is None:
             continue
-        cols = _current_columns(prep, motors, prep.log.currents)
-        add = np.einsum("snu,u->sn", cols, gains)
+        add = np.einsum("snu,u->sn", _current_columns(prep, motors, prep.log.currents), gains)
         for seg in prep.log.segments:
             if seg.stop - seg.start >= 3 * prep.filt.settle:
                 prep.tau_f[seg] += prep.filt.apply(add[seg])
         prep.log = replace(prep.log, tau=prep.log.tau + add, currents=None, current=None)
     side = "motor" if pb.transmission is not None else "joint"
     return [f"current_gain of joint {m + 1} identified: {g:.6g} N·m/A ({side} side, std "
-            f"{100 * s / abs(g) if g else math.inf:.2g} %)" for m, g, s in zip(motors, gains, std,
-                                                                            strict=True)]
+            f"{100 * s / abs(g):.2g} %)" for m, g, s in zip(motors, gains, std, strict=True)]
+
+
+def _motor_grams(pb: Problem, design: Design) -> tuple[np.ndarray, int]:
+    """Per motor m, the Gram of [A_m, i_m, z_m] over the training rows: A = M⁻¹ W (the model's
+    motor torques per parameter), i the filtered current (zero where the gain is known), z
+    = M⁻¹ y (the torque already known: given gains, minus known torques)."""
+    n, p = pb.robot.n, design.p
+    m_inv = np.eye(n) if pb.transmission is None else np.linalg.inv(pb.transmission.T)
+    grams = np.zeros((n, p + 2, p + 2))
+    rows = 0
+    for pc in pb.train:
+        prep = pc.prep
+        cur = np.zeros_like(prep.tau)
+        if prep.log.currents is not None:
+            for seg in prep.log.segments:
+                if seg.stop - seg.start >= 3 * prep.filt.settle:
+                    cur[seg] = prep.filt.apply(prep.log.currents[seg])
+        for c, y, idx in design_chunks(design, pc, pb.interval, chunk=8192):
+            a = np.zeros((idx.size, n, p))
+            for j in range(n):
+                cj = c[:, design.joint_slice(j)]
+                for m in np.flatnonzero(m_inv[:, j]):
+                    a[:, m, design.support[j]] += m_inv[m, j] * cj
+            z = y @ m_inv.T
+            for m in range(n):
+                x = np.column_stack((a[:, m, :], cur[idx, m], z[:, m]))
+                grams[m] += x.T @ x
+            rows += idx.size
+    return grams, rows
+
+
+def _fit_gains(grams: np.ndarray, rows: float, motors: np.ndarray, p: int
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """θ and the unknown gains K from the per-motor Grams (see identify_current_gains)."""
+    u = motors.size
+    unknown = {int(m): k for k, m in enumerate(motors)}
+    ia, za = p, p + 1
+    # equation error, the start: known rows A θ = z, unknown rows A θ − K i = z
+    h = np.zeros((p + u, p + u))
+    b = np.zeros(p + u)
+    for m, g in enumerate(grams):
+        k = unknown.get(m)
+        idx = np.r_[np.arange(p), [] if k is None else [p + k]].astype(int)
+        sel = np.r_[np.arange(p), [] if k is None else [ia]].astype(int)
+        sign = np.r_[np.ones(p), [] if k is None else [-1.0]]
+        h[np.ix_(idx, idx)] += g[np.ix_(sel, sel)] * np.outer(sign, sign)
+        b[idx] += g[sel, za] * sign
+    x = _solve(h, b)
+    theta, gain = x[:p], x[p:]
+    inv_g = 1.0 / np.where(np.abs(gain) > 1e-12, gain, 1e-12)
+    for _ in range(50):  # Gauss-Newton on the output error, weights K̂² (torque units)
+        h, b, rss = np.zeros((p + u, p + u)), np.zeros(p + u), 0.0
+        for m, g in enumerate(grams):
+            ata, ati, atz = g[:p, :p], g[:p, ia], g[:p, za]
+            k = unknown.get(m)
+            if k is None:
+                h[:p, :p] += ata
+                b[:p] += atz - ata @ theta
+                rss += g[za, za] - 2 * theta @ atz + theta @ ata @ theta
+                continue
+            w = gain[k] ** 2
+            s_i = theta @ ati - g[za, ia]
+            s_s = theta @ ata @ theta - 2 * theta @ atz + g[za, za]
+            ata_s = ata @ theta - atz  # Aᵀs
+            gk = inv_g[k]
+            h[:p, :p] += w * gk * gk * ata
+            h[:p, p + k] += w * gk * ata_s
+            h[p + k, :p] += w * gk * ata_s
+            h[p + k, p + k] += w * s_s
+            b[:p] += w * gk * (ati - gk * ata_s)
+            b[p + k] += w * (s_i - gk * s_s)
+            rss += w * (g[ia, ia] - 2 * gk * s_i + gk * gk * s_s)
+        step = _solve(h, b)
+        theta, inv_g = theta + step[:p], inv_g + step[p:]
+        gain = 1.0 / inv_g
+        if np.all(np.abs(step[p:]) <= 1e-10 * np.abs(inv_g)):
+            break
+    scale = np.sqrt(np.maximum(np.diag(h), 1e-300))
+    cov = np.linalg.pinv(h / np.outer(scale, scale), rcond=1e-12) / np.outer(scale, scale)
+    var_g = np.clip(np.diag(cov)[p:], 0.0, None) * max(rss, 0.0) / max(rows - p - u, 1.0)
+    return theta, gain, np.sqrt(var_g) * gain**2  # std of K = std of 1/K · K²
+
+
+def _solve(h: np.ndarray, b: np.ndarray) -> np.ndarray:
+    scale = np.sqrt(np.maximum(np.diag(h), 1e-300))
+    return np.linalg.lstsq(h / np.outer(scale, scale), b / scale, rcond=1e-12)[0] / scale

@@ -219,3 +219,28 @@ def test_short_log_known_torque_against_spring_stand_in(arm3, spring_log, tmp_pa
     assert known.validation.relative_error < 0.01
     assert stand_in.validation.relative_error > 10 * known.validation.relative_error
     assert abs({p.name: p.value for p in known.parameters}["fv_2"] - 2.0) < 0.05
+
+
+def test_known_torque_fixes_the_scale_of_unknown_current_gains(arm3, spring_log, tmp_path):
+    """Every drive logs a current and no gain is given: the counterbalance's known torque on
+    joint 2 fixes joint 2's scale, and the parameters joints share carry it to the others."""
+    path, truth, log = spring_log
+    gains = np.array([2.5, 1.8, 0.7])
+    cur = tmp_path / "cur.csv"
+    write_log_csv(cur, log["t"], log["q"], log["tau"] / gains, log["qd"], log["qdd"],
+                  current=True)
+    model = _model(tmp_path, _entry(SPRING))
+    res = identify(arm3, load_logs(arm3, [cur]), model)
+    notes = [n for n in res.notes if n.startswith("current_gain of joint")]
+    found = np.array([float(n.split("identified: ")[1].split()[0]) for n in notes])
+    std = np.array([float(n.split("std ")[1].split()[0]) for n in notes]) / 100 * found
+    print(f"\ngains from currents and the known counterbalance: {np.round(found, 4)} ± "
+          f"{np.round(std, 4)} (truth {gains})")
+    # joints 2 and 3 carry the known torque or share link 3 with it; joint 1's scale comes
+    # only through the arm's inertia about axis 1: honest, wider error bars
+    np.testing.assert_allclose(found[1:], gains[1:], rtol=0.01)
+    assert np.all(np.abs(found - gains) < 3 * std)
+    assert std[0] > 10 * std[1]
+    values = {p.name: p.value for p in res.parameters}
+    assert values["fv_2"] == pytest.approx(2.0, rel=0.01)
+    assert values["fv_3"] == pytest.approx(2.0, rel=0.01)
