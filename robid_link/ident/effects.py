@@ -548,10 +548,11 @@ def load_model(path: str | Path | None) -> Model:
                          f"[{', '.join(DEFAULT_MODEL.labels())}])")
     try:
         model = Model.parse(doc["effects"], "effects")
-        if "known_torque" in doc:
-            model = Model(model.specs, parse_known_torques(doc["known_torque"]))
     except ModelError as err:
         raise ModelError(f"{p}: {err}") from err
+    if "known_torque" in doc:  # errors found later (joints, linearity) name the file too
+        model = Model(model.specs, parse_known_torques(doc["known_torque"],
+                                                       f"{p}: known_torque"))
     if not any(spec.name == "rigid_body" for spec in model.specs):
         # identification, validation and diagnosis all start from the rigid-body model
         raise ModelError(f"{p}: effects: 'rigid_body' missing (every model identifies the rigid "

@@ -61,7 +61,7 @@ class KnownTorque:
     function: str | None  # "module:function"
     constants: tuple[tuple[str, float], ...]
     identify: tuple[str, ...]
-    where: str
+    where: str = field(default="known_torque", compare=False)
     raw: dict[str, Any] = field(default_factory=dict, compare=False, hash=False)
 
     @property

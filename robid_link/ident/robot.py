@@ -103,7 +103,7 @@ class Robot:
     ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray]:
         """Motor-side log (samples × n) → joint side: q = T⁻¹ q_m − offsets, τ = Tᵀ τ_m."""
         if self.transmission is None:
-            where = ("transmission.ratios" if self.source.endswith(".yaml")
+            where = ("transmission.ratios" if self.source.endswith((".yaml", ".yml"))
                      else f"transmission.ratios in {transmission_path(self.source).name}")
             raise RobotError(f"{self.source}: --motor-side needs the gear ratios "
                              f"({where})")
