@@ -395,6 +395,8 @@ class Plant:
             out["q"], out["tau"] = self.robot.to_motor_side(out["q"], out["tau"])
             t_mat = self.robot.transmission
             out["qd"], out["qdd"] = qd @ t_mat.T, qdd @ t_mat.T
+        else:  # the encoders read the robot's offsets (motor side: in to_motor_side)
+            out["q"] = self.robot.add_offsets(out["q"])
         return out
 
     # -- inverse dynamics

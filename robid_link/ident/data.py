@@ -44,6 +44,12 @@ class Log:
     qdd: np.ndarray | None = None
     segments: list[slice] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    #: (n,) joints whose ``tau`` column holds a drive current (CSV ``i<j>``, npz ``current``)
+    #: until ``identify.load_logs`` turns it into a torque
+    current: np.ndarray | None = None
+    #: raw currents (samples × n) of drives whose gain is to be identified (zero elsewhere;
+    #: their share of ``tau`` is left out until then)
+    currents: np.ndarray | None = None
 
     @property
     def fs(self) -> float:
@@ -236,11 +242,20 @@ def _csv_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.n
     if log_n and log_n != n:
         raise DataError(f"{p}: the log has {log_n} joints (q1..q{log_n}), the robot has {n}")
     out: dict[str, np.ndarray] = {"t": arr[:, idx["t"]]}
-    for key in ("q", "tau"):
-        for j in range(1, n + 1):
-            if f"{key}{j}" not in idx:
-                raise DataError(f"{p}: column {key}{j} missing")
-        out[key] = arr[:, [idx[f"{key}{j}"] for j in range(1, n + 1)]]
+    for j in range(1, n + 1):
+        if f"q{j}" not in idx:
+            raise DataError(f"{p}: column q{j} missing")
+    out["q"] = arr[:, [idx[f"q{j}"] for j in range(1, n + 1)]]
+    torque_cols: list[str] = []
+    for j in range(1, n + 1):
+        given = [c for c in (f"tau{j}", f"i{j}") if c in idx]
+        if not given:
+            raise DataError(f"{p}: column tau{j} missing (or i{j}: the drive's current)")
+        if len(given) == 2:
+            raise DataError(f"{p}: columns tau{j} and i{j} both given; keep one per joint")
+        torque_cols.append(given[0])
+    out["tau"] = arr[:, [idx[c] for c in torque_cols]]
+    out["__current__"] = np.array([c.startswith("i") for c in torque_cols])
     for key in ("qd", "qdd"):
         have = [f"{key}{j}" in idx for j in range(1, n + 1)]
         if any(have) and not all(have):
@@ -248,11 +263,13 @@ def _csv_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.n
             raise DataError(f"{p}: column {missing} missing (give all of {key}1..{key}{n} or none)")
         if all(have):
             out[key] = arr[:, [idx[f"{key}{j}"] for j in range(1, n + 1)]]
-    known = {"t"} | {f"{k}{j}" for k in ("q", "qd", "qdd", "tau") for j in range(1, n + 1)}
+    known = {"t"} | {f"{k}{j}" for k in ("q", "qd", "qdd", "tau", "i")
+                     for j in range(1, n + 1)}
     extra = [h for h in header if h not in known]
     if extra:
         raise DataError(f"{p}: unexpected column {extra[0][:30]} (expected t, q1..q{n}, "
-                        f"tau1..tau{n}, optional qd1..qd{n}, qdd1..qdd{n})")
+                        f"tau1..tau{n} or currents i1..i{n}, optional qd1..qd{n}, "
+                        f"qdd1..qdd{n})")
     return out
 
 
@@ -263,10 +280,15 @@ _NPZ_KEYS = {"times": "t", "positions": "q", "velocities": "qd", "accelerations"
 def _npz_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
     if "times" in cols or "positions" in cols:
         cols = {_NPZ_KEYS.get(k, k): v for k, v in cols.items()}
+    current = "current" in cols
+    if current and "tau" in cols:
+        raise DataError(f"{p}: arrays 'tau' and 'current' both given; keep one")
+    if current:
+        cols = {("tau" if k == "current" else k): v for k, v in cols.items()}
     for key in ("t", "q", "tau"):
         if key not in cols:
-            raise DataError(f"{p}: array '{key}' missing (expected t, q, tau [, qd, qdd] or "
-                            "FloBaRoID's times, positions, torques)")
+            raise DataError(f"{p}: array '{key}' missing (expected t, q, tau or current "
+                            "[, qd, qdd] or FloBaRoID's times, positions, torques)")
     for key, a in cols.items():
         if key in ("t", "q", "qd", "qdd", "tau") and np.asarray(a).dtype.kind not in "iuf":
             raise DataError(f"{p}: array '{key}' holds {np.asarray(a).dtype}, expected numbers")
@@ -280,6 +302,8 @@ def _npz_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.n
         if a.shape[1] != n:
             raise DataError(f"{p}: array '{key}' has {a.shape[1]} joints, the robot has {n}")
         out[key] = a
+    if current:
+        out["__current__"] = np.ones(n, dtype=bool)
     return out
 
 
@@ -288,6 +312,7 @@ def _npz_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.n
 
 def _check_and_grid(p: Path, cols: dict[str, np.ndarray], n: int, fs: float | None) -> Log:
     cols = _csv_columns(p, cols, n) if "__csv__" in cols else _npz_columns(p, cols, n)
+    current = cols.pop("__current__", None)
     t = cols["t"]
     nsamp = t.shape[0]
     for key, a in cols.items():
@@ -342,7 +367,8 @@ def _check_and_grid(p: Path, cols: dict[str, np.ndarray], n: int, fs: float | No
         arrays = {"t": t, **{k: cols[k] for k in keys}}
         segs = [slice(a, b) for a, b in pieces]
     return Log(path=str(p), t=arrays["t"], q=arrays["q"], tau=arrays["tau"],
-               qd=arrays.get("qd"), qdd=arrays.get("qdd"), segments=segs, notes=notes)
+               qd=arrays.get("qd"), qdd=arrays.get("qdd"), segments=segs, notes=notes,
+               current=current if current is not None and current.any() else None)
 
 
 def _interp(grid: np.ndarray, t: np.ndarray, y: np.ndarray, cubic: bool) -> np.ndarray:
@@ -354,8 +380,10 @@ def _interp(grid: np.ndarray, t: np.ndarray, y: np.ndarray, cubic: bool) -> np.n
 
 
 def write_log_csv(path: str | Path, t: np.ndarray, q: np.ndarray, tau: np.ndarray,
-                  qd: np.ndarray | None = None, qdd: np.ndarray | None = None) -> None:
-    """Write a log in the CSV layout of DESIGN.md (t, q…, [qd…, qdd…,] tau…)."""
+                  qd: np.ndarray | None = None, qdd: np.ndarray | None = None, *,
+                  current: bool = False) -> None:
+    """Write a log in the CSV layout of DESIGN.md (t, q…, [qd…, qdd…,] tau…); with
+    ``current`` the last columns are drive currents i1..in."""
     n = q.shape[1]
     names = ["t"] + [f"q{j}" for j in range(1, n + 1)]
     blocks = [t[:, None], q]
@@ -363,7 +391,7 @@ def write_log_csv(path: str | Path, t: np.ndarray, q: np.ndarray, tau: np.ndarra
         if a is not None:
             names += [f"{key}{j}" for j in range(1, n + 1)]
             blocks.append(a)
-    names += [f"tau{j}" for j in range(1, n + 1)]
+    names += [f"{'i' if current else 'tau'}{j}" for j in range(1, n + 1)]
     blocks.append(tau)
     np.savetxt(path, np.hstack(blocks), delimiter=",", header=",".join(names), comments="",
                fmt="%.10g")

@@ -16,6 +16,7 @@ import numpy as np
 import yaml
 
 from robid_link.exceptions import ModelError
+from robid_link.ident.known import KnownTorque, parse_known_torques
 from robid_link.ident.regressor import rigid_regressor
 from robid_link.ident.robot import Robot, standard_parameter_names
 from robid_link.yamlio import check_keys, read_yaml_mapping, yaml_type
@@ -340,6 +341,24 @@ class Delay(Effect):
         return -rate[:, :, None]
 
 
+class KnownTorqueEffect(Effect):
+    """The identified constants of a known torque (``known_torque:`` with ``identify``): one
+    column per constant, the torque per unit of it. Not in the catalog: made per entry."""
+
+    doc = "a known torque law with constants identified from the data"
+
+    def __init__(self, known: KnownTorque) -> None:
+        self.known = known
+        self.name = f"known_torque:{known.name}"  # type: ignore[misc]
+        self.per_joint = known.joint is not None  # type: ignore[misc]
+
+    def param_names(self, robot, joint, opts):
+        return self.known.param_names()
+
+    def columns(self, robot, st, joint, opts):
+        return self.known.columns(st.q, st.qd, st.qdd)
+
+
 # ----------------------------------------------------------------------------- model
 
 
@@ -456,9 +475,10 @@ def _checked(spec: EffectSpec, where: str) -> EffectSpec:
 
 @dataclass(frozen=True)
 class Model:
-    """An ordered list of effect entries."""
+    """An ordered list of effect entries, and the known torques of the model file."""
 
     specs: tuple[EffectSpec, ...]
+    known: tuple[KnownTorque, ...] = ()
 
     @classmethod
     def parse(cls, entries: Sequence[Any], where: str = "effects") -> Model:
@@ -470,7 +490,7 @@ class Model:
 
     def with_added(self, spec: EffectSpec) -> Model:
         kept = [s for s in self.specs if not (s.name == spec.name and s.joint == spec.joint)]
-        return Model((*kept, spec))
+        return Model((*kept, spec), self.known)
 
     def blocks(self, robot: Robot) -> list[Block]:
         """Resolve entries to per-joint blocks; declared replacements drop overlapping blocks."""
@@ -495,10 +515,19 @@ class Model:
         for (_name, j), blk in list(chosen.items()):
             for other in blk.effect.replaces:
                 chosen.pop((other, j), None)
+        rng = np.random.default_rng(11)
+        lo = np.where(np.isfinite(robot.limits.q_min), robot.limits.q_min, -math.pi)
+        hi = np.where(np.isfinite(robot.limits.q_max), robot.limits.q_max, math.pi)
+        known = []
+        for kt in self.known:
+            kt.check(lo, hi, rng)
+            if kt.identify:
+                known.append(Block(KnownTorqueEffect(kt), None if kt.joint is None
+                                   else kt.joint - 1, {"known": repr(sorted(kt.raw.items()))}))
         if ("rigid_body", None) in chosen:  # rigid body first: it reads best in tables
             rb = chosen.pop(("rigid_body", None))
-            return [rb, *chosen.values()]
-        return list(chosen.values())
+            return [rb, *chosen.values(), *known]
+        return [*chosen.values(), *known]
 
 
 DEFAULT_MODEL = Model.parse(["rigid_body", "viscous", "coulomb"])
@@ -510,7 +539,8 @@ def load_model(path: str | Path | None) -> Model:
         return DEFAULT_MODEL
     p = Path(path)
     doc = read_yaml_mapping(p, "model file", ModelError)
-    check_keys(doc, str(p), required=("effects",), optional=("description",), error=ModelError)
+    check_keys(doc, str(p), required=("effects",), optional=("description", "known_torque"),
+               error=ModelError)
     if not isinstance(doc["effects"], list):
         raise ModelError(f"{p}: effects: expected a list, got {yaml_type(doc['effects'])}")
     if not doc["effects"]:
@@ -520,6 +550,9 @@ def load_model(path: str | Path | None) -> Model:
         model = Model.parse(doc["effects"], "effects")
     except ModelError as err:
         raise ModelError(f"{p}: {err}") from err
+    if "known_torque" in doc:  # errors found later (joints, linearity) name the file too
+        model = Model(model.specs, parse_known_torques(doc["known_torque"],
+                                                       f"{p}: known_torque"))
     if not any(spec.name == "rigid_body" for spec in model.specs):
         # identification, validation and diagnosis all start from the rigid-body model
         raise ModelError(f"{p}: effects: 'rigid_body' missing (every model identifies the rigid "
@@ -528,7 +561,9 @@ def load_model(path: str | Path | None) -> Model:
 
 
 def save_model(path: str | Path, model: Model) -> None:
-    doc = {"effects": [s.to_yaml() for s in model.specs]}
+    doc: dict[str, Any] = {"effects": [s.to_yaml() for s in model.specs]}
+    if model.known:
+        doc["known_torque"] = [kt.raw for kt in model.known]
     try:
         Path(path).write_text(yaml.safe_dump(doc, sort_keys=False))
     except OSError as err:

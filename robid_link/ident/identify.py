@@ -16,6 +16,11 @@ from robid_link.exceptions import ConditioningWarning, DataWarning, ExcitationWa
 from robid_link.ident.consistent import ConsistentFit, fit_consistent
 from robid_link.ident.data import Log, file_sha256, load_log
 from robid_link.ident.design import Design, attach_predictions, make_design, structural_mask
+from robid_link.ident.drives import (
+    identify_current_gains,
+    subtract_known_torques,
+    torque_from_currents,
+)
 from robid_link.ident.effects import Block, Model
 from robid_link.ident.estimate import Grams, accumulate, fit
 from robid_link.ident.preprocess import Piece, Problem, build_problem, check_counts
@@ -31,11 +36,16 @@ POOR_EXCITATION_COND = 1e3
 
 def load_logs(robot: Robot, paths: Sequence[str | Path], fs: float | None = None,
               motor_side: bool = False) -> list[Log]:
+    """Read logs and bring them to the joint side: currents → torques (the robot's
+    ``current_gain``; drives without one keep their current until identification), motor →
+    joint side through the transmission, encoder offsets removed."""
     logs = []
     for p in paths:
-        log = load_log(p, robot.n, fs)
+        log = torque_from_currents(robot, load_log(p, robot.n, fs))
         if motor_side:
             log.q, log.qd, log.qdd, log.tau = robot.to_joint_side(log.q, log.qd, log.qdd, log.tau)
+        else:
+            log.q = robot.remove_offsets(log.q)
         logs.append(log)
     return logs
 
@@ -76,6 +86,10 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
     """
     pb = build_problem(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
                        interval=interval, motor_side=motor_side)
+    pb.notes += subtract_known_torques(pb, model.known)
+    if any(p.log.currents is not None for p in (*pb.preps, *pb.vpreps)):
+        design0, _, _ = make_design(robot, pb.blocks, pb.transmission)
+        pb.notes += identify_current_gains(pb, design0, model.known)
     _model_torque_inputs(pb)
     hypers = _profile_hypers(pb)
     design, base, names = make_design(robot, pb.blocks, pb.transmission)

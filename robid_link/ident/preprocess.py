@@ -187,10 +187,17 @@ class Prepared:
     tau_rigid: np.ndarray | None = None  # the current model's rigid torque (diagnosis)
     tau_rate: np.ndarray | None = None  # … and its torque rate
     tau_model: np.ndarray | None = None  # the current model's torque on every raw sample
+    #: known torques (model file), already subtracted from ``tau`` and ``tau_f``
+    tau_known: np.ndarray | None = None
 
     @property
     def tau(self) -> np.ndarray:
+        """The torque left for the model: measured minus known torques."""
         return self.log.tau
+
+    @property
+    def tau_measured(self) -> np.ndarray:
+        return self.log.tau if self.tau_known is None else self.log.tau + self.tau_known
 
     def states(self, lo: int, hi: int) -> States:
         # time since the log's start: effects that change over the log (friction drift)
@@ -342,9 +349,13 @@ def build_problem(robot: Robot, data: Sequence[Log], model: Model, *,
 
 def shift_torque(log: Log, seconds: float) -> Log:
     """Undo a torque log that lags the positions by ``seconds``: τ'(t) = τ(t + seconds)."""
-    tau = np.stack([np.interp(log.t + seconds, log.t, log.tau[:, j])
-                    for j in range(log.tau.shape[1])], axis=1)
-    return replace(log, tau=tau, notes=[*log.notes,
+    def shifted(a: np.ndarray) -> np.ndarray:
+        return np.stack([np.interp(log.t + seconds, log.t, a[:, j])
+                         for j in range(a.shape[1])], axis=1)
+
+    return replace(log, tau=shifted(log.tau),
+                   currents=None if log.currents is None else shifted(log.currents),
+                   notes=[*log.notes,
                                         f"torque log shifted by {1e3 * seconds:.3g} ms (delay)"])
 
 

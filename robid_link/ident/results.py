@@ -111,8 +111,11 @@ def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> He
     nom = StatsAccumulator(robot.n) if robot.nominal is not None else None
     parts: dict[str, dict[str, list[np.ndarray]]] = {}
     for pc in problem.valid:
+        known = pc.prep.tau_known
         for c, tau, idx in design_chunks(design, pc, filtered=False):
             pred = design.predict(c, theta)
+            if known is not None:  # known torques: subtracted from τ, added back to both
+                tau, pred = tau + known[idx], pred + known[idx]
             acc.add(tau - pred, tau)
             tr = parts.setdefault(pc.prep.log.path, {"t": [], "tau": [], "pred": []})
             tr["t"].append(pc.prep.log.t[idx])
@@ -121,6 +124,8 @@ def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> He
             if nom is not None:
                 st = pc.prep.states(int(idx[0]), int(idx[-1]) + 1)
                 pred_nom = rigid_regressor(robot, st.q, st.qd, st.qdd) @ robot.nominal
+                if known is not None:
+                    pred_nom = pred_nom + known[idx]
                 nom.add(tau - pred_nom, tau)
     traces = []
     for path, tr in parts.items():
@@ -193,13 +198,15 @@ class IdentResult:
         """The fitted model's torque (N, n) on every sample of a prepared log (default: the
         first data file), from its filtered states."""
         pb, design, theta = self._fitted()
-        return predict_torque(design, pb.preps[0] if prep is None else prep, theta)
+        prep = pb.preps[0] if prep is None else prep
+        pred = predict_torque(design, prep, theta)
+        return pred if prep.tau_known is None else pred + prep.tau_known
 
     def residuals(self, prep: Prepared | None = None) -> np.ndarray:
         """Measured minus predicted torque (N, n) on every sample of a prepared log."""
         pb, _, _ = self._fitted()
         prep = pb.preps[0] if prep is None else prep
-        return prep.tau - self.predict(prep)
+        return prep.tau_measured - self.predict(prep)
     consistent: Any = field(default=None, repr=False)  # ConsistentFit of method "consistent"
 
     @property

@@ -61,6 +61,10 @@ class Robot:
     limits: Limits
     nominal: np.ndarray | None  # standard parameters (10 n) when inertials were given
     transmission: np.ndarray | None = None  # T with q_m = T q
+    #: joint-side reading of each encoder (rad or m) when the model's joint is at zero
+    encoder_offsets: np.ndarray | None = None
+    #: torque per ampere of each drive, on the log's side; NaN: identify it from the logs
+    current_gain: np.ndarray | None = None
     source: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -97,18 +101,30 @@ class Robot:
     def to_joint_side(
         self, q: np.ndarray, qd: np.ndarray | None, qdd: np.ndarray | None, tau: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray]:
-        """Motor-side log (samples × n) → joint side: q = T⁻¹ q_m, τ = Tᵀ τ_m."""
+        """Motor-side log (samples × n) → joint side: q = T⁻¹ q_m − offsets, τ = Tᵀ τ_m."""
         if self.transmission is None:
-            raise RobotError(f"{self.source}: --motor-side needs a 'transmission' section")
+            where = ("transmission.ratios" if self.source.endswith((".yaml", ".yml"))
+                     else f"transmission.ratios in {transmission_path(self.source).name}")
+            raise RobotError(f"{self.source}: --motor-side needs the gear ratios "
+                             f"({where})")
         t_inv_t = np.linalg.inv(self.transmission).T
         conv = [None if x is None else x @ t_inv_t for x in (q, qd, qdd)]
-        return conv[0], conv[1], conv[2], tau @ self.transmission  # type: ignore[return-value]
+        q_j = self.remove_offsets(conv[0])  # type: ignore[arg-type]
+        return q_j, conv[1], conv[2], tau @ self.transmission
 
     def to_motor_side(self, q: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Joint side → motor side: q_m = T q, τ_m = T⁻ᵀ τ."""
+        """Joint side → motor side: q_m = T (q + offsets), τ_m = T⁻ᵀ τ."""
         if self.transmission is None:
             raise RobotError(f"{self.source}: no 'transmission' section")
-        return q @ self.transmission.T, tau @ np.linalg.inv(self.transmission)
+        return self.add_offsets(q) @ self.transmission.T, tau @ np.linalg.inv(self.transmission)
+
+    def remove_offsets(self, q: np.ndarray) -> np.ndarray:
+        """Encoder readings (joint side) → the model's joint positions: q − offsets."""
+        return q if self.encoder_offsets is None else q - self.encoder_offsets
+
+    def add_offsets(self, q: np.ndarray) -> np.ndarray:
+        """The model's joint positions → what the encoders read: q + offsets."""
+        return q if self.encoder_offsets is None else q + self.encoder_offsets
 
     def mapping(self) -> list[dict[str, Any]]:
         """The joint number ↔ name mapping printed in summaries and JSON."""
@@ -225,7 +241,7 @@ def _load_mdh(p: Path, allow_unlimited: bool) -> Robot:
     limits = Limits(**{k: np.array(v, dtype=float) for k, v in lim.items()})
     model.lowerPositionLimit = limits.q_min.copy()
     model.upperPositionLimit = limits.q_max.copy()
-    transmission = _transmission(doc.get("transmission"), n, p)
+    tx = _transmission(doc.get("transmission"), names, types, p, "transmission")
     return Robot(
         name=model.name,
         model=model,
@@ -237,7 +253,9 @@ def _load_mdh(p: Path, allow_unlimited: bool) -> Robot:
         unbounded=(False,) * n,
         limits=limits,
         nominal=nominal,
-        transmission=transmission,
+        transmission=tx.matrix,
+        encoder_offsets=tx.offsets,
+        current_gain=tx.current_gain,
         source=str(p),
     )
 
@@ -322,33 +340,109 @@ def _mdh_limits(x: Any, jtype: str, where: str, p: Path, out: dict[str, list[flo
         out[f"{key}_max"].append(v)
 
 
-def _transmission(x: Any, n: int, p: Path) -> np.ndarray | None:
+@dataclass(frozen=True)
+class _Transmission:
+    matrix: np.ndarray | None = None
+    offsets: np.ndarray | None = None
+    current_gain: np.ndarray | None = None
+
+
+_TX_KEYS = ("ratios", "coupling", "offsets", "current_gain")
+
+
+def transmission_path(urdf: str | Path) -> Path:
+    """The transmission file read with a URDF: ``robot.urdf`` → ``robot.transmission.yaml``."""
+    p = Path(urdf)
+    return p.with_name(p.stem + ".transmission.yaml")
+
+
+def _urdf_transmission(p: Path, names: Sequence[str], types: Sequence[str]) -> _Transmission:
+    side = transmission_path(p)
+    if not side.is_file():
+        return _Transmission()
+    doc = read_yaml_mapping(side, "transmission file", RobotError)
+    check_keys(doc, str(side), optional=("transmission", "description"), error=RobotError)
+    return _transmission(doc.get("transmission"), names, types, side, "transmission")
+
+
+def _per_joint(x: Any, names: Sequence[str], where: str, src: Path, *, allow_null: bool = False
+               ) -> list[Any]:
+    """A per-joint value: a list in joint order, or a mapping joint name → value (joints
+    left out: None)."""
+    n = len(names)
+    if isinstance(x, dict):
+        unknown = [k for k in x if k not in names]
+        if unknown:
+            raise RobotError(f"{src}: {where}: no joint named {str(unknown[0])[:40]!r} "
+                             f"(joints: {', '.join(names)})")
+        if not allow_null and len(x) != n:
+            missing = next(nm for nm in names if nm not in x)
+            raise RobotError(f"{src}: {where}: joint {missing!r} missing")
+        return [x.get(nm) for nm in names]
+    if not isinstance(x, list) or len(x) != n:
+        shown = repr(x) if len(repr(x)) <= 40 else repr(x)[:37] + "..."
+        raise RobotError(f"{src}: {where}: expected a list of {n} values (joints "
+                         f"{', '.join(names)}) or a mapping joint name → value, got {shown}")
+    return list(x)
+
+
+def _transmission(x: Any, names: Sequence[str], types: Sequence[str], p: Path, key: str
+                  ) -> _Transmission:
+    """The ``transmission`` section: gear ratios and couplings (T with q_m = T q), encoder
+    offsets (degrees, or metres for prismatic joints) and drive current gains."""
     if x is None:
-        return None
-    if not isinstance(x, dict) or "ratios" not in x or set(x) - {"ratios", "coupling"}:
-        raise RobotError(f"{p}: transmission: expected {{ratios: [...], coupling: [...]}}")
-    ratios = _vec(x["ratios"], n, "transmission.ratios", p)
-    if np.any(ratios == 0):
-        raise RobotError(f"{p}: transmission.ratios: a gear ratio of 0 is not invertible")
+        return _Transmission()
+    if not isinstance(x, dict) or not x or set(x) - set(_TX_KEYS):
+        raise RobotError(f"{p}: {key}: expected a mapping with keys among "
+                         f"{', '.join(_TX_KEYS)}")
+    t = None
+    if "ratios" in x:
+        raw = _per_joint(x["ratios"], names, f"{key}.ratios", p)
+        ratios = np.array([_num(v, f"{key}.ratios[{i}]", p) for i, v in enumerate(raw)])
+        if np.any(ratios == 0):
+            raise RobotError(f"{p}: {key}.ratios: a gear ratio of 0 is not invertible")
+        t = np.diag(ratios) @ _coupling(x.get("coupling"), names, p, key)
+        if not np.all(np.isfinite(t)) or np.linalg.cond(t) > 1e12:
+            raise RobotError(f"{p}: {key}: the coupling matrix is singular")
+    elif x.get("coupling"):
+        raise RobotError(f"{p}: {key}.coupling: needs {key}.ratios")
+    offsets = None
+    if "offsets" in x:
+        raw = _per_joint(x["offsets"], names, f"{key}.offsets", p)
+        offsets = np.array([_num(v, f"{key}.offsets[{i}]", p)
+                            * (math.radians(1.0) if types[i] == "revolute" else 1.0)
+                            for i, v in enumerate(raw)])
+    gains = None
+    if "current_gain" in x:
+        raw = _per_joint(x["current_gain"], names, f"{key}.current_gain", p, allow_null=True)
+        gains = np.array([math.nan if v is None else _num(v, f"{key}.current_gain[{i}]", p)
+                          for i, v in enumerate(raw)])
+        if np.any(gains == 0):
+            raise RobotError(f"{p}: {key}.current_gain: a gain of 0 turns every current into "
+                             "no torque (null: identify it from the logs)")
+    return _Transmission(t, offsets, gains)
+
+
+def _coupling(coupling: Any, names: Sequence[str], p: Path, key: str) -> np.ndarray:
+    n = len(names)
     c = np.eye(n)
-    coupling = x.get("coupling") or []
+    coupling = coupling or []
     if not isinstance(coupling, list):
-        raise RobotError(f"{p}: transmission.coupling: expected a list of [joint, motor, factor]")
+        raise RobotError(f"{p}: {key}.coupling: expected a list of [joint, motor, factor]")
     for k, entry in enumerate(coupling):
-        where = f"transmission.coupling[{k}]"
+        where = f"{key}.coupling[{k}]"
         if not isinstance(entry, list) or len(entry) != 3:
             raise RobotError(f"{p}: {where}: expected [joint, motor, factor]")
-        if not all(type(v) is int for v in entry[:2]):
-            raise RobotError(f"{p}: {where}: joint and motor must be whole numbers in 1..{n}, "
-                             f"got {str(entry[:2])[:40]}")
-        src, dst = entry[0], entry[1]
+        idx = [names.index(v) + 1 if isinstance(v, str) and v in names else v
+               for v in entry[:2]]
+        if not all(type(v) is int for v in idx):
+            raise RobotError(f"{p}: {where}: joint and motor must be whole numbers in 1..{n} "
+                             f"or joint names, got {str(entry[:2])[:40]}")
+        src, dst = idx
         if not (1 <= src <= n and 1 <= dst <= n) or src == dst:
             raise RobotError(f"{p}: {where}: joints must be distinct numbers in 1..{n}")
         c[dst - 1, src - 1] = _num(entry[2], f"{where}[2]", p)
-    t = np.diag(ratios) @ c
-    if not np.all(np.isfinite(t)) or np.linalg.cond(t) > 1e12:
-        raise RobotError(f"{p}: transmission: the coupling matrix is singular")
-    return t
+    return c
 
 
 def _load_urdf(p: Path, lock: Sequence[str], allow_unlimited: bool) -> Robot:
@@ -394,6 +488,7 @@ def _load_urdf(p: Path, lock: Sequence[str], allow_unlimited: bool) -> Robot:
     limits = _urdf_limits(p, names, urdf_joints, allow_unlimited)
     nominal = np.concatenate([full.inertias[j].toDynamicParameters() for j in range(1, n + 1)])
     parents = tuple(int(full.parents[j]) - 1 for j in range(1, n + 1))
+    tx = _urdf_transmission(p, names, types)
     return Robot(
         name=full.name or p.stem,
         model=full,
@@ -405,6 +500,8 @@ def _load_urdf(p: Path, lock: Sequence[str], allow_unlimited: bool) -> Robot:
         unbounded=tuple(unbounded),
         limits=limits,
         nominal=nominal,
-        transmission=None,
+        transmission=tx.matrix,
+        encoder_offsets=tx.offsets,
+        current_gain=tx.current_gain,
         source=str(p),
     )
