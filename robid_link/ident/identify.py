@@ -23,9 +23,15 @@ from robid_link.ident.drives import (
 )
 from robid_link.ident.effects import Block, Model
 from robid_link.ident.estimate import Grams, accumulate, fit
-from robid_link.ident.preprocess import Piece, Problem, build_problem, check_counts
+from robid_link.ident.preprocess import Piece, Prepared, Problem, build_problem, check_counts
 from robid_link.ident.regressor import BaseSet, rigid_regressor
-from robid_link.ident.results import ErrorStats, IdentResult, Parameter, evaluate_held_out
+from robid_link.ident.results import (
+    ErrorStats,
+    IdentResult,
+    Parameter,
+    evaluate_held_out,
+    parameter_unit,
+)
 from robid_link.ident.robot import Robot
 
 __all__ = ["identify", "load_logs"]
@@ -107,7 +113,8 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
     nominal_beta = _nominal_base(robot, base, names)
     std = np.sqrt(np.clip(np.diag(f.cov), 0.0, None))
     params = [Parameter(nm, float(v), float(s), base.expression(k),
-                        None if nominal_beta is None else nominal_beta[k])
+                        None if nominal_beta is None else nominal_beta[k],
+                        *parameter_unit(nm, robot.joint_types, pb.transmission is not None))
               for k, (nm, v, s) in enumerate(zip(base.base_names, f.theta, std, strict=True))]
     least = _least_excited(grams, base)
     if f.cond > POOR_EXCITATION_COND:
@@ -174,7 +181,8 @@ def _consistent(pb: Problem, names: list[str], base_design: Design, beta: np.nda
     std = np.sqrt(np.clip(np.diag(cons.cov), 0.0, None))
     n_rigid = cons.theta_cad.size
     params = [Parameter(nm, float(v), float(s), nm,
-                        float(cons.theta_cad[k]) if k < n_rigid else None)
+                        float(cons.theta_cad[k]) if k < n_rigid else None,
+                        *parameter_unit(nm, pb.robot.joint_types, pb.transmission is not None))
               for k, (nm, v, s) in enumerate(zip(cons.names, cons.theta, std, strict=True))]
     ms = cons.rss / max(n, 1)
     var = np.maximum(ms - cons.mean_res**2, 0.0)
@@ -247,6 +255,8 @@ def _sanity_checks(pb: Problem, nominal: bool) -> list[str]:
     for prep in pb.preps:
         tau = prep.log.tau
         name = Path(prep.log.path).name
+        if pb.transmission is None:
+            out += _position_checks(robot, prep.log.q, name)
         peak = np.abs(tau).max(axis=0)
         flat = max(5, int(0.05 * prep.filt.fs))  # a clipped signal sits flat at its peak
         for j in range(robot.n):
@@ -275,10 +285,61 @@ def _sanity_checks(pb: Problem, nominal: bool) -> list[str]:
                                f"(correlation {r:.2f}): sign convention?")
                 elif r > 0.5 and not 1 / 3 < ratio < 3:
                     out.append(f"{name}: tau{j + 1} is {ratio:.3g}× the a-priori model's "
-                               "torque: gear ratio or units (motor side)?")
+                               f"torque: {_scale_cause(robot, prep, sl, pred, j, ratio)}")
     for msg in out:
         warnings.warn(msg, DataWarning, stacklevel=3)
     return out
+
+
+def _position_checks(robot: Robot, q: np.ndarray, name: str) -> list[str]:
+    """Joint positions far outside the robot's limits, with the likely cause: a motor-side
+    log (positions/ratio inside the limits), degrees, or an encoder offset."""
+    lim = robot.limits
+    ratios = (np.abs(np.diag(robot.transmission)) if robot.transmission is not None
+              else np.ones(robot.n))
+    out = []
+    for j in range(robot.n):
+        lo, hi = float(lim.q_min[j]), float(lim.q_max[j])
+        if not (np.isfinite(lo) and np.isfinite(hi)) or hi <= lo:
+            continue
+        qmin, qmax = float(q[:, j].min()), float(q[:, j].max())
+        margin = 0.05 * (hi - lo)
+        if qmin >= lo - margin and qmax <= hi + margin:
+            continue
+        where = (f"{name}: q{j + 1} spans [{qmin:.4g}, {qmax:.4g}] against its limits "
+                 f"[{lo:.4g}, {hi:.4g}]")
+        ratio = float(ratios[j])
+        if ratio > 1.5 and qmin / ratio >= lo - margin and qmax / ratio <= hi + margin:
+            out.append(f"{where}: looks motor-side (divided by the gear ratio {ratio:.4g} it "
+                       "fits): use --motor-side")
+        elif math.radians(qmin) >= lo - margin and math.radians(qmax) <= hi + margin and \
+                qmax - qmin > math.pi:
+            out.append(f"{where}: looks like degrees (the log must be in rad)")
+        elif qmax - qmin <= hi - lo + margin:
+            out.append(f"{where}: the range fits but is shifted: an encoder offset "
+                       "(transmission.offsets)?")
+        else:
+            out.append(f"{where}: wrong units or gear ratio?")
+    return out
+
+
+def _scale_cause(robot: Robot, prep: Prepared, sl: slice, pred: np.ndarray, j: int,
+                 ratio: float) -> str:
+    """Why a joint's measured torque is ``ratio``× the a-priori model's: when the model plus
+    viscous and Coulomb friction and a rotor inertia (which the a-priori model lacks) explain
+    the measurement, say that, not 'units'."""
+    qd, qdd, meas = prep.qd[sl, j], prep.qdd[sl, j], prep.tau_f[sl, j]
+    cols = np.column_stack([pred[:, j], qd, np.sign(qd), qdd, np.ones_like(qd)])
+    coef, *_ = np.linalg.lstsq(cols, meas, rcond=None)
+    r2 = 1.0 - float(np.var(meas - cols @ coef)) / max(float(np.var(meas)), 1e-300)
+    if 0.5 < coef[0] < 2.0 and r2 > 0.9:
+        return (f"the a-priori model lacks friction and rotor inertia (with them it explains "
+                f"{100 * r2:.0f} % of the torque at scale {coef[0]:.2f}), not a unit error")
+    tx = robot.transmission
+    if tx is not None and abs(abs(tx[j, j]) / max(ratio, 1e-12) - 1) < 0.3 or \
+            tx is not None and abs(ratio * abs(tx[j, j]) - 1) < 0.3:
+        return f"near the gear ratio {abs(tx[j, j]):.4g}: a motor-side torque (--motor-side)?"
+    return "gear ratio or units?"
 
 
 def _longest_run(mask: np.ndarray) -> int:

@@ -29,6 +29,9 @@ __all__ = [
     "filter_windows",
     "prepare",
     "split",
+    "motion_span",
+    "held_out_ranges",
+    "noise_floor",
     "Problem",
     "build_problem",
     "shift_torque",
@@ -249,24 +252,56 @@ def prepare(log: Log, cutoff_hz: float | None, interval: int = 1) -> Prepared:
     return Prepared(log, q, qd, qdd, tau_f, filt)
 
 
+#: a sample moves when some joint's filtered speed exceeds this fraction of its typical speed
+#: (95th percentile of |q̇| over the log)
+MOVING_FRACTION = 0.05
+
+
+def motion_span(prep: Prepared) -> tuple[int, int]:
+    """Rows [first, last) of a prepared log between its first and last moving sample (rest at
+    the start or the end of a motion excluded); the whole log when nothing moves."""
+    n = len(prep.log)
+    ok = np.zeros(n, bool)
+    for seg in prep.log.segments:
+        if seg.stop - seg.start >= 3 * prep.filt.settle:
+            ok[seg] = True  # rows of too-short segments were never filtered
+    if not ok.any():
+        return 0, n
+    speed = np.abs(prep.qd[ok])
+    typical = np.percentile(speed, 95, axis=0)
+    active = typical > 1e-6 * max(float(typical.max()), 1e-300)
+    if not active.any():
+        return 0, n
+    moving = np.zeros(n, bool)
+    moving[ok] = np.any(speed[:, active] > MOVING_FRACTION * typical[active], axis=1)
+    idx = np.flatnonzero(moving)
+    return (int(idx[0]), int(idx[-1]) + 1) if idx.size else (0, n)
+
+
 def split(preps: Sequence[Prepared], validate: Sequence[Prepared] | None,
           holdout: float = 0.2) -> tuple[list[Piece], list[Piece]]:
-    """Training and validation pieces: the ``validate`` logs, else the last 20 % of each
-    log with a gap of the filter's settling length between the two (no leak)."""
+    """Training and validation pieces: the ``validate`` logs, else the last 20 % of each log's
+    motion (``motion_span``: a robot standing still at the end is not a test of the model) with
+    a gap of the filter's settling length on each side (no leak); rest after the motion trains.
+    """
     train: list[Piece] = []
     valid: list[Piece] = []
     for prep in preps:
         trim = prep.filt.settle
         n = len(prep.log)
-        cut = n if validate else int(round((1.0 - holdout) * n))
+        first, last = motion_span(prep) if not validate and holdout > 0 else (0, n)
+        cut = n if validate else first + int(round((1.0 - holdout) * (last - first)))
+        end = n if validate or holdout <= 0 else last
         for seg in prep.log.segments:
             lo, hi = seg.start + trim, seg.stop - trim
             if hi - lo < 2 * trim:
                 continue
             if lo < cut - trim:
                 train.append(Piece(prep, lo, min(hi, cut - trim), seg.start, seg.stop))
-            if not validate and hi > cut:
-                valid.append(Piece(prep, max(lo, cut), hi, seg.start, seg.stop))
+            if not validate and hi > cut and min(hi, end) - max(lo, cut) > trim:
+                valid.append(Piece(prep, max(lo, cut), min(hi, end), seg.start, seg.stop))
+            if end < n and hi > end + trim and hi - max(lo, end + trim) > 2 * trim:
+                train.append(Piece(prep, max(lo, end + trim), hi, seg.start, seg.stop))
     for prep in validate or ():
         trim = prep.filt.settle
         for seg in prep.log.segments:
@@ -276,6 +311,45 @@ def split(preps: Sequence[Prepared], validate: Sequence[Prepared] | None,
     if not train:
         raise DataError("no training data left after trimming the filter's edges")
     return train, valid
+
+
+def held_out_ranges(valid: Sequence[Piece]) -> str:
+    """Which time range of which file the validation used, for the result's notes."""
+    by_file: dict[str, list[str]] = {}
+    for pc in valid:
+        t = pc.prep.log.t
+        by_file.setdefault(Path(pc.prep.log.path).name, []).append(
+            f"{t[pc.lo]:.4g}–{t[pc.hi - 1]:.4g} s")
+    return "; ".join(f"{name} {', '.join(r)}" for name, r in by_file.items())
+
+
+def _rejected_share(filt: ZeroPhaseFilter, points: int = 4096) -> float:
+    """Share of white noise's variance in ``raw − filtered`` for the zero-phase filter:
+    the mean over the band of (1 − |H|²)² (|H|² because the filter runs twice)."""
+    w = np.linspace(0.0, math.pi, points)
+    z1 = np.exp(-1j * w)
+    h = np.ones_like(z1)
+    for b0, b1, b2, _, a1, a2 in filt.sos:
+        h = h * (b0 + b1 * z1 + b2 * z1**2) / (1.0 + a1 * z1 + a2 * z1**2)
+    return float(np.mean((1.0 - np.abs(h) ** 2) ** 2))
+
+
+def noise_floor(pieces: Sequence[Piece]) -> np.ndarray | None:
+    """Per joint, the torque measurement noise (N·m, standard deviation) that no model of
+    the motion can explain: the raw torque's content above the filter's cutoff, where an
+    excitation (a few Hz) has none, scaled to the whole band as white noise. Validation RMSE
+    on raw torque cannot fall below it. None when the filter is off (nothing to compare)."""
+    if not pieces or not pieces[0].prep.filt.active:
+        return None
+    acc, rows = 0.0, 0
+    for pc in pieces:
+        d = pc.prep.tau[pc.lo:pc.hi] - pc.prep.tau_f[pc.lo:pc.hi]
+        acc = acc + np.sum(d * d, axis=0)
+        rows += d.shape[0]
+    if rows == 0:
+        return None
+    share = _rejected_share(pieces[0].prep.filt)
+    return np.asarray(np.sqrt(acc / rows / max(share, 1e-12)))
 
 
 def filter_windows(piece: Piece, interval: int = 1, chunk: int = CHUNK
@@ -339,7 +413,14 @@ def build_problem(robot: Robot, data: Sequence[Log], model: Model, *,
     if validate:
         source = "files " + ", ".join(Path(v.path).name for v in validate)
     else:
-        source = "last 20 % of each data file (gap of the filter's length)"
+        source = ("last 20 % of the motion of each data file (gap of the filter's length): "
+                  + (held_out_ranges(valid) or "none left"))
+        rest = [f"{Path(pr.log.path).name} {pr.log.t[-1] - pr.log.t[last - 1]:.3g} s"
+                for pr in preps for last in [motion_span(pr)[1]] if last < len(pr.log)
+                and pr.log.t[-1] - pr.log.t[last - 1] > 0.5]
+        if rest:
+            notes.append("the robot stands still at the end of " + ", ".join(rest) + ": that "
+                         "rest is not held out (it would test gravity alone) but trains")
     if len(data) > 1 and not validate:
         notes.append("validation holds out the end of each file; use --validate with a "
                      "different motion for an honest check of generalisation")

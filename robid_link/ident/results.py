@@ -7,6 +7,7 @@ the design) and computes the held-out figures, predictions and residuals on firs
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
@@ -14,11 +15,11 @@ from typing import Any
 import numpy as np
 
 from robid_link.ident.design import Design, design_chunks, predict_torque
-from robid_link.ident.preprocess import Prepared, Problem
+from robid_link.ident.preprocess import Prepared, Problem, noise_floor
 from robid_link.ident.regressor import rigid_regressor
 
 __all__ = ["ErrorStats", "Parameter", "IdentResult", "HeldOut", "evaluate_held_out",
-           "StatsAccumulator", "TRACE_SAMPLES"]
+           "StatsAccumulator", "TRACE_SAMPLES", "parameter_unit"]
 
 #: max samples per validation trace kept for plots
 TRACE_SAMPLES = 20000
@@ -81,6 +82,8 @@ class Parameter:
     std: float
     expression: str
     nominal: float | None = None
+    unit: str | None = None  # SI, of the leading term (a base parameter's sum shares it)
+    side: str = "joint"  # "motor": acts on the motor (motor-side identification)
 
     @property
     def rel_std_pct(self) -> float:
@@ -89,7 +92,32 @@ class Parameter:
     def as_dict(self) -> dict[str, Any]:
         return {"name": self.name, "value": self.value, "std": self.std,
                 "rel_std_pct": _num(self.rel_std_pct), "expression": self.expression,
-                "nominal": self.nominal}
+                "nominal": self.nominal, "unit": self.unit, "side": self.side}
+
+
+#: parameter name prefix → unit at a revolute joint (prismatic: N·m → N, rad → m, kg·m² → kg)
+_UNITS = {"m": "kg", "mx": "kg·m", "my": "kg·m", "mz": "kg·m", "xx": "kg·m²", "xy": "kg·m²",
+          "xz": "kg·m²", "yy": "kg·m²", "yz": "kg·m²", "zz": "kg·m²", "ia": "kg·m²",
+          "fv": "N·m·s/rad", "dfv": "N·m·s/rad", "fc": "N·m", "off": "N·m", "fcp": "N·m",
+          "fcn": "N·m", "fst": "N·m", "dfc": "N·m", "rps": "N·m", "rpc": "N·m", "fpc": "N·m",
+          "fpv": "N·m·(s/rad)^α", "fpb": "N·m", "mu": "1"}
+#: effects that act on the motor when the logs are motor-side (the rigid body never does)
+_MOTOR_EFFECTS = {"ia", "fv", "dfv", "fc", "off", "fcp", "fcn", "fst", "dfc", "rps", "rpc",
+                  "fpc", "fpv", "fpb"}
+
+
+def parameter_unit(name: str, joint_types: Sequence[str], motor_side: bool
+                   ) -> tuple[str | None, str]:
+    """(unit, side) of an identified parameter from its name (``fv_2``, ``zz_1``, ``spr1c_3``)."""
+    prefix, _, joint = name.rpartition("_")
+    prefix = prefix.rstrip("0123456789cs") if prefix.startswith("spr") else prefix
+    unit = "N·m" if prefix == "spr" else _UNITS.get(prefix)
+    side = "motor" if motor_side and prefix in _MOTOR_EFFECTS else "joint"
+    per_joint = prefix in _MOTOR_EFFECTS or prefix == "spr"  # in the joint's coordinate
+    if unit is not None and per_joint and joint.isdigit() and \
+            0 < int(joint) <= len(joint_types) and joint_types[int(joint) - 1] == "prismatic":
+        unit = unit.replace("N·m", "N").replace("rad", "m").replace("kg·m²", "kg")
+    return unit, side
 
 
 @dataclass
@@ -174,6 +202,15 @@ class IdentResult:
             return HeldOut(None, None, [])
         return evaluate_held_out(self.problem, self.design, self.theta)
 
+    @cached_property
+    def noise_floor(self) -> np.ndarray | None:
+        """Per joint, the raw torque's measurement noise (N·m; ``preprocess.noise_floor``) on
+        the held-out rows (else the training rows): the validation RMSE, taken on raw torque,
+        cannot fall below it; the fit RMSE, on filtered torque, holds almost none of it."""
+        if self.problem is None:
+            return None
+        return noise_floor(self.problem.valid or self.problem.train)
+
     @property
     def validation(self) -> ErrorStats | None:
         """Errors on the held-out rows against the measured torques (None: none held out)."""
@@ -226,6 +263,10 @@ class IdentResult:
             "rank": self.rank,
             "rmse": _list(self.rmse),
             "rmse_fit": _list(self.fit.rmse),
+            "noise_floor": None if self.noise_floor is None else _list(self.noise_floor),
+            "errors_on": {"rmse": "raw torque, held-out rows", "rmse_fit": "low-pass filtered "
+                          "torque, training rows", "noise_floor": "raw torque content above "
+                          "the cutoff, scaled to the band (white noise)"},
             "rmse_nominal": None if self.nominal is None else _list(self.nominal.rmse),
             "relative_error": None if val is None else _num(val.relative_error),
             "relative_error_nominal": None if self.nominal is None
@@ -252,14 +293,17 @@ class IdentResult:
                  f"(cutoff {self.cutoff_hz:.3g} Hz); {self.rank} base parameters of "
                  f"{self.n_standard}; condition number {self.condition_number:.3g}",
                  f"  validation: {self.validation_source}", ""]
-        head = f"  {'joint':<16}{'RMSE val':>10}{'STD val':>10}{'RMSE fit':>10}"
+        floor = self.noise_floor
+        head = f"  {'joint':<16}{'RMSE val':>10}{'noise':>10}{'STD val':>10}{'RMSE fit':>10}"
         if self.nominal is not None:
             head += f"{'RMSE CAD':>10}"
         lines.append(head + "   [N·m]")
         val = self.validation
         for j, jt in enumerate(self.joints):
             row = f"  {jt['joint']:>2} {jt['name'][:12]:<13}"
-            row += f"{_f(val.rmse[j]) if val else '—':>10}{_f(val.std[j]) if val else '—':>10}"
+            row += f"{_f(val.rmse[j]) if val else '—':>10}"
+            row += f"{_f(floor[j]) if floor is not None else '—':>10}"
+            row += f"{_f(val.std[j]) if val else '—':>10}"
             row += f"{_f(self.fit.rmse[j]):>10}"
             if self.nominal is not None:
                 row += f"{_f(self.nominal.rmse[j]):>10}"
@@ -270,6 +314,15 @@ class IdentResult:
             if self.nominal is not None and self.nominal.relative_error is not None:
                 rel += f"; CAD model {100 * self.nominal.relative_error:.2f} %"
             lines.append(rel)
+        lines.append("  RMSE val: raw torque on held-out rows; noise: its measurement noise (raw "
+                     "content above the cutoff), which no model explains; RMSE fit: filtered "
+                     "torque on training rows")
+        if val is not None and floor is not None:
+            at = [str(jt["joint"]) for j, jt in enumerate(self.joints)
+                  if val.rmse[j] <= 1.2 * floor[j]]
+            if at:
+                lines.append(f"  joint(s) {', '.join(at)}: validation error at the noise floor "
+                             "(what is left is measurement noise)")
         lines += ["", f"  {'parameter':<12}{'value':>12}{'std':>11}{'std %':>8}  stands for"]
         for p in self.parameters:
             pct = p.rel_std_pct
