@@ -2,9 +2,10 @@
 pair of axes (H11, H12, H21, H22 with the coupled inertia Jcop), results, summary and figures.
 
 Model (motor side measured): Jm·q̈m + D(q̇m − q̇a) + K(qm − qa) = τ,
-Ja·q̈a + Jcop·q̈a2 + D(q̇a − q̇m) + K(qa − qm) = 0. Fitted by weighted least squares on the
-log-magnitude and phase of the complex FRF (log Ĝ − log G), started from the antiresonance
-and resonance read off the measured points.
+Ja·q̈a + Jcop·q̈a2 + Ba·q̇a + D(q̇a − q̇m) + K(qa − qm) = 0 (Ba: the joint's viscous
+friction on the arm side; without it the fit loads it onto D). Fitted by weighted least
+squares on the log-magnitude and phase of the complex FRF (log Ĝ − log G), started from the
+antiresonance and resonance read off the measured points.
 """
 
 from __future__ import annotations
@@ -26,25 +27,29 @@ __all__ = ["two_mass_frf", "coupled_frf", "JointElasticity", "CoupledElasticity"
            "ElasticityResult", "fit_two_mass", "fit_coupled", "identify_elasticity",
            "elasticity_figures"]
 
-_NAMES = ("jm", "ja", "k", "d")
+_NAMES = ("jm", "ja", "k", "d", "ba")
 
 
-def two_mass_frf(f_hz: np.ndarray, jm: float, ja: float, k: float, d: float) -> np.ndarray:
-    """G = qm/τ = (Ja s² + Ds + K) / (s² (Jm Ja s² + (Jm + Ja)(Ds + K)))."""
+def two_mass_frf(f_hz: np.ndarray, jm: float, ja: float, k: float, d: float, ba: float = 0.0
+                 ) -> np.ndarray:
+    """G = qm/τ = (A + Z) / (Jm s² (A + Z) + Z A), arm A = Ja s² + Ba s, spring Z = D s + K
+    (Ba = 0: (Ja s² + Z) / (s² (Jm Ja s² + (Jm + Ja) Z)))."""
     s = 2j * np.pi * np.asarray(f_hz)
     z = d * s + k
-    return (ja * s * s + z) / (s * s * (jm * ja * s * s + (jm + ja) * z))
+    arm = ja * s * s + ba * s
+    return (arm + z) / (jm * s * s * (arm + z) + z * arm)
 
 
 def coupled_frf(f_hz: np.ndarray, jm: Sequence[float], ja: Sequence[float], jcop: float,
-                k: Sequence[float], d: Sequence[float]) -> np.ndarray:
-    """2×2 G (K, 2, 2): [Jm s² + Z − Z (Ja s² + Z)⁻¹ Z]⁻¹, Ja = [[Ja1, Jcop], [Jcop, Ja2]],
-    Z = diag(D s + K)."""
+                k: Sequence[float], d: Sequence[float], ba: Sequence[float] = (0.0, 0.0)
+                ) -> np.ndarray:
+    """2×2 G (K, 2, 2): [Jm s² + Z − Z (A + Z)⁻¹ Z]⁻¹, A = [[Ja1, Jcop], [Jcop, Ja2]] s²
+    + diag(Ba) s, Z = diag(D s + K)."""
     s = 2j * np.pi * np.asarray(f_hz)[:, None, None]
     eye = np.eye(2)
     z = (np.asarray(d)[None, :] * s[:, :, 0] + np.asarray(k)[None, :])[:, :, None] * eye
     jam = np.array([[ja[0], jcop], [jcop, ja[1]]])
-    arm = np.linalg.solve(jam * s * s + z, z)
+    arm = np.linalg.solve(jam * s * s + np.asarray(ba) * eye * s + z, z)
     dyn = np.asarray(jm)[:, None] * eye * s * s + z - z @ arm
     return np.linalg.inv(dyn)
 
@@ -61,6 +66,7 @@ class JointElasticity:
     std: dict[str, float]
     fit_rms: float  # RMS of the weighted log-FRF residual (≈ relative error)
     measures: str | None = None  # the campaign entry that measures it (set by the daemon)
+    ba: float = 0.0  # viscous friction on the arm side (N·m·s/rad)
 
     @property
     def f_res_hz(self) -> float:
@@ -72,7 +78,7 @@ class JointElasticity:
 
     def as_dict(self) -> dict[str, Any]:
         return {"joint": self.joint, "jm": self.jm, "ja": self.ja, "k": self.k, "d": self.d,
-                "f_res_hz": self.f_res_hz, "f_antires_hz": self.f_antires_hz,
+                "ba": self.ba, "f_res_hz": self.f_res_hz, "f_antires_hz": self.f_antires_hz,
                 "std": dict(self.std), "fit_rms": self.fit_rms, "measures": self.measures}
 
 
@@ -113,12 +119,14 @@ class ElasticityResult:
         lines = [f"Elasticity of {self.robot} ({len(self.joints)} joint(s), inertias in {unit}, "
                  "K in N·m/rad, D in N·m·s/rad)",
                  f"  {'joint':>5} {'Jm':>10} {'Ja':>10} {'K':>11} {'D':>9} {'f_res Hz':>9} "
-                 f"{'f_anti Hz':>9} {'fit rms':>8}"]
+                 f"{'f_anti Hz':>9} {'Ba':>8} {'fit rms':>8}"]
         for j in self.joints:
             lines.append(f"  {j.joint:>5} {j.jm:>10.4g} {j.ja:>10.4g} {j.k:>11.5g} {j.d:>9.4g} "
-                         f"{j.f_res_hz:>9.4g} {j.f_antires_hz:>9.4g} {j.fit_rms:>8.3g}")
+                         f"{j.f_res_hz:>9.4g} {j.f_antires_hz:>9.4g} {j.ba:>8.3g} "
+                         f"{j.fit_rms:>8.3g}")
             lines.append(f"  {'±':>5} {j.std['jm']:>10.2g} {j.std['ja']:>10.2g} "
-                         f"{j.std['k']:>11.2g} {j.std['d']:>9.2g}")
+                         f"{j.std['k']:>11.2g} {j.std['d']:>9.2g} {'':>9} {'':>9} "
+                         f"{j.std['ba']:>8.2g}")
         if self.coupled is not None:
             c = self.coupled
             lines.append(f"  coupled {c.joints[0]}–{c.joints[1]}: Jcop {c.jcop:.4g} "
@@ -193,7 +201,7 @@ def _start_and_band(frf_f: np.ndarray, acc: np.ndarray, joint: int, notes: list[
     ja = j_tot - jm
     k = ja * (2 * math.pi * fa) ** 2
     d = 2 * 0.05 * math.sqrt(k * ja)
-    return np.array([jm, ja, k, d]), band
+    return np.array([jm, ja, k, d, 0.0]), band
 
 
 # ----------------------------------------------------------------------------- fits
@@ -242,11 +250,11 @@ def fit_two_mass(frf: Frf, notes: list[str] | None = None) -> JointElasticity:
     f, g, w = frf.f_hz[band], frf.g[band], _weights(frf)[band]
 
     def fun(x: np.ndarray) -> np.ndarray:
-        p = np.exp(x)
-        return np.tile(w, 2) * _logres(two_mass_frf(f, *p), g)
+        return np.tile(w, 2) * _logres(two_mass_frf(f, *np.exp(x[:4]), x[4]), g)
 
-    vals, std, rms = _solve(fun, np.log(x0), _NAMES, [True] * 4)
-    return JointElasticity(joint, *map(float, vals), std=std, fit_rms=rms)
+    vals, std, rms = _solve(fun, np.r_[np.log(x0[:4]), x0[4]], _NAMES, [True] * 4 + [False])
+    return JointElasticity(joint, *map(float, vals[:4]), std=std, fit_rms=rms,
+                           ba=float(vals[4]))
 
 
 def fit_coupled(frf: Frf, notes: list[str] | None = None
@@ -262,27 +270,28 @@ def fit_coupled(frf: Frf, notes: list[str] | None = None
     low = frf.f_hz < 0.5 * frf.f_hz[np.argmin(np.abs(frf.accel[:, 0, 0]))]
     inert = np.linalg.inv(frf.accel[low if low.any() else slice(0, 1)]).real.mean(axis=0)
     jcop0 = float(0.5 * (inert[0, 1] + inert[1, 0]))
-    x0 = np.array([*np.log(singles[0]), *np.log(singles[1]), jcop0])
-    scale = math.sqrt(singles[0][1] * singles[1][1])
+    x0 = np.array([*np.log(singles[0][:4]), 0.0, *np.log(singles[1][:4]), 0.0, jcop0])
     w = _weights(frf)
     g = frf.g
+    # off-diagonal terms relative to the diagonal's scale (they cross zero: no logarithm)
     norm = np.sqrt(np.abs(g[:, 0, 0] * g[:, 1, 1]))
 
     def fun(x: np.ndarray) -> np.ndarray:
-        a, b = np.exp(x[:4]), np.exp(x[4:8])
-        model = coupled_frf(frf.f_hz, (a[0], b[0]), (a[1], b[1]), x[8] * scale / scale,
-                            (a[2], b[2]), (a[3], b[3]))
+        a, b = np.exp(x[:4]), np.exp(x[5:9])
+        model = coupled_frf(frf.f_hz, (a[0], b[0]), (a[1], b[1]), x[10], (a[2], b[2]),
+                            (a[3], b[3]), (x[4], x[9]))
         diag = [_logres(model[:, i, i], g[:, i, i]) for i in range(2)]
         off = [(model[:, i, 1 - i] - g[:, i, 1 - i]) / norm for i in range(2)]
         offr = [np.concatenate((o.real, o.imag)) for o in off]
         return np.tile(w, 8) * np.concatenate(diag + offr)
 
     names = [f"{n}{i}" for i in (1, 2) for n in _NAMES] + ["jcop"]
-    vals, std, rms = _solve(fun, x0, names, [True] * 8 + [False])
-    joints = [JointElasticity(j, *map(float, vals[4 * i: 4 * i + 4]),
-                              std={n: std[f"{n}{i + 1}"] for n in _NAMES}, fit_rms=rms)
+    vals, std, rms = _solve(fun, x0, names, ([True] * 4 + [False]) * 2 + [False])
+    joints = [JointElasticity(j, *map(float, vals[5 * i: 5 * i + 4]),
+                              std={n: std[f"{n}{i + 1}"] for n in _NAMES}, fit_rms=rms,
+                              ba=float(vals[5 * i + 4]))
               for i, j in enumerate((j1, j2))]
-    return joints, CoupledElasticity((j1, j2), float(vals[8]), {"jcop": std["jcop"]}, rms)
+    return joints, CoupledElasticity((j1, j2), float(vals[10]), {"jcop": std["jcop"]}, rms)
 
 
 # ----------------------------------------------------------------------------- job
@@ -363,13 +372,14 @@ def elasticity_figures(res: ElasticityResult, out_dir: str | Path) -> list[Path]
         s2 = -(2 * np.pi * fine) ** 2
         if len(frf.joints) == 1:
             p = by_joint[frf.joints[0]]
-            cells = {(0, 0): (frf.accel, s2 * two_mass_frf(fine, p.jm, p.ja, p.k, p.d))}
+            cells = {(0, 0): (frf.accel, s2 * two_mass_frf(fine, p.jm, p.ja, p.k, p.d, p.ba))}
             text = _param_text([p])
         else:
             a, b = (by_joint[j] for j in frf.joints)
             assert res.coupled is not None
             model = s2[:, None, None] * coupled_frf(fine, (a.jm, b.jm), (a.ja, b.ja),
-                                                    res.coupled.jcop, (a.k, b.k), (a.d, b.d))
+                                                    res.coupled.jcop, (a.k, b.k), (a.d, b.d),
+                                                    (a.ba, b.ba))
             cells = {(r, c): (frf.accel[:, r, c], model[:, r, c]) for r in range(2)
                      for c in range(2)}
             text = _param_text([a, b]) + f"\nJcop {res.coupled.jcop:.4g}"
@@ -404,5 +414,6 @@ def elasticity_figures(res: ElasticityResult, out_dir: str | Path) -> list[Path]
 
 def _param_text(params: Sequence[JointElasticity]) -> str:
     return "\n".join(f"joint {p.joint}: Jm {p.jm:.4g}  Ja {p.ja:.4g}  K {p.k:.5g}  D {p.d:.4g}  "
+                     f"Ba {p.ba:.3g}  "
                      f"f_res {p.f_res_hz:.4g} Hz  f_antires {p.f_antires_hz:.4g} Hz"
                      for p in params)

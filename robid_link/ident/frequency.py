@@ -42,9 +42,12 @@ class ElasticityOptions:
     Each step: the reference drifts at ``drift_fraction`` of the joint's speed limit (so the arm
     never reverses and Coulomb friction stays a constant torque, invisible at the step's
     frequency), a sine rides on it with a velocity amplitude of drift/``drift_over_sine``;
-    ``settle_periods`` (at least ``settle_s``) are ramped in and discarded, then
-    ``measure_periods`` (at least ``measure_s``) are measured. Steps alternate the drift
-    direction so the pose stays within one step's travel.
+    ``settle_periods`` (at least ``settle_s``) are ramped in (over ``ramp_s``) and discarded,
+    then ``measure_periods`` (at least ``measure_s``) are measured. Steps alternate the drift
+    direction and each step's travel is centred on the pose (the arm inertia of a coupled axis
+    changes with it). The drift's reversal rings the arm on its spring at the antiresonance
+    (the motor held by the loop): a slow ramp and a settling of several of that mode's decay
+    times keep the ringing out of the measured window.
     """
 
     joints: tuple[int, ...] = ()  # 1-based; empty = every joint
@@ -55,7 +58,8 @@ class ElasticityOptions:
     steps: int = 24
     rate_hz: float = 2000.0
     settle_periods: float = 3.0
-    settle_s: float = 0.3
+    settle_s: float = 1.0
+    ramp_s: float = 0.5
     measure_periods: float = 6.0
     measure_s: float = 0.5
     drift_fraction: float = 0.04
@@ -123,7 +127,7 @@ def stepped_sine_schedule(robot: Robot, opts: ElasticityOptions) -> list[dict[st
             v_amp = min(drift / opts.drift_over_sine, acc / w)
             settle = max(opts.settle_periods / f, opts.settle_s)
             measure = math.ceil(max(opts.measure_periods, opts.measure_s * f)) / f
-            ramp = min(0.25, settle / 2)
+            ramp = min(opts.ramp_s, settle / 2)
             step = {"joint": int(j), "f_hz": float(f), "amplitude_rad": float(v_amp / w),
                     "drift_rad_s": float(sign * drift), "t_start": float(t),
                     "t_measure": float(t + settle), "t_end": float(t + settle + measure),
@@ -158,15 +162,19 @@ def elasticity_trajectory(robot: Robot, opts: ElasticityOptions) -> Trajectory:
         k0 = int(round(st["t_start"] / h))
         k1 = int(round(st["t_next"] / h))
         tt = t[k0:k1] - st["t_start"]
-        ramp = min(0.25, (st["t_measure"] - st["t_start"]) / 2)
+        ramp = st["t_next"] - st["t_end"]
         t_end = st["t_end"] - st["t_start"]
         env = _smooth_ramp(tt / ramp) * _smooth_ramp((t_end + ramp - tt) / ramp)
         # drift velocity v·env integrated exactly enough on the grid (cumulative trapezoid)
         vel = st["drift_rad_s"] * env
         pos = np.concatenate(([0.0], np.cumsum(0.5 * (vel[1:] + vel[:-1]) * h)))
+        meas = (tt >= st["t_measure"] - st["t_start"]) & (tt <= t_end)
+        centre = float(pos[meas].mean()) if meas.any() else 0.0
+        # from where the last step left the joint to travel centred on the pose, during the ramp
+        shift = offset[j] + (-centre - offset[j]) * _smooth_ramp(tt / ramp)
         sine = st["amplitude_rad"] * env * np.sin(2 * math.pi * st["f_hz"] * tt)
-        q[k0:k1, j] = pose[j] + offset[j] + pos + sine
-        offset[j] += pos[-1] if pos.size else 0.0
+        q[k0:k1, j] = pose[j] + shift + pos + sine
+        offset[j] = (pos[-1] - centre) if pos.size else offset[j]
         q[k1:, j] = pose[j] + offset[j]
     qd = np.gradient(q, h, axis=0)
     check_limits(robot, q, qd, np.gradient(qd, h, axis=0), where="elasticity trajectory")

@@ -112,7 +112,7 @@ def test_cli_elasticity_json_and_figure(plant_log):
     assert rc == 0
     doc = json.loads((tmp / "e.json").read_text())
     j = doc["joints"][0]
-    assert j["joint"] == 1 and set(j["std"]) == {"jm", "ja", "k", "d"}
+    assert j["joint"] == 1 and set(j["std"]) == {"jm", "ja", "k", "d", "ba"}
     assert j["k"] == pytest.approx(TRUE["k"], rel=0.01)
     assert (tmp / "figs" / "elasticity_1.png").is_file()
 
