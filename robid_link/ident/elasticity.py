@@ -23,33 +23,35 @@ from robid_link.ident.data import Log
 from robid_link.ident.frequency import Frf, frf_from_log, frf_from_schedule
 from robid_link.ident.robot import Robot
 
-__all__ = ["two_mass_frf", "coupled_frf", "JointElasticity", "CoupledElasticity",
-           "ElasticityResult", "fit_two_mass", "fit_coupled", "identify_elasticity",
-           "elasticity_figures"]
+__all__ = ["two_mass_frf", "coupled_frf", "gravity_stiffness", "JointElasticity",
+           "CoupledElasticity", "ElasticityResult", "fit_two_mass", "fit_coupled",
+           "identify_elasticity", "elasticity_figures"]
 
 _NAMES = ("jm", "ja", "k", "d", "ba")
 
 
-def two_mass_frf(f_hz: np.ndarray, jm: float, ja: float, k: float, d: float, ba: float = 0.0
-                 ) -> np.ndarray:
-    """G = qm/τ = (A + Z) / (Jm s² (A + Z) + Z A), arm A = Ja s² + Ba s, spring Z = D s + K
-    (Ba = 0: (Ja s² + Z) / (s² (Jm Ja s² + (Jm + Ja) Z)))."""
+def two_mass_frf(f_hz: np.ndarray, jm: float, ja: float, k: float, d: float, ba: float = 0.0,
+                 kg: float = 0.0) -> np.ndarray:
+    """G = qm/τ = (A + Z) / (Jm s² (A + Z) + Z A), arm A = Ja s² + Ba s + Kg, spring
+    Z = D s + K; Kg the gravity stiffness ∂g/∂q of the arm at the pose (known from the rigid
+    model). Ba = Kg = 0: (Ja s² + Z) / (s² (Jm Ja s² + (Jm + Ja) Z))."""
     s = 2j * np.pi * np.asarray(f_hz)
     z = d * s + k
-    arm = ja * s * s + ba * s
+    arm = ja * s * s + ba * s + kg
     return (arm + z) / (jm * s * s * (arm + z) + z * arm)
 
 
 def coupled_frf(f_hz: np.ndarray, jm: Sequence[float], ja: Sequence[float], jcop: float,
-                k: Sequence[float], d: Sequence[float], ba: Sequence[float] = (0.0, 0.0)
-                ) -> np.ndarray:
+                k: Sequence[float], d: Sequence[float], ba: Sequence[float] = (0.0, 0.0),
+                kg: np.ndarray | None = None) -> np.ndarray:
     """2×2 G (K, 2, 2): [Jm s² + Z − Z (A + Z)⁻¹ Z]⁻¹, A = [[Ja1, Jcop], [Jcop, Ja2]] s²
-    + diag(Ba) s, Z = diag(D s + K)."""
+    + diag(Ba) s + Kg (2×2 gravity stiffness), Z = diag(D s + K)."""
     s = 2j * np.pi * np.asarray(f_hz)[:, None, None]
     eye = np.eye(2)
     z = (np.asarray(d)[None, :] * s[:, :, 0] + np.asarray(k)[None, :])[:, :, None] * eye
     jam = np.array([[ja[0], jcop], [jcop, ja[1]]])
-    arm = np.linalg.solve(jam * s * s + np.asarray(ba) * eye * s + z, z)
+    kgm = np.zeros((2, 2)) if kg is None else np.asarray(kg, dtype=float)
+    arm = np.linalg.solve(jam * s * s + np.asarray(ba) * eye * s + kgm + z, z)
     dyn = np.asarray(jm)[:, None] * eye * s * s + z - z @ arm
     return np.linalg.inv(dyn)
 
@@ -67,6 +69,7 @@ class JointElasticity:
     fit_rms: float  # RMS of the weighted log-FRF residual (≈ relative error)
     measures: str | None = None  # the campaign entry that measures it (set by the daemon)
     ba: float = 0.0  # viscous friction on the arm side (N·m·s/rad)
+    kg: float = 0.0  # gravity stiffness of the arm at the pose (known, not fitted)
 
     @property
     def f_res_hz(self) -> float:
@@ -78,7 +81,8 @@ class JointElasticity:
 
     def as_dict(self) -> dict[str, Any]:
         return {"joint": self.joint, "jm": self.jm, "ja": self.ja, "k": self.k, "d": self.d,
-                "ba": self.ba, "f_res_hz": self.f_res_hz, "f_antires_hz": self.f_antires_hz,
+                "ba": self.ba, "kg": self.kg, "f_res_hz": self.f_res_hz,
+                "f_antires_hz": self.f_antires_hz,
                 "std": dict(self.std), "fit_rms": self.fit_rms, "measures": self.measures}
 
 
@@ -88,6 +92,7 @@ class CoupledElasticity:
     jcop: float
     std: dict[str, float]
     fit_rms: float
+    kg: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 0.0), (0.0, 0.0))
 
     def as_dict(self) -> dict[str, Any]:
         return {"joints": list(self.joints), "jcop": self.jcop, "std": dict(self.std),
@@ -239,33 +244,77 @@ def _solve(fun: Any, x0: np.ndarray, names: Sequence[str], log_scale: Sequence[b
     return vals, std, math.sqrt(s2)
 
 
-def fit_two_mass(frf: Frf, notes: list[str] | None = None) -> JointElasticity:
-    """Two-mass fit of one joint's FRF (weighted LS on log-magnitude and phase)."""
+def fit_two_mass(frf: Frf, notes: list[str] | None = None, kg: float = 0.0
+                 ) -> JointElasticity:
+    """Two-mass fit of one joint's FRF (weighted LS on log-magnitude and phase); ``kg`` the
+    arm's known gravity stiffness at the pose."""
     notes = notes if notes is not None else []
     joint = frf.joints[0]
     if frf.f_hz.size < 6:
         raise EstimationError(f"joint {joint}: {frf.f_hz.size} FRF points, need at least 6: "
                               "raise --steps")
+    n_notes = len(notes)
     x0, band = _start_and_band(frf.f_hz, frf.accel, joint, notes)
-    f, g, w = frf.f_hz[band], frf.g[band], _weights(frf)[band]
+    flagged = len(notes) > n_notes  # the second resonance stood out in the points already
+    while True:
+        f, g, w = frf.f_hz[band], frf.g[band], _weights(frf)[band]
 
-    def fun(x: np.ndarray) -> np.ndarray:
-        return np.tile(w, 2) * _logres(two_mass_frf(f, *np.exp(x[:4]), x[4]), g)
+        def fun(x: np.ndarray, f: np.ndarray = f, g: np.ndarray = g, w: np.ndarray = w
+                ) -> np.ndarray:
+            return np.tile(w, 2) * _logres(two_mass_frf(f, *np.exp(x[:4]), x[4], kg), g)
 
-    vals, std, rms = _solve(fun, np.r_[np.log(x0[:4]), x0[4]], _NAMES, [True] * 4 + [False])
-    return JointElasticity(joint, *map(float, vals[:4]), std=std, fit_rms=rms,
-                           ba=float(vals[4]))
+        vals, std, rms = _solve(fun, np.r_[np.log(x0[:4]), x0[4]], _NAMES,
+                                [True] * 4 + [False])
+        p = JointElasticity(joint, *map(float, vals[:4]), std=std, fit_rms=rms,
+                            ba=float(vals[4]), kg=float(kg))
+        cut = None if flagged else _second_mode(frf, p)
+        if cut is None:
+            return p
+        flagged = True
+        f2, f_cut = cut
+        keep = frf.f_hz < f_cut
+        if keep.sum() < 6:
+            notes.append(f"joint {joint}: a second resonance near {f2:.3g} Hz: a three-mass "
+                         "model is needed (too few points below it to refit without it)")
+            return p
+        notes.append(f"joint {joint}: a second resonance near {f2:.3g} Hz (the two-mass model "
+                     f"misses the points from {f_cut:.3g} Hz): a three-mass model is needed; "
+                     f"the two-mass fit uses the points below {f_cut:.3g} Hz")
+        band = keep
+        x0 = np.r_[p.jm, p.ja, p.k, p.d, p.ba]
 
 
-def fit_coupled(frf: Frf, notes: list[str] | None = None
+def _second_mode(frf: Frf, p: JointElasticity) -> tuple[float, float] | None:
+    """A second mode the two-mass fit misses: above the antiresonance, a run of ≥ 2
+    neighbouring points whose misfit stands well above their noise (and above 1.5 %: what
+    the model's own approximations leave). Returns (frequency of the worst point, the
+    frequency from which the misfit starts) or None."""
+    model = two_mass_frf(frf.f_hz, p.jm, p.ja, p.k, p.d, p.ba, p.kg)
+    miss = np.abs(np.log(model / frf.g))
+    sigma = np.hypot(1.0 / np.maximum(frf.snr, 1.0), 0.005)
+    bad = (miss > 4 * sigma) & (miss > 0.015) & (frf.f_hz > p.f_antires_hz)
+    idx = np.flatnonzero(bad)
+    runs = np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1) if idx.size else []
+    runs = [r for r in runs if r.size >= 2]
+    if not runs:
+        return None
+    worst = max(runs, key=lambda r: float(miss[r].max()))
+    k = int(worst[np.argmax(miss[worst])])
+    start = int(worst[0])
+    return float(frf.f_hz[k]), float(frf.f_hz[max(start - 1, 0)])
+
+
+def fit_coupled(frf: Frf, notes: list[str] | None = None, kg: np.ndarray | None = None
                 ) -> tuple[list[JointElasticity], CoupledElasticity]:
-    """Coupled fit of a pair's 2×2 FRF: Jm, Ja, K, D per axis and the coupled inertia Jcop."""
+    """Coupled fit of a pair's 2×2 FRF: Jm, Ja, K, D, Ba per axis and the coupled inertia
+    Jcop; ``kg`` the arms' known 2×2 gravity stiffness at the pose."""
     notes = notes if notes is not None else []
     j1, j2 = frf.joints
     singles = []
     for i, j in enumerate((j1, j2)):
         sub = Frf((j,), frf.f_hz, frf.g[:, i, i], frf.coherence, frf.snr, frf.source)
-        singles.append(_start_and_band(sub.f_hz, sub.accel, j, notes)[0])
+        # a diagonal term shows both of the pair's modes: no second-resonance note from it
+        singles.append(_start_and_band(sub.f_hz, sub.accel, j, [])[0])
     # Jcop from the low-frequency inertia matrix: (s² G)⁻¹ → Jm + Ja (2×2)
     low = frf.f_hz < 0.5 * frf.f_hz[np.argmin(np.abs(frf.accel[:, 0, 0]))]
     inert = np.linalg.inv(frf.accel[low if low.any() else slice(0, 1)]).real.mean(axis=0)
@@ -279,7 +328,7 @@ def fit_coupled(frf: Frf, notes: list[str] | None = None
     def fun(x: np.ndarray) -> np.ndarray:
         a, b = np.exp(x[:4]), np.exp(x[5:9])
         model = coupled_frf(frf.f_hz, (a[0], b[0]), (a[1], b[1]), x[10], (a[2], b[2]),
-                            (a[3], b[3]), (x[4], x[9]))
+                            (a[3], b[3]), (x[4], x[9]), kg)
         diag = [_logres(model[:, i, i], g[:, i, i]) for i in range(2)]
         off = [(model[:, i, 1 - i] - g[:, i, 1 - i]) / norm for i in range(2)]
         offr = [np.concatenate((o.real, o.imag)) for o in off]
@@ -289,9 +338,12 @@ def fit_coupled(frf: Frf, notes: list[str] | None = None
     vals, std, rms = _solve(fun, x0, names, ([True] * 4 + [False]) * 2 + [False])
     joints = [JointElasticity(j, *map(float, vals[5 * i: 5 * i + 4]),
                               std={n: std[f"{n}{i + 1}"] for n in _NAMES}, fit_rms=rms,
-                              ba=float(vals[5 * i + 4]))
+                              ba=float(vals[5 * i + 4]),
+                              kg=0.0 if kg is None else float(np.asarray(kg)[i, i]))
               for i, j in enumerate((j1, j2))]
-    return joints, CoupledElasticity((j1, j2), float(vals[10]), {"jcop": std["jcop"]}, rms)
+    kgt = tuple(tuple(map(float, r)) for r in (np.zeros((2, 2)) if kg is None else kg))
+    return joints, CoupledElasticity((j1, j2), float(vals[10]), {"jcop": std["jcop"]}, rms,
+                                     kgt)  # type: ignore[arg-type]
 
 
 # ----------------------------------------------------------------------------- job
@@ -301,10 +353,13 @@ def identify_elasticity(robot: Robot, logs: Sequence[Log], *, joints: Sequence[i
                         pair: tuple[int, int] | None = None,
                         schedule: Sequence[dict[str, Any]] | None = None,
                         tau_model: Sequence[np.ndarray] | None = None,
-                        side: str = "joint") -> ElasticityResult:
+                        side: str = "joint", inertials: np.ndarray | None = None
+                        ) -> ElasticityResult:
     """Elasticity of ``joints`` (1-based, each its own two-mass fit) and/or a coupled ``pair``
     from stepped-sine logs. ``schedule``: the steps from the trajectory header (else detected
-    in each log); ``tau_model``: per log, the identified rigid-body + friction torque."""
+    in each log); ``tau_model``: per log, the identified rigid-body + friction torque;
+    ``inertials``: standard parameters for the arm's gravity stiffness at the logs' pose
+    (default the robot's nominal ones)."""
     if not logs:
         raise EstimationError("elasticity: no logs")
     for j in (*joints, *(pair or ())):
@@ -315,18 +370,49 @@ def identify_elasticity(robot: Robot, logs: Sequence[Log], *, joints: Sequence[i
     fitted: list[JointElasticity] = []
     coupled = None
     targets: list[tuple[int, ...]] = [(j,) for j in joints] + ([tuple(pair)] if pair else [])
+    kg = _gravity_stiffness_of_logs(robot, logs, side, inertials, notes)
     for target in targets:
         frf = _merged_frf(logs, target, schedule, tau_model)
         frfs.append(frf)
+        cols = [j - 1 for j in target]
         if len(target) == 1:
-            fitted.append(fit_two_mass(frf, notes))
+            fitted.append(fit_two_mass(frf, notes, float(kg[cols[0], cols[0]])))
         else:
-            pj, coupled = fit_coupled(frf, notes)
+            pj, coupled = fit_coupled(frf, notes, kg[np.ix_(cols, cols)])
             fitted += pj
     if schedule is None:
         notes.append("steps detected from the log alone (no schedule given)")
     return ElasticityResult(robot.name, fitted, frfs, coupled, side, notes,
                             [log.path for log in logs])
+
+
+def gravity_stiffness(robot: Robot, q: np.ndarray, inertials: np.ndarray) -> np.ndarray:
+    """∂g/∂q (n×n, symmetrized) at the pose q: the stiffness gravity adds to the arm side
+    (negative where it pulls the arm away), by central differences of Y(q, 0, 0)·π."""
+    from robid_link.ident.regressor import rigid_regressor
+
+    n = robot.n
+    eps = 1e-5
+    qs = np.repeat(np.asarray(q, dtype=float)[None], 2 * n, axis=0)
+    for j in range(n):
+        qs[2 * j, j] += eps
+        qs[2 * j + 1, j] -= eps
+    zeros = np.zeros_like(qs)
+    g = rigid_regressor(robot, qs, zeros, zeros) @ inertials
+    kg = ((g[0::2] - g[1::2]) / (2 * eps)).T  # column j: ∂g/∂q_j
+    return 0.5 * (kg + kg.T)
+
+
+def _gravity_stiffness_of_logs(robot: Robot, logs: Sequence[Log], side: str,
+                               inertials: np.ndarray | None, notes: list[str]) -> np.ndarray:
+    theta = inertials if inertials is not None else robot.nominal
+    if theta is None or side != "joint" or not np.any(robot.gravity):
+        if theta is None and np.any(robot.gravity):
+            notes.append("no inertials for the arm's gravity stiffness: K is the spring plus "
+                         "gravity's ∂g/∂q at the pose (give the robot's inertials)")
+        return np.zeros((robot.n, robot.n))
+    pose = np.median(np.concatenate([log.q for log in logs]), axis=0)
+    return gravity_stiffness(robot, pose, np.asarray(theta, dtype=float))
 
 
 def _merged_frf(logs: Sequence[Log], target: tuple[int, ...],
@@ -372,14 +458,14 @@ def elasticity_figures(res: ElasticityResult, out_dir: str | Path) -> list[Path]
         s2 = -(2 * np.pi * fine) ** 2
         if len(frf.joints) == 1:
             p = by_joint[frf.joints[0]]
-            cells = {(0, 0): (frf.accel, s2 * two_mass_frf(fine, p.jm, p.ja, p.k, p.d, p.ba))}
+            cells = {(0, 0): (frf.accel, s2 * two_mass_frf(fine, p.jm, p.ja, p.k, p.d, p.ba, p.kg))}
             text = _param_text([p])
         else:
             a, b = (by_joint[j] for j in frf.joints)
             assert res.coupled is not None
             model = s2[:, None, None] * coupled_frf(fine, (a.jm, b.jm), (a.ja, b.ja),
                                                     res.coupled.jcop, (a.k, b.k), (a.d, b.d),
-                                                    (a.ba, b.ba))
+                                                    (a.ba, b.ba), np.array(res.coupled.kg))
             cells = {(r, c): (frf.accel[:, r, c], model[:, r, c]) for r in range(2)
                      for c in range(2)}
             text = _param_text([a, b]) + f"\nJcop {res.coupled.jcop:.4g}"

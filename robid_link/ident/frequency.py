@@ -24,6 +24,7 @@ __all__ = [
     "ElasticityOptions",
     "Frf",
     "stepped_sine_schedule",
+    "step_axes",
     "elasticity_trajectory",
     "sine_amplitudes",
     "frf_from_schedule",
@@ -110,32 +111,57 @@ def stepped_sine_schedule(robot: Robot, opts: ElasticityOptions) -> list[dict[st
                           f"{opts.rate_hz:g} Hz: raise --rate")
     if opts.steps < 3:
         raise ConfigError(f"elasticity: {opts.steps} steps is too few (at least 3)")
-    joints = opts.joints or tuple(range(1, robot.n + 1))
-    for j in joints:
+    joints = opts.joints or (() if opts.pairs else tuple(range(1, robot.n + 1)))
+    for j in (*joints, *(j for p in opts.pairs for j in p)):
         if not 1 <= j <= robot.n:
             raise ConfigError(f"elasticity: joint {j} not in 1..{robot.n}")
+    for p in opts.pairs:
+        if len(p) != 2 or p[0] == p[1]:
+            raise ConfigError(f"elasticity: pair {list(p)} needs two different joints")
     freqs = np.geomspace(opts.f_min_hz, opts.f_max_hz, opts.steps)
     lim = robot.limits
     out: list[dict[str, Any]] = []
     t = 0.0
-    for j in joints:
-        drift = opts.drift_fraction * _limit(lim.qd_max, j - 1, 2.0)
-        acc = opts.accel_fraction * _limit(lim.qdd_max, j - 1, 10.0)
-        sign = 1.0
-        for f in freqs:
-            w = 2 * math.pi * f
-            v_amp = min(drift / opts.drift_over_sine, acc / w)
-            settle = max(opts.settle_periods / f, opts.settle_s)
-            measure = math.ceil(max(opts.measure_periods, opts.measure_s * f)) / f
-            ramp = min(opts.ramp_s, settle / 2)
-            step = {"joint": int(j), "f_hz": float(f), "amplitude_rad": float(v_amp / w),
-                    "drift_rad_s": float(sign * drift), "t_start": float(t),
-                    "t_measure": float(t + settle), "t_end": float(t + settle + measure),
-                    "t_next": float(t + settle + measure + ramp)}
-            out.append(step)
-            t = step["t_next"]
-            sign = -sign
+    # one axis at a time, then each pair with both axes drifting (friction never reverses on
+    # either) and sines in phase, then in antiphase: two independent inputs per frequency
+    groups = [((j,), (1.0,)) for j in joints]
+    for p in opts.pairs:
+        groups.append((tuple(p), (1.0, 1.0)))
+        groups.append((tuple(p), (1.0, -1.0)))
+    order = ([(g, f) for g in groups[:len(joints)] for f in freqs]
+             + [(g, f) for f in freqs for g in groups[len(joints):]])
+    sign = 1.0
+    for (axes, pattern), f in order:
+        w = 2 * math.pi * f
+        drifts, amps = [], []
+        for j, c in zip(axes, pattern, strict=True):
+            drift = opts.drift_fraction * _limit(lim.qd_max, j - 1, 2.0)
+            acc = opts.accel_fraction * _limit(lim.qdd_max, j - 1, 10.0)
+            drifts.append(sign * drift)
+            amps.append(c * min(drift / opts.drift_over_sine, acc / w) / w)
+        settle = max(opts.settle_periods / f, opts.settle_s)
+        measure = math.ceil(max(opts.measure_periods, opts.measure_s * f)) / f
+        ramp = min(opts.ramp_s, settle / 2)
+        step: dict[str, Any] = {
+            "joint": int(axes[0]), "f_hz": float(f), "amplitude_rad": float(amps[0]),
+            "drift_rad_s": float(drifts[0]), "t_start": float(t),
+            "t_measure": float(t + settle), "t_end": float(t + settle + measure),
+            "t_next": float(t + settle + measure + ramp)}
+        if len(axes) > 1:
+            step.update(joints=[int(j) for j in axes], amplitudes_rad=[float(a) for a in amps],
+                        drifts_rad_s=[float(d) for d in drifts])
+        out.append(step)
+        t = step["t_next"]
+        sign = -sign
     return out
+
+
+def step_axes(step: dict[str, Any]) -> list[tuple[int, float, float]]:
+    """(joint, amplitude_rad, drift_rad_s) of each axis a schedule step moves."""
+    if "joints" in step:
+        return list(zip(step["joints"], step["amplitudes_rad"], step["drifts_rad_s"],
+                        strict=True))
+    return [(step["joint"], step.get("amplitude_rad", 0.0), step.get("drift_rad_s", 0.0))]
 
 
 def _smooth_ramp(x: np.ndarray) -> np.ndarray:
@@ -158,24 +184,25 @@ def elasticity_trajectory(robot: Robot, opts: ElasticityOptions) -> Trajectory:
     q = np.tile(pose, (t.size, 1))
     offset = np.zeros(robot.n)
     for st in sched:
-        j = st["joint"] - 1
         k0 = int(round(st["t_start"] / h))
         k1 = int(round(st["t_next"] / h))
         tt = t[k0:k1] - st["t_start"]
         ramp = st["t_next"] - st["t_end"]
         t_end = st["t_end"] - st["t_start"]
         env = _smooth_ramp(tt / ramp) * _smooth_ramp((t_end + ramp - tt) / ramp)
-        # drift velocity v·env integrated exactly enough on the grid (cumulative trapezoid)
-        vel = st["drift_rad_s"] * env
-        pos = np.concatenate(([0.0], np.cumsum(0.5 * (vel[1:] + vel[:-1]) * h)))
         meas = (tt >= st["t_measure"] - st["t_start"]) & (tt <= t_end)
-        centre = float(pos[meas].mean()) if meas.any() else 0.0
-        # from where the last step left the joint to travel centred on the pose, during the ramp
-        shift = offset[j] + (-centre - offset[j]) * _smooth_ramp(tt / ramp)
-        sine = st["amplitude_rad"] * env * np.sin(2 * math.pi * st["f_hz"] * tt)
-        q[k0:k1, j] = pose[j] + shift + pos + sine
-        offset[j] = (pos[-1] - centre) if pos.size else offset[j]
-        q[k1:, j] = pose[j] + offset[j]
+        for joint, amp, drift in step_axes(st):
+            j = joint - 1
+            # drift velocity v·env integrated exactly enough on the grid (cumulative trapezoid)
+            vel = drift * env
+            pos = np.concatenate(([0.0], np.cumsum(0.5 * (vel[1:] + vel[:-1]) * h)))
+            centre = float(pos[meas].mean()) if meas.any() else 0.0
+            # from where the last step left the joint to travel centred on the pose
+            shift = offset[j] + (-centre - offset[j]) * _smooth_ramp(tt / ramp)
+            sine = amp * env * np.sin(2 * math.pi * st["f_hz"] * tt)
+            q[k0:k1, j] = pose[j] + shift + pos + sine
+            offset[j] = (pos[-1] - centre) if pos.size else offset[j]
+            q[k1:, j] = pose[j] + offset[j]
     qd = np.gradient(q, h, axis=0)
     check_limits(robot, q, qd, np.gradient(qd, h, axis=0), where="elasticity trajectory")
     header = {"schedule": sched, "pose": pose.tolist(),
@@ -235,8 +262,11 @@ def frf_from_schedule(t: np.ndarray, q: np.ndarray, tau: np.ndarray,
         tau = tau - tau_model
     by_f: dict[float, list[tuple[np.ndarray, np.ndarray, float, float]]] = {}
     for st in schedule:
-        if st["joint"] not in joints:
-            continue
+        if "joint" not in st or "f_hz" not in st:
+            raise DataError("schedule step without joint/f_hz: not a stepped-sine schedule")
+        axes = {a[0] for a in step_axes(st)}
+        if not (axes == set(joints) if len(joints) == 1 else axes <= set(joints)):
+            continue  # a single axis from its own steps, a pair from its own and its axes'
         a, b = np.searchsorted(t, [st["t_measure"], st["t_end"]])
         if b - a < 8 or b > len(t) - 1:
             raise DataError(f"step at {st['f_hz']:.4g} Hz of joint {st['joint']} "

@@ -36,20 +36,33 @@ def test_two_mass_fit_recovers_parameters():
     assert p.std["k"] > 0
 
 
-@pytest.mark.xfail(reason="a weak second mode (a bump of a few % on the motor side) is not yet "
-                   "detected: _extrema needs 15 %", strict=True)
-def test_second_resonance_is_flagged_not_fitted_away():
-    f = np.geomspace(2, 120, 40)
+def _three_mass(f: np.ndarray, j2: float, k2: float) -> np.ndarray:
+    """Motor 3.0 – spring 3e4 – arm 7.0 – spring k2 – third mass j2 (5 % damping)."""
     s = 2j * np.pi * f
-    # a third mass (5.0) on the arm behind a stiffer spring: arm impedance seen by the spring
-    z3 = (2.0 * s + 4e5) * 5.0 * s * s / (5.0 * s * s + 2.0 * s + 4e5)
+    d2 = 0.1 * math.sqrt(k2 * j2)
+    z3 = (d2 * s + k2) * j2 * s * s / (j2 * s * s + d2 * s + k2)  # third mass seen by the arm
     arm = 7.0 * s * s + z3
     z = 30.0 * s + 3e4
-    g = 1.0 / (3.0 * s * s + z - z * z / (arm + z))
+    return 1.0 / (3.0 * s * s + z - z * z / (arm + z))
+
+
+@pytest.mark.parametrize("j2, k2", [(2.0, 6e4), (3.5, 6e4)])
+def test_second_resonance_is_flagged_not_fitted_away(j2, k2):
+    """A weak second mode (a tool on a flexible flange: ~28 Hz, a misfit of 7 % and 25 % on
+    the motor side) is named, and the two-mass fit keeps to the points below it."""
+    f = np.geomspace(2, 120, 40)
     notes: list[str] = []
-    p = fit_two_mass(_frf(f, g), notes)
+    p = fit_two_mass(_frf(f, _three_mass(f, j2, k2), noise=0.002), notes)
     assert any("second resonance" in n and "three-mass" in n for n in notes)
     assert p.k == pytest.approx(3e4, rel=0.1)
+
+
+def test_no_second_resonance_on_a_two_mass_frf():
+    f = np.geomspace(2, 120, 40)
+    for seed in range(5):
+        notes: list[str] = []
+        fit_two_mass(_frf(f, two_mass_frf(f, 3.0, 7.0, 3e4, 30.0, 2.0), 0.005, seed), notes)
+        assert notes == []
 
 
 def test_missing_antiresonance_names_the_option():
