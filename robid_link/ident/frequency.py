@@ -216,19 +216,19 @@ def elasticity_trajectory(robot: Robot, opts: ElasticityOptions) -> Trajectory:
 # ----------------------------------------------------------------------------- estimation
 
 
-def sine_amplitudes(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Complex amplitudes X (x ≈ a + b·t + Re(X e^{jωt})) per column of ``x``, by least squares
-    on [1, t, cos, sin] (the drift's ramp removed), over the whole window and over ``blocks``
-    equal sub-windows. Returns (X (m,), X per block (blocks, m))."""
+def sine_amplitudes(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1,
+                    degree: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Complex amplitudes X (x ≈ a + b·t (+ c·t²) + Re(X e^{jωt})) per column of ``x``, by
+    least squares on [1, t, …, cos, sin] (the drift's ramp removed), over the whole window and
+    over ``blocks`` equal sub-windows. Returns (X (m,), X per block (blocks, m))."""
     x = x.reshape(len(t), -1)
     tc = t - t.mean()
 
     def fit(sl: slice) -> np.ndarray:
         w = 2 * math.pi * f_hz * t[sl]
-        a = np.column_stack((np.ones(w.size), tc[sl], np.cos(w), np.sin(w)))
+        a = np.column_stack([tc[sl] ** p for p in range(degree + 1)] + [np.cos(w), np.sin(w)])
         coef = np.linalg.lstsq(a, x[sl], rcond=None)[0]
-        return coef[2] - 1j * coef[3]
+        return coef[-2] - 1j * coef[-1]
 
     whole = fit(slice(None))
     edges = np.linspace(0, len(t), blocks + 1).astype(int)
@@ -305,99 +305,170 @@ def _assemble(joints: tuple[int, ...], by_f: dict[float, list[Any]], source: str
 
 
 def detect_steps(t: np.ndarray, q: np.ndarray, tau: np.ndarray, *,
-                 windows_s: Sequence[float] = (2.0, 0.8, 0.3), rel_tol: float = 0.03
+                 windows_s: Sequence[float] = (2.0, 0.8, 0.3), rel_tol: float = 0.02
                  ) -> list[dict[str, Any]]:
     """Steps of constant-frequency sinusoidal motion found in the log alone (an operator's own
-    log). Per window the dominant frequency of the summed, normalized torques; runs of windows
-    whose frequency agrees within ``rel_tol`` become steps. Windows of several lengths (a step
-    must hold ≥ 4 periods of its window; longer windows first, overlaps dropped). The first
-    40 % of each step is discarded as settling, the frequency refined on the rest. Returns
-    schedule-like dicts with ``joint`` (the joint with the largest relative torque amplitude)."""
+    log). Per window (several lengths, longer first; a step holds ≥ 4 periods of its window)
+    and per channel (positions and torques, a quadratic trend removed: the drift) the dominant
+    frequency and how much of the channel's power it holds; runs of windows where one channel
+    is a clean sine of a steady frequency become candidate steps. In each, the frequency is
+    refined, the amplitude followed period by period, the plateau kept and its first 40 %
+    discarded as settling. Returns schedule-like dicts: ``joint`` (largest acceleration
+    relative to that joint's own), ``joints`` when several axes move at the step's frequency,
+    ``f_hz``, ``t_measure``, ``t_end``."""
     fs = 1.0 / float(np.median(np.diff(t)))
     if t[-1] - t[0] < 2 * min(windows_s):
         raise DataError(f"log of {t[-1] - t[0]:.3g} s is too short for a stepped-sine analysis")
-    # torque (strong at the antiresonance) and motor acceleration (strong at the resonance)
-    acc = np.gradient(np.gradient(q, axis=0), axis=0)
-    x = np.column_stack((tau - tau.mean(axis=0), acc))
-    x = x / np.maximum(x.std(axis=0), 1e-300)
-    spans: list[tuple[float, float, float, float]] = []
+    # the search on the positions (the reference's sine shows there at every frequency),
+    # decimated to ~500 Hz; the measured windows then on the full log
+    r = max(1, int(fs // 500))
+    qd = q[::r] if r == 1 else _decimate(q, r)
+    spans: list[tuple[float, float, float]] = []
     for win in windows_s:
-        for t0, t1, f in _runs(t, x, fs, win, rel_tol):
+        for t0, t1, f in _runs(t[::r][:len(qd)], qd, fs / r, win, rel_tol):
             if f * win < 4 or any(min(t1, b) - max(t0, a) > 0.3 * (t1 - t0)
-                                  for a, b, _, _ in spans):
+                                  for a, b, _ in spans):
                 continue
-            spans.append((t0, t1, f, win))
-    steps = []
-    m = tau.shape[1]
-    for t0, t1, f0, win in sorted(spans):
-        t1 -= 0.5 * win  # the last windows straddle the ramp out
-        t_meas = t0 + 0.4 * (t1 - t0)
-        sel = (t >= t_meas) & (t <= t1)
-        f = _refine(t[sel], x[sel], f0)
-        periods = math.floor((t1 - t_meas) * f)
-        if periods < 4:
-            continue
-        amps = np.abs(sine_amplitudes(t[sel], x[sel, :m], f)[0])
-        steps.append({"joint": int(np.argmax(amps)) + 1, "f_hz": f, "t_measure": float(t_meas),
-                      "t_end": float(t_meas + periods / f)})
+            spans.append((t0, t1, f))
+    acc = np.std(np.diff(q, 2, axis=0), axis=0) * fs * fs
+    acc_scale = np.maximum(acc, 0.2 * acc.max() + 1e-300)  # an axis that never moves: noise
+    steps = [st for t0, t1, f0 in sorted(spans)
+             if (st := _step_in(t, q, t0, t1, f0, acc_scale)) is not None]
     if not steps:
         raise DataError("no sinusoidal steps found in the log (no stretch of constant-frequency "
                         "motion): is it a stepped-sine log?")
     return steps
 
 
+def _decimate(x: np.ndarray, r: int) -> np.ndarray:
+    import scipy.signal as sig
+
+    return np.asarray(sig.decimate(x, r, ftype="fir", axis=0, zero_phase=True))
+
+
 def _runs(t: np.ndarray, x: np.ndarray, fs: float, win: float, rel_tol: float
           ) -> list[tuple[float, float, float]]:
-    """(t0, t1, f) of runs of windows of length ``win`` dominated by one steady frequency."""
+    """(t0, t1, f) of runs of windows of length ``win`` where a channel is a clean sine of one
+    steady frequency."""
     n = int(win * fs)
-    hop = max(1, n // 8)
-    nfft = 8 * n
+    hop = max(1, n // 4)
+    nfft = 4 * n
     freqs = np.fft.rfftfreq(nfft, 1.0 / fs)
+    low = freqs < 2.0 / win
+    u = np.linspace(-1.0, 1.0, n)
+    trend = np.column_stack((np.ones(n), u, u * u))
+    proj = np.linalg.pinv(trend)
     han = np.hanning(n)[:, None]
     starts = np.arange(0, max(len(t) - n, 1), hop)
     f_win = np.zeros(starts.size)
     good = np.zeros(starts.size, dtype=bool)
-    for i, s in enumerate(starts):
-        seg = x[s:s + n] - x[s:s + n].mean(axis=0)
-        spec = (np.abs(np.fft.rfft(seg * han, nfft, axis=0)) ** 2).sum(axis=1)
-        spec[freqs < 3.0 / win] = 0.0
-        k = int(np.argmax(spec))
-        f_win[i] = freqs[k]
-        good[i] = spec[max(k - 24, 0): k + 25].sum() > 0.8 * max(spec.sum(), 1e-300)
+    near = 4 * 3  # ± 3 bins of the unpadded transform
+    for i, s0 in enumerate(starts):
+        seg = x[s0:s0 + n]
+        seg = seg - trend @ (proj @ seg)
+        spec = np.abs(np.fft.rfft(seg * han, nfft, axis=0)) ** 2
+        spec[low] = 0.0
+        k = np.argmax(spec, axis=0)
+        total = np.maximum(spec.sum(axis=0), 1e-300)
+        csum = np.vstack((np.zeros((1, spec.shape[1])), np.cumsum(spec, axis=0)))
+        lo, hi = np.maximum(k - near, 0), np.minimum(k + near + 1, spec.shape[0])
+        cols = np.arange(spec.shape[1])
+        conc = (csum[hi, cols] - csum[lo, cols]) / total
+        c = int(np.argmax(conc))
+        f_win[i] = freqs[k[c]]
+        good[i] = conc[c] > 0.8 and f_win[i] >= 4.0 / win
     out = []
     a = 0
     for i in range(1, starts.size + 1):
         if (i == starts.size or not good[i] or not good[a]
-                or abs(f_win[i] - f_win[a]) > rel_tol * f_win[a] + fs / nfft):
-            if good[a] and i - a >= 4:
-                out.append((float(t[starts[a]]), float(t[starts[i - 1] + n - 1]),
+                or abs(f_win[i] - f_win[a]) > rel_tol * f_win[a] + 2 * fs / nfft):
+            if good[a] and i - a >= 3:
+                out.append((float(t[starts[a]]), float(t[min(starts[i - 1] + n - 1, len(t) - 1)]),
                             float(np.median(f_win[a:i]))))
             a = i
     return out
 
 
+def _step_in(t: np.ndarray, q: np.ndarray, t0: float, t1: float, f0: float,
+             acc_scale: np.ndarray) -> dict[str, Any] | None:
+    """The measured window of one candidate step (a run of clean windows from t0 to t1): the
+    moving joint and the frequency from the run's core, then the amplitude period by period
+    (a local quadratic removes the drift) half a run further each side; the plateau (within
+    2 % of its level), and of that the last 60 %."""
+    core = (t >= t0 + 0.2 * (t1 - t0)) & (t <= t1 - 0.2 * (t1 - t0))
+    if core.sum() < 16:
+        return None
+    y = sine_amplitudes(t[core], q[core], f0, degree=2)[0]
+    rel = np.abs(y) * (2 * math.pi * f0) ** 2 / acc_scale
+    joint = int(np.argmax(rel)) + 1
+    f = _refine(t[core], q[core, joint - 1:joint], f0)
+    per = 1.0 / f
+    ext = (t >= t0 - 0.5 * (t1 - t0)) & (t <= t1 + 0.5 * (t1 - t0))
+    ts, qs = t[ext], q[ext, joint - 1]
+    nblk = int((ts[-1] - ts[0]) // per)
+    if nblk < 6:
+        return None
+    edges = np.searchsorted(ts, ts[0] + per * np.arange(nblk + 1))
+    amp = np.array([abs(sine_amplitudes(ts[a:b], qs[a:b], f, degree=2)[0][0])
+                    for a, b in zip(edges[:-1], edges[1:], strict=True)])
+    level = float(np.median(amp[(edges[:-1] >= np.searchsorted(ts, t0))
+                                & (edges[1:] <= np.searchsorted(ts, t1))]))
+    on = np.abs(amp / max(level, 1e-300) - 1.0) < 0.02
+    best, run = (0, 0), 0
+    for i, ok in enumerate(on):  # the longest run of periods on the plateau
+        run = run + 1 if ok else 0
+        if run > best[1] - best[0]:
+            best = (i - run + 1, i + 1)
+    first, last = best
+    periods = int(0.6 * (last - first))
+    if periods < 4:
+        return None
+    t_end = float(ts[0] + per * last)
+    t_meas = t_end - periods * per
+    plateau = (t >= ts[0] + per * first) & (t <= t_end)
+    f = _refine(t[plateau], q[plateau, joint - 1:joint], f)  # on the whole plateau
+    periods = math.floor((t_end - t_meas) * f)
+    step: dict[str, Any] = {"joint": joint, "f_hz": f, "t_measure": t_end - periods / f,
+                            "t_end": t_end}
+    moving = [j + 1 for j in np.flatnonzero(rel > 0.3 * rel.max())]
+    if len(moving) > 1:
+        step.update(joints=moving, amplitudes_rad=[0.0] * len(moving),
+                    drifts_rad_s=[0.0] * len(moving))
+    return step
+
+
 def _refine(t: np.ndarray, x: np.ndarray, f0: float) -> float:
-    """The frequency maximizing the sinusoid's projected power near f0 (golden section)."""
+    """The frequency near f0 whose sinusoid (on a quadratic trend) leaves the least residual
+    (least squares; the projected power alone is biased by the trend): a grid over ±1.5 bins
+    of the window (side lobes), then golden section around the best."""
     from scipy.optimize import minimize_scalar
 
+    tc = t - t.mean()
+    x = x.reshape(len(t), -1)
+    x = x / np.maximum(x.std(axis=0), 1e-300)
+
     def neg(f: float) -> float:
-        return -float(np.sum(np.abs(sine_amplitudes(t, x, f)[0]) ** 2))
+        w = 2 * math.pi * f * t
+        a = np.column_stack((np.ones(t.size), tc, tc * tc, np.cos(w), np.sin(w)))
+        res = x - a @ np.linalg.lstsq(a, x, rcond=None)[0]
+        return float(np.sum(res * res))
 
     span = 1.5 / (t[-1] - t[0])
-    res = minimize_scalar(neg, bounds=(f0 - span, f0 + span), method="bounded",
-                          options={"xatol": 1e-5 * f0})
+    grid = f0 + np.linspace(-span, span, 31)
+    best = float(grid[int(np.argmin([neg(f) for f in grid]))])
+    step = grid[1] - grid[0]
+    res = minimize_scalar(neg, bounds=(best - step, best + step), method="bounded",
+                          options={"xatol": 1e-6 * f0})
     return float(res.x)
 
 
 def frf_from_log(t: np.ndarray, q: np.ndarray, tau: np.ndarray, joints: Sequence[int],
                  tau_model: np.ndarray | None = None) -> Frf:
-    """As :func:`frf_from_schedule`, with the steps detected in the log alone."""
+    """As :func:`frf_from_schedule`, with the steps detected in the log alone (every axis
+    looked at, so that a step of another axis is not taken for one of ``joints``)."""
     if tau_model is not None:
         tau = tau - tau_model
-    cols = [j - 1 for j in joints]
-    steps = detect_steps(t, q[:, cols], tau[:, cols])
-    for st in steps:
-        st["joint"] = joints[st["joint"] - 1]
+    steps = detect_steps(t, q, tau)
     frf = frf_from_schedule(t, q, tau, _merge_close(steps), joints)
     frf.source = "detected"
     return frf
