@@ -314,7 +314,8 @@ def detect_steps(t: np.ndarray, q: np.ndarray, tau: np.ndarray, *,
     is a clean sine of a steady frequency become candidate steps. In each, the frequency is
     refined, the amplitude followed period by period, the plateau kept and its first 40 %
     discarded as settling. Returns schedule-like dicts: ``joint`` (largest acceleration
-    relative to that joint's own), ``joints`` when several axes move at the step's frequency,
+    relative to that joint's own), ``joints`` when several axes drift and oscillate at the
+    step's frequency (a held axis that only reacts through the coupling does not drift),
     ``f_hz``, ``t_measure``, ``t_end``."""
     fs = 1.0 / float(np.median(np.diff(t)))
     if t[-1] - t[0] < 2 * min(windows_s):
@@ -331,7 +332,7 @@ def detect_steps(t: np.ndarray, q: np.ndarray, tau: np.ndarray, *,
                 continue
             spans.append((t0, t1, f))
     acc = np.std(np.diff(q, 2, axis=0), axis=0) * fs * fs
-    acc_scale = np.maximum(acc, 0.2 * acc.max() + 1e-300)  # an axis that never moves: noise
+    acc_scale = np.maximum(acc, 0.5 * acc.max() + 1e-300)  # an axis that never moves: noise
     steps = [st for t0, t1, f0 in sorted(spans)
              if (st := _step_in(t, q, t0, t1, f0, acc_scale)) is not None]
     if not steps:
@@ -389,55 +390,70 @@ def _runs(t: np.ndarray, x: np.ndarray, fs: float, win: float, rel_tol: float
     return out
 
 
+def _period_blocks(t: np.ndarray, x: np.ndarray, f: float) -> tuple[np.ndarray, np.ndarray]:
+    """Complex amplitudes at f of each whole period of x (columns), a local quadratic removed
+    (the drift and its ramps); returns (block start indices, amplitudes (blocks, columns))."""
+    per = 1.0 / f
+    nblk = int((t[-1] - t[0]) // per)
+    edges = np.searchsorted(t, t[0] + per * np.arange(nblk + 1))
+    amps = np.array([sine_amplitudes(t[a:b], x[a:b], f, degree=2)[0]
+                     for a, b in zip(edges[:-1], edges[1:], strict=True)])
+    return edges, amps.reshape(nblk, -1)
+
+
 def _step_in(t: np.ndarray, q: np.ndarray, t0: float, t1: float, f0: float,
              acc_scale: np.ndarray) -> dict[str, Any] | None:
-    """The measured window of one candidate step (a run of clean windows from t0 to t1): the
-    moving joint and the frequency from the run's core, then the amplitude period by period
-    (a local quadratic removes the drift) half a run further each side; the plateau (within
-    2 % of its level), and of that the last 60 %."""
-    core = (t >= t0 + 0.2 * (t1 - t0)) & (t <= t1 - 0.2 * (t1 - t0))
-    if core.sum() < 16:
-        return None
-    y = sine_amplitudes(t[core], q[core], f0, degree=2)[0]
-    rel = np.abs(y) * (2 * math.pi * f0) ** 2 / acc_scale
-    joint = int(np.argmax(rel)) + 1
-    f = _refine(t[core], q[core, joint - 1:joint], f0)
-    per = 1.0 / f
+    """The measured window of one candidate step (a run of clean windows from t0 to t1, at
+    about f0): period by period (each with its own quadratic trend, so the drift's ramps do
+    not leak in), the moving joint, the plateau of its amplitude (within 3 % of the run's
+    level, less its last period when long), the frequency from the phase advance over the
+    plateau then by least squares on it; the measured window is the plateau's last 60 %."""
     ext = (t >= t0 - 0.5 * (t1 - t0)) & (t <= t1 + 0.5 * (t1 - t0))
-    ts, qs = t[ext], q[ext, joint - 1]
-    nblk = int((ts[-1] - ts[0]) // per)
-    if nblk < 6:
+    ts = t[ext]
+    if ts.size < 64 or (ts[-1] - ts[0]) * f0 < 8:
         return None
-    edges = np.searchsorted(ts, ts[0] + per * np.arange(nblk + 1))
-    amp = np.array([abs(sine_amplitudes(ts[a:b], qs[a:b], f, degree=2)[0][0])
-                    for a, b in zip(edges[:-1], edges[1:], strict=True)])
-    level = float(np.median(amp[(edges[:-1] >= np.searchsorted(ts, t0))
-                                & (edges[1:] <= np.searchsorted(ts, t1))]))
-    on = np.abs(amp / max(level, 1e-300) - 1.0) < 0.02
+    edges, amps = _period_blocks(ts, q[ext], f0)
+    in_run = (ts[edges[:-1]] >= t0) & (ts[edges[1:] - 1] <= t1)
+    if in_run.sum() < 3:
+        return None
+    rel = np.median(np.abs(amps[in_run]), axis=0) * (2 * math.pi * f0) ** 2 / acc_scale
+    joint = int(np.argmax(rel)) + 1
+    x = amps[:, joint - 1]
+    level = float(np.median(np.abs(x[in_run])))
+    on = np.abs(np.abs(x) / max(level, 1e-300) - 1.0) < 0.03
     best, run = (0, 0), 0
     for i, ok in enumerate(on):  # the longest run of periods on the plateau
         run = run + 1 if ok else 0
         if run > best[1] - best[0]:
             best = (i - run + 1, i + 1)
     first, last = best
-    periods = int(0.6 * (last - first))
-    if periods < 4:
+    last -= 1 if last - first > 8 else 0  # the ramp out may start in the last one
+    if int(0.6 * (last - first)) < 4:
         return None
-    t_end = float(ts[0] + per * last)
-    t_meas = t_end - periods * per
-    plateau = (t >= ts[0] + per * first) & (t <= t_end)
-    f = _refine(t[plateau], q[plateau, joint - 1:joint], f)  # on the whole plateau
-    periods = math.floor((t_end - t_meas) * f)
+    # the phase advances by 2π (f − f0)/f0 per block of the plateau
+    phase = np.unwrap(np.angle(x[first:last]))
+    slope = np.polyfit(np.arange(last - first), phase, 1)[0]
+    f = f0 * (1.0 + slope / (2 * math.pi))
+    t_start, t_end = float(ts[edges[first]]), float(ts[edges[last] - 1])
+    plateau = (t >= t_start) & (t <= t_end)
+    f = _refine(t[plateau], q[plateau, joint - 1:joint], f, span_bins=0.25)
+    periods = math.floor(0.6 * (t_end - t_start) * f)
     step: dict[str, Any] = {"joint": joint, "f_hz": f, "t_measure": t_end - periods / f,
                             "t_end": t_end}
-    moving = [j + 1 for j in np.flatnonzero(rel > 0.3 * rel.max())]
+    # excited axes: they oscillate at f and drift (an axis the loop holds only reacts)
+    mean_v = (q[plateau][-1] - q[plateau][0]) / max(t_end - t_start, 1e-9)
+    sine_v = np.median(np.abs(amps[first:last]), axis=0) * 2 * math.pi * f
+    excited = (rel > 0.3 * rel.max()) & (np.abs(mean_v) > 2 * sine_v)
+    if excited.any():
+        step["joint"] = int(np.argmax(np.where(excited, rel, -np.inf))) + 1
+    moving = [int(j) + 1 for j in np.flatnonzero(excited)]
     if len(moving) > 1:
         step.update(joints=moving, amplitudes_rad=[0.0] * len(moving),
                     drifts_rad_s=[0.0] * len(moving))
     return step
 
 
-def _refine(t: np.ndarray, x: np.ndarray, f0: float) -> float:
+def _refine(t: np.ndarray, x: np.ndarray, f0: float, span_bins: float = 1.5) -> float:
     """The frequency near f0 whose sinusoid (on a quadratic trend) leaves the least residual
     (least squares; the projected power alone is biased by the trend): a grid over ±1.5 bins
     of the window (side lobes), then golden section around the best."""
@@ -453,7 +469,7 @@ def _refine(t: np.ndarray, x: np.ndarray, f0: float) -> float:
         res = x - a @ np.linalg.lstsq(a, x, rcond=None)[0]
         return float(np.sum(res * res))
 
-    span = 1.5 / (t[-1] - t[0])
+    span = span_bins / (t[-1] - t[0])
     grid = f0 + np.linspace(-span, span, 31)
     best = float(grid[int(np.argmin([neg(f) for f in grid]))])
     step = grid[1] - grid[0]
