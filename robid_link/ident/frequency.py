@@ -305,7 +305,8 @@ def _assemble(joints: tuple[int, ...], by_f: dict[float, list[Any]], source: str
 
 
 def detect_steps(t: np.ndarray, q: np.ndarray, tau: np.ndarray, *,
-                 windows_s: Sequence[float] = (2.0, 0.8, 0.3), rel_tol: float = 0.02
+                 windows_s: Sequence[float] = (2.0, 1.4, 1.0, 0.7, 0.5, 0.3),
+                 rel_tol: float = 0.02
                  ) -> list[dict[str, Any]]:
     """Steps of constant-frequency sinusoidal motion found in the log alone (an operator's own
     log). Per window (several lengths, longer first; a step holds ≥ 4 periods of its window)
@@ -401,6 +402,17 @@ def _period_blocks(t: np.ndarray, x: np.ndarray, f: float) -> tuple[np.ndarray, 
     return edges, amps.reshape(nblk, -1)
 
 
+def _unexplained(t: np.ndarray, x: np.ndarray, f: float) -> float:
+    """Share of x's variance (a quadratic trend removed) a sine at f leaves unexplained."""
+    tc = t - t.mean()
+    w = 2 * math.pi * f * t
+    trend = np.column_stack((np.ones(t.size), tc, tc * tc))
+    x = x - trend @ np.linalg.lstsq(trend, x, rcond=None)[0]
+    a = np.column_stack((trend, np.cos(w), np.sin(w)))
+    res = x - a @ np.linalg.lstsq(a, x, rcond=None)[0]
+    return float(np.sum(res * res) / max(np.sum(x * x), 1e-300))
+
+
 def _step_in(t: np.ndarray, q: np.ndarray, t0: float, t1: float, f0: float,
              acc_scale: np.ndarray) -> dict[str, Any] | None:
     """The measured window of one candidate step (a run of clean windows from t0 to t1, at
@@ -438,8 +450,11 @@ def _step_in(t: np.ndarray, q: np.ndarray, t0: float, t1: float, f0: float,
     plateau = (t >= t_start) & (t <= t_end)
     f = _refine(t[plateau], q[plateau, joint - 1:joint], f, span_bins=0.25)
     periods = math.floor(0.6 * (t_end - t_start) * f)
-    step: dict[str, Any] = {"joint": joint, "f_hz": f, "t_measure": t_end - periods / f,
-                            "t_end": t_end}
+    t_meas = t_end - periods / f
+    if _unexplained(t[(t >= t_meas) & (t <= t_end)],
+                    q[(t >= t_meas) & (t <= t_end), joint - 1], f) > 0.02:
+        return None  # not one steady sine (two steps mixed, a sweep, a transient)
+    step: dict[str, Any] = {"joint": joint, "f_hz": f, "t_measure": t_meas, "t_end": t_end}
     # excited axes: they oscillate at f and drift (an axis the loop holds only reacts)
     mean_v = (q[plateau][-1] - q[plateau][0]) / max(t_end - t_start, 1e-9)
     sine_v = np.median(np.abs(amps[first:last]), axis=0) * 2 * math.pi * f
