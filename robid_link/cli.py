@@ -530,12 +530,19 @@ def _elasticity(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot, args.lock)
     logs = [load_log(p, robot.n, args.fs) for p in args.data]
     pair = _pair(args.joints, "--joints") if args.joints else None
-    joints = args.joint or ([] if pair else list(range(1, robot.n + 1)))
     schedule = None
     if args.schedule:
         schedule = read_yaml_mapping(args.schedule, "trajectory header").get("schedule")
         if not isinstance(schedule, list):
             raise RobidError(f"{args.schedule}: schedule: missing (not a stepped-sine header)")
+    joints = list(args.joint)
+    if not joints and pair is None:  # every excited axis, and the pair excited together
+        from robid_link.ident.frequency import detect_steps, excited_axes
+
+        steps = schedule if schedule is not None else detect_steps(
+            logs[0].t, logs[0].q, logs[0].tau)
+        joints, pairs = excited_axes(steps)
+        pair = pairs[0] if pairs else None
     res = identify_elasticity(robot, logs, joints=joints, pair=pair, schedule=schedule,
                               side="motor" if args.motor_side else "joint")
     print(res.summary())

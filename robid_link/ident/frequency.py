@@ -25,6 +25,7 @@ __all__ = [
     "Frf",
     "stepped_sine_schedule",
     "step_axes",
+    "excited_axes",
     "elasticity_trajectory",
     "sine_amplitudes",
     "frf_from_schedule",
@@ -154,6 +155,21 @@ def stepped_sine_schedule(robot: Robot, opts: ElasticityOptions) -> list[dict[st
         t = step["t_next"]
         sign = -sign
     return out
+
+
+def excited_axes(steps: Sequence[dict[str, Any]]
+                 ) -> tuple[list[int], list[tuple[int, int]]]:
+    """The axes a schedule (or the detected steps) excites alone, and the pairs excited
+    together: what ``robid elasticity`` fits when no joint is named."""
+    singles: set[int] = set()
+    pairs: set[tuple[int, int]] = set()
+    for st in steps:
+        axes = sorted({int(a[0]) for a in step_axes(st)})
+        if len(axes) == 1:
+            singles.add(axes[0])
+        elif len(axes) == 2:
+            pairs.add((axes[0], axes[1]))
+    return sorted(singles), sorted(pairs)
 
 
 def step_axes(step: dict[str, Any]) -> list[tuple[int, float, float]]:
@@ -296,6 +312,10 @@ def _assemble(joints: tuple[int, ...], by_f: dict[float, list[Any]], source: str
         gs.append(g)
         cohs.append(min(p[2] for p in pts))
         snrs.append(min(p[3] for p in pts))
+    if not fs and len(joints) > 1 and by_f:
+        raise DataError(f"joints {joints[0]},{joints[1]}: a 2×2 FRF needs two independent "
+                        "inputs per frequency (steps of each axis, or the pair excited "
+                        f"together: robid excite --pair {joints[0]},{joints[1]})")
     if not fs:
         raise DataError(f"no steps of joint(s) {', '.join(map(str, joints))} in the log")
     return Frf(joints, np.array(fs), np.array(gs), np.array(cohs), np.array(snrs), source)

@@ -78,6 +78,13 @@ def test_too_few_steps_around_the_resonance():
         fit_two_mass(_frf(f, two_mass_frf(f, 3.0, 7.0, 3e4, 30.0)))
 
 
+def test_pair_without_two_independent_inputs_names_the_fix(plant_log):
+    robot, traj, log, _, _ = plant_log  # steps of axis 1 only
+    with pytest.raises(DataError, match=r"2×2 FRF needs two independent inputs.*--pair 1,2"):
+        identify_elasticity(robot, [Log("sim", log["t"], log["q"], log["tau"])], pair=(1, 2),
+                            schedule=traj.header["schedule"])
+
+
 def test_log_without_sinusoids_is_refused():
     t = np.arange(0, 10, 0.001)
     rng = np.random.default_rng(0)
@@ -178,7 +185,8 @@ def test_campaign_kind_and_worker(plant_log):
     assert joint["joint"] == 1 and joint["k"] == pytest.approx(TRUE["k"], rel=0.01)
     assert joint["measures"] == {"experiment": "stiff", "kind": "elasticity"}
     for bad, key in [({"steps": 2}, "steps"), ({"f_min_hz": 80.0}, "f_max_hz"),
-                     ({"joints": [0]}, "joints"), ({"pose_deg": "up"}, "pose_deg")]:
+                     ({"joints": [0]}, "joints"), ({"pose_deg": "up"}, "pose_deg"),
+                     ({"pairs": [[2, 2]]}, "pairs"), ({"pairs": [2, 3]}, "pairs")]:
         with pytest.raises(ConfigError, match=rf"e\.{key}: expected"):
             experiment_options("elasticity", bad, "e")
 
