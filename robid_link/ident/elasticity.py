@@ -448,6 +448,7 @@ def elasticity_figures(res: ElasticityResult, out_dir: str | Path) -> list[Path]
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -471,7 +472,7 @@ def elasticity_figures(res: ElasticityResult, out_dir: str | Path) -> list[Path]
             text = _param_text([a, b]) + f"\nJcop {res.coupled.jcop:.4g}"
         nr, nc = (1, 1) if len(cells) == 1 else (2, 2)
         fig = plt.figure(figsize=(6.5 * nc, 5.5 * nr))
-        grid = fig.add_gridspec(2 * nr, nc, height_ratios=[2, 1] * nr, hspace=0.35)
+        grid = fig.add_gridspec(2 * nr, nc, height_ratios=[2, 1] * nr, hspace=0.6)
         for (r, c), (meas, line) in cells.items():
             am = fig.add_subplot(grid[2 * r, c])
             ap = fig.add_subplot(grid[2 * r + 1, c], sharex=am)
@@ -488,6 +489,8 @@ def elasticity_figures(res: ElasticityResult, out_dir: str | Path) -> list[Path]
             am.set_ylabel("|q̈m/τ|")
             ap.set_ylabel("phase (deg)")
             ap.set_xlabel("frequency (Hz)")
+            for ax in (am, ap):  # log axes: label the decades only
+                ax.xaxis.set_minor_formatter(NullFormatter())
             am.legend(fontsize=8)
         fig.text(0.02, 0.005, text, fontsize=8, family="monospace", va="bottom")
         fig.subplots_adjust(bottom=0.2 if nr == 1 else 0.12)
