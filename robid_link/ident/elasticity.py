@@ -20,7 +20,7 @@ import numpy as np
 
 from robid_link.exceptions import EstimationError
 from robid_link.ident.data import Log
-from robid_link.ident.frequency import Frf, frf_from_log, frf_from_schedule
+from robid_link.ident.frequency import Frf, frf_from_log, frf_from_schedule, log_schedule
 from robid_link.ident.robot import Robot
 
 __all__ = ["two_mass_frf", "coupled_frf", "gravity_stiffness", "JointElasticity",
@@ -371,8 +371,10 @@ def identify_elasticity(robot: Robot, logs: Sequence[Log], *, joints: Sequence[i
     coupled = None
     targets: list[tuple[int, ...]] = [(j,) for j in joints] + ([tuple(pair)] if pair else [])
     kg = _gravity_stiffness_of_logs(robot, logs, side, inertials, notes)
+    found = None if schedule is not None else [log_schedule(log.t, log.q, log.tau)
+                                               for log in logs]
     for target in targets:
-        frf = _merged_frf(logs, target, schedule, tau_model)
+        frf = _merged_frf(logs, target, schedule, tau_model, found)
         frfs.append(frf)
         cols = [j - 1 for j in target]
         if len(target) == 1:
@@ -417,7 +419,8 @@ def _gravity_stiffness_of_logs(robot: Robot, logs: Sequence[Log], side: str,
 
 def _merged_frf(logs: Sequence[Log], target: tuple[int, ...],
                 schedule: Sequence[dict[str, Any]] | None,
-                tau_model: Sequence[np.ndarray] | None) -> Frf:
+                tau_model: Sequence[np.ndarray] | None,
+                found: Sequence[Sequence[dict[str, Any]]] | None) -> Frf:
     parts = []
     for i, log in enumerate(logs):
         tm = tau_model[i] if tau_model is not None else None
@@ -425,7 +428,8 @@ def _merged_frf(logs: Sequence[Log], target: tuple[int, ...],
             if schedule is not None:
                 parts.append(frf_from_schedule(log.t, log.q, log.tau, schedule, target, tm))
             else:
-                parts.append(frf_from_log(log.t, log.q, log.tau, target, tm))
+                parts.append(frf_from_log(log.t, log.q, log.tau, target, tm,
+                                          steps=found[i] if found else None))
         except Exception as err:  # one log without this joint's steps is fine if another has
             if len(logs) == 1:
                 raise

@@ -31,6 +31,7 @@ __all__ = [
     "frf_from_schedule",
     "detect_steps",
     "frf_from_log",
+    "log_schedule",
     "frf_h1",
     "frf_reference",
     "spectral_peaks",
@@ -478,7 +479,8 @@ def _step_in(t: np.ndarray, q: np.ndarray, t0: float, t1: float, f0: float,
     # excited axes: they oscillate at f and drift (an axis the loop holds only reacts)
     mean_v = (q[plateau][-1] - q[plateau][0]) / max(t_end - t_start, 1e-9)
     sine_v = np.median(np.abs(amps[first:last]), axis=0) * 2 * math.pi * f
-    excited = (rel > 0.3 * rel.max()) & (np.abs(mean_v) > 2 * sine_v)
+    drifting = np.abs(mean_v) > 2 * sine_v
+    excited = drifting & (rel > 0.3 * (rel[drifting].max() if drifting.any() else 0.0))
     if excited.any():
         step["joint"] = int(np.argmax(np.where(excited, rel, -np.inf))) + 1
     moving = [int(j) + 1 for j in np.flatnonzero(excited)]
@@ -513,14 +515,22 @@ def _refine(t: np.ndarray, x: np.ndarray, f0: float, span_bins: float = 1.5) -> 
     return float(res.x)
 
 
+def log_schedule(t: np.ndarray, q: np.ndarray, tau: np.ndarray) -> list[dict[str, Any]]:
+    """The steps found in a log, as a schedule (steps of two axes at one frequency share a
+    key for the 2×2 estimate): detect once, estimate every target's FRF from it."""
+    return _merge_close(detect_steps(t, q, tau))
+
+
 def frf_from_log(t: np.ndarray, q: np.ndarray, tau: np.ndarray, joints: Sequence[int],
-                 tau_model: np.ndarray | None = None) -> Frf:
+                 tau_model: np.ndarray | None = None,
+                 steps: Sequence[dict[str, Any]] | None = None) -> Frf:
     """As :func:`frf_from_schedule`, with the steps detected in the log alone (every axis
-    looked at, so that a step of another axis is not taken for one of ``joints``)."""
+    looked at, so that a step of another axis is not taken for one of ``joints``), or the
+    ``steps`` :func:`log_schedule` found before."""
     if tau_model is not None:
         tau = tau - tau_model
-    steps = detect_steps(t, q, tau)
-    frf = frf_from_schedule(t, q, tau, _merge_close(steps), joints)
+    frf = frf_from_schedule(t, q, tau, steps if steps is not None else log_schedule(t, q, tau),
+                            joints)
     frf.source = "detected"
     return frf
 
