@@ -12,9 +12,21 @@ import pytest
 from robid_link.exceptions import DataError, EstimationError
 from robid_link.fakes.plant import Plant, Truth
 from robid_link.ident.data import Log, write_log_csv
-from robid_link.ident.elasticity import fit_two_mass, identify_elasticity, two_mass_frf
+from robid_link.ident.elasticity import (
+    coupled_frf,
+    fit_coupled,
+    fit_two_mass,
+    identify_elasticity,
+    two_mass_frf,
+)
 from robid_link.ident.excitation import trajectory_states, write_trajectory
-from robid_link.ident.frequency import ElasticityOptions, Frf, detect_steps, elasticity_trajectory
+from robid_link.ident.frequency import (
+    ElasticityOptions,
+    Frf,
+    detect_steps,
+    elasticity_trajectory,
+    excited_axes,
+)
 from robid_link.ident.robot import load_robot
 
 ROBOT = "examples/robots/industrial6.yaml"
@@ -64,6 +76,35 @@ def test_no_second_resonance_on_a_two_mass_frf():
         notes: list[str] = []
         fit_two_mass(_frf(f, two_mass_frf(f, 3.0, 7.0, 3e4, 30.0, 2.0), 0.005, seed), notes)
         assert notes == []
+
+
+def test_coupled_fit_recovers_jcop_from_a_2x2_frf():
+    f = np.geomspace(2, 60, 24)
+    kg = np.array([[-250.0, -50.0], [-50.0, -50.0]])
+    g = coupled_frf(f, (8.0, 2.0), (22.0, 3.3), 6.5, (1.5e5, 6e4), (90.0, 25.0), (3.0, 2.0), kg)
+    rng = np.random.default_rng(1)
+    g = g * (1 + 0.002 * (rng.normal(size=g.shape) + 1j * rng.normal(size=g.shape)))
+    frf = Frf((2, 3), f, g, np.ones(f.size), np.full(f.size, 200.0))
+    (a, b), c = fit_coupled(frf, kg=kg)
+    assert c.jcop == pytest.approx(6.5, rel=0.01)
+    assert (a.jm, a.ja, a.k, a.d) == pytest.approx((8.0, 22.0, 1.5e5, 90.0), rel=0.01)
+    assert (b.jm, b.ja, b.k, b.d) == pytest.approx((2.0, 3.3, 6e4, 25.0), rel=0.01)
+
+
+def test_pair_schedule_drives_both_axes_in_and_out_of_phase():
+    robot = load_robot(ROBOT)
+    opts = ElasticityOptions(joints=(1,), pairs=((2, 3),), pose=POSE, steps=4, f_min_hz=5.0,
+                             f_max_hz=40.0)
+    traj = elasticity_trajectory(robot, opts)
+    sched = traj.header["schedule"]
+    pair = [st for st in sched if "joints" in st]
+    assert len(pair) == 8 and all(st["joints"] == [2, 3] for st in pair)
+    signs = [np.sign(st["amplitudes_rad"][0] * st["amplitudes_rad"][1]) for st in pair]
+    assert signs == [1, -1] * 4  # in phase, then antiphase, at each frequency
+    assert excited_axes(sched) == ([1], [(2, 3)])
+    for st in pair:  # both axes drift through the measured window (friction never reverses)
+        a, b = np.searchsorted(traj.t, [st["t_measure"], st["t_end"]])
+        assert np.all(np.abs(traj.q[b, 1:3] - traj.q[a, 1:3]) > 0)
 
 
 def test_missing_antiresonance_names_the_option():
