@@ -330,15 +330,16 @@ def detect_steps(t: np.ndarray, q: np.ndarray, tau: np.ndarray, *,
                  rel_tol: float = 0.02
                  ) -> list[dict[str, Any]]:
     """Steps of constant-frequency sinusoidal motion found in the log alone (an operator's own
-    log). Per window (several lengths, longer first; a step holds ≥ 4 periods of its window)
-    and per channel (positions and torques, a quadratic trend removed: the drift) the dominant
-    frequency and how much of the channel's power it holds; runs of windows where one channel
-    is a clean sine of a steady frequency become candidate steps. In each, the frequency is
-    refined, the amplitude followed period by period, the plateau kept and its first 40 %
-    discarded as settling. Returns schedule-like dicts: ``joint`` (largest acceleration
-    relative to that joint's own), ``joints`` when several axes drift and oscillate at the
-    step's frequency (a held axis that only reacts through the coupling does not drift),
-    ``f_hz``, ``t_measure``, ``t_end``."""
+    log), from the positions (the position loop puts the reference's sine there at every
+    frequency; ``tau`` is not needed). Per window (several lengths, longer first; a step holds
+    ≥ 4 periods of its window) and per joint (decimated, a quadratic trend removed: the
+    drift) the dominant frequency and how much of the power it holds; runs of windows where a
+    joint is a clean sine of a steady frequency become candidate steps. In each, period by
+    period, the amplitude plateau is found, the frequency refined on it, and its last 60 %
+    measured. A stretch that is not one steady sine is dropped. Returns schedule-like dicts:
+    ``joint`` (largest acceleration relative to that joint's own), ``joints`` when several
+    axes drift and oscillate at the step's frequency (a held axis that only reacts through
+    the coupling does not drift), ``f_hz``, ``t_measure``, ``t_end``."""
     fs = 1.0 / float(np.median(np.diff(t)))
     if t[-1] - t[0] < 2 * min(windows_s):
         raise DataError(f"log of {t[-1] - t[0]:.3g} s is too short for a stepped-sine analysis")
