@@ -3,7 +3,8 @@
 Sections: the file-share give→take hand-off (inotify, polling, the original 1 s loop); the RWS
 link against the file share (hand-off, log transfer, `--only rws`); the
 batched regressor against a per-sample loop over Pinocchio's computeJointTorqueRegressor; the
-closed-loop plant; diagnose against identify; identify end-to-end on 1,000,000 samples.
+closed-loop plant; diagnose against identify; robid elasticity against identify on a log of the
+same length; identify end-to-end on 1,000,000 samples.
 """
 
 from __future__ import annotations
@@ -152,7 +153,8 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--samples", type=int, default=1_000_000)
     ap.add_argument("--only", choices=("identify", "regressor", "plant", "diagnose", "handoff",
-                                        "canopen", "rws", "consistent", "modbus", "serial"))
+                                        "canopen", "rws", "consistent", "modbus", "serial",
+                                        "elasticity"))
     args = ap.parse_args()
     print("robid_link benchmarks (2-core machine; ratios are against baselines run here)\n")
     if args.only in (None, "handoff"):
@@ -204,6 +206,12 @@ def main() -> int:
         from benchmarks.consistent import report as report_consistent
 
         report_consistent(bench_consistent(ROBOT, _make_npz))
+    if args.only in (None, "elasticity"):  # issue 12 item 5
+        from benchmarks.elasticity import bench_elasticity
+        from benchmarks.elasticity import report as report_elasticity
+
+        report_elasticity(bench_elasticity(
+            ROBOT, ROBOT.parent / "industrial6.elastic.truth.yaml", _make_npz))
     if args.only in (None, "identify"):
         r = bench_identify(args.samples)
         print(f"identify end to end, {r['samples']:,} samples at 1 kHz, 6 axes, no decimation: "

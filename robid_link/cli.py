@@ -132,6 +132,8 @@ def _parser() -> argparse.ArgumentParser:
                         "header)")
     p.add_argument("--joint", type=bounded_int(1, 64), action="append", default=[], metavar="J",
                    help="elasticity: axis to excite (1-based); repeatable; default all")
+    p.add_argument("--pair", action="append", default=[], metavar="J1,J2",
+                   help="elasticity: two axes excited together for the coupled fit; repeatable")
     p.add_argument("--pose", type=finite_float, nargs="+", metavar="DEG",
                    help="elasticity: the pose (degrees per joint)")
     p.add_argument("--f-min", type=positive_float(1000.0), default=2.0, metavar="HZ",
@@ -499,7 +501,8 @@ def _excite_elasticity(args: argparse.Namespace, robot: Any) -> int:
     from robid_link.ident.frequency import ElasticityOptions, elasticity_trajectory
 
     pose = tuple(np.radians(args.pose)) if args.pose else None
-    opts = ElasticityOptions(joints=tuple(args.joint), pose=pose, f_min_hz=args.f_min,
+    opts = ElasticityOptions(joints=tuple(args.joint), pairs=tuple(map(_pair, args.pair)),
+                             pose=pose, f_min_hz=args.f_min,
                              f_max_hz=args.f_max, steps=args.steps, rate_hz=args.rate or 2000.0)
     traj = elasticity_trajectory(robot, opts)
     csv_path, yaml_path = write_trajectory(args.out, traj)
@@ -507,6 +510,14 @@ def _excite_elasticity(args: argparse.Namespace, robot: Any) -> int:
           f"{args.f_min:g}–{args.f_max:g} Hz, {traj.t[-1]:.4g} s at {traj.rate_hz:g} Hz")
     print(f"wrote {csv_path} and {yaml_path}")
     return 0
+
+
+def _pair(text: str, option: str = "--pair") -> tuple[int, int]:
+    try:
+        a, b = (int(x) for x in text.split(","))
+    except ValueError as err:
+        raise RobidError(f"{option} {text}: expected two axes J1,J2") from err
+    return (a, b)
 
 
 def _elasticity(args: argparse.Namespace) -> int:
@@ -518,19 +529,20 @@ def _elasticity(args: argparse.Namespace) -> int:
 
     robot = load_robot(args.robot, args.lock)
     logs = [load_log(p, robot.n, args.fs) for p in args.data]
-    pair = None
-    if args.joints:
-        try:
-            a, b = (int(x) for x in args.joints.split(","))
-        except ValueError as err:
-            raise RobidError(f"--joints {args.joints}: expected two axes J1,J2") from err
-        pair = (a, b)
-    joints = args.joint or ([] if pair else list(range(1, robot.n + 1)))
+    pair = _pair(args.joints, "--joints") if args.joints else None
     schedule = None
     if args.schedule:
         schedule = read_yaml_mapping(args.schedule, "trajectory header").get("schedule")
         if not isinstance(schedule, list):
             raise RobidError(f"{args.schedule}: schedule: missing (not a stepped-sine header)")
+    joints = list(args.joint)
+    if not joints and pair is None:  # every excited axis, and the pair excited together
+        from robid_link.ident.frequency import detect_steps, excited_axes
+
+        steps = schedule if schedule is not None else detect_steps(
+            logs[0].t, logs[0].q, logs[0].tau)
+        joints, pairs = excited_axes(steps)
+        pair = pairs[0] if pairs else None
     res = identify_elasticity(robot, logs, joints=joints, pair=pair, schedule=schedule,
                               side="motor" if args.motor_side else "joint")
     print(res.summary())

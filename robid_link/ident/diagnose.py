@@ -534,7 +534,10 @@ def _unexplained(prep: Prepared, design: Design, theta: np.ndarray) -> list[dict
                         "peak_over_floor": round(prominence, 1),
                         "text": f"joint {j + 1} residual has a resonance at {fr:.3g} Hz "
                                 f"({prominence:.3g}× its neighbourhood): joint elasticity? "
-                                "Run a stepped-sine experiment around a pose"})
+                                f"Add an elasticity experiment for joint {j + 1}: "
+                                "campaigns.<name>.experiments: [{kind: elasticity, "
+                                f"joints: [{j + 1}]}}] (or robid excite --kind elasticity "
+                                f"--joint {j + 1})"})
     return out
 
 

@@ -2,9 +2,10 @@
 pair of axes (H11, H12, H21, H22 with the coupled inertia Jcop), results, summary and figures.
 
 Model (motor side measured): Jm·q̈m + D(q̇m − q̇a) + K(qm − qa) = τ,
-Ja·q̈a + Jcop·q̈a2 + D(q̇a − q̇m) + K(qa − qm) = 0. Fitted by weighted least squares on the
-log-magnitude and phase of the complex FRF (log Ĝ − log G), started from the antiresonance
-and resonance read off the measured points.
+Ja·q̈a + Jcop·q̈a2 + Ba·q̇a + D(q̇a − q̇m) + K(qa − qm) = 0 (Ba: the joint's viscous
+friction on the arm side; without it the fit loads it onto D). Fitted by weighted least
+squares on the log-magnitude and phase of the complex FRF (log Ĝ − log G), started from the
+antiresonance and resonance read off the measured points.
 """
 
 from __future__ import annotations
@@ -19,32 +20,38 @@ import numpy as np
 
 from robid_link.exceptions import EstimationError
 from robid_link.ident.data import Log
-from robid_link.ident.frequency import Frf, frf_from_log, frf_from_schedule
+from robid_link.ident.frequency import Frf, frf_from_log, frf_from_schedule, log_schedule
 from robid_link.ident.robot import Robot
 
-__all__ = ["two_mass_frf", "coupled_frf", "JointElasticity", "CoupledElasticity",
-           "ElasticityResult", "fit_two_mass", "fit_coupled", "identify_elasticity",
-           "elasticity_figures"]
+__all__ = ["two_mass_frf", "coupled_frf", "gravity_stiffness", "JointElasticity",
+           "CoupledElasticity", "ElasticityResult", "fit_two_mass", "fit_coupled",
+           "identify_elasticity", "elasticity_figures"]
 
-_NAMES = ("jm", "ja", "k", "d")
+_NAMES = ("jm", "ja", "k", "d", "ba")
 
 
-def two_mass_frf(f_hz: np.ndarray, jm: float, ja: float, k: float, d: float) -> np.ndarray:
-    """G = qm/τ = (Ja s² + Ds + K) / (s² (Jm Ja s² + (Jm + Ja)(Ds + K)))."""
+def two_mass_frf(f_hz: np.ndarray, jm: float, ja: float, k: float, d: float, ba: float = 0.0,
+                 kg: float = 0.0) -> np.ndarray:
+    """G = qm/τ = (A + Z) / (Jm s² (A + Z) + Z A), arm A = Ja s² + Ba s + Kg, spring
+    Z = D s + K; Kg the gravity stiffness ∂g/∂q of the arm at the pose (known from the rigid
+    model). Ba = Kg = 0: (Ja s² + Z) / (s² (Jm Ja s² + (Jm + Ja) Z))."""
     s = 2j * np.pi * np.asarray(f_hz)
     z = d * s + k
-    return (ja * s * s + z) / (s * s * (jm * ja * s * s + (jm + ja) * z))
+    arm = ja * s * s + ba * s + kg
+    return (arm + z) / (jm * s * s * (arm + z) + z * arm)
 
 
 def coupled_frf(f_hz: np.ndarray, jm: Sequence[float], ja: Sequence[float], jcop: float,
-                k: Sequence[float], d: Sequence[float]) -> np.ndarray:
-    """2×2 G (K, 2, 2): [Jm s² + Z − Z (Ja s² + Z)⁻¹ Z]⁻¹, Ja = [[Ja1, Jcop], [Jcop, Ja2]],
-    Z = diag(D s + K)."""
+                k: Sequence[float], d: Sequence[float], ba: Sequence[float] = (0.0, 0.0),
+                kg: np.ndarray | None = None) -> np.ndarray:
+    """2×2 G (K, 2, 2): [Jm s² + Z − Z (A + Z)⁻¹ Z]⁻¹, A = [[Ja1, Jcop], [Jcop, Ja2]] s²
+    + diag(Ba) s + Kg (2×2 gravity stiffness), Z = diag(D s + K)."""
     s = 2j * np.pi * np.asarray(f_hz)[:, None, None]
     eye = np.eye(2)
     z = (np.asarray(d)[None, :] * s[:, :, 0] + np.asarray(k)[None, :])[:, :, None] * eye
     jam = np.array([[ja[0], jcop], [jcop, ja[1]]])
-    arm = np.linalg.solve(jam * s * s + z, z)
+    kgm = np.zeros((2, 2)) if kg is None else np.asarray(kg, dtype=float)
+    arm = np.linalg.solve(jam * s * s + np.asarray(ba) * eye * s + kgm + z, z)
     dyn = np.asarray(jm)[:, None] * eye * s * s + z - z @ arm
     return np.linalg.inv(dyn)
 
@@ -61,6 +68,8 @@ class JointElasticity:
     std: dict[str, float]
     fit_rms: float  # RMS of the weighted log-FRF residual (≈ relative error)
     measures: str | None = None  # the campaign entry that measures it (set by the daemon)
+    ba: float = 0.0  # viscous friction on the arm side (N·m·s/rad)
+    kg: float = 0.0  # gravity stiffness of the arm at the pose (known, not fitted)
 
     @property
     def f_res_hz(self) -> float:
@@ -72,7 +81,8 @@ class JointElasticity:
 
     def as_dict(self) -> dict[str, Any]:
         return {"joint": self.joint, "jm": self.jm, "ja": self.ja, "k": self.k, "d": self.d,
-                "f_res_hz": self.f_res_hz, "f_antires_hz": self.f_antires_hz,
+                "ba": self.ba, "kg": self.kg, "f_res_hz": self.f_res_hz,
+                "f_antires_hz": self.f_antires_hz,
                 "std": dict(self.std), "fit_rms": self.fit_rms, "measures": self.measures}
 
 
@@ -82,6 +92,7 @@ class CoupledElasticity:
     jcop: float
     std: dict[str, float]
     fit_rms: float
+    kg: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 0.0), (0.0, 0.0))
 
     def as_dict(self) -> dict[str, Any]:
         return {"joints": list(self.joints), "jcop": self.jcop, "std": dict(self.std),
@@ -113,12 +124,14 @@ class ElasticityResult:
         lines = [f"Elasticity of {self.robot} ({len(self.joints)} joint(s), inertias in {unit}, "
                  "K in N·m/rad, D in N·m·s/rad)",
                  f"  {'joint':>5} {'Jm':>10} {'Ja':>10} {'K':>11} {'D':>9} {'f_res Hz':>9} "
-                 f"{'f_anti Hz':>9} {'fit rms':>8}"]
+                 f"{'f_anti Hz':>9} {'Ba':>8} {'fit rms':>8}"]
         for j in self.joints:
             lines.append(f"  {j.joint:>5} {j.jm:>10.4g} {j.ja:>10.4g} {j.k:>11.5g} {j.d:>9.4g} "
-                         f"{j.f_res_hz:>9.4g} {j.f_antires_hz:>9.4g} {j.fit_rms:>8.3g}")
+                         f"{j.f_res_hz:>9.4g} {j.f_antires_hz:>9.4g} {j.ba:>8.3g} "
+                         f"{j.fit_rms:>8.3g}")
             lines.append(f"  {'±':>5} {j.std['jm']:>10.2g} {j.std['ja']:>10.2g} "
-                         f"{j.std['k']:>11.2g} {j.std['d']:>9.2g}")
+                         f"{j.std['k']:>11.2g} {j.std['d']:>9.2g} {'':>9} {'':>9} "
+                         f"{j.std['ba']:>8.2g}")
         if self.coupled is not None:
             c = self.coupled
             lines.append(f"  coupled {c.joints[0]}–{c.joints[1]}: Jcop {c.jcop:.4g} "
@@ -193,7 +206,7 @@ def _start_and_band(frf_f: np.ndarray, acc: np.ndarray, joint: int, notes: list[
     ja = j_tot - jm
     k = ja * (2 * math.pi * fa) ** 2
     d = 2 * 0.05 * math.sqrt(k * ja)
-    return np.array([jm, ja, k, d]), band
+    return np.array([jm, ja, k, d, 0.0]), band
 
 
 # ----------------------------------------------------------------------------- fits
@@ -231,58 +244,106 @@ def _solve(fun: Any, x0: np.ndarray, names: Sequence[str], log_scale: Sequence[b
     return vals, std, math.sqrt(s2)
 
 
-def fit_two_mass(frf: Frf, notes: list[str] | None = None) -> JointElasticity:
-    """Two-mass fit of one joint's FRF (weighted LS on log-magnitude and phase)."""
+def fit_two_mass(frf: Frf, notes: list[str] | None = None, kg: float = 0.0
+                 ) -> JointElasticity:
+    """Two-mass fit of one joint's FRF (weighted LS on log-magnitude and phase); ``kg`` the
+    arm's known gravity stiffness at the pose."""
     notes = notes if notes is not None else []
     joint = frf.joints[0]
     if frf.f_hz.size < 6:
         raise EstimationError(f"joint {joint}: {frf.f_hz.size} FRF points, need at least 6: "
                               "raise --steps")
+    n_notes = len(notes)
     x0, band = _start_and_band(frf.f_hz, frf.accel, joint, notes)
-    f, g, w = frf.f_hz[band], frf.g[band], _weights(frf)[band]
+    flagged = len(notes) > n_notes  # the second resonance stood out in the points already
+    while True:
+        f, g, w = frf.f_hz[band], frf.g[band], _weights(frf)[band]
 
-    def fun(x: np.ndarray) -> np.ndarray:
-        p = np.exp(x)
-        return np.tile(w, 2) * _logres(two_mass_frf(f, *p), g)
+        def fun(x: np.ndarray, f: np.ndarray = f, g: np.ndarray = g, w: np.ndarray = w
+                ) -> np.ndarray:
+            return np.tile(w, 2) * _logres(two_mass_frf(f, *np.exp(x[:4]), x[4], kg), g)
 
-    vals, std, rms = _solve(fun, np.log(x0), _NAMES, [True] * 4)
-    return JointElasticity(joint, *map(float, vals), std=std, fit_rms=rms)
+        vals, std, rms = _solve(fun, np.r_[np.log(x0[:4]), x0[4]], _NAMES,
+                                [True] * 4 + [False])
+        p = JointElasticity(joint, *map(float, vals[:4]), std=std, fit_rms=rms,
+                            ba=float(vals[4]), kg=float(kg))
+        cut = None if flagged else _second_mode(frf, p)
+        if cut is None:
+            return p
+        flagged = True
+        f2, f_cut = cut
+        keep = frf.f_hz < f_cut
+        if keep.sum() < 6:
+            notes.append(f"joint {joint}: a second resonance near {f2:.3g} Hz: a three-mass "
+                         "model is needed (too few points below it to refit without it)")
+            return p
+        notes.append(f"joint {joint}: a second resonance near {f2:.3g} Hz (the two-mass model "
+                     f"misses the points from {f_cut:.3g} Hz): a three-mass model is needed; "
+                     f"the two-mass fit uses the points below {f_cut:.3g} Hz")
+        band = keep
+        x0 = np.r_[p.jm, p.ja, p.k, p.d, p.ba]
 
 
-def fit_coupled(frf: Frf, notes: list[str] | None = None
+def _second_mode(frf: Frf, p: JointElasticity) -> tuple[float, float] | None:
+    """A second mode the two-mass fit misses: above the antiresonance, a run of ≥ 2
+    neighbouring points whose misfit stands well above their noise (and above 1.5 %: what
+    the model's own approximations leave). Returns (frequency of the worst point, the
+    frequency from which the misfit starts) or None."""
+    model = two_mass_frf(frf.f_hz, p.jm, p.ja, p.k, p.d, p.ba, p.kg)
+    miss = np.abs(np.log(model / frf.g))
+    sigma = np.hypot(1.0 / np.maximum(frf.snr, 1.0), 0.005)
+    bad = (miss > 4 * sigma) & (miss > 0.015) & (frf.f_hz > p.f_antires_hz)
+    idx = np.flatnonzero(bad)
+    runs = np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1) if idx.size else []
+    runs = [r for r in runs if r.size >= 2]
+    if not runs:
+        return None
+    worst = max(runs, key=lambda r: float(miss[r].max()))
+    k = int(worst[np.argmax(miss[worst])])
+    start = int(worst[0])
+    return float(frf.f_hz[k]), float(frf.f_hz[max(start - 1, 0)])
+
+
+def fit_coupled(frf: Frf, notes: list[str] | None = None, kg: np.ndarray | None = None
                 ) -> tuple[list[JointElasticity], CoupledElasticity]:
-    """Coupled fit of a pair's 2×2 FRF: Jm, Ja, K, D per axis and the coupled inertia Jcop."""
+    """Coupled fit of a pair's 2×2 FRF: Jm, Ja, K, D, Ba per axis and the coupled inertia
+    Jcop; ``kg`` the arms' known 2×2 gravity stiffness at the pose."""
     notes = notes if notes is not None else []
     j1, j2 = frf.joints
     singles = []
     for i, j in enumerate((j1, j2)):
         sub = Frf((j,), frf.f_hz, frf.g[:, i, i], frf.coherence, frf.snr, frf.source)
-        singles.append(_start_and_band(sub.f_hz, sub.accel, j, notes)[0])
+        # a diagonal term shows both of the pair's modes: no second-resonance note from it
+        singles.append(_start_and_band(sub.f_hz, sub.accel, j, [])[0])
     # Jcop from the low-frequency inertia matrix: (s² G)⁻¹ → Jm + Ja (2×2)
     low = frf.f_hz < 0.5 * frf.f_hz[np.argmin(np.abs(frf.accel[:, 0, 0]))]
     inert = np.linalg.inv(frf.accel[low if low.any() else slice(0, 1)]).real.mean(axis=0)
     jcop0 = float(0.5 * (inert[0, 1] + inert[1, 0]))
-    x0 = np.array([*np.log(singles[0]), *np.log(singles[1]), jcop0])
-    scale = math.sqrt(singles[0][1] * singles[1][1])
+    x0 = np.array([*np.log(singles[0][:4]), 0.0, *np.log(singles[1][:4]), 0.0, jcop0])
     w = _weights(frf)
     g = frf.g
+    # off-diagonal terms relative to the diagonal's scale (they cross zero: no logarithm)
     norm = np.sqrt(np.abs(g[:, 0, 0] * g[:, 1, 1]))
 
     def fun(x: np.ndarray) -> np.ndarray:
-        a, b = np.exp(x[:4]), np.exp(x[4:8])
-        model = coupled_frf(frf.f_hz, (a[0], b[0]), (a[1], b[1]), x[8] * scale / scale,
-                            (a[2], b[2]), (a[3], b[3]))
+        a, b = np.exp(x[:4]), np.exp(x[5:9])
+        model = coupled_frf(frf.f_hz, (a[0], b[0]), (a[1], b[1]), x[10], (a[2], b[2]),
+                            (a[3], b[3]), (x[4], x[9]), kg)
         diag = [_logres(model[:, i, i], g[:, i, i]) for i in range(2)]
         off = [(model[:, i, 1 - i] - g[:, i, 1 - i]) / norm for i in range(2)]
         offr = [np.concatenate((o.real, o.imag)) for o in off]
         return np.tile(w, 8) * np.concatenate(diag + offr)
 
     names = [f"{n}{i}" for i in (1, 2) for n in _NAMES] + ["jcop"]
-    vals, std, rms = _solve(fun, x0, names, [True] * 8 + [False])
-    joints = [JointElasticity(j, *map(float, vals[4 * i: 4 * i + 4]),
-                              std={n: std[f"{n}{i + 1}"] for n in _NAMES}, fit_rms=rms)
+    vals, std, rms = _solve(fun, x0, names, ([True] * 4 + [False]) * 2 + [False])
+    joints = [JointElasticity(j, *map(float, vals[5 * i: 5 * i + 4]),
+                              std={n: std[f"{n}{i + 1}"] for n in _NAMES}, fit_rms=rms,
+                              ba=float(vals[5 * i + 4]),
+                              kg=0.0 if kg is None else float(np.asarray(kg)[i, i]))
               for i, j in enumerate((j1, j2))]
-    return joints, CoupledElasticity((j1, j2), float(vals[8]), {"jcop": std["jcop"]}, rms)
+    kgt = tuple(tuple(map(float, r)) for r in (np.zeros((2, 2)) if kg is None else kg))
+    return joints, CoupledElasticity((j1, j2), float(vals[10]), {"jcop": std["jcop"]}, rms,
+                                     kgt)  # type: ignore[arg-type]
 
 
 # ----------------------------------------------------------------------------- job
@@ -292,10 +353,13 @@ def identify_elasticity(robot: Robot, logs: Sequence[Log], *, joints: Sequence[i
                         pair: tuple[int, int] | None = None,
                         schedule: Sequence[dict[str, Any]] | None = None,
                         tau_model: Sequence[np.ndarray] | None = None,
-                        side: str = "joint") -> ElasticityResult:
+                        side: str = "joint", inertials: np.ndarray | None = None
+                        ) -> ElasticityResult:
     """Elasticity of ``joints`` (1-based, each its own two-mass fit) and/or a coupled ``pair``
     from stepped-sine logs. ``schedule``: the steps from the trajectory header (else detected
-    in each log); ``tau_model``: per log, the identified rigid-body + friction torque."""
+    in each log); ``tau_model``: per log, the identified rigid-body + friction torque;
+    ``inertials``: standard parameters for the arm's gravity stiffness at the logs' pose
+    (default the robot's nominal ones)."""
     if not logs:
         raise EstimationError("elasticity: no logs")
     for j in (*joints, *(pair or ())):
@@ -306,13 +370,17 @@ def identify_elasticity(robot: Robot, logs: Sequence[Log], *, joints: Sequence[i
     fitted: list[JointElasticity] = []
     coupled = None
     targets: list[tuple[int, ...]] = [(j,) for j in joints] + ([tuple(pair)] if pair else [])
+    kg = _gravity_stiffness_of_logs(robot, logs, side, inertials, notes)
+    found = None if schedule is not None else [log_schedule(log.t, log.q, log.tau)
+                                               for log in logs]
     for target in targets:
-        frf = _merged_frf(logs, target, schedule, tau_model)
+        frf = _merged_frf(logs, target, schedule, tau_model, found)
         frfs.append(frf)
+        cols = [j - 1 for j in target]
         if len(target) == 1:
-            fitted.append(fit_two_mass(frf, notes))
+            fitted.append(fit_two_mass(frf, notes, float(kg[cols[0], cols[0]])))
         else:
-            pj, coupled = fit_coupled(frf, notes)
+            pj, coupled = fit_coupled(frf, notes, kg[np.ix_(cols, cols)])
             fitted += pj
     if schedule is None:
         notes.append("steps detected from the log alone (no schedule given)")
@@ -320,9 +388,39 @@ def identify_elasticity(robot: Robot, logs: Sequence[Log], *, joints: Sequence[i
                             [log.path for log in logs])
 
 
+def gravity_stiffness(robot: Robot, q: np.ndarray, inertials: np.ndarray) -> np.ndarray:
+    """∂g/∂q (n×n, symmetrized) at the pose q: the stiffness gravity adds to the arm side
+    (negative where it pulls the arm away), by central differences of Y(q, 0, 0)·π."""
+    from robid_link.ident.regressor import rigid_regressor
+
+    n = robot.n
+    eps = 1e-5
+    qs = np.repeat(np.asarray(q, dtype=float)[None], 2 * n, axis=0)
+    for j in range(n):
+        qs[2 * j, j] += eps
+        qs[2 * j + 1, j] -= eps
+    zeros = np.zeros_like(qs)
+    g = rigid_regressor(robot, qs, zeros, zeros) @ inertials
+    kg = ((g[0::2] - g[1::2]) / (2 * eps)).T  # column j: ∂g/∂q_j
+    return 0.5 * (kg + kg.T)
+
+
+def _gravity_stiffness_of_logs(robot: Robot, logs: Sequence[Log], side: str,
+                               inertials: np.ndarray | None, notes: list[str]) -> np.ndarray:
+    theta = inertials if inertials is not None else robot.nominal
+    if theta is None or side != "joint" or not np.any(robot.gravity):
+        if theta is None and np.any(robot.gravity):
+            notes.append("no inertials for the arm's gravity stiffness: K is the spring plus "
+                         "gravity's ∂g/∂q at the pose (give the robot's inertials)")
+        return np.zeros((robot.n, robot.n))
+    pose = np.median(np.concatenate([log.q for log in logs]), axis=0)
+    return gravity_stiffness(robot, pose, np.asarray(theta, dtype=float))
+
+
 def _merged_frf(logs: Sequence[Log], target: tuple[int, ...],
                 schedule: Sequence[dict[str, Any]] | None,
-                tau_model: Sequence[np.ndarray] | None) -> Frf:
+                tau_model: Sequence[np.ndarray] | None,
+                found: Sequence[Sequence[dict[str, Any]]] | None) -> Frf:
     parts = []
     for i, log in enumerate(logs):
         tm = tau_model[i] if tau_model is not None else None
@@ -330,7 +428,8 @@ def _merged_frf(logs: Sequence[Log], target: tuple[int, ...],
             if schedule is not None:
                 parts.append(frf_from_schedule(log.t, log.q, log.tau, schedule, target, tm))
             else:
-                parts.append(frf_from_log(log.t, log.q, log.tau, target, tm))
+                parts.append(frf_from_log(log.t, log.q, log.tau, target, tm,
+                                          steps=found[i] if found else None))
         except Exception as err:  # one log without this joint's steps is fine if another has
             if len(logs) == 1:
                 raise
@@ -353,6 +452,7 @@ def elasticity_figures(res: ElasticityResult, out_dir: str | Path) -> list[Path]
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -363,19 +463,20 @@ def elasticity_figures(res: ElasticityResult, out_dir: str | Path) -> list[Path]
         s2 = -(2 * np.pi * fine) ** 2
         if len(frf.joints) == 1:
             p = by_joint[frf.joints[0]]
-            cells = {(0, 0): (frf.accel, s2 * two_mass_frf(fine, p.jm, p.ja, p.k, p.d))}
+            cells = {(0, 0): (frf.accel, s2 * two_mass_frf(fine, p.jm, p.ja, p.k, p.d, p.ba, p.kg))}
             text = _param_text([p])
         else:
             a, b = (by_joint[j] for j in frf.joints)
             assert res.coupled is not None
             model = s2[:, None, None] * coupled_frf(fine, (a.jm, b.jm), (a.ja, b.ja),
-                                                    res.coupled.jcop, (a.k, b.k), (a.d, b.d))
+                                                    res.coupled.jcop, (a.k, b.k), (a.d, b.d),
+                                                    (a.ba, b.ba), np.array(res.coupled.kg))
             cells = {(r, c): (frf.accel[:, r, c], model[:, r, c]) for r in range(2)
                      for c in range(2)}
             text = _param_text([a, b]) + f"\nJcop {res.coupled.jcop:.4g}"
         nr, nc = (1, 1) if len(cells) == 1 else (2, 2)
         fig = plt.figure(figsize=(6.5 * nc, 5.5 * nr))
-        grid = fig.add_gridspec(2 * nr, nc, height_ratios=[2, 1] * nr, hspace=0.35)
+        grid = fig.add_gridspec(2 * nr, nc, height_ratios=[2, 1] * nr, hspace=0.6)
         for (r, c), (meas, line) in cells.items():
             am = fig.add_subplot(grid[2 * r, c])
             ap = fig.add_subplot(grid[2 * r + 1, c], sharex=am)
@@ -392,6 +493,8 @@ def elasticity_figures(res: ElasticityResult, out_dir: str | Path) -> list[Path]
             am.set_ylabel("|q̈m/τ|")
             ap.set_ylabel("phase (deg)")
             ap.set_xlabel("frequency (Hz)")
+            for ax in (am, ap):  # log axes: label the decades only
+                ax.xaxis.set_minor_formatter(NullFormatter())
             am.legend(fontsize=8)
         fig.text(0.02, 0.005, text, fontsize=8, family="monospace", va="bottom")
         fig.subplots_adjust(bottom=0.2 if nr == 1 else 0.12)
@@ -404,5 +507,6 @@ def elasticity_figures(res: ElasticityResult, out_dir: str | Path) -> list[Path]
 
 def _param_text(params: Sequence[JointElasticity]) -> str:
     return "\n".join(f"joint {p.joint}: Jm {p.jm:.4g}  Ja {p.ja:.4g}  K {p.k:.5g}  D {p.d:.4g}  "
+                     f"Ba {p.ba:.3g}  "
                      f"f_res {p.f_res_hz:.4g} Hz  f_antires {p.f_antires_hz:.4g} Hz"
                      for p in params)

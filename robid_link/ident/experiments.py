@@ -260,6 +260,12 @@ def _check_elasticity(opts: dict[str, Any], where: str) -> None:
     if joints is not None and (not isinstance(joints, list) or not joints or not all(
             isinstance(j, int) and not isinstance(j, bool) and 1 <= j <= 64 for j in joints)):
         raise ConfigError(f"{where}.joints: expected a list of joint numbers (from 1)")
+    pairs = opts["pairs"]
+    if not isinstance(pairs, list) or not all(
+            isinstance(p, list) and len(p) == 2 and p[0] != p[1] and all(
+                isinstance(j, int) and not isinstance(j, bool) and 1 <= j <= 64 for j in p)
+            for p in pairs):
+        raise ConfigError(f"{where}.pairs: expected pairs of joint numbers, e.g. [[2, 3]]")
     pose = opts["pose_deg"]
     if pose is not None and (not isinstance(pose, list) or not all(
             isinstance(x, int | float) and not isinstance(x, bool) and abs(x) <= 3600
@@ -284,14 +290,17 @@ def _elasticity(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) ->
         raise ConfigError(f"pose_deg: {len(pose)} angles, the robot has {robot.n} joints")
     if opts["joints"] and max(opts["joints"]) > robot.n:
         raise ConfigError(f"joints: {max(opts['joints'])} is not a joint of {robot.name}")
+    if any(max(p) > robot.n for p in opts["pairs"]):
+        raise ConfigError(f"pairs: {opts['pairs']} has a joint beyond {robot.n}")
     return elasticity_trajectory(robot, ElasticityOptions(
-        joints=tuple(opts["joints"] or ()),
+        joints=tuple(opts["joints"] or ()), pairs=tuple(tuple(p) for p in opts["pairs"]),
         pose=None if pose is None else tuple(math.radians(x) for x in pose),
         f_min_hz=float(opts["f_min_hz"]), f_max_hz=float(opts["f_max_hz"]),
         steps=int(opts["steps"]), rate_hz=float(opts["rate_hz"])))
 
 
 register_kind(ExperimentKind(
-    "elasticity", {"joints": None, "pose_deg": None, "f_min_hz": 2.0, "f_max_hz": 60.0,
+    "elasticity", {"joints": None, "pairs": [], "pose_deg": None, "f_min_hz": 2.0, "f_max_hz": 60.0,
                    "steps": 24, "rate_hz": 2000.0}, _elasticity, _check_elasticity,
-    summary="stepped sines per axis around a pose: FRFs, two-mass fit (Jm, Ja, K, D)"))
+    summary="stepped sines per axis (pairs: two axes together) around a pose: FRFs, "
+            "two-mass fit (Jm, Ja, K, D), coupled fit (Jcop)"))

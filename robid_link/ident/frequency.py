@@ -24,11 +24,14 @@ __all__ = [
     "ElasticityOptions",
     "Frf",
     "stepped_sine_schedule",
+    "step_axes",
+    "excited_axes",
     "elasticity_trajectory",
     "sine_amplitudes",
     "frf_from_schedule",
     "detect_steps",
     "frf_from_log",
+    "log_schedule",
     "frf_h1",
     "frf_reference",
     "spectral_peaks",
@@ -42,9 +45,12 @@ class ElasticityOptions:
     Each step: the reference drifts at ``drift_fraction`` of the joint's speed limit (so the arm
     never reverses and Coulomb friction stays a constant torque, invisible at the step's
     frequency), a sine rides on it with a velocity amplitude of drift/``drift_over_sine``;
-    ``settle_periods`` (at least ``settle_s``) are ramped in and discarded, then
-    ``measure_periods`` (at least ``measure_s``) are measured. Steps alternate the drift
-    direction so the pose stays within one step's travel.
+    ``settle_periods`` (at least ``settle_s``) are ramped in (over ``ramp_s``) and discarded,
+    then ``measure_periods`` (at least ``measure_s``) are measured. Steps alternate the drift
+    direction and each step's travel is centred on the pose (the arm inertia of a coupled axis
+    changes with it). The drift's reversal rings the arm on its spring at the antiresonance
+    (the motor held by the loop): a slow ramp and a settling of several of that mode's decay
+    times keep the ringing out of the measured window.
     """
 
     joints: tuple[int, ...] = ()  # 1-based; empty = every joint
@@ -55,9 +61,10 @@ class ElasticityOptions:
     steps: int = 24
     rate_hz: float = 2000.0
     settle_periods: float = 3.0
-    settle_s: float = 0.3
+    settle_s: float = 1.0
+    ramp_s: float = 0.5
     measure_periods: float = 6.0
-    measure_s: float = 0.5
+    measure_s: float = 1.0  # 0.5 s left the wrist axes' D ±1.4 % (1 σ) at the example's noise
     drift_fraction: float = 0.04
     drift_over_sine: float = 8.0
     accel_fraction: float = 0.5  # of the acceleration limit, caps the sine at high frequency
@@ -106,32 +113,72 @@ def stepped_sine_schedule(robot: Robot, opts: ElasticityOptions) -> list[dict[st
                           f"{opts.rate_hz:g} Hz: raise --rate")
     if opts.steps < 3:
         raise ConfigError(f"elasticity: {opts.steps} steps is too few (at least 3)")
-    joints = opts.joints or tuple(range(1, robot.n + 1))
-    for j in joints:
+    joints = opts.joints or (() if opts.pairs else tuple(range(1, robot.n + 1)))
+    for j in (*joints, *(j for p in opts.pairs for j in p)):
         if not 1 <= j <= robot.n:
             raise ConfigError(f"elasticity: joint {j} not in 1..{robot.n}")
+    for p in opts.pairs:
+        if len(p) != 2 or p[0] == p[1]:
+            raise ConfigError(f"elasticity: pair {list(p)} needs two different joints")
     freqs = np.geomspace(opts.f_min_hz, opts.f_max_hz, opts.steps)
     lim = robot.limits
     out: list[dict[str, Any]] = []
     t = 0.0
-    for j in joints:
-        drift = opts.drift_fraction * _limit(lim.qd_max, j - 1, 2.0)
-        acc = opts.accel_fraction * _limit(lim.qdd_max, j - 1, 10.0)
-        sign = 1.0
-        for f in freqs:
-            w = 2 * math.pi * f
-            v_amp = min(drift / opts.drift_over_sine, acc / w)
-            settle = max(opts.settle_periods / f, opts.settle_s)
-            measure = math.ceil(max(opts.measure_periods, opts.measure_s * f)) / f
-            ramp = min(0.25, settle / 2)
-            step = {"joint": int(j), "f_hz": float(f), "amplitude_rad": float(v_amp / w),
-                    "drift_rad_s": float(sign * drift), "t_start": float(t),
-                    "t_measure": float(t + settle), "t_end": float(t + settle + measure),
-                    "t_next": float(t + settle + measure + ramp)}
-            out.append(step)
-            t = step["t_next"]
-            sign = -sign
+    # one axis at a time, then each pair with both axes drifting (friction never reverses on
+    # either) and sines in phase, then in antiphase: two independent inputs per frequency
+    groups = [((j,), (1.0,)) for j in joints]
+    for p in opts.pairs:
+        groups.append((tuple(p), (1.0, 1.0)))
+        groups.append((tuple(p), (1.0, -1.0)))
+    order = ([(g, f) for g in groups[:len(joints)] for f in freqs]
+             + [(g, f) for f in freqs for g in groups[len(joints):]])
+    sign = 1.0
+    for (axes, pattern), f in order:
+        w = 2 * math.pi * f
+        drifts, amps = [], []
+        for j, c in zip(axes, pattern, strict=True):
+            drift = opts.drift_fraction * _limit(lim.qd_max, j - 1, 2.0)
+            acc = opts.accel_fraction * _limit(lim.qdd_max, j - 1, 10.0)
+            drifts.append(sign * drift)
+            amps.append(c * min(drift / opts.drift_over_sine, acc / w) / w)
+        settle = max(opts.settle_periods / f, opts.settle_s)
+        measure = math.ceil(max(opts.measure_periods, opts.measure_s * f)) / f
+        ramp = min(opts.ramp_s, settle / 2)
+        step: dict[str, Any] = {
+            "joint": int(axes[0]), "f_hz": float(f), "amplitude_rad": float(amps[0]),
+            "drift_rad_s": float(drifts[0]), "t_start": float(t),
+            "t_measure": float(t + settle), "t_end": float(t + settle + measure),
+            "t_next": float(t + settle + measure + ramp)}
+        if len(axes) > 1:
+            step.update(joints=[int(j) for j in axes], amplitudes_rad=[float(a) for a in amps],
+                        drifts_rad_s=[float(d) for d in drifts])
+        out.append(step)
+        t = step["t_next"]
+        sign = -sign
     return out
+
+
+def excited_axes(steps: Sequence[dict[str, Any]]
+                 ) -> tuple[list[int], list[tuple[int, int]]]:
+    """The axes a schedule (or the detected steps) excites alone, and the pairs excited
+    together: what ``robid elasticity`` fits when no joint is named."""
+    singles: set[int] = set()
+    pairs: set[tuple[int, int]] = set()
+    for st in steps:
+        axes = sorted({int(a[0]) for a in step_axes(st)})
+        if len(axes) == 1:
+            singles.add(axes[0])
+        elif len(axes) == 2:
+            pairs.add((axes[0], axes[1]))
+    return sorted(singles), sorted(pairs)
+
+
+def step_axes(step: dict[str, Any]) -> list[tuple[int, float, float]]:
+    """(joint, amplitude_rad, drift_rad_s) of each axis a schedule step moves."""
+    if "joints" in step:
+        return list(zip(step["joints"], step["amplitudes_rad"], step["drifts_rad_s"],
+                        strict=True))
+    return [(step["joint"], step.get("amplitude_rad", 0.0), step.get("drift_rad_s", 0.0))]
 
 
 def _smooth_ramp(x: np.ndarray) -> np.ndarray:
@@ -154,20 +201,25 @@ def elasticity_trajectory(robot: Robot, opts: ElasticityOptions) -> Trajectory:
     q = np.tile(pose, (t.size, 1))
     offset = np.zeros(robot.n)
     for st in sched:
-        j = st["joint"] - 1
         k0 = int(round(st["t_start"] / h))
         k1 = int(round(st["t_next"] / h))
         tt = t[k0:k1] - st["t_start"]
-        ramp = min(0.25, (st["t_measure"] - st["t_start"]) / 2)
+        ramp = st["t_next"] - st["t_end"]
         t_end = st["t_end"] - st["t_start"]
         env = _smooth_ramp(tt / ramp) * _smooth_ramp((t_end + ramp - tt) / ramp)
-        # drift velocity v·env integrated exactly enough on the grid (cumulative trapezoid)
-        vel = st["drift_rad_s"] * env
-        pos = np.concatenate(([0.0], np.cumsum(0.5 * (vel[1:] + vel[:-1]) * h)))
-        sine = st["amplitude_rad"] * env * np.sin(2 * math.pi * st["f_hz"] * tt)
-        q[k0:k1, j] = pose[j] + offset[j] + pos + sine
-        offset[j] += pos[-1] if pos.size else 0.0
-        q[k1:, j] = pose[j] + offset[j]
+        meas = (tt >= st["t_measure"] - st["t_start"]) & (tt <= t_end)
+        for joint, amp, drift in step_axes(st):
+            j = joint - 1
+            # drift velocity v·env integrated exactly enough on the grid (cumulative trapezoid)
+            vel = drift * env
+            pos = np.concatenate(([0.0], np.cumsum(0.5 * (vel[1:] + vel[:-1]) * h)))
+            centre = float(pos[meas].mean()) if meas.any() else 0.0
+            # from where the last step left the joint to travel centred on the pose
+            shift = offset[j] + (-centre - offset[j]) * _smooth_ramp(tt / ramp)
+            sine = amp * env * np.sin(2 * math.pi * st["f_hz"] * tt)
+            q[k0:k1, j] = pose[j] + shift + pos + sine
+            offset[j] = (pos[-1] - centre) if pos.size else offset[j]
+            q[k1:, j] = pose[j] + offset[j]
     qd = np.gradient(q, h, axis=0)
     check_limits(robot, q, qd, np.gradient(qd, h, axis=0), where="elasticity trajectory")
     header = {"schedule": sched, "pose": pose.tolist(),
@@ -181,19 +233,19 @@ def elasticity_trajectory(robot: Robot, opts: ElasticityOptions) -> Trajectory:
 # ----------------------------------------------------------------------------- estimation
 
 
-def sine_amplitudes(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Complex amplitudes X (x ≈ a + b·t + Re(X e^{jωt})) per column of ``x``, by least squares
-    on [1, t, cos, sin] (the drift's ramp removed), over the whole window and over ``blocks``
-    equal sub-windows. Returns (X (m,), X per block (blocks, m))."""
+def sine_amplitudes(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1,
+                    degree: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Complex amplitudes X (x ≈ a + b·t (+ c·t²) + Re(X e^{jωt})) per column of ``x``, by
+    least squares on [1, t, …, cos, sin] (the drift's ramp removed), over the whole window and
+    over ``blocks`` equal sub-windows. Returns (X (m,), X per block (blocks, m))."""
     x = x.reshape(len(t), -1)
     tc = t - t.mean()
 
     def fit(sl: slice) -> np.ndarray:
         w = 2 * math.pi * f_hz * t[sl]
-        a = np.column_stack((np.ones(w.size), tc[sl], np.cos(w), np.sin(w)))
+        a = np.column_stack([tc[sl] ** p for p in range(degree + 1)] + [np.cos(w), np.sin(w)])
         coef = np.linalg.lstsq(a, x[sl], rcond=None)[0]
-        return coef[2] - 1j * coef[3]
+        return coef[-2] - 1j * coef[-1]
 
     whole = fit(slice(None))
     edges = np.linspace(0, len(t), blocks + 1).astype(int)
@@ -227,8 +279,11 @@ def frf_from_schedule(t: np.ndarray, q: np.ndarray, tau: np.ndarray,
         tau = tau - tau_model
     by_f: dict[float, list[tuple[np.ndarray, np.ndarray, float, float]]] = {}
     for st in schedule:
-        if st["joint"] not in joints:
-            continue
+        if "joint" not in st or "f_hz" not in st:
+            raise DataError("schedule step without joint/f_hz: not a stepped-sine schedule")
+        axes = {a[0] for a in step_axes(st)}
+        if not (axes == set(joints) if len(joints) == 1 else axes <= set(joints)):
+            continue  # a single axis from its own steps, a pair from its own and its axes'
         a, b = np.searchsorted(t, [st["t_measure"], st["t_end"]])
         if b - a < 8 or b > len(t) - 1:
             raise DataError(f"step at {st['f_hz']:.4g} Hz of joint {st['joint']} "
@@ -258,6 +313,10 @@ def _assemble(joints: tuple[int, ...], by_f: dict[float, list[Any]], source: str
         gs.append(g)
         cohs.append(min(p[2] for p in pts))
         snrs.append(min(p[3] for p in pts))
+    if not fs and len(joints) > 1 and by_f:
+        raise DataError(f"joints {joints[0]},{joints[1]}: a 2×2 FRF needs two independent "
+                        "inputs per frequency (steps of each axis, or the pair excited "
+                        f"together: robid excite --pair {joints[0]},{joints[1]})")
     if not fs:
         raise DataError(f"no steps of joint(s) {', '.join(map(str, joints))} in the log")
     return Frf(joints, np.array(fs), np.array(gs), np.array(cohs), np.array(snrs), source)
@@ -267,100 +326,212 @@ def _assemble(joints: tuple[int, ...], by_f: dict[float, list[Any]], source: str
 
 
 def detect_steps(t: np.ndarray, q: np.ndarray, tau: np.ndarray, *,
-                 windows_s: Sequence[float] = (2.0, 0.8, 0.3), rel_tol: float = 0.03
+                 windows_s: Sequence[float] = (2.0, 1.4, 1.0, 0.7, 0.5, 0.3),
+                 rel_tol: float = 0.02
                  ) -> list[dict[str, Any]]:
     """Steps of constant-frequency sinusoidal motion found in the log alone (an operator's own
-    log). Per window the dominant frequency of the summed, normalized torques; runs of windows
-    whose frequency agrees within ``rel_tol`` become steps. Windows of several lengths (a step
-    must hold ≥ 4 periods of its window; longer windows first, overlaps dropped). The first
-    40 % of each step is discarded as settling, the frequency refined on the rest. Returns
-    schedule-like dicts with ``joint`` (the joint with the largest relative torque amplitude)."""
+    log), from the positions (the position loop puts the reference's sine there at every
+    frequency; ``tau`` is not needed). Per window (several lengths, longer first; a step holds
+    ≥ 4 periods of its window) and per joint (decimated, a quadratic trend removed: the
+    drift) the dominant frequency and how much of the power it holds; runs of windows where a
+    joint is a clean sine of a steady frequency become candidate steps. In each, period by
+    period, the amplitude plateau is found, the frequency refined on it, and its last 60 %
+    measured. A stretch that is not one steady sine is dropped. Returns schedule-like dicts:
+    ``joint`` (largest acceleration relative to that joint's own), ``joints`` when several
+    axes drift and oscillate at the step's frequency (a held axis that only reacts through
+    the coupling does not drift), ``f_hz``, ``t_measure``, ``t_end``."""
     fs = 1.0 / float(np.median(np.diff(t)))
     if t[-1] - t[0] < 2 * min(windows_s):
         raise DataError(f"log of {t[-1] - t[0]:.3g} s is too short for a stepped-sine analysis")
-    # torque (strong at the antiresonance) and motor acceleration (strong at the resonance)
-    acc = np.gradient(np.gradient(q, axis=0), axis=0)
-    x = np.column_stack((tau - tau.mean(axis=0), acc))
-    x = x / np.maximum(x.std(axis=0), 1e-300)
-    spans: list[tuple[float, float, float, float]] = []
+    # the search on the positions (the reference's sine shows there at every frequency),
+    # decimated to ~500 Hz; the measured windows then on the full log
+    r = max(1, int(fs // 500))
+    qd = q[::r] if r == 1 else _decimate(q, r)
+    spans: list[tuple[float, float, float]] = []
     for win in windows_s:
-        for t0, t1, f in _runs(t, x, fs, win, rel_tol):
+        for t0, t1, f in _runs(t[::r][:len(qd)], qd, fs / r, win, rel_tol):
             if f * win < 4 or any(min(t1, b) - max(t0, a) > 0.3 * (t1 - t0)
-                                  for a, b, _, _ in spans):
+                                  for a, b, _ in spans):
                 continue
-            spans.append((t0, t1, f, win))
-    steps = []
-    m = tau.shape[1]
-    for t0, t1, f0, win in sorted(spans):
-        t1 -= 0.5 * win  # the last windows straddle the ramp out
-        t_meas = t0 + 0.4 * (t1 - t0)
-        sel = (t >= t_meas) & (t <= t1)
-        f = _refine(t[sel], x[sel], f0)
-        periods = math.floor((t1 - t_meas) * f)
-        if periods < 4:
-            continue
-        amps = np.abs(sine_amplitudes(t[sel], x[sel, :m], f)[0])
-        steps.append({"joint": int(np.argmax(amps)) + 1, "f_hz": f, "t_measure": float(t_meas),
-                      "t_end": float(t_meas + periods / f)})
+            spans.append((t0, t1, f))
+    acc = np.std(np.diff(q, 2, axis=0), axis=0) * fs * fs
+    acc_scale = np.maximum(acc, 0.5 * acc.max() + 1e-300)  # an axis that never moves: noise
+    steps = [st for t0, t1, f0 in sorted(spans)
+             if (st := _step_in(t, q, t0, t1, f0, acc_scale)) is not None]
     if not steps:
         raise DataError("no sinusoidal steps found in the log (no stretch of constant-frequency "
                         "motion): is it a stepped-sine log?")
     return steps
 
 
+def _decimate(x: np.ndarray, r: int) -> np.ndarray:
+    import scipy.signal as sig
+
+    return np.asarray(sig.decimate(x, r, ftype="fir", axis=0, zero_phase=True))
+
+
 def _runs(t: np.ndarray, x: np.ndarray, fs: float, win: float, rel_tol: float
           ) -> list[tuple[float, float, float]]:
-    """(t0, t1, f) of runs of windows of length ``win`` dominated by one steady frequency."""
+    """(t0, t1, f) of runs of windows of length ``win`` where a channel is a clean sine of one
+    steady frequency."""
     n = int(win * fs)
-    hop = max(1, n // 8)
-    nfft = 8 * n
+    hop = max(1, n // 4)
+    nfft = 4 * n
     freqs = np.fft.rfftfreq(nfft, 1.0 / fs)
+    low = freqs < 2.0 / win
+    u = np.linspace(-1.0, 1.0, n)
+    trend = np.column_stack((np.ones(n), u, u * u))
+    proj = np.linalg.pinv(trend)
     han = np.hanning(n)[:, None]
     starts = np.arange(0, max(len(t) - n, 1), hop)
     f_win = np.zeros(starts.size)
     good = np.zeros(starts.size, dtype=bool)
-    for i, s in enumerate(starts):
-        seg = x[s:s + n] - x[s:s + n].mean(axis=0)
-        spec = (np.abs(np.fft.rfft(seg * han, nfft, axis=0)) ** 2).sum(axis=1)
-        spec[freqs < 3.0 / win] = 0.0
-        k = int(np.argmax(spec))
-        f_win[i] = freqs[k]
-        good[i] = spec[max(k - 24, 0): k + 25].sum() > 0.8 * max(spec.sum(), 1e-300)
+    near = 4 * 3  # ± 3 bins of the unpadded transform
+    for i, s0 in enumerate(starts):
+        seg = x[s0:s0 + n]
+        seg = seg - trend @ (proj @ seg)
+        spec = np.abs(np.fft.rfft(seg * han, nfft, axis=0)) ** 2
+        spec[low] = 0.0
+        k = np.argmax(spec, axis=0)
+        total = np.maximum(spec.sum(axis=0), 1e-300)
+        csum = np.vstack((np.zeros((1, spec.shape[1])), np.cumsum(spec, axis=0)))
+        lo, hi = np.maximum(k - near, 0), np.minimum(k + near + 1, spec.shape[0])
+        cols = np.arange(spec.shape[1])
+        conc = (csum[hi, cols] - csum[lo, cols]) / total
+        c = int(np.argmax(conc))
+        f_win[i] = freqs[k[c]]
+        good[i] = conc[c] > 0.8 and f_win[i] >= 4.0 / win
     out = []
     a = 0
     for i in range(1, starts.size + 1):
         if (i == starts.size or not good[i] or not good[a]
-                or abs(f_win[i] - f_win[a]) > rel_tol * f_win[a] + fs / nfft):
-            if good[a] and i - a >= 4:
-                out.append((float(t[starts[a]]), float(t[starts[i - 1] + n - 1]),
+                or abs(f_win[i] - f_win[a]) > rel_tol * f_win[a] + 2 * fs / nfft):
+            if good[a] and i - a >= 3:
+                out.append((float(t[starts[a]]), float(t[min(starts[i - 1] + n - 1, len(t) - 1)]),
                             float(np.median(f_win[a:i]))))
             a = i
     return out
 
 
-def _refine(t: np.ndarray, x: np.ndarray, f0: float) -> float:
-    """The frequency maximizing the sinusoid's projected power near f0 (golden section)."""
+def _period_blocks(t: np.ndarray, x: np.ndarray, f: float) -> tuple[np.ndarray, np.ndarray]:
+    """Complex amplitudes at f of each whole period of x (columns), a local quadratic removed
+    (the drift and its ramps); returns (block start indices, amplitudes (blocks, columns))."""
+    per = 1.0 / f
+    nblk = int((t[-1] - t[0]) // per)
+    edges = np.searchsorted(t, t[0] + per * np.arange(nblk + 1))
+    amps = np.array([sine_amplitudes(t[a:b], x[a:b], f, degree=2)[0]
+                     for a, b in zip(edges[:-1], edges[1:], strict=True)])
+    return edges, amps.reshape(nblk, -1)
+
+
+def _unexplained(t: np.ndarray, x: np.ndarray, f: float) -> float:
+    """Share of x's variance (a quadratic trend removed) a sine at f leaves unexplained."""
+    tc = t - t.mean()
+    w = 2 * math.pi * f * t
+    trend = np.column_stack((np.ones(t.size), tc, tc * tc))
+    x = x - trend @ np.linalg.lstsq(trend, x, rcond=None)[0]
+    a = np.column_stack((trend, np.cos(w), np.sin(w)))
+    res = x - a @ np.linalg.lstsq(a, x, rcond=None)[0]
+    return float(np.sum(res * res) / max(np.sum(x * x), 1e-300))
+
+
+def _step_in(t: np.ndarray, q: np.ndarray, t0: float, t1: float, f0: float,
+             acc_scale: np.ndarray) -> dict[str, Any] | None:
+    """The measured window of one candidate step (a run of clean windows from t0 to t1, at
+    about f0): period by period (each with its own quadratic trend, so the drift's ramps do
+    not leak in), the moving joint, the plateau of its amplitude (within 3 % of the run's
+    level, less its last period when long), the frequency from the phase advance over the
+    plateau then by least squares on it; the measured window is the plateau's last 60 %."""
+    ext = (t >= t0 - 0.5 * (t1 - t0)) & (t <= t1 + 0.5 * (t1 - t0))
+    ts = t[ext]
+    if ts.size < 64 or (ts[-1] - ts[0]) * f0 < 8:
+        return None
+    edges, amps = _period_blocks(ts, q[ext], f0)
+    in_run = (ts[edges[:-1]] >= t0) & (ts[edges[1:] - 1] <= t1)
+    if in_run.sum() < 3:
+        return None
+    rel = np.median(np.abs(amps[in_run]), axis=0) * (2 * math.pi * f0) ** 2 / acc_scale
+    joint = int(np.argmax(rel)) + 1
+    x = amps[:, joint - 1]
+    level = float(np.median(np.abs(x[in_run])))
+    on = np.abs(np.abs(x) / max(level, 1e-300) - 1.0) < 0.03
+    best, run = (0, 0), 0
+    for i, ok in enumerate(on):  # the longest run of periods on the plateau
+        run = run + 1 if ok else 0
+        if run > best[1] - best[0]:
+            best = (i - run + 1, i + 1)
+    first, last = best
+    last -= 1 if last - first > 8 else 0  # the ramp out may start in the last one
+    if int(0.6 * (last - first)) < 4:
+        return None
+    # the phase advances by 2π (f − f0)/f0 per block of the plateau
+    phase = np.unwrap(np.angle(x[first:last]))
+    slope = np.polyfit(np.arange(last - first), phase, 1)[0]
+    f = f0 * (1.0 + slope / (2 * math.pi))
+    t_start, t_end = float(ts[edges[first]]), float(ts[edges[last] - 1])
+    plateau = (t >= t_start) & (t <= t_end)
+    f = _refine(t[plateau], q[plateau, joint - 1:joint], f, span_bins=0.25)
+    periods = math.floor(0.6 * (t_end - t_start) * f)
+    t_meas = t_end - periods / f
+    if _unexplained(t[(t >= t_meas) & (t <= t_end)],
+                    q[(t >= t_meas) & (t <= t_end), joint - 1], f) > 0.02:
+        return None  # not one steady sine (two steps mixed, a sweep, a transient)
+    step: dict[str, Any] = {"joint": joint, "f_hz": f, "t_measure": t_meas, "t_end": t_end}
+    # excited axes: they oscillate at f and drift (an axis the loop holds only reacts)
+    mean_v = (q[plateau][-1] - q[plateau][0]) / max(t_end - t_start, 1e-9)
+    sine_v = np.median(np.abs(amps[first:last]), axis=0) * 2 * math.pi * f
+    drifting = np.abs(mean_v) > 2 * sine_v
+    excited = drifting & (rel > 0.3 * (rel[drifting].max() if drifting.any() else 0.0))
+    if excited.any():
+        step["joint"] = int(np.argmax(np.where(excited, rel, -np.inf))) + 1
+    moving = [int(j) + 1 for j in np.flatnonzero(excited)]
+    if len(moving) > 1:
+        step.update(joints=moving, amplitudes_rad=[0.0] * len(moving),
+                    drifts_rad_s=[0.0] * len(moving))
+    return step
+
+
+def _refine(t: np.ndarray, x: np.ndarray, f0: float, span_bins: float = 1.5) -> float:
+    """The frequency near f0 whose sinusoid (on a quadratic trend) leaves the least residual
+    (least squares; the projected power alone is biased by the trend): a grid over ±1.5 bins
+    of the window (side lobes), then golden section around the best."""
     from scipy.optimize import minimize_scalar
 
-    def neg(f: float) -> float:
-        return -float(np.sum(np.abs(sine_amplitudes(t, x, f)[0]) ** 2))
+    tc = t - t.mean()
+    x = x.reshape(len(t), -1)
+    x = x / np.maximum(x.std(axis=0), 1e-300)
 
-    span = 1.5 / (t[-1] - t[0])
-    res = minimize_scalar(neg, bounds=(f0 - span, f0 + span), method="bounded",
-                          options={"xatol": 1e-5 * f0})
+    def neg(f: float) -> float:
+        w = 2 * math.pi * f * t
+        a = np.column_stack((np.ones(t.size), tc, tc * tc, np.cos(w), np.sin(w)))
+        res = x - a @ np.linalg.lstsq(a, x, rcond=None)[0]
+        return float(np.sum(res * res))
+
+    span = span_bins / (t[-1] - t[0])
+    grid = f0 + np.linspace(-span, span, 31)
+    best = float(grid[int(np.argmin([neg(f) for f in grid]))])
+    step = grid[1] - grid[0]
+    res = minimize_scalar(neg, bounds=(best - step, best + step), method="bounded",
+                          options={"xatol": 1e-6 * f0})
     return float(res.x)
 
 
+def log_schedule(t: np.ndarray, q: np.ndarray, tau: np.ndarray) -> list[dict[str, Any]]:
+    """The steps found in a log, as a schedule (steps of two axes at one frequency share a
+    key for the 2×2 estimate): detect once, estimate every target's FRF from it."""
+    return _merge_close(detect_steps(t, q, tau))
+
+
 def frf_from_log(t: np.ndarray, q: np.ndarray, tau: np.ndarray, joints: Sequence[int],
-                 tau_model: np.ndarray | None = None) -> Frf:
-    """As :func:`frf_from_schedule`, with the steps detected in the log alone."""
+                 tau_model: np.ndarray | None = None,
+                 steps: Sequence[dict[str, Any]] | None = None) -> Frf:
+    """As :func:`frf_from_schedule`, with the steps detected in the log alone (every axis
+    looked at, so that a step of another axis is not taken for one of ``joints``), or the
+    ``steps`` :func:`log_schedule` found before."""
     if tau_model is not None:
         tau = tau - tau_model
-    cols = [j - 1 for j in joints]
-    steps = detect_steps(t, q[:, cols], tau[:, cols])
-    for st in steps:
-        st["joint"] = joints[st["joint"] - 1]
-    frf = frf_from_schedule(t, q, tau, _merge_close(steps), joints)
+    frf = frf_from_schedule(t, q, tau, steps if steps is not None else log_schedule(t, q, tau),
+                            joints)
     frf.source = "detected"
     return frf
 

@@ -132,6 +132,7 @@ def elasticity_run(job: dict[str, Any]) -> dict[str, Any]:
     """Elasticity of each stepped-sine log, from the schedule its program carried."""
     from robid_link.ident.data import load_log
     from robid_link.ident.elasticity import identify_elasticity
+    from robid_link.ident.frequency import excited_axes
     from robid_link.link.driver import MotionProgram
 
     robot = _robot(job["robot"], tuple(job["lock"]))
@@ -139,11 +140,12 @@ def elasticity_run(job: dict[str, Any]) -> dict[str, Any]:
     for run in job["runs"]:
         head = MotionProgram(run["exp_id"], run["files"], 0.0).trajectory().header
         schedule = head.get("schedule")
-        joints = tuple(sorted({int(s["joint"]) for s in schedule or [] if "joint" in s}))
+        joints, pairs = excited_axes(schedule or [])
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # resampling notes: the log itself was checked
             log = load_log(run["log"], robot.n)
-        res = identify_elasticity(robot, [log], joints=joints, schedule=schedule)
+        res = identify_elasticity(robot, [log], joints=joints,
+                                  pair=pairs[0] if pairs else None, schedule=schedule)
         doc = res.to_dict()
         for j in doc.get("joints", []):
             j["measures"] = {"experiment": run["exp_id"], "kind": "elasticity"}
