@@ -175,7 +175,7 @@ def _candidates(robot: Robot, model: Model, default: np.ndarray | None) -> list[
 
     out = []
     for name, eff in REGISTRY.items():
-        if name == "rigid_body":
+        if name == "rigid_body" or not eff.catalog:
             continue
         if not eff.per_joint:
             if name not in present_names:
@@ -341,8 +341,7 @@ def _r2_binned(x: np.ndarray, r: np.ndarray, bins: int = 30) -> float:
 
 
 #: what each effect is a function of: the quantity its evidence is stated against
-_SIGNATURE = {"spring": "q", "ripple": "q", "armature": "qdd", "friction_drift": "t",
-              "offset": "t"}
+_SIGNATURE = {"spring": "q", "ripple": "q", "armature": "qdd", "friction_drift": "t"}
 
 
 def _signature_r2(robot: Robot, blk: Block, states: States, resid: np.ndarray
@@ -362,7 +361,7 @@ def _signature_r2(robot: Robot, blk: Block, states: States, resid: np.ndarray
     out = {"r2_q": (f"q{j + 1}", _r2_binned(states.q[:, j], r)),
            "r2_qd": (f"q̇{tag}", _r2_binned(v, r)),
            "r2_qdd": (f"q̈{tag}", _r2_binned(a, r))}
-    if blk.effect.name == "friction_drift" and states.t is not None:
+    if states.t is not None:
         out["r2_t"] = ("time", _r2_binned(states.t, r))
     return out
 
@@ -688,7 +687,7 @@ def _residual_dict(resid: np.ndarray, states: States, fs: float) -> dict[str, np
 
 def _prefer_simpler(good: list[Suggestion]) -> list[Suggestion]:
     """Among near-equal explanations on one joint, the one with fewer parameters first."""
-    order = {"offset": 1, "viscous": 1, "coulomb": 1, "armature": 1, "load_friction": 1,
+    order = {"offset": 1, "viscous": 1, "friction": 1, "coulomb": 1, "armature": 1, "load_friction": 1,
              "stribeck": 1, "presliding": 1, "coulomb_asymmetric": 2, "ripple": 2,
              "friction_drift": 2, "friction_power": 3, "spring": 9, "delay": 1}
     out = list(good)

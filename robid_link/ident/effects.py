@@ -112,6 +112,8 @@ class Effect:
     replaces: ClassVar[tuple[str, ...]] = ()
     #: acts on a joint's or a motor's velocity (``NAME@jJ`` / ``NAME@mM``)
     sided: ClassVar[bool] = False
+    #: the diagnosis scores it on every joint (False: only where a coupling makes it new)
+    catalog: ClassVar[bool] = True
     doc: ClassVar[str] = ""
 
     def param_names(self, robot: Robot, joint: int | None, opts: dict[str, Any]) -> list[str]:
@@ -190,6 +192,26 @@ class Coulomb(Effect):
 
     def columns(self, robot, st, joint, opts):
         return _motor_row(st, robot.n, joint, [moving_sign(st.motor_velocity(joint))])
+
+
+@register
+class Friction(Effect):
+    """Viscous and Coulomb friction of one velocity together. The catalog scores it on coupled
+    drives only: on a coupled wrist's motor (velocity q̇5 + q̇6 through the coupling) it is the
+    friction neither joint's own viscous and Coulomb terms can express."""
+
+    name = "friction"
+    sided = True
+    catalog = False  # a candidate only where a coupling makes the other side's friction new
+    doc = "viscous and Coulomb friction together, fv·q̇ + fc·sign(q̇) (a coupled motor's)"
+    replaces = ("viscous", "coulomb")
+
+    def param_names(self, robot, joint, opts):
+        return [f"fv_{joint + 1}", f"fc_{joint + 1}"]
+
+    def columns(self, robot, st, joint, opts):
+        v = st.motor_velocity(joint)
+        return _motor_row(st, robot.n, joint, [v, moving_sign(v)])
 
 
 @register

@@ -14,6 +14,9 @@ from scipy.optimize import minimize_scalar
 from robid_link.ident.effects import REGISTRY, Block, States
 from robid_link.ident.robot import Robot
 
+#: friction_drift's time constants from here on mean a linear drift (see effects.py)
+LINEAR_DRIFT = 1e5
+
 __all__ = ["ProfileRows", "profile_effect", "refine_effect", "screen", "basis", "bounds"]
 
 
@@ -82,6 +85,8 @@ def bounds(rows: ProfileRows, blk: Block, hyper: str) -> tuple[float, float]:
     motor speeds for a motor), and for a ripple any period the data resolves — from a
     twentieth of the smallest catalogued period to half the joint's travel (two cycles)."""
     grid = blk.grid(hyper, rows.robot, rows.states.transmission)
+    if hyper == "tau_s":  # 1e6 stands for a linear drift, not a time constant to refine to
+        return float(min(grid)), float(max(g for g in grid if g < LINEAR_DRIFT))
     if blk.effect.name == "ripple" and blk.joint is not None:
         span = float(np.ptp(rows.states.q[:, blk.joint]))
         return float(min(grid)), max(float(min(grid)) * 2, span / 2)
@@ -125,6 +130,9 @@ def refine_effect(rows: ProfileRows, chosen: list[Block]) -> list[Block]:
     out = []
     for b in chosen:
         lo, hi = bounds(rows, b, hyper)
+        if hyper == "tau_s" and b.opts[hyper] >= LINEAR_DRIFT:
+            out.append(b)  # the linear drift: nothing continuous to refine
+            continue
         centre = float(np.clip(b.opts[hyper], lo, hi))
         if eff.name == "ripple":  # the spectral peak's main lobe: ± period / travel
             span = max(float(np.ptp(rows.states.q[:, b.joint])), 1e-9)
