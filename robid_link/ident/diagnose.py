@@ -687,9 +687,9 @@ def _residual_dict(resid: np.ndarray, states: States, fs: float) -> dict[str, np
 
 def _prefer_simpler(good: list[Suggestion]) -> list[Suggestion]:
     """Among near-equal explanations on one joint, the one with fewer parameters first."""
-    order = {"offset": 1, "viscous": 1, "friction": 1, "coulomb": 1, "armature": 1, "load_friction": 1,
-             "stribeck": 1, "presliding": 1, "coulomb_asymmetric": 2, "ripple": 2,
-             "friction_drift": 2, "friction_power": 3, "spring": 9, "delay": 1}
+    order = {"offset": 1, "viscous": 1, "friction": 1, "coulomb": 1, "armature": 1,
+             "load_friction": 1, "stribeck": 1, "presliding": 1, "coulomb_asymmetric": 2,
+             "ripple": 2, "friction_drift": 2, "friction_power": 3, "spring": 9, "delay": 1}
     out = list(good)
     swapped = True
     while swapped:  # bubble until stable: equivalents may come in any order

@@ -286,12 +286,11 @@ class Stribeck(Effect):
 class Presliding(Effect):
     name = "presliding"
     sided = True
-    doc = ("friction's smooth transition through zero velocity (pre-sliding): "
-           "fp·tanh(q̇/vp) in place of Coulomb's step")
+    doc = ("friction's smooth transition through zero velocity (pre-sliding): fp·tanh(q̇/vp) "
+           "beside Coulomb's step (fc → 0 when the transition is all smooth)")
     hypers = {"vp": Hyper(0.01, (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1),
                           "transition velocity, rad/s (of the side's velocity)", "velocity")}
     options = frozenset({"vp"})
-    replaces = ("coulomb",)
 
     def param_names(self, robot, joint, opts):
         return [f"fp_{joint + 1}"]

@@ -136,7 +136,7 @@ def refine_effect(rows: ProfileRows, chosen: list[Block]) -> list[Block]:
         centre = float(np.clip(b.opts[hyper], lo, hi))
         if eff.name == "ripple":  # the spectral peak's main lobe: ± period / travel
             span = max(float(np.ptp(rows.states.q[:, b.joint])), 1e-9)
-            width, tol = float(np.clip(1.0 + 0.5 * centre / span, 1.0005, 1.03)), 1e-5
+            width, tol = float(np.clip(1.0 + 0.5 * centre / span, 1.0005, 1.5)), 1e-5
         else:
             grid = np.array(b.grid(hyper, rows.robot, rows.states.transmission))
             k = int(np.argmin(np.abs(grid - centre)))
