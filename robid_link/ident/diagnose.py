@@ -361,7 +361,9 @@ def _signature_r2(robot: Robot, blk: Block, states: States, resid: np.ndarray
     out = {"r2_q": (f"q{j + 1}", _r2_binned(states.q[:, j], r)),
            "r2_qd": (f"q̇{tag}", _r2_binned(v, r)),
            "r2_qdd": (f"q̈{tag}", _r2_binned(a, r))}
-    if states.t is not None:
+    if blk.effect.name == "friction_drift" and states.t is not None:
+        # only a drift is weighed against time: at a slow motion's pace, binned time follows
+        # everything the motion does
         out["r2_t"] = ("time", _r2_binned(states.t, r))
     return out
 
@@ -535,7 +537,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         gain = 1.0 - after / max(before, 1e-300)
         r2: dict[str, tuple[str, float]] = {}
         if blk.joint is not None:
-            tag = f"{blk.joint}{blk.side}{blk.opts.get('period', '')}"
+            tag = f"{blk.joint}{blk.side}{blk.effect.name == 'friction_drift'}"
             if tag not in r2_cache:
                 r2_cache[tag] = _signature_r2(robot, blk, states, resid)
             r2 = r2_cache[tag]

@@ -81,14 +81,52 @@ def test_coupled_motor_friction_named_when_left_out(industrial6, wrist_log):
     assert dg.to_dict()["suggestions"][0]["label"] == top.label() == f"{top.effect}@m6"
     # the evidence is stated against the motor's own velocity, which the suggestion names
     assert "residual against q̇m6" in top.evidence
-    for s in [*dg.suggestions, *dg.rejected]:
-        for key, value in s.hypers.items():  # profiled hyper-parameters stay in their bounds
-            blk = Block(REGISTRY[s.effect], s.joint - 1, {}, s.side)
-            grid = blk.grid(key, industrial6, None)
-            if key != "period":
-                assert min(grid) <= value <= max(grid), (s.label(), key, value)
-    # nobody reports a column absorbed by nothing
+    _check_bounds(dg, industrial6, None)
+
+
+def _check_bounds(dg, robot, default) -> None:
+    """Profiled hyper-parameters stay within their grids' span on the block's side, and no
+    column is reported "absorbed" by nothing."""
+    for s in [*dg.suggestions, *dg.rejected, *dg.not_transferring]:
+        for key, value in s.hypers.items():
+            if key == "period":
+                continue
+            grid = Block(REGISTRY[s.effect], s.joint - 1, {}, s.side).grid(key, robot, default)
+            assert min(grid) <= value <= max(grid), (s.label(), key, value)
     assert all(a["by"] for a in dg.absorbed)
+
+
+def test_motor_side_log_names_the_coupled_joints_bearing_friction(industrial6, tmp_path):
+    """Motor encoders and motor torques: friction on every motor (the default side) and on
+    joint 6's bearing, which motor 6's velocity q̇5 + q̇6 cannot express."""
+    robot, t_mat = industrial6, industrial6.transmission
+    motor_fv, motor_fc = 2.0 / t_mat.diagonal() ** 2, 60.0 / t_mat.diagonal() ** 2
+
+    def friction(q, qd):
+        vm = qd @ t_mat.T
+        out = (motor_fv * vm + motor_fc * np.sign(vm)) @ t_mat
+        out[:, 5] += 2.0 * qd[:, 5] + 1.5 * np.sign(qd[:, 5])
+        return out
+    joint_side = _log(robot, tmp_path / "j.csv", 3, effects=(), extra=friction, duration=30.0)
+    from robid_link.ident.data import load_log
+    log = load_log(joint_side, robot.n)
+    q_m, tau_m = robot.to_motor_side(log.q, log.tau)
+    path = tmp_path / "motor.csv"
+    write_log_csv(path, log.t, q_m, tau_m)
+    with warnings.catch_warnings():
+        _quiet()
+        logs = load_logs(robot, [path], motor_side=True)
+        res = identify(robot, logs, Model.parse(["rigid_body", "viscous", "coulomb",
+                                                 "viscous@j6", "coulomb@j6"]), motor_side=True)
+        dg = diagnose(robot, logs, DEFAULT_MODEL, motor_side=True)
+    got = {p["name"]: p["value"] for p in res.to_dict()["parameters"]}
+    for name, value in {"fv_j6": 2.0, "fc_j6": 1.5, "fc_6": motor_fc[5], "fv_6": motor_fv[5],
+                        "fc_5": motor_fc[4]}.items():
+        assert got[name] == pytest.approx(value, rel=0.03), (name, got[name])
+    top = dg.suggestions[0]
+    assert (top.side, top.joint) == ("joint", 6), dg.summary()
+    assert "residual against q̇6" in top.evidence and "time" not in top.evidence
+    _check_bounds(dg, robot, t_mat)
 
 
 def test_sides_in_model_entries(arm3, industrial6):
