@@ -53,8 +53,8 @@ PROFILE_ROWS = 3000
 #: a per-joint candidate is scored only if, in-sample on the profiling rows, it explains this
 #: fraction of its joint's filtered residual (≈ half of GAIN_MIN on the RMSE)
 SCREEN_MIN = 1.0 - (1.0 - GAIN_MIN / 2) ** 2
-#: on the validation logs a suggestion must cut its rows' RMSE by this fraction, else it does
-#: not transfer (it leaves the held-out error where it was, or raises it)
+#: on the validation logs a suggestion must cut its rows' RMSE by this fraction, and not raise
+#: the other joints' (it shares the rigid-body parameters), else it does not transfer
 TRANSFER_MIN = 0.01
 #: extrapolation notes (validation outside the training ranges) that make a verdict doubtful
 EXTRAPOLATION_MAX = 3
@@ -553,14 +553,19 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         if transfer is not None and rmse_v0 is not None:
             rmse_v1 = transfer.rmse(sub)
             v_before, v_after = _rms(rmse_v0[rws]), _rms(rmse_v1[rws])
-            sug.transfer = 1.0 - v_after / max(v_before, 1e-300)
+            # the effect shares the rigid-body parameters with every joint: what it does to
+            # the others counts too (each joint relative to itself, so none dominates)
+            sug.transfer = 1.0 - _rms(rmse_v1 / np.maximum(rmse_v0, 1e-300))
             sug.fields.update({"validation_before": round(v_before, 4),
                                "validation_after": round(v_after, 4),
-                               "transfer_gain": round(sug.transfer, 4)})
+                               "transfer_gain": round(sug.transfer, 4),
+                               "transfer_own": round(1.0 - v_after / max(v_before, 1e-300), 4)})
             sug.evidence += (f"; on the validation logs {sug.fields['validation_before']:.4g} → "
-                             f"{sug.fields['validation_after']:.4g} N·m")
+                             f"{sug.fields['validation_after']:.4g} N·m (all joints: "
+                             f"{100 * sug.fields['transfer_gain']:.3g} %)")
         if gain >= GAIN_MIN and p_value <= P_MAX:
-            if sug.transfer is not None and sug.transfer < TRANSFER_MIN:
+            if sug.transfer is not None and (sug.transfer <= 0.0 or
+                                             sug.fields["transfer_own"] < TRANSFER_MIN):
                 lost.append(sug)
             else:
                 good.append(sug)

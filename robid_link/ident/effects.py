@@ -338,7 +338,8 @@ class Spring(Effect):
 class Ripple(Effect):
     name = "ripple"
     doc = "position-periodic torque (cogging, gear meshing) with period P in the joint angle"
-    # cogging and gear meshing repeat within a few degrees; a slower q-dependence is a spring
+    # the grid is the catalogued range (cogging, gear meshing: a few degrees); the diagnosis
+    # searches every period the data resolves, up to half the joint's travel (two cycles)
     hypers = {"period": Hyper(0.1, tuple(float(x) for x in np.geomspace(0.01, 0.5, 41)),
                               "period in rad (found from the residual)")}
     options = frozenset({"period"})
