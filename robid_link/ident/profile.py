@@ -82,8 +82,8 @@ class ProfileRows:
 
 def bounds(rows: ProfileRows, blk: Block, hyper: str) -> tuple[float, float]:
     """Where the hyper-parameter may go on the block's side: its grid's span (scaled to
-    motor speeds for a motor), and for a ripple any period the data resolves — from a
-    twentieth of the smallest catalogued period to half the joint's travel (two cycles)."""
+    motor speeds for a motor), and for a ripple any period the data resolves — from the
+    smallest catalogued period to half the joint's travel (two cycles seen)."""
     grid = blk.grid(hyper, rows.robot, rows.states.transmission)
     if hyper == "tau_s":  # 1e6 stands for a linear drift, not a time constant to refine to
         return float(min(grid)), float(max(g for g in grid if g < LINEAR_DRIFT))
@@ -147,14 +147,18 @@ def refine_effect(rows: ProfileRows, chosen: list[Block]) -> list[Block]:
         if not z > a:
             out.append(b.with_opts(**{hyper: centre}))
             continue
-        beyond = rows.beyond(b) if b.joint is not None else None
+        # a ripple's period beyond the whole model (its joints' rows bound together, as in
+        # the cross-validation): a slow ripple hides in one joint's free model row
+        whole = eff.name == "ripple" or b.joint is None
+        beyond = rows.beyond_model if eff.name == "ripple" else (
+            rows.beyond(b) if b.joint is not None else
+            _Beyond(np.zeros((rows.resid.size, 0)), rows.resid.reshape(-1)))
 
-        def cost(logv: float, b: Block = b, beyond: _Beyond | None = beyond) -> float:
+        def cost(logv: float, b: Block = b, beyond: _Beyond = beyond, whole: bool = whole
+                 ) -> float:
             cols = b.with_opts(**{hyper: math.exp(logv)}).columns(rows.robot, rows.states)
-            if beyond is None:
-                return -_Beyond(np.zeros((rows.resid.size, 0)), rows.resid.reshape(-1)).share(
-                    cols.reshape(-1, cols.shape[2]))
-            return -beyond.share(rows.stacked(b, cols))
+            return -beyond.share(cols.reshape(-1, cols.shape[2]) if whole
+                                 else rows.stacked(b, cols))
 
         res = minimize_scalar(cost, bounds=(math.log(a), math.log(z)), method="bounded",
                               options={"xatol": tol, "maxiter": 40})

@@ -4,6 +4,7 @@ cogging, a smooth friction transition under a Stribeck hump."""
 
 from __future__ import annotations
 
+import os
 import warnings
 from pathlib import Path
 
@@ -233,3 +234,81 @@ def test_presliding_left_under_a_stribeck_hump_is_named(arm3, tmp_path):
         after = identify(arm3, logs, model.with_added(spec)).rmse[1]
         ref = identify(arm3, load_logs(arm3, [clean]), DEFAULT_MODEL).rmse[1]
     assert after**2 - ref**2 <= 0.2 * (before**2 - ref**2), (before, after, ref)
+
+
+# ----------------------------------------------------------------------------- make validate
+SLOW = pytest.mark.skipif(not os.environ.get("ROBID_VALIDATE"), reason="make validate")
+
+
+@pytest.mark.slow
+@SLOW
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_matrix_coupled_motor_friction(industrial6, tmp_path, seed):
+    log = _log(industrial6, tmp_path / "w.csv", seed, extra=_motor6_friction(industrial6))
+    with warnings.catch_warnings():
+        _quiet()
+        logs = load_logs(industrial6, [log])
+        dg = diagnose(industrial6, logs, DEFAULT_MODEL)
+        res = identify(industrial6, logs, Model.parse(["rigid_body", "viscous", "coulomb",
+                                                       "friction@m6"]))
+    assert (dg.suggestions[0].side, dg.suggestions[0].joint) == ("motor", 6), dg.summary()
+    got = {p["name"]: p["value"] for p in res.to_dict()["parameters"]}
+    assert got["fv_m6"] == pytest.approx(FV_M6, rel=0.05)
+    assert got["fc_m6"] == pytest.approx(FC_M6, rel=0.03)
+
+
+@pytest.mark.slow
+@SLOW
+@pytest.mark.parametrize("seed", [11, 12, 13])
+@pytest.mark.parametrize("period", [0.6, 0.9, 1.3])
+def test_matrix_slow_ripple(arm3, tmp_path, seed, period):
+    """On the joint that travels most (at least two periods: a torque seen over under two
+    periods is not known to repeat, and a spring is then the honest name)."""
+    q = random_fourier(arm3, harmonics=5, base_hz=0.1, seed=seed).evaluate(
+        np.arange(0.0, 40.0, 1 / 250.0))[0]
+    j = int(np.argmax(np.ptp(q, axis=0)))
+    assert np.ptp(q[:, j]) >= 2 * period
+
+    def slow(q, qd):
+        out = np.zeros_like(q)
+        out[:, j] = 0.6 * np.sin(2 * np.pi * q[:, j] / period + 0.3)
+        return out
+    log = _log(arm3, tmp_path / "slow.csv", seed, extra=slow)
+    with warnings.catch_warnings():
+        _quiet()
+        dg = diagnose(arm3, load_logs(arm3, [log]), DEFAULT_MODEL)
+    top = dg.suggestions[0]
+    assert top.label() == f"ripple@{j + 1}", dg.summary()
+    assert top.hypers["period"] == pytest.approx(period, rel=0.02)
+
+
+@pytest.mark.slow
+@SLOW
+@pytest.mark.kuka
+def test_following_the_diagnosis_with_validation_helps_on_the_unseen_motion(kuka_dir):
+    """A user's loop on the real KUKA LWR4+: train on files 1+2, validate on file 3 (another
+    motion), add the top suggestion, three rounds: the unseen error never rises and ends
+    below the CAD model's."""
+    from robid_link.ident.robot import load_robot
+
+    robot = load_robot(kuka_dir / "kuka_lwr4.urdf")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        data = load_logs(robot, [kuka_dir / f"measurements_{i}.npz" for i in (1, 2)])
+        val = load_logs(robot, [kuka_dir / "measurements_3.npz"])
+        model, errors = DEFAULT_MODEL, []
+        for _ in range(3):
+            res = identify(robot, data, model, validate=val)
+            errors.append(res.validation.relative_error)
+            dg = diagnose(robot, data, model, validate=val, result=res)
+            if not dg.suggestions:
+                break
+            s = dg.suggestions[0]
+            model = model.with_added(EffectSpec(s.effect, s.joint,
+                                                tuple(sorted(s.hypers.items())), s.side))
+        res = identify(robot, data, model, validate=val)
+        errors.append(res.validation.relative_error)
+    print("unseen motion, relative error per round:", [f"{100 * e:.2f} %" for e in errors],
+          f"CAD {100 * res.nominal.relative_error:.2f} %")
+    assert all(b <= a * 1.005 for a, b in zip(errors, errors[1:], strict=False)), errors
+    assert errors[-1] < res.nominal.relative_error
