@@ -40,7 +40,7 @@ def result_record(kind: str, doc: dict[str, Any]) -> dict[str, Any]:
                              for p in doc.get("parameters", [])]
     if kind == "diagnose":
         rec["verdict"] = doc.get("verdict")
-        rec["suggestions"] = [{k: s.get(k) for k in ("effect", "joint", "gain",
+        rec["suggestions"] = [{k: s.get(k) for k in ("effect", "joint", "side", "gain",
                                                      "hyper_parameters", "seconds")}
                               for s in doc.get("suggestions", [])]
     return rec
