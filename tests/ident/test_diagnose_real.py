@@ -195,6 +195,20 @@ def test_effect_that_transfers_is_ranked_on_the_new_motion(arm3, tmp_path):
     assert top.fields["validation_after"] < top.fields["validation_before"]
 
 
+def test_verdict_is_not_adequate_while_an_effect_raises_the_held_out_error(arm3, tmp_path):
+    """A model carrying springs the robot has not: nothing is missing, but on another motion
+    the springs extrapolate, and a model without them does better."""
+    train = _log(arm3, tmp_path / "a.csv", 5, duration=30.0)
+    valid = _log(arm3, tmp_path / "b.csv", 8, duration=20.0)
+    model = Model.parse(["rigid_body", "viscous", "coulomb", "spring@1"])
+    with warnings.catch_warnings():
+        _quiet()
+        dg = diagnose(arm3, load_logs(arm3, [train]), model, validate=load_logs(arm3, [valid]))
+    assert dg.suggestions == [] and dg.verdict == "doubtful", dg.summary()
+    assert any(d.startswith("spring@1 raises the validation logs' error") for d in dg.doubts)
+    assert dg.to_dict()["doubts"] == dg.doubts
+
+
 @pytest.mark.parametrize("period", [1.0, np.pi / 2])
 def test_slow_periodic_torque_is_a_ripple_not_a_spring(arm3, tmp_path, period):
     """Periods above the old grid's 0.5 rad; π/2 is also a spring harmonic, so the spring
