@@ -440,11 +440,12 @@ def _model_add(args: argparse.Namespace) -> int:
     path = Path(args.model_file)
     model = load_model(path) if path.exists() else DEFAULT_MODEL
     spec = parse_effect(args.effect, args.effect)
-    chosen = latest_hypers(path, spec.name, spec.joint)
+    chosen = latest_hypers(path, spec.name, spec.joint, spec.side)
     allowed = REGISTRY[spec.name].options
     chosen = {k: v for k, v in chosen.items() if k in allowed and k not in spec.opts}
     if chosen:
-        spec = EffectSpec(spec.name, spec.joint, tuple(sorted({**spec.opts, **chosen}.items())))
+        spec = EffectSpec(spec.name, spec.joint, tuple(sorted({**spec.opts, **chosen}.items())),
+                          spec.side)
         print(f"  with {', '.join(f'{k} = {v:.4g}' for k, v in chosen.items())} "
               "(chosen by the latest diagnosis)")
     model = model.with_added(spec)

@@ -103,7 +103,7 @@ def _add_suggestion(doc: dict[str, Any], model_file: Path) -> Any:
         return None
     top = diag["suggestions"][0]
     spec = EffectSpec(top["effect"], top["joint"],
-                      tuple(sorted((top.get("hyper_parameters") or {}).items())))
+                      tuple(sorted((top.get("hyper_parameters") or {}).items())), top.get("side"))
     save_model(model_file, load_model(model_file).with_added(spec))
     print(f"  the diagnosis suggests {spec.label()}: added to {model_file}")
     return spec

@@ -38,7 +38,7 @@ __all__ = [
 
 def block_columns(robot: Robot, blocks: Sequence[Block], st: States) -> np.ndarray:
     """(N, n, P): the columns of every block side by side."""
-    return np.concatenate([b.effect.columns(robot, st, b.joint, b.opts) for b in blocks], axis=2)
+    return np.concatenate([b.columns(robot, st) for b in blocks], axis=2)
 
 
 def random_states(robot: Robot, rng: np.random.Generator, n: int,
@@ -84,7 +84,7 @@ class Design:
 
     def _plan(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """Per block: (compact destination columns, flat source index in that block)."""
-        widths = [len(b.effect.param_names(self.robot, b.joint, b.opts)) for b in self.blocks]
+        widths = [len(b.param_names(self.robot)) for b in self.blocks]
         starts = np.concatenate(([0], np.cumsum(widths))).astype(int)
         plan = []
         for bi, width in enumerate(widths):
@@ -112,7 +112,7 @@ class Design:
                 rigid_regressor(self.robot, st.q, st.qd, st.qdd, out=out,
                                 dest=dest.reshape(n, 10 * n))
             else:
-                vals = blk.effect.columns(self.robot, st, blk.joint, blk.opts)
+                vals = blk.columns(self.robot, st)
                 out[:, dst] = vals.reshape(n_samp, -1)[:, src]
         return out
 
@@ -147,7 +147,7 @@ def base_set_for(robot: Robot, blocks: Sequence[Block], transmission: np.ndarray
                  ) -> tuple[BaseSet, list[str]]:
     """The structural base set of a robot and effect list (random states, fixed seed),
     memoized per robot object: identify, diagnose and excitation ask for the same ones."""
-    key = (id(robot), tuple((b.effect.name, b.joint, tuple(sorted(b.opts.items())))
+    key = (id(robot), tuple((b.effect.name, b.joint, b.side, tuple(sorted(b.opts.items())))
                             for b in blocks),
            None if transmission is None else transmission.tobytes())
     hit = _BASE_SETS.get(key)
@@ -162,7 +162,7 @@ def base_set_for(robot: Robot, blocks: Sequence[Block], transmission: np.ndarray
 
 def _compute_base_set(robot: Robot, blocks: Sequence[Block], transmission: np.ndarray | None
                       ) -> tuple[BaseSet, list[str]]:
-    names = [nm for b in blocks for nm in b.effect.param_names(robot, b.joint, b.opts)]
+    names = [nm for b in blocks for nm in b.param_names(robot)]
 
     def sample(rng: np.random.Generator, n: int) -> np.ndarray:
         w = block_columns(robot, blocks, random_states(robot, rng, n, transmission))

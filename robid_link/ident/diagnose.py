@@ -2,12 +2,13 @@
 
 One union design (the model's base columns plus every candidate's new columns) is reduced
 once to per-joint, per-time-block Grams; each candidate is scored on sub-blocks of them by
-blocked cross-validation, a Wald test and a practical-gain threshold.
+blocked cross-validation, a Wald test and a practical-gain threshold. With ``validate`` logs
+(another motion) each candidate is also fitted on all training rows and scored on them: what
+does not transfer is not suggested, and the model's own effects are checked the same way.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -24,11 +25,16 @@ from robid_link.ident.design import (
     random_states,
     structural_mask,
 )
-from robid_link.ident.effects import REGISTRY, Block, Model, States
+from robid_link.ident.effects import REGISTRY, Block, Model, States, effect_label
 from robid_link.ident.estimate import RANK_TOL, Grams, accumulate, long_run_factor, solve
 from robid_link.ident.identify import identify
 from robid_link.ident.preprocess import Piece, Prepared, filter_windows, split
-from robid_link.ident.profile import ProfileRows, profile_effect, refine_effect, screen
+from robid_link.ident.profile import (
+    ProfileRows,
+    profile_effect,
+    refine_effect,
+    screen,
+)
 from robid_link.ident.results import IdentResult
 from robid_link.ident.robot import Robot
 
@@ -47,6 +53,15 @@ PROFILE_ROWS = 3000
 #: a per-joint candidate is scored only if, in-sample on the profiling rows, it explains this
 #: fraction of its joint's filtered residual (≈ half of GAIN_MIN on the RMSE)
 SCREEN_MIN = 1.0 - (1.0 - GAIN_MIN / 2) ** 2
+#: on the validation logs a suggestion must cut its rows' RMSE by this fraction, and not raise
+#: the other joints' (it shares the rigid-body parameters), else it does not transfer
+TRANSFER_MIN = 0.01
+#: extrapolation notes (validation outside the training ranges) that make a verdict doubtful
+EXTRAPOLATION_MAX = 3
+#: spring and ripple within this fraction of each other: physics decides (does it repeat?)
+NEAR_EQUAL = 0.05
+#: correlation of the residual with itself one period on, above which it repeats (ripple)
+REPEAT_MIN = 0.5
 
 
 @dataclass
@@ -59,14 +74,18 @@ class Suggestion:
     evidence: str
     fields: dict[str, float] = field(default_factory=dict)
     hypers: dict[str, float] = field(default_factory=dict)
+    side: str | None = None  # "joint" / "motor" when the effect names its side
+    #: relative cut of the validation logs' RMSE on the effect's rows (None: no such logs)
+    transfer: float | None = None
 
     def label(self) -> str:
-        return self.effect if self.joint is None else f"{self.effect}@{self.joint}"
+        return effect_label(self.effect, self.joint, self.side)
 
     def as_dict(self) -> dict[str, Any]:
-        return {"effect": self.effect, "joint": self.joint, "rmse": self.rmse,
-                "gain": self.gain, "p_value": self.p_value, "evidence": self.evidence,
-                **self.fields, "hyper_parameters": self.hypers}
+        return {"effect": self.effect, "joint": self.joint, "side": self.side,
+                "label": self.label(), "rmse": self.rmse, "gain": self.gain,
+                "transfer_gain": self.transfer, "p_value": self.p_value,
+                "evidence": self.evidence, **self.fields, "hyper_parameters": self.hypers}
 
 
 @dataclass
@@ -80,10 +99,16 @@ class Diagnosis:
     unexplained: list[dict[str, Any]]
     notes: list[str]
     residuals: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    #: suggestions that won the cross-validation but not on the validation logs
+    not_transferring: list[Suggestion] = field(default_factory=list)
+    #: why the model cannot be called adequate though nothing is missing
+    doubts: list[str] = field(default_factory=list)
 
     @property
     def verdict(self) -> str:
-        return "missing_effect" if self.suggestions else "adequate"
+        if self.suggestions:
+            return "missing_effect"
+        return "doubtful" if self.doubts else "adequate"
 
     def to_dict(self) -> dict[str, Any]:
         return {"effects": self.effects, "joints": self.result.joints,
@@ -92,6 +117,8 @@ class Diagnosis:
                 "verdict": self.verdict,
                 "suggestions": [s.as_dict() for s in self.suggestions],
                 "not_useful": [s.as_dict() for s in self.rejected],
+                "not_transferring": [s.as_dict() for s in self.not_transferring],
+                "doubts": self.doubts,
                 "absorbed": self.absorbed, "unexplained": self.unexplained,
                 "notes": self.notes}
 
@@ -111,6 +138,12 @@ class Diagnosis:
                 lines.append(f"   … and {len(rest)} more, weaker ("
                              + ", ".join(s.label() for s in rest[:8])
                              + (", …" if len(rest) > 8 else "") + "; all in the JSON)")
+        for s in self.not_transferring[:SUMMARY_MAX]:
+            lines.append(f"  does not transfer: {s.label()} (cross-validated gain "
+                         f"{100 * s.gain:.1f} %, on the validation logs "
+                         f"{100 * (s.transfer or 0.0):+.1f} %)")
+        for d in self.doubts:
+            lines.append(f"  doubt: {d}")
         for u in self.unexplained:
             lines.append(f"  unexplained: {u['text']}")
         if self.absorbed:
@@ -123,23 +156,48 @@ class Diagnosis:
 # ----------------------------------------------------------------------------- candidates
 
 
-def _candidates(robot: Robot, model: Model) -> list[Block]:
-    present = {(b.effect.name, b.joint) for b in model.blocks(robot)}
-    present_names = {b.effect.name for b in model.blocks(robot)}
+def _candidates(robot: Robot, model: Model, default: np.ndarray | None) -> list[Block]:
+    """Every catalog effect not in the model, on every joint; with a coupled transmission
+    also the other side's friction where the coupling makes it new (joint-side logs: the
+    coupled motors'; motor-side logs: the coupled joints' bearings)."""
+    blocks = model.blocks(robot)
+
+    def norm(side: str | None) -> str | None:  # a side equal to the logs' is the plain one
+        return None if side == ("joint" if default is None else "motor") else side
+
+    present = {(b.effect.name, b.joint, norm(b.side)) for b in blocks}
+    present_names = {b.effect.name for b in blocks}
+
+    def taken(name: str, j: int, side: str | None) -> bool:
+        return (name, j, side) in present or any(
+            (other, j, side) in present for other in REGISTRY
+            if name in REGISTRY[other].replaces)
+
     out = []
     for name, eff in REGISTRY.items():
-        if name == "rigid_body":
+        if name == "rigid_body" or not eff.catalog:
             continue
         if not eff.per_joint:
             if name not in present_names:
                 out.append(Block(eff, None, {}))
             continue
-        for j in range(robot.n):
-            if (name, j) not in present and not any(
-                    (other, j) in present for other in REGISTRY
-                    if name in REGISTRY[other].replaces):
-                out.append(Block(eff, j, {}))
+        out += [Block(eff, j, {}) for j in range(robot.n) if not taken(name, j, None)]
+    for side, j in _coupled(robot, default):
+        out += [Block(eff, j, {}, side) for name, eff in REGISTRY.items()
+                if eff.sided and not taken(name, j, side)]
     return out
+
+
+def _coupled(robot: Robot, default: np.ndarray | None) -> list[tuple[str, int]]:
+    """(side, joint) pairs where a coupled transmission makes the other side's friction new."""
+    t_mat = robot.transmission
+    if t_mat is None:
+        return []
+    rows = [m for m in range(robot.n) if np.count_nonzero(t_mat[m]) > 1]
+    if default is None:
+        return [("motor", m) for m in rows]
+    joints = sorted({int(i) for m in rows for i in np.flatnonzero(t_mat[m])})
+    return [("joint", i) for i in joints]
 
 
 class _Novelty:
@@ -160,9 +218,11 @@ class _Novelty:
         self.q, _ = np.linalg.qr(self.w)
 
     def check(self, blk: Block) -> tuple[list[int], list[str]]:
-        wc = blk.effect.columns(self.robot, self.states, blk.joint, blk.opts)
+        wc = blk.columns(self.robot, self.states)
         wc = wc.reshape(-1, wc.shape[-1])
         norms = np.linalg.norm(wc, axis=0)
+        if not np.any(norms > 1e-12):
+            return [], []  # no column on these states at all: nothing absorbs it
         new: list[int] = []
         basis = self.q
         for i in range(wc.shape[1]):
@@ -280,8 +340,38 @@ def _r2_binned(x: np.ndarray, r: np.ndarray, bins: int = 30) -> float:
     return float(1.0 - np.sum((r - fitted) ** 2) / max(np.sum((r - r.mean()) ** 2), 1e-300))
 
 
-def _evidence(blk: Block, before: float, after: float, r2: dict[str, float],
-              coef: np.ndarray) -> tuple[str, dict[str, float]]:
+#: what each effect is a function of: the quantity its evidence is stated against
+_SIGNATURE = {"spring": "q", "ripple": "q", "armature": "qdd", "friction_drift": "t"}
+
+
+def _signature_r2(robot: Robot, blk: Block, states: States, resid: np.ndarray
+                  ) -> dict[str, tuple[str, float]]:
+    """R² of the block's primary row's residual against q, the block's velocity (a motor's
+    for a motor-side effect), its acceleration and time: key → (label, R²)."""
+    j = blk.joint
+    assert j is not None
+    st = blk.states(robot, states)
+    on_motor = blk.effect.sided and st.transmission is not None
+    if on_motor:
+        assert st.transmission is not None
+        v, a, tag = st.qd @ st.transmission[j], st.qdd @ st.transmission[j], f"m{j + 1}"
+    else:
+        v, a, tag = states.qd[:, j], states.qdd[:, j], f"{j + 1}"
+    r = resid[:, j]
+    out = {"r2_q": (f"q{j + 1}", _r2_binned(states.q[:, j], r)),
+           "r2_qd": (f"q̇{tag}", _r2_binned(v, r)),
+           "r2_qdd": (f"q̈{tag}", _r2_binned(a, r))}
+    if blk.effect.name == "friction_drift" and states.t is not None:
+        # only a drift is weighed against time: at a slow motion's pace, binned time follows
+        # everything the motion does
+        out["r2_t"] = ("time", _r2_binned(states.t, r))
+    return out
+
+
+def _evidence(blk: Block, before: float, after: float,
+              r2: dict[str, tuple[str, float]], coef: np.ndarray) -> tuple[str, dict[str, float]]:
+    """The sentence under a suggestion, stated against the quantity the effect is a function
+    of (a friction's velocity, a spring's angle …), so that it cannot contradict it."""
     name = blk.effect.name
     fields = {"rmse_before": round(before, 4), "rmse_after": round(after, 4)}
     drop = (f"cross-validated RMSE of the filtered torque {fields['rmse_before']:.4g} → "
@@ -293,15 +383,21 @@ def _evidence(blk: Block, before: float, after: float, r2: dict[str, float],
             return (f"the torque log is shifted by {1e3 * fields['seconds']:.4g} ms against "
                     f"the positions; {drop}", fields)
         return f"{drop}", fields
-    j = blk.joint + 1
-    fields.update({k: round(v, 3) for k, v in r2.items()})
-    follows = max(r2, key=lambda k: r2[k])
-    qty = {"r2_q": f"q{j}", "r2_qd": f"q̇{j}", "r2_qdd": f"q̈{j}", "r2_t": "time"}
-    others = [k for k in ("r2_q", "r2_qd", "r2_qdd") if k != follows][:2]
-    text = (f"joint {j} residual follows {qty[follows]} (R² {fields[follows]:.3g}), not "
-            f"{qty[others[0]]} ({fields[others[0]]:.3g}) or {qty[others[1]]} "
-            f"({fields[others[1]]:.3g}); {drop}")
-    for key in ("vs", "period", "tau_s", "alpha"):
+    fields.update({k: round(v, 3) for k, (_, v) in r2.items()})
+    own = "r2_" + _SIGNATURE.get(name, "qd")
+    where = f"joint {blk.joint + 1}" if blk.side != "motor" else f"motor {blk.joint + 1}"
+    if name == "offset":
+        text = f"{where}: a constant torque"
+    else:
+        others = [k for k in ("r2_q", "r2_qd", "r2_qdd") if k != own]
+        text = (f"{where} residual against {r2[own][0]}: R² {fields[own]:.3g} ("
+                + ", ".join(f"{r2[k][0]} {fields[k]:.3g}" for k in others) + ")")
+        best = max(r2, key=lambda k: r2[k][1])
+        if best != own and r2[best][1] > r2[own][1] + 0.05:
+            text += (f"; it follows {r2[best][0]} more closely, and the effect still cuts "
+                     "the held-out error")
+    text += f"; {drop}"
+    for key in ("vs", "vp", "period", "tau_s", "alpha"):
         if key in blk.opts:
             fields[key] = round(float(blk.opts[key]), 5)
             text += f"; {key} {fields[key]:.4g}"
@@ -333,7 +429,10 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     _ = result.rmse  # the held-out figures read the fitted problem's model-torque inputs
     # copies: the model's predictions attached below must not change what the result reads
     preps = [replace(p) for p in (*pb.preps, *pb.vpreps)]
-    pieces, _ = split(preps, None, holdout=0.0)
+    # with validation logs, candidates are profiled and cross-validated on the training logs
+    # and then scored on the validation logs (a new motion); without, all the data is one pool
+    pieces, _ = split(preps[: len(pb.preps)] if pb.vpreps else preps, None, holdout=0.0)
+    vpieces = split(preps[len(pb.preps):], None, holdout=0.0)[0] if pb.vpreps else []
     design = result.design
     base, _ = base_set_for(robot, pb.blocks, pb.transmission)
     theta0 = np.asarray(result.theta)  # same model, same base set: identify's estimate
@@ -342,6 +441,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     if len(logs) == 1 or all(_same_motion(logs[0], lg) for lg in logs[1:]):
         notes.append("all data is one motion: candidates are scored by blocked "
                       f"cross-validation over the log ({FOLDS} folds), not on a new motion")
+    doubts = _doubts(result)
     # residual of the current model on decimated rows: evidence and hyper profiling
     step = max(1, sum(len(p) for p in pieces) // 12000)
     resid, raw_resid, states = _residual_with_states(pieces, step)
@@ -351,7 +451,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     novelty = _Novelty(robot, pb.blocks, base, pb.transmission)
     n_model = len(novelty.names)
     start = n_model
-    candidates = _candidates(robot, model)
+    candidates = _candidates(robot, model, pb.transmission)
     every = max(1, len(states) // PROFILE_ROWS)  # rows spread over the whole log
     sub_states = States(*(None if a is None else a[::every] for a in (
         states.q, states.qd, states.qdd, states.t)), states.transmission,
@@ -368,16 +468,20 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     candidates = [b for b in candidates if not (  # a "ripple" as slow as the motion: spring
         b.effect.name == "ripple" and b.opts.get("period", 0.0) > span[b.joint] / 2)]
     screened = 0
+    silent: list[str] = []
     for blk in candidates:
         new, by = novelty.check(blk)
         if not new:
-            absorbed.append({"effect": blk.key, "by": by})
+            if by:
+                absorbed.append({"effect": blk.key, "by": by})
+            else:
+                silent.append(blk.key)
             continue
         if screen(rows, blk) < SCREEN_MIN:
             screened += 1  # cannot reach GAIN_MIN even in-sample: not worth a union column
             continue
         kept.append(blk)
-        width = len(blk.effect.param_names(robot, blk.joint, blk.opts))
+        width = len(blk.param_names(robot))
         cand_cols.append([start + i for i in new])
         start += width
     for name in sorted({b.effect.name for b in kept if b.key in profiled}):  # survivors only
@@ -385,13 +489,17 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         fine = dict(zip(map(id, group), refine_effect(rows, group), strict=True))
         kept = [fine.get(id(b), b) for b in kept]
     del rows
+    if silent:
+        notes.append(f"{', '.join(silent[:6])}: no column on the data's states at any "
+                     "hyper-parameter tried (not scored)")
     if screened:
         notes.append(f"{screened} candidate(s) explain under {100 * SCREEN_MIN:.0f} % of their "
                      "joint's filtered residual even in-sample and were not scored")
-    if not kept:  # nothing can show a gain: no union pass, the verdict is adequate
+    residuals = _residual_dict(resid, states, pb.preps[0].filt.fs / step)
+    if not kept and not vpieces:  # nothing can show a gain: no union pass
         return Diagnosis(result, model.labels(), None, [], [], absorbed,
-                         _unexplained(preps[0], design, theta0), notes,
-                         _residual_dict(resid, states, pb.preps[0].filt.fs / step))
+                         _unexplained(preps[0], design, theta0), notes, residuals,
+                         doubts=doubts)
     union_blocks = [*pb.blocks, *kept]
     model_cols = list(base.independent)
     cols = np.array(model_cols + [c for cc in cand_cols for c in cc])
@@ -399,14 +507,24 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                    structural_mask(robot, union_blocks, cols, pb.transmission))
     fs, fc = pb.preps[0].filt.fs, pb.preps[0].filt.cutoff_hz
     keep = max(pb.interval, int(fs / (8.0 * fc)))  # rows after the anti-alias filter suffice
-    grams = accumulate(union, pieces, keep, max(1, pb.block_len * pb.interval // keep),
-                       max_blocks=BLOCKS)
+    block_len = max(1, pb.block_len * pb.interval // keep)
+    transfer = None
+    if vpieces:
+        transfer = _Transfer(accumulate(union, pieces, keep, block_len, max_blocks=2),
+                             accumulate(union, vpieces, keep, block_len, max_blocks=2))
+        doubts += _model_transfer(robot, pb, transfer, len(model_cols), base.independent)
+    if not kept:  # nothing can show a gain: no candidate pass
+        return Diagnosis(result, model.labels(), None, [], [], absorbed,
+                         _unexplained(preps[0], design, theta0), notes, residuals,
+                         doubts=doubts)
+    grams = accumulate(union, pieces, keep, block_len, max_blocks=BLOCKS)
     folds = _fold_masks(grams.g.shape[1], FOLDS)
     base_sub = np.arange(len(model_cols))
     cv = _FoldCV(grams, len(model_cols), folds)
     rmse0 = cv.rmse(np.zeros(0, dtype=int))
-    r2_cache: dict[int, dict[str, float]] = {}
-    good, bad = [], []
+    rmse_v0 = transfer.rmse(base_sub) if transfer is not None else None
+    r2_cache: dict[str, dict[str, tuple[str, float]]] = {}
+    good, bad, lost = [], [], []
     pos = len(model_cols)
     for blk, cc in zip(kept, cand_cols, strict=True):
         cand = np.arange(pos, pos + len(cc))
@@ -414,31 +532,158 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         sub = np.concatenate((base_sub, cand))
         rmse1 = cv.rmse(cand)
         p_value, theta = _wald(grams, sub, cand)
-        if blk.joint is None:
-            gain = 1.0 - math.sqrt(np.mean(rmse1**2) / max(np.mean(rmse0**2), 1e-300))
-            before, after = float(np.sqrt(np.mean(rmse0**2))), float(np.sqrt(np.mean(rmse1**2)))
-            r2: dict[str, float] = {}
-        else:
-            j = blk.joint
-            gain = 1.0 - float(rmse1[j] / max(rmse0[j], 1e-300))
-            before, after = float(rmse0[j]), float(rmse1[j])
-            if j not in r2_cache:
-                r2_cache[j] = {"r2_q": _r2_binned(states.q[:, j], resid[:, j]),
-                               "r2_qd": _r2_binned(states.qd[:, j], resid[:, j]),
-                               "r2_qdd": _r2_binned(states.qdd[:, j], resid[:, j])}
-            r2 = r2_cache[j]
+        rws = blk.rows(robot, pb.transmission)  # a coupled motor's friction: several joints
+        before, after = _rms(rmse0[rws]), _rms(rmse1[rws])
+        gain = 1.0 - after / max(before, 1e-300)
+        r2: dict[str, tuple[str, float]] = {}
+        if blk.joint is not None:
+            tag = f"{blk.joint}{blk.side}{blk.effect.name == 'friction_drift'}"
+            if tag not in r2_cache:
+                r2_cache[tag] = _signature_r2(robot, blk, states, resid)
+            r2 = r2_cache[tag]
         text, fields = _evidence(blk, before, after, r2, theta[len(base_sub):])
+        if blk.effect.name == "ripple" and blk.joint is not None:
+            fields["repeat"] = round(_repeats(states.q[:, blk.joint], resid[:, blk.joint],
+                                              float(blk.opts["period"])), 3)
+            text += f"; the residual repeats every period (correlation {fields['repeat']:.3g})"
         sug = Suggestion(blk.effect.name, None if blk.joint is None else blk.joint + 1,
                          [float(x) for x in rmse1], float(gain), p_value, text,
                          {"gain": round(float(gain), 4), **fields},
-                         {k: float(v) for k, v in blk.opts.items()})
-        (good if gain >= GAIN_MIN and p_value <= P_MAX else bad).append(sug)
-    good.sort(key=lambda s: -s.gain)
-    good = _prefer_simpler(good)
+                         {k: float(v) for k, v in blk.opts.items()}, blk.side)
+        if transfer is not None and rmse_v0 is not None:
+            rmse_v1 = transfer.rmse(sub)
+            v_before, v_after = _rms(rmse_v0[rws]), _rms(rmse_v1[rws])
+            # the effect shares the rigid-body parameters with every joint: what it does to
+            # the others counts too (each joint relative to itself, so none dominates)
+            sug.transfer = 1.0 - _rms(rmse_v1 / np.maximum(rmse_v0, 1e-300))
+            sug.fields.update({"validation_before": round(v_before, 4),
+                               "validation_after": round(v_after, 4),
+                               "transfer_gain": round(sug.transfer, 4),
+                               "transfer_own": round(1.0 - v_after / max(v_before, 1e-300), 4)})
+            sug.evidence += (f"; on the validation logs {sug.fields['validation_before']:.4g} → "
+                             f"{sug.fields['validation_after']:.4g} N·m (all joints: "
+                             f"{100 * sug.fields['transfer_gain']:.3g} %)")
+        if gain >= GAIN_MIN and p_value <= P_MAX:
+            if sug.transfer is not None and (sug.transfer <= 0.0 or
+                                             sug.fields["transfer_own"] < TRANSFER_MIN):
+                lost.append(sug)
+            else:
+                good.append(sug)
+        else:
+            bad.append(sug)
+    # rank by what transfers to the validation logs when there are some, else by the CV gain
+    good.sort(key=lambda s: -(s.transfer if s.transfer is not None else s.gain))
+    good = _prefer_simpler(_physics_order(good))
     bad.sort(key=lambda s: -s.gain)
+    lost.sort(key=lambda s: -s.gain)
+    if lost:
+        notes.append(f"{', '.join(s.label() for s in lost[:6])} won the cross-validation but "
+                     "did not cut the error on the validation logs: not suggested")
     return Diagnosis(result, model.labels(), [float(x) for x in rmse0], good, bad[:10],
-                     absorbed, _unexplained(preps[0], design, theta0), notes,
-                     _residual_dict(resid, states, pb.preps[0].filt.fs / step))
+                     absorbed, _unexplained(preps[0], design, theta0), notes, residuals,
+                     not_transferring=lost, doubts=doubts)
+
+
+def _rms(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(x))))
+
+
+class _Transfer:
+    """Fit on all the training rows, RMSE on the validation logs' rows (Grams summed)."""
+
+    def __init__(self, train: Grams, held: Grams) -> None:
+        self.p = train.p
+        self.a = train.g.sum(axis=(0, 1))
+        self.h = held.g.sum(axis=1)
+        self.counts = self.h[:, self.p + 1, self.p + 1]
+
+    def rmse(self, cols: np.ndarray) -> np.ndarray:
+        p = self.p
+        a, b = self.a[np.ix_(cols, cols)], self.a[cols, p]
+        d = 1.0 / np.sqrt(np.clip(np.diag(a), 1e-300, None))
+        evals, evecs = np.linalg.eigh(a * np.outer(d, d))
+        keep = evals > evals[-1] * RANK_TOL
+        theta = d * (evecs[:, keep] @ ((evecs[:, keep].T @ (b * d)) / evals[keep]))
+        idx = np.concatenate((cols, [p]))
+        v = np.concatenate((-theta, [1.0]))
+        sse = np.einsum("i,jik,k->j", v, self.h[:, idx[:, None], idx[None, :]], v)
+        return np.sqrt(np.maximum(sse, 0.0) / np.maximum(self.counts, 1.0))
+
+
+def _model_transfer(robot: Robot, pb: Any, transfer: _Transfer, n_model: int,
+                    independent: Sequence[int]) -> list[str]:
+    """The model's own effects, each left out in turn: one whose removal lowers the
+    validation logs' error raised it (a simpler model transfers better)."""
+    widths = [len(b.param_names(robot)) for b in pb.blocks]
+    starts = np.cumsum([0, *widths])
+    owner = np.searchsorted(starts, np.asarray(independent), side="right") - 1
+    full = transfer.rmse(np.arange(n_model))
+    out = []
+    for bi, blk in enumerate(pb.blocks):
+        if blk.effect.name == "rigid_body" or not np.any(owner == bi):
+            continue
+        rws = blk.rows(robot, pb.transmission)
+        less = transfer.rmse(np.flatnonzero(owner != bi))
+        with_it, without = _rms(full[rws]), _rms(less[rws])
+        if without < (1.0 - TRANSFER_MIN) * with_it:
+            out.append(f"{blk.key} raises the validation logs' error ({without:.4g} → "
+                       f"{with_it:.4g} N·m on its joints): a model without it transfers "
+                       "better")
+    return out
+
+
+def _doubts(result: IdentResult) -> list[str]:
+    """Why a model with nothing missing still cannot be called adequate."""
+    out = []
+    extrap = [n for n in result.notes if "the model extrapolates" in n]
+    if len(extrap) >= EXTRAPOLATION_MAX:
+        out.append(f"{len(extrap)} extrapolation warnings: the validation motion leaves the "
+                   "training ranges, so its error says little about the model")
+    try:
+        val, nom = result.validation, result.nominal
+    except (AttributeError, ValueError):  # no held-out rows
+        return out
+    if (val is not None and nom is not None and val.relative_error is not None
+            and nom.relative_error is not None and val.relative_error > nom.relative_error):
+        out.append(f"held-out relative error {100 * val.relative_error:.3g} % is above the "
+                   f"a-priori (CAD) model's {100 * nom.relative_error:.3g} %")
+    return out
+
+
+def _repeats(q: np.ndarray, r: np.ndarray, period: float) -> float:
+    """Correlation of the residual's mean over the angle with itself one period on: near 1
+    for cogging or meshing (it repeats), low for a spring (smooth over the travel)."""
+    per = 16
+    width = period / per
+    k = np.floor((q - q.min()) / width).astype(np.int64)
+    counts = np.bincount(k)
+    means = np.bincount(k, weights=r) / np.maximum(counts, 1)
+    ok = (counts[:-per] > 0) & (counts[per:] > 0)
+    if ok.sum() < per:
+        return 0.0
+    a, b = means[:-per][ok], means[per:][ok]
+    if a.std() <= 0 or b.std() <= 0:
+        return 0.0
+    return float(np.corrcoef(a, b)[0, 1])
+
+
+def _physics_order(good: list[Suggestion]) -> list[Suggestion]:
+    """A spring and a ripple on one joint within NEAR_EQUAL of each other: what physics says
+    of each decides — cogging repeats along the angle, a spring does not."""
+    out = list(good)
+    for i, a in enumerate(out):
+        for k in range(i + 1, len(out)):
+            b = out[k]
+            if a.joint != b.joint or {a.effect, b.effect} != {"spring", "ripple"}:
+                continue
+            near = abs(a.fields["rmse_after"] - b.fields["rmse_after"]) <= NEAR_EQUAL * max(
+                a.fields["rmse_after"], b.fields["rmse_after"], 1e-12)
+            ripple = a if a.effect == "ripple" else b
+            repeats = ripple.fields.get("repeat", 0.0) >= REPEAT_MIN
+            if near and (a is ripple) != repeats:
+                out[i], out[k] = b, a
+            break
+    return out
 
 
 def _residual_dict(resid: np.ndarray, states: States, fs: float) -> dict[str, np.ndarray]:
@@ -449,9 +694,9 @@ def _residual_dict(resid: np.ndarray, states: States, fs: float) -> dict[str, np
 
 def _prefer_simpler(good: list[Suggestion]) -> list[Suggestion]:
     """Among near-equal explanations on one joint, the one with fewer parameters first."""
-    order = {"offset": 1, "viscous": 1, "coulomb": 1, "armature": 1, "load_friction": 1,
-             "stribeck": 1, "coulomb_asymmetric": 2, "ripple": 2, "friction_drift": 2,
-             "friction_power": 3, "spring": 9, "delay": 1}
+    order = {"offset": 1, "viscous": 1, "friction": 1, "coulomb": 1, "armature": 1,
+             "load_friction": 1, "stribeck": 1, "presliding": 1, "coulomb_asymmetric": 2,
+             "ripple": 2, "friction_drift": 2, "friction_power": 3, "spring": 9, "delay": 1}
     out = list(good)
     swapped = True
     while swapped:  # bubble until stable: equivalents may come in any order
@@ -460,6 +705,8 @@ def _prefer_simpler(good: list[Suggestion]) -> list[Suggestion]:
             a, b = out[i], out[i + 1]
             close = abs(a.fields["rmse_after"] - b.fields["rmse_after"]) <= 0.01 * max(
                 a.fields["rmse_after"], 1e-12)  # equivalent: the same error left, within 1 %
+            if {a.effect, b.effect} == {"spring", "ripple"}:
+                continue  # physics decides those (_physics_order)
             if a.joint == b.joint and close and order.get(b.effect, 9) < order.get(a.effect, 9):
                 out[i], out[i + 1] = b, a
                 swapped = True

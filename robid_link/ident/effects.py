@@ -2,13 +2,18 @@
 
 Effects with nonlinear hyper-parameters declare them with a search range; the estimator
 profiles them when the model does not fix them.
+
+Friction-type effects ("sided") act on a joint's bearing or on a motor: ``viscous@j5`` is
+friction of joint 5's velocity, ``viscous@m6`` of motor 6's (through the transmission, so a
+coupled wrist's motor 6 turns with q̇5 + q̇6, and its torque loads both joints through Tᵀ);
+plain ``viscous@5`` acts on the side of the logs (the motors' with ``--motor-side``).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -33,7 +38,12 @@ __all__ = [
     "DEFAULT_MODEL",
     "parse_effect",
     "load_model",
+    "SIDES",
+    "effect_label",
 ]
+
+#: the sides a sided effect can name: its joint's bearing or its motor
+SIDES = ("joint", "motor")
 
 
 #: below this speed (rad/s, or m/s) a joint counts as at rest: a held pose's velocity, from
@@ -79,6 +89,13 @@ class Hyper:
     default: float
     grid: tuple[float, ...]
     doc: str = ""
+    #: "velocity": the grid is in rad/s of the joint and scales with the gear ratio on a motor
+    scales_with: str = ""
+
+    def scaled_grid(self, scale: float) -> tuple[float, ...]:
+        """The grid for a side whose speeds are ``scale``× the joint's."""
+        return self.grid if self.scales_with != "velocity" else tuple(
+            g * scale for g in self.grid)
 
 
 class Effect:
@@ -94,6 +111,10 @@ class Effect:
     options: ClassVar[frozenset[str]] = frozenset()
     #: per-joint effects this one replaces on its joint (declared overlaps)
     replaces: ClassVar[tuple[str, ...]] = ()
+    #: acts on a joint's or a motor's velocity (``NAME@jJ`` / ``NAME@mM``)
+    sided: ClassVar[bool] = False
+    #: the diagnosis scores it on every joint (False: only where a coupling makes it new)
+    catalog: ClassVar[bool] = True
     doc: ClassVar[str] = ""
 
     def param_names(self, robot: Robot, joint: int | None, opts: dict[str, Any]) -> list[str]:
@@ -151,6 +172,7 @@ class RigidBody(Effect):
 @register
 class Viscous(Effect):
     name = "viscous"
+    sided = True
     doc = "viscous friction fv·q̇ (of the motor's velocity for motor-side logs)"
 
     def param_names(self, robot, joint, opts):
@@ -163,6 +185,7 @@ class Viscous(Effect):
 @register
 class Coulomb(Effect):
     name = "coulomb"
+    sided = True
     doc = "Coulomb friction fc·sign(q̇)"
 
     def param_names(self, robot, joint, opts):
@@ -173,8 +196,29 @@ class Coulomb(Effect):
 
 
 @register
+class Friction(Effect):
+    """Viscous and Coulomb friction of one velocity together. The catalog scores it on coupled
+    drives only: on a coupled wrist's motor (velocity q̇5 + q̇6 through the coupling) it is the
+    friction neither joint's own viscous and Coulomb terms can express."""
+
+    name = "friction"
+    sided = True
+    catalog = False  # a candidate only where a coupling makes the other side's friction new
+    doc = "viscous and Coulomb friction together, fv·q̇ + fc·sign(q̇) (a coupled motor's)"
+    replaces = ("viscous", "coulomb")
+
+    def param_names(self, robot, joint, opts):
+        return [f"fv_{joint + 1}", f"fc_{joint + 1}"]
+
+    def columns(self, robot, st, joint, opts):
+        v = st.motor_velocity(joint)
+        return _motor_row(st, robot.n, joint, [v, moving_sign(v)])
+
+
+@register
 class Offset(Effect):
     name = "offset"
+    sided = True
     doc = "constant torque offset (sensor bias, unmodelled static load)"
 
     def param_names(self, robot, joint, opts):
@@ -187,6 +231,7 @@ class Offset(Effect):
 @register
 class FrictionPower(Effect):
     name = "friction_power"
+    sided = True
     doc = "FDURoID's friction (Fc + Fv·|q̇|^α)·sign(q̇) + B"
     hypers = {"alpha": Hyper(0.5, (0.2, 0.35, 0.5, 0.65, 0.8, 1.0, 1.25, 1.5),
                              "exponent of the velocity term")}
@@ -207,6 +252,7 @@ class FrictionPower(Effect):
 @register
 class CoulombAsymmetric(Effect):
     name = "coulomb_asymmetric"
+    sided = True
     doc = "Coulomb friction with different levels in the two directions"
     replaces = ("coulomb", "offset")
 
@@ -221,9 +267,10 @@ class CoulombAsymmetric(Effect):
 @register
 class Stribeck(Effect):
     name = "stribeck"
+    sided = True
     doc = "breakaway friction above Coulomb, decaying as exp(−|q̇/vs|^δ)"
     hypers = {"vs": Hyper(0.05, (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.4),
-                          "Stribeck velocity, rad/s")}
+                          "Stribeck velocity, rad/s (of the side's velocity)", "velocity")}
     options = frozenset({"vs", "shape"})
 
     def param_names(self, robot, joint, opts):
@@ -237,8 +284,28 @@ class Stribeck(Effect):
 
 
 @register
+class Presliding(Effect):
+    name = "presliding"
+    sided = True
+    doc = ("friction's smooth transition through zero velocity (pre-sliding): fp·tanh(q̇/vp) "
+           "beside Coulomb's step (fc → 0 when the transition is all smooth)")
+    hypers = {"vp": Hyper(0.01, (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1),
+                          "transition velocity, rad/s (of the side's velocity)", "velocity")}
+    options = frozenset({"vp"})
+
+    def param_names(self, robot, joint, opts):
+        return [f"fp_{joint + 1}"]
+
+    def columns(self, robot, st, joint, opts):
+        v = st.motor_velocity(joint)
+        vp = float(opts.get("vp", self.hypers["vp"].default))
+        return _motor_row(st, robot.n, joint, [np.tanh(v / vp)])
+
+
+@register
 class Armature(Effect):
     name = "armature"
+    sided = True
     doc = "rotor inertia through the gear (J_m·r² on the joint side)"
 
     def param_names(self, robot, joint, opts):
@@ -272,7 +339,8 @@ class Spring(Effect):
 class Ripple(Effect):
     name = "ripple"
     doc = "position-periodic torque (cogging, gear meshing) with period P in the joint angle"
-    # cogging and gear meshing repeat within a few degrees; a slower q-dependence is a spring
+    # the grid is the catalogued range (cogging, gear meshing: a few degrees); the diagnosis
+    # searches every period the data resolves, up to half the joint's travel (two cycles)
     hypers = {"period": Hyper(0.1, tuple(float(x) for x in np.geomspace(0.01, 0.5, 41)),
                               "period in rad (found from the residual)")}
     options = frozenset({"period"})
@@ -289,6 +357,7 @@ class Ripple(Effect):
 @register
 class FrictionDrift(Effect):
     name = "friction_drift"
+    sided = True
     doc = "friction changing over the log's time (a joint warming up): exp(−t/τ) terms"
     hypers = {"tau_s": Hyper(60.0, (5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 1e6),
                              "time constant of the change, s")}
@@ -364,43 +433,106 @@ class KnownTorqueEffect(Effect):
 
 @dataclass(frozen=True)
 class EffectSpec:
-    """One model entry: ``NAME``, ``NAME@J`` or a mapping with options (J from 1)."""
+    """One model entry: ``NAME``, ``NAME@J`` (``@jJ`` joint side, ``@mM`` motor side) or a
+    mapping with options (J from 1)."""
 
     name: str
     joint: int | None = None  # 1-based, None = all joints (per-joint) or global
     options: tuple[tuple[str, Any], ...] = ()
+    side: str | None = None  # "joint" | "motor"; None: the logs' side
 
     @property
     def opts(self) -> dict[str, Any]:
         return dict(self.options)
 
     def label(self) -> str:
-        return self.name if self.joint is None else f"{self.name}@{self.joint}"
+        return effect_label(self.name, self.joint, self.side)
 
     def to_yaml(self) -> str | dict[str, Any]:
-        if not self.options:
+        if not self.options and (self.joint is not None or self.side is None):
             return self.label()
         out: dict[str, Any] = {"name": self.name}
         if self.joint is not None:
             out["joint"] = self.joint
+        if self.side is not None:
+            out["side"] = self.side
         out.update(self.opts)
         return out
 
 
+def effect_label(name: str, joint: int | None, side: str | None = None) -> str:
+    """``viscous``, ``viscous@3``, ``viscous@m6`` (joint from 1)."""
+    if joint is None:
+        return name if side is None else f"{name}@{side}"
+    return f"{name}@{'' if side is None else side[0]}{joint}"
+
+
 @dataclass(frozen=True)
 class Block:
-    """A resolved effect instance: one effect on one joint (or global), with its columns."""
+    """A resolved effect instance: one effect on one joint (or global), with its columns.
+
+    ``side`` ("joint" or "motor") pins a sided effect to a joint's bearing or a motor
+    whatever the logs' side; None follows the problem (motor-side logs: the motors)."""
 
     effect: Effect
     joint: int | None  # 0-based
     opts: dict[str, Any] = field(default_factory=dict, hash=False, compare=False)
+    side: str | None = None
 
     @property
     def key(self) -> str:
-        return self.effect.name if self.joint is None else f"{self.effect.name}@{self.joint + 1}"
+        return effect_label(self.effect.name, None if self.joint is None else self.joint + 1,
+                            self.side)
 
     def free_hypers(self) -> list[str]:
         return [h for h in self.effect.hypers if h not in self.opts]
+
+    def with_opts(self, **opts: Any) -> Block:
+        return replace(self, opts={**self.opts, **opts})
+
+    def transmission(self, robot: Robot, default: np.ndarray | None) -> np.ndarray | None:
+        """T the block's velocities go through: None on a joint's bearing."""
+        if self.side is None:
+            return default
+        return robot.transmission if self.side == "motor" else None
+
+    def states(self, robot: Robot, st: States) -> States:
+        """``st`` seen from the block's side."""
+        if self.side is None:
+            return st
+        t_mat = self.transmission(robot, st.transmission)
+        return st if t_mat is st.transmission else replace(st, transmission=t_mat)
+
+    def columns(self, robot: Robot, st: States) -> np.ndarray:
+        return self.effect.columns(robot, self.states(robot, st), self.joint, self.opts)
+
+    def param_names(self, robot: Robot) -> list[str]:
+        names = self.effect.param_names(robot, self.joint, self.opts)
+        if self.side is None or self.joint is None:
+            return names
+        tail = f"_{self.joint + 1}"
+        return [nm[: -len(tail)] + f"_{self.side[0]}{self.joint + 1}" if nm.endswith(tail)
+                else nm for nm in names]
+
+    def rows(self, robot: Robot, default: np.ndarray | None) -> list[int]:
+        """Joints (0-based) whose torque the block loads: a coupled motor's loads several."""
+        if self.joint is None:
+            return list(range(robot.n))
+        t_mat = self.transmission(robot, default) if self.effect.sided else None
+        if t_mat is None:
+            return [self.joint]
+        return [int(i) for i in np.flatnonzero(t_mat[self.joint])]
+
+    def velocity_scale(self, robot: Robot, default: np.ndarray | None) -> float:
+        """How much faster the block's velocity runs than its joint's (the gear ratio)."""
+        t_mat = self.transmission(robot, default) if self.effect.sided else None
+        if t_mat is None or self.joint is None:
+            return 1.0
+        return float(abs(t_mat[self.joint, self.joint]))
+
+    def grid(self, hyper: str, robot: Robot, default: np.ndarray | None) -> tuple[float, ...]:
+        """The hyper-parameter's search grid on the block's side."""
+        return self.effect.hypers[hyper].scaled_grid(self.velocity_scale(robot, default))
 
 
 #: option → (smallest, largest, integer): a value outside makes NaN columns or no sense
@@ -411,6 +543,7 @@ OPTION_RANGES: dict[str, tuple[float, float, bool]] = {
     "order": (1, 20, True),  # spring harmonics
     "period": (1e-4, 100.0, False),  # ripple period, rad
     "tau_s": (1e-3, 1e9, False),  # friction_drift time constant, s
+    "vp": (1e-7, 1e3, False),  # pre-sliding transition velocity, rad/s
     "seconds": (-10.0, 10.0, False),  # delay, s
 }
 #: more joints than any robot has; a joint beyond the robot's own count is refused later
@@ -422,29 +555,38 @@ def _short(x: Any) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
+def _parse_at(entry: str, text: str, where: str) -> tuple[int, str | None]:
+    side = None
+    if text[:1] in ("j", "m"):
+        side, text = SIDES[text[0] == "m"], text[1:]
+    if not text.isdigit() or not 1 <= int(text) <= MAX_JOINT:
+        raise ModelError(f"{where}: {_short(entry)}: after '@' a joint number from 1 is needed "
+                         "(NAME@J, NAME@jJ on the joint's bearing, NAME@mM on motor M)")
+    return int(text), side
+
+
 def parse_effect(entry: Any, where: str = "effect") -> EffectSpec:
     if isinstance(entry, str):
         name, at, joint = entry.strip().partition("@")
-        spec_joint = None
-        if at:
-            if not joint.isdigit() or not 1 <= int(joint) <= MAX_JOINT:
-                raise ModelError(f"{where}: {_short(entry)}: after '@' a joint number from 1 "
-                                 "is needed (NAME@J)")
-            spec_joint = int(joint)
-        return _checked(EffectSpec(name, spec_joint), where)
+        spec_joint, side = _parse_at(entry, joint, where) if at else (None, None)
+        return _checked(EffectSpec(name, spec_joint, side=side), where)
     if isinstance(entry, dict):
         if "name" not in entry:
             raise ModelError(f"{where}: a mapping entry needs 'name'")
-        opts = {k: v for k, v in entry.items() if k not in ("name", "joint")}
+        opts = {k: v for k, v in entry.items() if k not in ("name", "joint", "side")}
         joint = entry.get("joint")
         if joint is not None and (isinstance(joint, bool) or not isinstance(joint, int)
                                   or not 1 <= joint <= MAX_JOINT):
             raise ModelError(f"{where}.joint: expected a joint number from 1, got {_short(joint)}")
+        side = entry.get("side")
+        if side is not None and side not in SIDES:
+            raise ModelError(f"{where}.side: expected joint or motor, got {_short(side)}")
         if not isinstance(entry["name"], str):
             raise ModelError(f"{where}.name: expected an effect name, got {_short(entry['name'])}")
         if not all(isinstance(k, str) for k in opts):
             raise ModelError(f"{where}: option names must be words")
-        return _checked(EffectSpec(entry["name"], joint, tuple(sorted(opts.items()))), where)
+        return _checked(EffectSpec(entry["name"], joint, tuple(sorted(opts.items())), side),
+                        where)
     raise ModelError(f"{where}: expected NAME, NAME@J or a mapping, got {_short(entry)}")
 
 
@@ -455,6 +597,10 @@ def _checked(spec: EffectSpec, where: str) -> EffectSpec:
     eff = REGISTRY[spec.name]
     if not eff.per_joint and spec.joint is not None:
         raise ModelError(f"{where}: '{spec.name}' is global and takes no joint")
+    if spec.side is not None and not eff.sided:
+        sided = ", ".join(sorted(k for k, e in REGISTRY.items() if e.sided))
+        raise ModelError(f"{where}: '{spec.name}' acts on the joint angle and has no side "
+                         f"(effects on a joint's or a motor's velocity: {sided})")
     bad = set(spec.opts) - set(eff.options)
     if bad:
         raise ModelError(f"{where}: '{spec.name}' has no option '{sorted(bad)[0]}'")
@@ -489,16 +635,20 @@ class Model:
         return [s.label() for s in self.specs]
 
     def with_added(self, spec: EffectSpec) -> Model:
-        kept = [s for s in self.specs if not (s.name == spec.name and s.joint == spec.joint)]
+        kept = [s for s in self.specs if not (s.name == spec.name and s.joint == spec.joint
+                                              and s.side == spec.side)]
         return Model((*kept, spec), self.known)
 
     def blocks(self, robot: Robot) -> list[Block]:
         """Resolve entries to per-joint blocks; declared replacements drop overlapping blocks."""
-        chosen: dict[tuple[str, int | None], Block] = {}
+        chosen: dict[tuple[str, int | None, str | None], Block] = {}
         for s in self.specs:
             eff = REGISTRY[s.name]
             if s.joint is not None and s.joint > robot.n:
                 raise ModelError(f"effect {s.label()}: the robot has {robot.n} joints")
+            if s.side == "motor" and robot.transmission is None:
+                raise ModelError(f"effect {s.label()}: a motor's friction needs the robot's "
+                                 "'transmission' (gear ratios and couplings)")
             joints: list[int | None]
             if not eff.per_joint:
                 joints = [None]
@@ -507,14 +657,14 @@ class Model:
             else:
                 joints = [s.joint - 1]
             for j in joints:
-                prev = chosen.get((s.name, j))
+                prev = chosen.get((s.name, j, s.side))
                 opts = dict(prev.opts) if prev is not None else {}
                 if s.joint is not None or prev is None or not prev.opts:
                     opts.update(s.opts)
-                chosen[(s.name, j)] = Block(eff, j, opts)
-        for (_name, j), blk in list(chosen.items()):
+                chosen[(s.name, j, s.side)] = Block(eff, j, opts, s.side)
+        for (_name, j, side), blk in list(chosen.items()):
             for other in blk.effect.replaces:
-                chosen.pop((other, j), None)
+                chosen.pop((other, j, side), None)
         rng = np.random.default_rng(11)
         lo = np.where(np.isfinite(robot.limits.q_min), robot.limits.q_min, -math.pi)
         hi = np.where(np.isfinite(robot.limits.q_max), robot.limits.q_max, math.pi)
@@ -524,8 +674,8 @@ class Model:
             if kt.identify:
                 known.append(Block(KnownTorqueEffect(kt), None if kt.joint is None
                                    else kt.joint - 1, {"known": repr(sorted(kt.raw.items()))}))
-        if ("rigid_body", None) in chosen:  # rigid body first: it reads best in tables
-            rb = chosen.pop(("rigid_body", None))
+        if ("rigid_body", None, None) in chosen:  # rigid body first: it reads best in tables
+            rb = chosen.pop(("rigid_body", None, None))
             return [rb, *chosen.values(), *known]
         return [*chosen.values(), *known]
 

@@ -40,7 +40,7 @@ def result_record(kind: str, doc: dict[str, Any]) -> dict[str, Any]:
                              for p in doc.get("parameters", [])]
     if kind == "diagnose":
         rec["verdict"] = doc.get("verdict")
-        rec["suggestions"] = [{k: s.get(k) for k in ("effect", "joint", "gain",
+        rec["suggestions"] = [{k: s.get(k) for k in ("effect", "joint", "side", "gain",
                                                      "hyper_parameters", "seconds")}
                               for s in doc.get("suggestions", [])]
     return rec
@@ -151,7 +151,8 @@ def _record_problem(rec: Any) -> str | None:
     return None
 
 
-def latest_hypers(model_file: str | Path, effect: str, joint: int | None) -> dict[str, float]:
+def latest_hypers(model_file: str | Path, effect: str, joint: int | None,
+                  side: str | None = None) -> dict[str, float]:
     """Hyper-parameters the latest diagnosis chose for this effect (and joint), if any."""
     try:
         records = read_history(model_file)
@@ -159,7 +160,7 @@ def latest_hypers(model_file: str | Path, effect: str, joint: int | None) -> dic
         return {}
     for rec in reversed(records):
         for s in rec.get("suggestions") or []:
-            if s.get("effect") == effect and s.get("joint") == joint:
+            if s.get("effect") == effect and s.get("joint") == joint and s.get("side") == side:
                 hyp = dict(s.get("hyper_parameters") or {})
                 if effect == "delay" and s.get("seconds") is not None:
                     hyp["seconds"] = s["seconds"]

@@ -21,7 +21,7 @@ from robid_link.ident.drives import (
     subtract_known_torques,
     torque_from_currents,
 )
-from robid_link.ident.effects import Block, Model
+from robid_link.ident.effects import Model
 from robid_link.ident.estimate import Grams, accumulate, fit
 from robid_link.ident.preprocess import Piece, Prepared, Problem, build_problem, check_counts
 from robid_link.ident.regressor import BaseSet, rigid_regressor
@@ -65,18 +65,20 @@ def _profile_hypers(pb: Problem) -> dict[str, dict[str, float]]:
     names = sorted({(b.effect.name, h) for _, b, h in free})
     for eff_name, hyper in names:
         targets = [(k, b) for k, b, h in free if b.effect.name == eff_name and h == hyper]
-        grid = targets[0][1].effect.hypers[hyper].grid
-        scores = np.full((len(grid), pb.robot.n), np.inf)
-        for gi, val in enumerate(grid):
+        grids = {k: b.grid(hyper, pb.robot, pb.transmission) for k, b in targets}
+        size = len(next(iter(grids.values())))
+        scores = np.full((size, len(pb.blocks)), np.inf)
+        for gi in range(size):
             trial = list(pb.blocks)
             for k, b in targets:
-                trial[k] = Block(b.effect, b.joint, {**b.opts, hyper: val})
+                trial[k] = b.with_opts(**{hyper: grids[k][gi]})
             design, _, _ = make_design(pb.robot, trial, pb.transmission)
             f, _ = fit(design, pb.train, pb.interval, pb.block_len, warn=False)
-            scores[gi] = f.rss
+            for k, b in targets:  # a coupled motor's friction loads several joints
+                scores[gi, k] = f.rss[b.rows(pb.robot, pb.transmission)].sum()
         for k, b in targets:
-            best = float(grid[int(np.argmin(scores[:, b.joint]))])
-            pb.blocks[k] = Block(b.effect, b.joint, {**b.opts, hyper: best})
+            best = float(grids[k][int(np.argmin(scores[:, k]))])
+            pb.blocks[k] = b.with_opts(**{hyper: best})
             chosen.setdefault(pb.blocks[k].key, {})[hyper] = best
     return chosen
 
@@ -356,8 +358,8 @@ _NEEDS_MODEL_TORQUE = ("load_friction", "delay")
 def _model_torque_inputs(pb: Problem) -> None:
     """Effects whose columns depend on the model's own torque (load friction, an estimated
     delay) get it from a first fit without them."""
-    if not any(b.effect.name in _NEEDS_MODEL_TORQUE and b.effect.param_names(pb.robot, b.joint,
-               b.opts) for b in pb.blocks):
+    if not any(b.effect.name in _NEEDS_MODEL_TORQUE and b.param_names(pb.robot)
+               for b in pb.blocks):
         return
     first = [b for b in pb.blocks if b.effect.name not in _NEEDS_MODEL_TORQUE]
     design, _, _ = make_design(pb.robot, first, pb.transmission)

@@ -4,15 +4,20 @@ residual at a few thousand rows spread over the log — no column is filtered he
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import minimize_scalar
 
 from robid_link.ident.effects import REGISTRY, Block, States
 from robid_link.ident.robot import Robot
 
-__all__ = ["ProfileRows", "profile_effect", "refine_effect", "screen", "basis"]
+#: friction_drift's time constants from here on mean a linear drift (see effects.py)
+LINEAR_DRIFT = 1e5
+
+__all__ = ["ProfileRows", "profile_effect", "refine_effect", "screen", "basis", "bounds"]
 
 
 def basis(x: np.ndarray) -> np.ndarray:
@@ -31,18 +36,40 @@ class ProfileRows:
     resid: np.ndarray  # raw torque minus the current model (profiling: no column filtered)
     resid_filtered: np.ndarray  # the parallel-filtered residual (screen, ripple spectrum)
     model_cols: np.ndarray  # the model's dense regressor on these rows (N, n, p)
-    _helpers: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
+    _helpers: dict[tuple[int, ...], np.ndarray] = field(default_factory=dict, repr=False)
     _beyond_model: _Beyond | None = field(default=None, repr=False)
 
-    def helper_basis(self, j: int) -> np.ndarray:
-        """Basis of joint j's own viscous, Coulomb and offset columns and its model row."""
-        if j not in self._helpers:
-            parts = [REGISTRY[name].columns(self.robot, self.states, j, {})[:, j, :]
-                     for name in ("viscous", "coulomb", "offset")]
-            own = self.model_cols[:, j, :]
-            parts.append(own[:, np.abs(own).max(axis=0) > 0])
-            self._helpers[j] = basis(np.concatenate(parts, axis=1))
-        return self._helpers[j]
+    def rows_of(self, blk: Block) -> list[int]:
+        """The joints whose torque ``blk`` loads (a coupled motor's friction: several)."""
+        return blk.rows(self.robot, self.states.transmission)
+
+    def helper_basis(self, joints: Sequence[int]) -> np.ndarray:
+        """Basis of each joint's own viscous, Coulomb and offset columns and its model row,
+        on the joints' rows stacked sample after sample (N·len(joints) rows)."""
+        key = tuple(joints)
+        if key not in self._helpers:
+            per = []
+            for j in key:
+                parts = [REGISTRY[name].columns(self.robot, self.states, j, {})[:, j, :]
+                         for name in ("viscous", "coulomb", "offset")]
+                own = self.model_cols[:, j, :]
+                parts.append(own[:, np.abs(own).max(axis=0) > 0])
+                per.append(basis(np.concatenate(parts, axis=1)))
+            out = np.zeros((per[0].shape[0], len(key), sum(b.shape[1] for b in per)))
+            at = 0
+            for r, b in enumerate(per):
+                out[:, r, at: at + b.shape[1]] = b
+                at += b.shape[1]
+            self._helpers[key] = out.reshape(-1, out.shape[2])
+        return self._helpers[key]
+
+    def beyond(self, blk: Block) -> _Beyond:
+        rows = self.rows_of(blk)
+        return _Beyond(self.helper_basis(rows), self.resid[:, rows].reshape(-1))
+
+    def stacked(self, blk: Block, cols: np.ndarray) -> np.ndarray:
+        """A block's (N, n, k) columns on its rows, stacked like ``beyond``'s residual."""
+        return cols[:, self.rows_of(blk), :].reshape(-1, cols.shape[2])
 
     @property
     def beyond_model(self) -> _Beyond:
@@ -51,6 +78,19 @@ class ProfileRows:
             model = basis(self.model_cols.reshape(-1, self.model_cols.shape[2]))
             self._beyond_model = _Beyond(model, self.resid_filtered.reshape(-1))
         return self._beyond_model
+
+
+def bounds(rows: ProfileRows, blk: Block, hyper: str) -> tuple[float, float]:
+    """Where the hyper-parameter may go on the block's side: its grid's span (scaled to
+    motor speeds for a motor), and for a ripple any period the data resolves — from the
+    smallest catalogued period to half the joint's travel (two cycles seen)."""
+    grid = blk.grid(hyper, rows.robot, rows.states.transmission)
+    if hyper == "tau_s":  # 1e6 stands for a linear drift, not a time constant to refine to
+        return float(min(grid)), float(max(g for g in grid if g < LINEAR_DRIFT))
+    if blk.effect.name == "ripple" and blk.joint is not None:
+        span = float(np.ptp(rows.states.q[:, blk.joint]))
+        return float(min(grid)), max(float(min(grid)) * 2, span / 2)
+    return float(min(grid)), float(max(grid))
 
 
 def profile_effect(rows: ProfileRows, blocks: list[Block], refine: bool = True) -> list[Block]:
@@ -63,52 +103,76 @@ def profile_effect(rows: ProfileRows, blocks: list[Block], refine: bool = True) 
     """
     eff = blocks[0].effect
     hyper = blocks[0].free_hypers()[0]
-    full_grid = eff.hypers[hyper].grid
+    grids = [np.array(b.grid(hyper, rows.robot, rows.states.transmission)) for b in blocks]
     if eff.name == "ripple":  # the period from the residual's spectrum in q
-        chosen = [Block(b.effect, b.joint, {**b.opts, hyper: _period_from_residual(
-            rows.states.q[:, b.joint], rows.resid_filtered[:, b.joint], full_grid)})
+        chosen = [b.with_opts(**{hyper: _period_from_residual(
+            rows.states.q[:, b.joint], rows.resid_filtered[:, b.joint], bounds(rows, b, hyper))})
             for b in blocks]
-    elif len(full_grid) > 12:  # coarse pass, then the neighbours of each joint's best
-        first = _profile_effect_grid(rows, blocks, hyper, np.tile(
-            np.array(full_grid[::4])[:, None], (1, len(blocks))))
-        picks = [full_grid.index(b.opts[hyper]) for b in first]
-        values = np.array([[full_grid[min(max(p + k, 0), len(full_grid) - 1)] for p in picks]
+    elif grids[0].size > 12:  # coarse pass, then the neighbours of each joint's best
+        first = _profile_effect_grid(rows, blocks, hyper,
+                                     np.stack([g[::4] for g in grids], axis=1))
+        picks = [int(np.argmin(np.abs(g - b.opts[hyper]))) for g, b in zip(grids, first,
+                                                                          strict=True)]
+        values = np.array([[g[min(max(p + k, 0), g.size - 1)] for g, p in zip(grids, picks,
+                                                                            strict=True)]
                            for k in range(-4, 5)])
         chosen = _profile_effect_grid(rows, blocks, hyper, values)
     else:
-        chosen = _profile_effect_grid(rows, blocks, hyper, np.tile(
-            np.array(full_grid)[:, None], (1, len(blocks))))
+        chosen = _profile_effect_grid(rows, blocks, hyper, np.stack(grids, axis=1))
     return refine_effect(rows, chosen) if refine else chosen
 
 
 def refine_effect(rows: ProfileRows, chosen: list[Block]) -> list[Block]:
-    """Narrowing passes around each joint's grid choice (a ripple's period must be exact)."""
+    """Continuous refinement of each joint's grid choice: a bounded scalar minimisation
+    (Brent, in the logarithm) between the choice's grid neighbours, within the bounds."""
     eff = chosen[0].effect
     hyper = next(h for h in eff.hypers if h in chosen[0].opts)
-    if eff.name == "ripple":
-        return _refine(rows, chosen, hyper, np.full(len(chosen), 1.03), passes=3)
-    grid = np.array(eff.hypers[hyper].grid)
-    width = np.array([grid[min(int(np.argmin(np.abs(grid - b.opts[hyper]))) + 1, grid.size - 1)]
-                      / grid[int(np.argmin(np.abs(grid - b.opts[hyper])))] for b in chosen])
-    return _refine(rows, chosen, hyper, np.maximum(width, 1.02))
+    out = []
+    for b in chosen:
+        lo, hi = bounds(rows, b, hyper)
+        if hyper == "tau_s" and b.opts[hyper] >= LINEAR_DRIFT:
+            out.append(b)  # the linear drift: nothing continuous to refine
+            continue
+        centre = float(np.clip(b.opts[hyper], lo, hi))
+        if eff.name == "ripple":  # the spectral peak's main lobe: ± period / travel
+            span = max(float(np.ptp(rows.states.q[:, b.joint])), 1e-9)
+            width, tol = float(np.clip(1.0 + 0.5 * centre / span, 1.0005, 1.5)), 1e-5
+        else:
+            grid = np.array(b.grid(hyper, rows.robot, rows.states.transmission))
+            k = int(np.argmin(np.abs(grid - centre)))
+            width = max(grid[min(k + 1, grid.size - 1)] / grid[k],
+                        grid[k] / grid[max(k - 1, 0)], 1.02)
+            tol = 1e-3
+        a, z = max(lo, centre / width), min(hi, centre * width)
+        if not z > a:
+            out.append(b.with_opts(**{hyper: centre}))
+            continue
+        # a ripple's period beyond the whole model (its joints' rows bound together, as in
+        # the cross-validation): a slow ripple hides in one joint's free model row
+        whole = eff.name == "ripple" or b.joint is None
+        beyond = rows.beyond_model if eff.name == "ripple" else (
+            rows.beyond(b) if b.joint is not None else
+            _Beyond(np.zeros((rows.resid.size, 0)), rows.resid.reshape(-1)))
+
+        def cost(logv: float, b: Block = b, beyond: _Beyond = beyond, whole: bool = whole
+                 ) -> float:
+            cols = b.with_opts(**{hyper: math.exp(logv)}).columns(rows.robot, rows.states)
+            return -beyond.share(cols.reshape(-1, cols.shape[2]) if whole
+                                 else rows.stacked(b, cols))
+
+        res = minimize_scalar(cost, bounds=(math.log(a), math.log(z)), method="bounded",
+                              options={"xatol": tol, "maxiter": 40})
+        best = math.exp(float(res.x)) if res.fun <= cost(math.log(centre)) else centre
+        out.append(b.with_opts(**{hyper: float(np.clip(best, lo, hi))}))
+    return out
 
 
-def _refine(rows: ProfileRows, chosen: list[Block], hyper: str, width: np.ndarray,
-            passes: int = 2) -> list[Block]:
-    """Narrowing passes of 11 values around each joint's current best."""
-    for _ in range(passes):
-        centre = np.array([b.opts[hyper] for b in chosen])
-        fine = centre[None, :] * width[None, :] ** np.linspace(-1.0, 1.0, 11)[:, None]
-        chosen = _profile_effect_grid(rows, chosen, hyper, fine)
-        width = width ** 0.2
-    return chosen
-
-
-def _period_from_residual(q: np.ndarray, r: np.ndarray, grid: Sequence[float]) -> float:
+def _period_from_residual(q: np.ndarray, r: np.ndarray, span: tuple[float, float]) -> float:
     """Peak of the residual's spectrum against the joint angle, |Σ r·e^(−iωq)|²: q is unevenly
     sampled, so r is summed into bins of q (a twentieth of the shortest period, a phase error
-    under 9°) and Fourier-transformed; the refinement passes finish the period."""
-    pmin, pmax = float(min(grid)), float(max(grid))
+    under 9°) and Fourier-transformed; the refinement finishes the period. ``span``: the
+    periods searched (no grid: every period between them the FFT resolves)."""
+    pmin, pmax = span
     delta = pmin / 20.0
     k = np.round((q - q.min()) / delta).astype(np.int64)
     binned = np.bincount(k, weights=r - r.mean())
@@ -145,22 +209,19 @@ def _profile_effect_grid(rows: ProfileRows, blocks: list[Block], hyper: str,
     """Score ``values`` (G × blocks: each joint its own candidates) in G passes. With each
     candidate the joint's own friction and its row of the model are refitted, so the model's
     parameters cannot hide what the value explains."""
-    eff = blocks[0].effect
     score = np.full(values.shape, -np.inf)
     no_helpers = np.zeros((rows.resid.size, 0))
-    beyond = {b.joint: _Beyond(rows.helper_basis(b.joint), rows.resid[:, b.joint])
-              for b in blocks if b.joint is not None}
+    beyond = {bi: rows.beyond(b) for bi, b in enumerate(blocks) if b.joint is not None}
     for gi, row in enumerate(values):
         for bi, (b, v) in enumerate(zip(blocks, row, strict=True)):
-            cols = eff.columns(rows.robot, rows.states, b.joint, {**b.opts, hyper: float(v)})
+            cols = b.with_opts(**{hyper: float(v)}).columns(rows.robot, rows.states)
             if b.joint is not None:
-                score[gi, bi] = beyond[b.joint].share(cols[:, b.joint, :])
+                score[gi, bi] = beyond[bi].share(rows.stacked(b, cols))
             else:  # a global effect: all joints' residual together
                 score[gi, bi] = _Beyond(no_helpers, rows.resid.reshape(-1)).share(
                     cols.reshape(-1, cols.shape[2]))
     best = np.argmax(score, axis=0)
-    return [Block(b.effect, b.joint, {**b.opts, hyper: float(values[best[bi], bi])})
-            for bi, b in enumerate(blocks)]
+    return [b.with_opts(**{hyper: float(values[best[bi], bi])}) for bi, b in enumerate(blocks)]
 
 
 def screen(rows: ProfileRows, blk: Block) -> float:
@@ -168,8 +229,8 @@ def screen(rows: ProfileRows, blk: Block) -> float:
     the candidate removes when added to the model: its columns projected off the model's column
     space against the residual. Cross-validation can only show less, so a candidate under
     SCREEN_MIN is not worth a union column."""
-    cols = blk.effect.columns(rows.robot, rows.states, blk.joint, blk.opts)
+    cols = blk.columns(rows.robot, rows.states)
     resid = rows.resid_filtered
-    own = resid if blk.joint is None else resid[:, blk.joint]
+    own = resid if blk.joint is None else resid[:, rows.rows_of(blk)]
     share = rows.beyond_model.share(cols.reshape(-1, cols.shape[2]))
     return share * rows.beyond_model.yy / max(float(np.sum(own * own)), 1e-300)

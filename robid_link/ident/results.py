@@ -113,6 +113,8 @@ def parameter_unit(name: str, joint_types: Sequence[str], motor_side: bool
     prefix = prefix.rstrip("0123456789cs") if prefix.startswith("spr") else prefix
     unit = "N·m" if prefix == "spr" else _UNITS.get(prefix)
     side = "motor" if motor_side and prefix in _MOTOR_EFFECTS else "joint"
+    if joint[:1] in ("m", "j") and joint[1:].isdigit():  # a sided effect: fv_m6, fc_j5
+        side, joint = ("motor" if joint[0] == "m" else "joint"), joint[1:]
     per_joint = prefix in _MOTOR_EFFECTS or prefix == "spr"  # in the joint's coordinate
     if unit is not None and per_joint and joint.isdigit() and \
             0 < int(joint) <= len(joint_types) and joint_types[int(joint) - 1] == "prismatic":

@@ -106,6 +106,8 @@ def test_every_parameter_says_its_unit_and_side(industrial6: Robot, tmp_path: Pa
     assert parameter_unit("mx_2", ("revolute", "revolute"), True) == ("kg·m", "joint")
     assert parameter_unit("fc_1", ("prismatic",), False) == ("N", "joint")
     assert parameter_unit("spr2s_1", ("revolute",), False) == ("N·m", "joint")
+    assert parameter_unit("fv_m2", ("revolute", "prismatic"), False) == ("N·s/m", "motor")
+    assert parameter_unit("fc_j1", ("revolute",), True) == ("N·m", "joint")
     res, _ = _identify(industrial6, _log(industrial6, tmp_path / "u.csv", moving_s=10.0))
     doc = res.to_dict()["parameters"]
     assert all(p["unit"] and p["side"] == "joint" for p in doc), doc
