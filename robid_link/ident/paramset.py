@@ -51,7 +51,8 @@ def make_parameter_set(robot: Robot, identify_doc: Mapping[str, Any], *, run_id:
     params = identify_doc.get("parameters") or []
     if not params:
         raise ModelError(f"run {run_id}: the identification has no parameters to hand over")
-    base = [{k: p.get(k) for k in ("name", "value", "std", "expression")} for p in params]
+    base = [{k: p.get(k) for k in ("name", "value", "std", "expression", "unit", "side")}
+            for p in params]
     if not all(isinstance(p["value"], int | float) and math.isfinite(p["value"])
                for p in base):
         raise ModelError(f"run {run_id}: a parameter is not a finite number; refusing to "
@@ -61,7 +62,10 @@ def make_parameter_set(robot: Robot, identify_doc: Mapping[str, Any], *, run_id:
         "format": FORMAT, "robot": robot.name, "joints": list(robot.joint_names),
         "run_id": run_id, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "effects": effects, "base_parameters": base,
-        "friction": _friction(robot, base),
+        "friction": _friction(robot, base, "joint"),
+        # friction identified on the motors (motor-side logs, ``viscous@m6``): motor units,
+        # never mixed into the joints' lists a controller feeds forward
+        "friction_motor": _friction(robot, base, "motor"),
         "standard_inertials": (theta := _projected(robot, effects, base)),
         # inverse dynamics (feedforward) is linear in θ and needs no physical body; a
         # controller that simulates or checks the model wants one: say which it is
@@ -92,10 +96,17 @@ def _ripple(base: list[dict[str, Any]], doc: Mapping[str, Any], periods: Mapping
     return out
 
 
-def _friction(robot: Robot, base: list[dict[str, Any]]) -> dict[str, list[float]]:
-    """Joint friction for the feedforward; a negative viscous or Coulomb coefficient (an
-    estimate that is noise, or another effect's stand-in) would push the joint: zero it."""
-    values = {p["name"]: float(p["value"]) for p in base}
+def _friction(robot: Robot, base: list[dict[str, Any]], side: str) -> dict[str, list[float]]:
+    """Friction per joint (``side`` "joint") or per motor ("motor") for the feedforward; a
+    negative viscous or Coulomb coefficient (an estimate that is noise, or another effect's
+    stand-in) would push the joint: zero it."""
+    values: dict[str, float] = {}
+    for p in base:
+        prefix, _, tail = str(p["name"]).rpartition("_")
+        sided = tail[:1] in ("j", "m") and tail[1:].isdigit()
+        where = ("motor" if tail[0] == "m" else "joint") if sided else (p.get("side") or "joint")
+        if where == side:
+            values[f"{prefix}_{tail[1:] if sided else tail}"] = float(p["value"])
     out = {kind: [values.get(f"{prefix}_{j}", 0.0) for j in range(1, robot.n + 1)]
            for prefix, kind in _FRICTION.items()}
     for kind in ("viscous", "coulomb"):

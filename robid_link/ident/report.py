@@ -53,16 +53,18 @@ def write_report(res: IdentResult, out_dir: str | Path) -> list[Path]:
     _write_text(written[0], res.summary() + "\n")
     table = io.StringIO(newline="")
     w = csv.writer(table)
-    w.writerow(["name", "value", "std", "rel_std_pct", "nominal", "expression"])
+    w.writerow(["name", "value", "std", "rel_std_pct", "nominal", "unit", "side", "expression"])
     for p in res.parameters:
         w.writerow([p.name, f"{p.value:.10g}", f"{p.std:.6g}", f"{p.rel_std_pct:.4g}",
-                    "" if p.nominal is None else f"{p.nominal:.10g}", p.expression])
+                    "" if p.nominal is None else f"{p.nominal:.10g}", p.unit or "", p.side,
+                    p.expression])
     doc = {
         "robot": res.robot,
         "effects": res.effects,
         "hyper_parameters": res.hypers,
         "joints": res.joints,
-        "base_parameters": {p.name: {"value": p.value, "std": p.std, "expression": p.expression}
+        "base_parameters": {p.name: {"value": p.value, "std": p.std, "unit": p.unit,
+                                     "side": p.side, "expression": p.expression}
                             for p in res.parameters},
     }
     _write_text(written[1], table.getvalue())

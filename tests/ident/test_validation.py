@@ -111,3 +111,22 @@ def test_every_parameter_says_its_unit_and_side(industrial6: Robot, tmp_path: Pa
     res, _ = _identify(industrial6, _log(industrial6, tmp_path / "u.csv", moving_s=10.0))
     doc = res.to_dict()["parameters"]
     assert all(p["unit"] and p["side"] == "joint" for p in doc), doc
+
+
+def test_parameter_set_keeps_motor_friction_apart(arm3: Robot, tmp_path: Path) -> None:
+    """A controller feeds the set's joint friction forward: a motor's friction (motor units)
+    goes to ``friction_motor``, never into the joints' lists."""
+    from robid_link.ident.paramset import make_parameter_set
+
+    res, _ = _identify(arm3, _log(arm3, tmp_path / "p.csv", moving_s=10.0))
+    doc = res.to_dict()
+    joint_set = make_parameter_set(arm3, doc, run_id="r1")
+    assert joint_set["friction"]["viscous"][0] == pytest.approx(2.0, rel=0.1)
+    assert joint_set["friction_motor"]["viscous"] == [0.0, 0.0, 0.0]
+    for p in doc["parameters"]:  # as if joint 1's friction had been identified on its motor
+        if p["name"] in ("fv_1", "fc_1"):
+            p["name"] = p["name"].replace("_1", "_m1")
+    motor_set = make_parameter_set(arm3, doc, run_id="r2")
+    assert motor_set["friction"]["viscous"][0] == 0.0
+    assert motor_set["friction_motor"]["viscous"][0] == pytest.approx(2.0, rel=0.1)
+    assert motor_set["friction"]["viscous"][1:] == joint_set["friction"]["viscous"][1:]
