@@ -49,6 +49,7 @@ _STATE = re.compile(r"^(q|qd|qdd)([1-9][0-9]*)$")
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _KEYS = ("name", "joint", "expression", "function", "constants", "identify", "description")
 MAX_EXPRESSION = 2000
+MAX_DEPTH = 100  # nesting of the formula's tree (the evaluator recurses)
 
 
 @dataclass(frozen=True)
@@ -294,6 +295,15 @@ def _checked_tree(expr: str, where: str) -> ast.Expression:
     except SyntaxError as err:
         raise ModelError(f"{where}.expression: not a formula ({err.msg} at column "
                          f"{err.offset})") from err
+    except (RecursionError, MemoryError) as err:
+        raise ModelError(f"{where}.expression: nested too deeply") from err
+    depth, stack = 0, [(tree, 1)]
+    while stack:  # the evaluator recurses: bound the depth before it runs
+        node, d = stack.pop()
+        depth = max(depth, d)
+        stack += [(child, d + 1) for child in ast.iter_child_nodes(node)]
+    if depth > MAX_DEPTH:
+        raise ModelError(f"{where}.expression: nested deeper than {MAX_DEPTH} levels")
     for node in ast.walk(tree):
         if not isinstance(node, _ALLOWED):
             raise ModelError(f"{where}.expression: {type(node).__name__} is not allowed "

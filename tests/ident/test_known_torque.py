@@ -170,6 +170,7 @@ def test_model_file_round_trip_keeps_known_torques(tmp_path):
     ("k * q9", "q9: the robot has 3 joints"),
     ("sqrt(q2 - 100) * k", "not finite at q"),
     ("10.0 ** 400 * k", "cannot evaluate: OverflowError"),
+    ("k * " + "-" * 1500 + "q2", "nested deeper than 100 levels"),  # was a RecursionError
 ])
 def test_unsafe_or_bad_expressions_are_refused(arm3, tmp_path, expr, message):
     with pytest.raises(ModelError, match=message):
