@@ -88,8 +88,6 @@ def test_results_trend_and_compare_from_the_cli(arm3: Robot, tmp_path: Path,
                                                 capsys: pytest.CaptureFixture[str]) -> None:
     import json
 
-    import yaml
-
     from robid_link.cli import main
     from robid_link.link.store import Store
 
@@ -98,12 +96,7 @@ def test_results_trend_and_compare_from_the_cli(arm3: Robot, tmp_path: Path,
     with Store(tmp_path / "state") as store:
         for r in rows:
             store.add_result(r["run_id"], r["robot"], "identify", r["record"])
-    cfg = tmp_path / "link.yaml"
-    cfg.write_text(yaml.safe_dump({
-        "robot": str(Path(__file__).resolve().parents[2] / "examples/robots/arm3.yaml"),
-        "state_dir": str(tmp_path / "state"), "control_socket": str(tmp_path / "no.sock"),
-        "driver": {"name": "file_share", "share": str(tmp_path)},
-        "campaigns": {"nightly": {"experiments": ["rigid_body"]}}}))
+    cfg = _daemon_config(tmp_path)
     assert main(["results", "--config", str(cfg), "--robot", "r1", "--trend", "--json",
                  str(tmp_path / "t.json"), "--out", str(tmp_path / "t.png")]) == 0
     out = capsys.readouterr().out
@@ -119,7 +112,6 @@ def test_results_trend_and_compare_from_the_cli(arm3: Robot, tmp_path: Path,
 
 def test_status_names_the_drift(arm3: Robot, tmp_path: Path,
                                 capsys: pytest.CaptureFixture[str]) -> None:
-    import yaml
 
     from robid_link.cli import main
     from robid_link.link.campaign import drift_flags
@@ -131,12 +123,20 @@ def test_status_names_the_drift(arm3: Robot, tmp_path: Path,
             store.add_result(r["run_id"], r["robot"], "identify", r["record"])
         assert {f.run_id for f in drift_flags(store, "arm3", "arm3-03")} == {"arm3-03"}
         assert drift_flags(store, "arm3", "arm3-02") == []
+    cfg = _daemon_config(tmp_path)
+    assert main(["status", "--config", str(cfg)]) == 0
+    out = capsys.readouterr().out
+    assert "drift: " in out and "friction rose (wear or lubrication)" in out
+
+
+def _daemon_config(tmp_path: Path) -> Path:
+    """A daemon config over tmp_path/state (no daemon runs: the CLI reads the store)."""
+    import yaml
+
     cfg = tmp_path / "link.yaml"
     cfg.write_text(yaml.safe_dump({
         "robot": str(Path(__file__).resolve().parents[2] / "examples/robots/arm3.yaml"),
         "state_dir": str(tmp_path / "state"), "control_socket": str(tmp_path / "no.sock"),
         "driver": {"name": "file_share", "share": str(tmp_path)},
         "campaigns": {"nightly": {"experiments": ["rigid_body"]}}}))
-    assert main(["status", "--config", str(cfg)]) == 0
-    out = capsys.readouterr().out
-    assert "drift: " in out and "friction rose (wear or lubrication)" in out
+    return cfg
