@@ -279,17 +279,20 @@ def motion_span(prep: Prepared) -> tuple[int, int]:
 
 
 def split(preps: Sequence[Prepared], validate: Sequence[Prepared] | None,
-          holdout: float = 0.2) -> tuple[list[Piece], list[Piece]]:
+          holdout: float = 0.2, spans: Sequence[tuple[int, int]] | None = None
+          ) -> tuple[list[Piece], list[Piece]]:
     """Training and validation pieces: the ``validate`` logs, else the last 20 % of each log's
     motion (``motion_span``: a robot standing still at the end is not a test of the model) with
     a gap of the filter's settling length on each side (no leak); rest after the motion trains.
+    ``spans``: each log's ``motion_span`` when the caller has it already.
     """
     train: list[Piece] = []
     valid: list[Piece] = []
-    for prep in preps:
+    for k, prep in enumerate(preps):
         trim = prep.filt.settle
         n = len(prep.log)
-        first, last = motion_span(prep) if not validate and holdout > 0 else (0, n)
+        first, last = (0, n) if validate or holdout <= 0 else \
+            spans[k] if spans is not None else motion_span(prep)
         cut = n if validate else first + int(round((1.0 - holdout) * (last - first)))
         end = n if validate or holdout <= 0 else last
         for seg in prep.log.segments:
@@ -405,7 +408,8 @@ def build_problem(robot: Robot, data: Sequence[Log], model: Model, *,
     vpreps = [prepare(lg, cutoff_hz, 1) for lg in validate or ()]
     for prep in (*preps, *vpreps):
         prep.transmission = transmission
-    train, valid = split(preps, vpreps or None)
+    spans = None if vpreps else [motion_span(pr) for pr in preps]
+    train, valid = split(preps, vpreps or None, spans=spans)
     notes = [n for lg in [*data, *(validate or ())] for n in lg.notes]
     fs = preps[0].filt.fs
     fc = preps[0].filt.cutoff_hz
@@ -415,8 +419,9 @@ def build_problem(robot: Robot, data: Sequence[Log], model: Model, *,
     else:
         source = ("last 20 % of the motion of each data file (gap of the filter's length): "
                   + (held_out_ranges(valid) or "none left"))
+        assert spans is not None
         rest = [f"{Path(pr.log.path).name} {pr.log.t[-1] - pr.log.t[last - 1]:.3g} s"
-                for pr in preps for last in [motion_span(pr)[1]] if last < len(pr.log)
+                for pr, (_, last) in zip(preps, spans, strict=True) if last < len(pr.log)
                 and pr.log.t[-1] - pr.log.t[last - 1] > 0.5]
         if rest:
             notes.append("the robot stands still at the end of " + ", ".join(rest) + ": that "
