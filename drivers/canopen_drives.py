@@ -37,10 +37,11 @@ from robid_link.drivers.cia402 import (
     NMT_START,
     PROFILE_402,
     RPDO1_MAP,
-    TPDO1_MAP,
-    TPDO2_MAP,
+    SYNC_ECHO,
+    SYNC_OVERFLOW,
     drive_state,
     error_words,
+    tpdo_maps,
 )
 from robid_link.drivers.cia402_feedforward import TorqueFeedforward
 from robid_link.drivers.cia402_master import Axis, Job, SyncMaster, quintic, ramp_to_rest
@@ -85,7 +86,11 @@ class CanopenDrivesDriver(Driver):
     ``following_error_rad``, ``heartbeat_ms``, ``heartbeat_timeout_s``, ``boot_timeout_s``,
     ``state_timeout_s``, ``settle_timeout_s``, ``standstill_rad_s``, ``max_missed``,
     ``overrun_streak``, ``max_approach_rad``, ``bus_options`` (extra python-can arguments),
-    ``robot_file`` (the robot description: the feedforward's inverse dynamics needs it).
+    ``robot_file`` (the robot description: the feedforward's inverse dynamics needs it),
+    ``sync_echo`` (the drive's UNSIGNED8 object, mappable, that holds the counter of the SYNC
+    at which its TPDO values were latched: ``"0x2100:0"`` by default; each TPDO carries it, so
+    a late answer is still put at its own SYNC; the driver sets 0x1019 so SYNCs carry a
+    counter).
 
     An uploaded parameter set is the driver's own feedforward: every setpoint carries the set's
     model torque as torque offset 0x60B2 (see ``cia402_feedforward``).
@@ -99,7 +104,7 @@ class CanopenDrivesDriver(Driver):
                          "following_error_rad", "heartbeat_ms", "heartbeat_timeout_s",
                          "boot_timeout_s", "state_timeout_s", "settle_timeout_s",
                          "standstill_rad_s", "max_missed", "overrun_streak",
-                         "max_approach_rad", "bus_options"})
+                         "max_approach_rad", "bus_options", "sync_echo"})
 
     def __init__(self, *, interface: str = "socketcan", channel: str = "can0",
                  bitrate: int = 1_000_000, nodes: Sequence[int] | None = None,
@@ -111,7 +116,8 @@ class CanopenDrivesDriver(Driver):
                  settle_timeout_s: float = 2.0, standstill_rad_s: float = 0.01,
                  max_missed: int = 3, overrun_streak: int = 5, max_approach_rad: float = 1.0,
                  bus_options: dict[str, Any] | None = None, host: str | None = None,
-                 port: int | None = None, robot_file: str | None = None) -> None:
+                 port: int | None = None, robot_file: str | None = None,
+                 sync_echo: str | int | None = None) -> None:
         super().__init__()
         for key, val in (("interface", interface), ("channel", channel)):
             if not isinstance(val, str) or not val:
@@ -150,7 +156,10 @@ class CanopenDrivesDriver(Driver):
         self.state_timeout = _number("state_timeout_s", state_timeout_s, low=0.001)
         self.settle_timeout = _number("settle_timeout_s", settle_timeout_s, low=0.01)
         self.standstill = _number("standstill_rad_s", standstill_rad_s, low=0.0)
-        self.max_missed = int(_number("max_missed", max_missed, low=1, high=1000))
+        # answers are put at their SYNC by its counter, unambiguous within SYNC_OVERFLOW periods
+        self.max_missed = int(_number("max_missed", max_missed, low=1, high=SYNC_OVERFLOW - 40))
+        self.tpdo_maps = tpdo_maps(SYNC_ECHO if sync_echo is None
+                                   else _object("sync_echo", sync_echo))
         self.overrun_streak = int(_number("overrun_streak", overrun_streak, low=1, high=1e6))
         self.max_approach = _number("max_approach_rad", max_approach_rad, low=0.0)
         if bus_options is not None and not isinstance(bus_options, dict):
@@ -269,9 +278,11 @@ class CanopenDrivesDriver(Driver):
         ident = [self._sdo(a, 0x1018, s) for s in (1, 2, 3, 4)]
         log.info("%s vendor=0x%08X product=0x%08X revision=0x%08X serial=%d", a.label(), *ident)
         self._sdo(a, 0x1017, 0, self.heartbeat_ms, "<H")
+        self._sdo(a, 0x1019, 0, SYNC_OVERFLOW, "<B")  # SYNCs carry a counter 1..240
+        tpdo1, tpdo2 = self.tpdo_maps
         for comm, mapping, cob, entries in ((0x1400, 0x1600, 0x200, RPDO1_MAP),
-                                            (0x1800, 0x1A00, 0x180, TPDO1_MAP),
-                                            (0x1801, 0x1A01, 0x280, TPDO2_MAP)):
+                                            (0x1800, 0x1A00, 0x180, tpdo1),
+                                            (0x1801, 0x1A01, 0x280, tpdo2)):
             self._sdo(a, comm, 1, 0x80000000 | (cob + a.node))  # invalid while mapping
             self._sdo(a, mapping, 0, 0, "<B")
             for k, entry in enumerate(entries, 1):
@@ -536,6 +547,22 @@ class CanopenDrivesDriver(Driver):
             return
         master.request_rest(then="hold", reason="withdrawn")
         await asyncio.to_thread(master.idle.wait, 10.0)
+
+
+def _object(key: str, value: Any) -> tuple[int, int]:
+    """An object dictionary entry given as ``"0x2100:0"``, ``"0x2100"`` or an int index."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        index, sub = value, 0
+    else:
+        try:
+            head, _, tail = str(value).partition(":") if isinstance(value, str) else ("", "", "")
+            index, sub = int(head, 0), int(tail or "0", 0)
+        except ValueError:
+            index = sub = -1
+    if not (0x2000 <= index <= 0x5FFF and 0 <= sub <= 0xFF):
+        raise ConfigError(f"driver.{key}: expected a manufacturer-specific object as "
+                          f"'0xIIII:SS' (index 0x2000..0x5FFF), got {value!r}")
+    return index, sub
 
 
 def _server(interface: str, host: Any, port: Any) -> dict[str, Any]:

@@ -11,7 +11,8 @@ import struct
 __all__ = ["CW_SHUTDOWN", "CW_SWITCH_ON", "CW_ENABLE", "CW_QUICK_STOP", "CW_DISABLE_VOLTAGE",
            "CW_FAULT_RESET", "MODE_CSP", "drive_state", "error_words", "RPDO1", "TPDO1",
            "TPDO2", "RPDO1_MAP", "TPDO1_MAP", "TPDO2_MAP", "NMT_RESET_COMM", "NMT_START",
-           "NMT_PRE_OPERATIONAL", "SYNC_ID", "PROFILE_402", "pdo_entry"]
+           "NMT_PRE_OPERATIONAL", "SYNC_ID", "PROFILE_402", "pdo_entry", "SYNC_OVERFLOW",
+           "SYNC_ECHO", "sync_counter", "tpdo_maps"]
 
 # controlwords (CiA 402 §6.2): the low bits of the commands the state machine obeys
 CW_SHUTDOWN = 0x0006
@@ -26,10 +27,26 @@ PROFILE_402 = 402
 SYNC_ID = 0x80
 NMT_START, NMT_PRE_OPERATIONAL, NMT_RESET_COMM = 0x01, 0x80, 0x82
 
-# robid's PDO layout: one RPDO and two TPDOs per drive, all synchronous (transmission type 1)
+# The SYNC carries a counter 1..SYNC_OVERFLOW (CiA 301 §7.2.5, object 0x1019) and every TPDO
+# carries the counter of the SYNC at which its values were latched (SYNC_ECHO, a
+# manufacturer-specific UNSIGNED8; drives name it differently, hence the driver's sync_echo
+# option). A TPDO that comes late (a loaded socketcand host, a busy network) is then still put
+# at its own SYNC in the log, and a position and a torque from two different SYNCs are never
+# paired: arrival time says nothing about which SYNC a sample answers.
+SYNC_OVERFLOW = 240
+SYNC_ECHO = (0x2100, 0)
+
+
+def sync_counter(index: int) -> int:
+    """The counter byte of the SYNC with 0-based ``index`` (1..SYNC_OVERFLOW)."""
+    return index % SYNC_OVERFLOW + 1
+
+
+# robid's PDO layout: one RPDO and two TPDOs per drive, all synchronous (transmission type 1);
+# the error code 0x603F comes by EMCY (and by SDO at start-up)
 RPDO1 = struct.Struct("<Hih")  # controlword 0x6040, target position 0x607A, torque offset 0x60B2
-TPDO1 = struct.Struct("<Hih")  # statusword 0x6041, position actual 0x6064, torque actual 0x6077
-TPDO2 = struct.Struct("<iH")  # velocity actual 0x606C, error code 0x603F
+TPDO1 = struct.Struct("<HiB")  # statusword 0x6041, position actual 0x6064, SYNC echo
+TPDO2 = struct.Struct("<ihB")  # velocity actual 0x606C, torque actual 0x6077, SYNC echo
 
 
 def pdo_entry(index: int, subindex: int, bits: int) -> int:
@@ -38,8 +55,15 @@ def pdo_entry(index: int, subindex: int, bits: int) -> int:
 
 
 RPDO1_MAP = (pdo_entry(0x6040, 0, 16), pdo_entry(0x607A, 0, 32), pdo_entry(0x60B2, 0, 16))
-TPDO1_MAP = (pdo_entry(0x6041, 0, 16), pdo_entry(0x6064, 0, 32), pdo_entry(0x6077, 0, 16))
-TPDO2_MAP = (pdo_entry(0x606C, 0, 32), pdo_entry(0x603F, 0, 16))
+
+
+def tpdo_maps(echo: tuple[int, int] = SYNC_ECHO) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """The two TPDO mappings, with the drive's SYNC echo object ``(index, subindex)``."""
+    return ((pdo_entry(0x6041, 0, 16), pdo_entry(0x6064, 0, 32), pdo_entry(*echo, 8)),
+            (pdo_entry(0x606C, 0, 32), pdo_entry(0x6077, 0, 16), pdo_entry(*echo, 8)))
+
+
+TPDO1_MAP, TPDO2_MAP = tpdo_maps()
 
 # statusword patterns (mask, value, state), CiA 402 table 30
 _STATES = ((0x4F, 0x00, "Not ready to switch on"), (0x4F, 0x40, "Switch on disabled"),

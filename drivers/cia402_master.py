@@ -25,10 +25,12 @@ from robid_link.drivers.cia402 import (
     CW_SHUTDOWN,
     RPDO1,
     SYNC_ID,
+    SYNC_OVERFLOW,
     TPDO1,
     TPDO2,
     drive_state,
     error_words,
+    sync_counter,
 )
 
 __all__ = ["Axis", "Job", "SyncMaster", "quintic", "ramp_to_rest"]
@@ -38,7 +40,11 @@ log = logging.getLogger("robid.driver.canopen")
 
 @dataclass
 class Axis:
-    """One drive (= one joint) as the master sees it; the notifier thread fills the inputs."""
+    """One drive (= one joint) as the master sees it; the notifier thread fills the inputs.
+
+    ``slots`` holds what the drive answered per SYNC index (its TPDOs carry the SYNC counter),
+    ``[(status, pos), (torque, vel)]`` until both came; ``heard`` is the newest SYNC index any
+    of its TPDOs answered, ``newest`` the newest SYNC index it answered completely."""
 
     node: int
     joint: int  # from 1
@@ -46,8 +52,9 @@ class Axis:
     counts_per_rad: float
     rated_torque_nm: float  # joint torque of 1000 per mille
     window_counts: float  # following-error window
-    tpdo1: tuple[int, int, int] | None = None
-    tpdo2: tuple[int, int] | None = None
+    slots: dict[int, list[Any]] = field(default_factory=dict)
+    heard: int = -1
+    newest: int = -1
     last: tuple[int, int, int, int, int] | None = None  # status, pos, torque, vel, error
     missed: int = 0
     heartbeat_at: float = 0.0
@@ -141,12 +148,17 @@ class SyncMaster:
         self.hold = np.zeros(len(axes), dtype=np.int64)
         self.cmd = self.hold.copy()
         self.cmd_prev = self.hold.copy()
+        self.sent: dict[int, np.ndarray] = {}  # the target sent with each recent SYNC
         self.offset = np.zeros(len(axes), dtype=np.int64)  # kept after a job: no torque step
         self.job: Job | None = None
         self.ramp: np.ndarray | None = None
         self.ramp_then = "hold"
         self.halt_reason: str | None = None
-        self.sync_count = 0
+        self.sync_count = 0  # SYNCs sent; the next one has index sync_count
+        self.next_row = 0  # the oldest SYNC index not yet recorded or given up
+        # the SYNC indices every drive answered (status, pos, torque per drive), None for one a
+        # drive left unanswered, oldest first; the running job takes what is its own
+        self.answered: list[tuple[int, list[tuple[int, int, int]] | None]] = []
         self.overruns = 0
         self.late_streak = 0
         self.sync_times: list[float] = []
@@ -159,12 +171,29 @@ class SyncMaster:
 
     # -- inputs (notifier thread)
     def on_tpdo1(self, i: int, data: bytes) -> None:
-        with self.lock:
-            self.axes[i].tpdo1 = TPDO1.unpack_from(data)
+        if len(data) == TPDO1.size:  # else a drive mapped otherwise: it stays silent here
+            status, pos, counter = TPDO1.unpack(data)
+            self._answer(i, 0, counter, (status, pos))
 
     def on_tpdo2(self, i: int, data: bytes) -> None:
+        if len(data) == TPDO2.size:
+            vel, torque, counter = TPDO2.unpack(data)
+            self._answer(i, 1, counter, (torque, vel))
+
+    def _answer(self, i: int, part: int, counter: int, values: tuple[int, int]) -> None:
+        """A TPDO put at the SYNC it answers: the newest SYNC sent (or being sent) with its
+        counter. ``max_missed`` < SYNC_OVERFLOW keeps that unambiguous: a drive whose answers
+        come later than that is stopped first."""
+        if not 1 <= counter <= SYNC_OVERFLOW:
+            return
         with self.lock:
-            self.axes[i].tpdo2 = TPDO2.unpack_from(data)
+            newest = self.sync_count  # this SYNC may be out while its count is not yet up
+            index = newest - (newest - counter + 1) % SYNC_OVERFLOW
+            if index < self.next_row:
+                return  # given up already (or before the master started)
+            axis = self.axes[i]
+            axis.slots.setdefault(index, [None, None])[part] = values
+            axis.heard = max(axis.heard, index)
 
     def on_heartbeat(self, i: int, data: bytes) -> None:
         axis = self.axes[i]
@@ -256,22 +285,39 @@ class SyncMaster:
         self._check(samples)
         cw, target = self._command(samples)
         self._send(cw, target)
-        job = self.job
-        if job is not None and job.sync0 is not None:
-            self._record(job, samples)
+        self._record(self.job)
 
     def _collect(self) -> list[tuple[int, int, int, int, int] | None]:
+        """Per drive its newest complete answer if newer than at the last tick (else None);
+        the SYNCs every drive answered, in order, into ``answered``. A SYNC some drive left
+        unanswered is given up once that drive answered a later one (its frames come in
+        order: the answer was lost) or ``max_missed`` periods passed."""
         out: list[tuple[int, int, int, int, int] | None] = []
+        last = self.sync_count - 1
         with self.lock:
             for a in self.axes:
-                if a.tpdo1 is not None and a.tpdo2 is not None:
-                    a.last = (*a.tpdo1, *a.tpdo2)
-                    out.append(a.last)
-                    a.missed = 0
+                fresh = None
+                for index, (p1, p2) in a.slots.items():
+                    if p1 is not None and p2 is not None and index > a.newest:
+                        a.newest, fresh = index, (p1[0], p1[1], p2[0], p2[1], a.emcy)
+                if fresh is not None:
+                    a.last = fresh
+                out.append(fresh)
+                a.missed = last - a.newest if self.sync_count else 0
+            while self.next_row <= last:
+                index = self.next_row
+                parts = [a.slots.get(index) for a in self.axes]
+                if all(p is not None and p[0] is not None and p[1] is not None for p in parts):
+                    self.answered.append((index, [(p[0][0], p[0][1], p[1][0]) for p in parts]))
+                elif (all(p is not None and p[0] is not None and p[1] is not None
+                          or a.heard > index for a, p in zip(self.axes, parts, strict=True))
+                      or last - index >= self.max_missed):
+                    self.answered.append((index, None))
                 else:
-                    out.append(None)
-                    a.missed += 1 if self.sync_count else 0
-                a.tpdo1 = a.tpdo2 = None
+                    break
+                for a in self.axes:
+                    a.slots.pop(index, None)
+                self.next_row += 1
         return out
 
     def _check(self, samples: list[tuple[int, int, int, int, int] | None]) -> None:
@@ -292,7 +338,7 @@ class SyncMaster:
                 raise _Stop(a, f"drive fault {error_words(err or a.emcy)}")
             if state != "Operation enabled" and self.mode != "ramp":
                 raise _Stop(a, f"drive left Operation enabled (now {state})")
-            error = abs(pos - int(self.cmd[a.joint - 1]))
+            error = abs(pos - int(self.sent.get(a.newest, self.cmd)[a.joint - 1]))
             if self.mode in ("job", "ramp") and error > a.window_counts:
                 raise _Stop(a, f"following error {error / a.counts_per_rad:.4g} rad beyond the "
                                f"window {a.window_counts / a.counts_per_rad:.4g} rad")
@@ -362,8 +408,11 @@ class SyncMaster:
                 with self.send_lock:
                     self.bus.send(msg)
                 self.tap(msg)
-            sync = can.Message(arbitration_id=SYNC_ID, is_extended_id=False, data=b"",
-                               timestamp=stamp, is_rx=False)
+            self.sent[self.sync_count] = self.cmd
+            self.sent.pop(self.sync_count - 2 * SYNC_OVERFLOW, None)
+            sync = can.Message(arbitration_id=SYNC_ID, is_extended_id=False,
+                               data=bytes([sync_counter(self.sync_count)]), timestamp=stamp,
+                               is_rx=False)
             with self.send_lock:
                 self.bus.send(sync)
             self.tap(sync)
@@ -375,15 +424,21 @@ class SyncMaster:
             self.sync_times.append(time.perf_counter())
         self.sync_count += 1
 
-    def _record(self, job: Job, samples: list[Any]) -> None:
-        answered = self.sync_count - 2  # samples answer the SYNC before the one just sent
-        if job.sync0 is None or answered < job.sync0 or job.ended.is_set():
+    def _record(self, job: Job | None) -> None:
+        """The answered SYNCs from the job's first program setpoint on become its rows, each at
+        the time of its own SYNC; a SYNC a drive left unanswered is a hole in the time stamps
+        (the log loader splits there)."""
+        answered, self.answered = self.answered, []
+        if job is None or job.sync0 is None or job.ended.is_set():
             return
-        if any(s is None for s in samples):
-            job.missing_rows += 1  # a hole in the time stamps: the log loader splits there
-            return
-        t = job.t0 + (answered - job.sync0) * job.period
-        job.rows.append((t, tuple(s[1] for s in samples), tuple(s[2] for s in samples)))
+        for index, parts in answered:
+            if index < job.sync0:
+                continue
+            if parts is None:
+                job.missing_rows += 1
+                continue
+            t = job.t0 + (index - job.sync0) * job.period
+            job.rows.append((t, tuple(p[1] for p in parts), tuple(p[2] for p in parts)))
 
     def _halt(self, axis: Axis | None, cause: str) -> None:
         """Quick stop on every drive (latched); the running job fails with one line."""

@@ -146,13 +146,15 @@ class _Drive:
     def target(self) -> float:
         return self._get(0x607A, 0, "<i") / self.cpr
 
-    def send_tpdos(self, k: int, twice: bool) -> None:
+    def tpdo_frames(self, k: int, twice: bool) -> list[tuple[int, bytes]]:
+        """This SYNC's TPDOs as the master mapped them (none when silent or not started)."""
         if self.silent or k < self.drop_until or self.node.nmt.state != "OPERATIONAL":
-            return
+            return []
+        out = []
         for cob, entries in self.tpdos:
             data = b"".join(self.node.get_data(i, s) for i, s, _ in entries)
-            for _ in range(2 if twice else 1):
-                self.node.network.send_message(cob, data)
+            out += [(cob, data)] * (2 if twice else 1)
+        return out
 
 
 class Cia402Peer(Peer):
@@ -163,6 +165,8 @@ class Cia402Peer(Peer):
     the peer is its own process, ``robid fake-controller``), ``channel`` (default a fresh
     virtual channel), ``sync_period_s`` (default 1/truth.rate_hz, at least 4 ms over
     socketcand), ``sync_timeout_s`` (no SYNC that long while enabled: quick stop),
+    ``answer_lag_periods`` (each SYNC's TPDOs go out up to that many periods late, at random
+    and in order: a loaded socketcand host or network),
     ``fault_node`` (joint number the faults hit), ``fault_after_s`` (into the motion). A run
     starts with the first moving setpoint after a rest of ten SYNCs; the core's fault schedule
     is consumed per run.
@@ -188,7 +192,7 @@ class Cia402Peer(Peer):
     def __init__(self, core: ControllerCore, workdir: Path, *, interface: str | None = None,
                  channel: str | None = None, port: int = 0, sync_period_s: float | None = None,
                  sync_timeout_s: float | None = None, fault_node: int | None = None,
-                 fault_after_s: float = 0.2) -> None:
+                 fault_after_s: float = 0.2, answer_lag_periods: int = 0) -> None:
         super().__init__(core, workdir)
         robot = core.robot
         self.n = robot.n
@@ -224,6 +228,9 @@ class Cia402Peer(Peer):
         self.run_start = -1
         self.delay_buf: collections.deque[np.ndarray] = collections.deque(maxlen=1)
         self.rng = np.random.default_rng(core.seed)
+        self.answer_lag = int(answer_lag_periods)
+        self.lag_rng = np.random.default_rng(core.seed + 1)  # apart: the noise stays the same
+        self.outbox: collections.deque[tuple[int, int, bytes]] = collections.deque()
         delay = sum(float(e["seconds"]) for e in core.plant.truth.effects
                     if e["name"] == "delay")
         self.delay_buf = collections.deque(maxlen=max(1, round(delay / self.period) + 1))
@@ -241,7 +248,7 @@ class Cia402Peer(Peer):
                 "record_dir": str(self.workdir / "records"),
                 # lenient supervision: the fake drives and the master share one Python
                 # process (GIL) on what may be a loaded test machine
-                "heartbeat_timeout_s": 2.0, "max_missed": 250, "overrun_streak": 100000,
+                "heartbeat_timeout_s": 2.0, "max_missed": 200, "overrun_streak": 100000,
                 "following_error_rad": 0.3,
                 # the fake axes start at zero, wherever a program begins
                 "max_approach_rad": 2 * math.pi}
@@ -311,12 +318,12 @@ class Cia402Peer(Peer):
         try:
             with self.lock:
                 self.last_sync = time.monotonic()
-                self._sync()
+                self._sync(counter=data[0] if data else 0)
         except Exception:  # a bug in the fake must show, not kill the notifier quietly
             log.exception("fake drives: SYNC handling failed")
             raise
 
-    def _sync(self, send: bool = True) -> None:
+    def _sync(self, send: bool = True, counter: int = 0) -> None:
         self.k += 1
         for d in self.drives:
             d.apply_rpdo()
@@ -329,13 +336,20 @@ class Cia402Peer(Peer):
         qdd = _SG_D2 @ self.hist / self.period**2
         tau = self._torque(q, qd, qdd)
         twice = self.run_fault == "answer_twice" and self.run_start >= 0
+        due = self.k + (int(self.lag_rng.integers(0, self.answer_lag + 1)) if self.answer_lag
+                        else 0)
+        due = max(due, self.outbox[-1][0] if self.outbox else 0)  # frames keep their order
         for j, d in enumerate(self.drives):
             d._put(0x6064, 0, int(round(q[j] * d.cpr)), "<i")
             d._put(0x606C, 0, int(round(qd[j] * d.cpr)), "<i")
             d._put(0x6077, 0, int(np.clip(round(tau[j] / d.rated_nm * 1000), -32767, 32767)),
                    "<h")
+            d._put(0x2100, 0, counter, "<B")  # the SYNC these values were latched at
             if send:
-                d.send_tpdos(self.k, twice)
+                self.outbox.extend((due, cob, data) for cob, data in d.tpdo_frames(self.k, twice))
+        while self.outbox and self.outbox[0][0] <= self.k and self.network is not None:
+            _, cob, data = self.outbox.popleft()
+            self.network.send_message(cob, data)
 
     # -- the master lost: what a drive's SYNC supervision does
     def _watch_loop(self) -> None:

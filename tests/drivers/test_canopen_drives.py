@@ -39,10 +39,11 @@ def program(robot: Robot) -> MotionProgram:
 
 
 @contextlib.contextmanager
-def drives(tmp_path: Path, robot: Robot, fault: str | None = None, **opts: Any
+def drives(tmp_path: Path, robot: Robot, fault: str | None = None,
+           peer_opts: dict[str, Any] | None = None, **opts: Any
            ) -> Iterator[tuple[Driver, Any]]:
     peer = make_peer("canopen_drives", robot, default_truth(robot, rate_hz=200.0), tmp_path,
-                     fault=fault)
+                     fault=fault, **(peer_opts or {}))
     with peer:
         driver = registry.make_driver({**peer.driver_options(), **opts})
         driver.bind_robot(RobotInfo.of(robot))
@@ -94,6 +95,30 @@ def test_a_fault_mid_motion_stops_every_drive_and_keeps_the_log(
     assert len(rows) > 20 and np.all(np.isfinite(rows))  # what was captured before the stop
     if fault != "die":
         assert set(states.values()) <= STOPPED, states
+
+
+def test_late_answers_are_logged_at_their_own_sync(tmp_path: Path, robot: Robot,
+                                                   program: MotionProgram,
+                                                   caplog: pytest.LogCaptureFixture) -> None:
+    """TPDOs up to 6 periods late and bunched (a loaded socketcand host): the log is the one a
+    prompt bus gives, row for row. The answers carry their SYNC's counter; when they arrive
+    counts for nothing (it once paired positions and torques of different SYNCs)."""
+    logs = {}
+    for lag in (0, 6):
+        (tmp_path / f"lag{lag}").mkdir()
+        with drives(tmp_path / f"lag{lag}", robot, peer_opts={"answer_lag_periods": lag}
+                    ) as (driver, _):
+            logs[lag] = np.loadtxt(_run(driver, program).decode().splitlines(), delimiter=",",
+                                   skiprows=1, ndmin=2)
+    prompt, late = logs[0], logs[6]
+    n = robot.n
+    assert "without every drive's answer" not in caplog.text  # no gaps
+    assert np.all(np.diff(late[:, 0]) > 0) and len(late) >= len(prompt) - 8  # the tail may end
+    common = min(len(prompt), len(late))                                  # before it arrives
+    np.testing.assert_array_equal(late[:common, : 1 + n], prompt[:common, : 1 + n])
+    # the torques differ by the noise only (same seed, drawn per SYNC since the drives started)
+    spread = np.std(late[:common, 1 + n:] - prompt[:common, 1 + n:], axis=0)
+    assert np.all(spread < 3.0 * np.sqrt(2.0) * 0.2 + 1e-9), spread
 
 
 def test_a_node_that_never_boots_is_named_at_open(tmp_path: Path, robot: Robot) -> None:
@@ -198,6 +223,9 @@ def _options(**over: Any) -> dict[str, Any]:
     ({"sync_period_s": 0.0005}, r"driver\.sync_period_s: expected a number in \[0\.001"),
     ({"counts_per_rad": [1000.0, -1.0, 3.0]}, r"driver\.counts_per_rad\[1\]"),
     ({"bitrate": "fast"}, r"driver\.bitrate"),
+    ({"sync_echo": "0x6041:0"}, r"driver\.sync_echo: expected a manufacturer-specific object"),
+    ({"sync_echo": "echo"}, r"driver\.sync_echo: expected .*'echo'"),
+    ({"max_missed": 500}, r"driver\.max_missed: expected a number in \[1, 200\]"),
 ])
 def test_bad_config_names_the_key(over: dict[str, Any], key: str) -> None:
     with pytest.raises(ConfigError, match=key):
