@@ -4,7 +4,8 @@ websocket subscriptions on 127.0.0.1, a random port) serving exactly the calls o
 
 Faults beyond the core's: ``restart`` (the controller restarts mid-program: sockets, sessions
 and subscriptions gone, 503 for a moment, the program finishes meanwhile), ``silent_ws`` (the
-socket stays open but carries neither pings nor events), ``exec_error`` (execution stops with
+socket stays open but carries neither pings nor events; the program ends once the daemon
+subscribed again), ``exec_error`` (execution stops with
 no 'done'), ``session_limit`` (503 for the first ``fault_count`` logins), ``bad_credentials``
 (the daemon gets a wrong password). The server logs no secret: no password, no cookie.
 """
@@ -572,6 +573,13 @@ class RwsPeer(Peer):
             self._in_loop(self._restart)
         elif res.fault == "silent_ws":
             self._in_loop(self._silence)
+            # the program ends once the daemon has noticed and subscribed again: finishing
+            # while it still asks after its first subscription would never test the silence
+            end = time.monotonic() + 10
+            while (not any(sub["ws"] is not None and not sub["silent"]
+                           for sub in list(self._subs.values()))
+                   and time.monotonic() < end and not self._halt.wait(0.01)):
+                pass
         self._write(self.home / log_file(exp, nonce)[len("$HOME/"):], res.delivered)
         done = done_value(nonce, res.sha256, len(res.log))
         if res.fault == "stale_semaphore":  # an answer to an attempt that no longer exists
