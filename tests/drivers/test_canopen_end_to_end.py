@@ -23,12 +23,9 @@ from tests.link.conftest import (
     write_config,
 )
 
-#: QUICK with a shorter friction sweep: the drives move in real time (≈ 20 s of motion in all),
-#: so the take timeout covers the longest program
-CAN_QUICK = {**QUICK, "timeout_s": 60,
-             "experiments": [QUICK["experiments"][0],
-                             {"kind": "friction", "speeds": [0.6, 0.9], "joints": [1],
-                              "rate_hz": 100}]}
+#: QUICK's rigid-body experiment alone: the drives move in real time (a friction sweep added
+#: 18 s of motion per campaign to the suite), so the take timeout covers the program
+CAN_QUICK = {**QUICK, "timeout_s": 60, "experiments": [QUICK["experiments"][0]]}
 
 
 def _campaign(tmp: Path, driver: dict[str, Any] | None) -> dict[str, Any]:
@@ -105,5 +102,5 @@ def test_sigkill_while_streaming_quick_stops_then_resume_exactly_once(tmp_path: 
     # the first kill hit the drives while they moved; at 'taken' they were at rest
     assert max(abs(float(v)) for v in stopped[0].split()) > 0.01, stopped
     # the motion cut by the first kill is not resumed: that experiment ran again
-    assert_stored_once(tmp_path / "state", run_id, attempts=[2, 1])
+    assert_stored_once(tmp_path / "state", run_id, attempts=[2])
     assert "was not streamed by this daemon" in (tmp_path / "daemon.log").read_text()

@@ -232,7 +232,8 @@ def campaign_via_cli(tmp: Path, cfg: Path, *args: str,
         wait_socket(tmp / "ctl.sock", daemon)
         out = robid("campaign", "start", "quick", "--config", str(cfg), "--wait", *args)
         assert out.returncode == 0, out.stderr + log.read_text()
-        assert "2/2 logs" in out.stdout and "completed" in out.stdout
+        n = len(yaml.safe_load(cfg.read_text())["campaigns"]["quick"]["experiments"])
+        assert f"{n}/{n} logs" in out.stdout and "completed" in out.stdout
         if while_up is not None:
             while_up()
         daemon.send_signal(signal.SIGTERM)
