@@ -9,7 +9,7 @@ does not transfer is not suggested, and the model's own effects are checked the 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -410,8 +410,13 @@ def _evidence(blk: Block, before: float, after: float,
 def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
              validate: Sequence[Log] | None = None, cutoff_hz: float | None = None,
              interval: int = 1, method: str = "ols", motor_side: bool = False,
-             result: IdentResult | None = None) -> Diagnosis:
+             result: IdentResult | None = None, campaign: str | None = None,
+             elasticity_entries: Mapping[int, str] | None = None) -> Diagnosis:
     """Fit the model, then score every catalog effect not in it (see the module docstring).
+
+    ``campaign`` (the daemon's campaign these logs came from) and ``elasticity_entries``
+    (joint → the campaign experiment that measures its elasticity) make an unexplained
+    resonance name the entry to run, or the one to add to ``campaign``.
 
     ``result``: the model already identified from these inputs (``identify`` with the same
     options); its prepared logs, design and estimate are reused instead of fitting again.
@@ -498,7 +503,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     residuals = _residual_dict(resid, states, pb.preps[0].filt.fs / step)
     if not kept and not vpieces:  # nothing can show a gain: no union pass
         return Diagnosis(result, model.labels(), None, [], [], absorbed,
-                         _unexplained(preps[0], design, theta0), notes, residuals,
+                         _unexplained(preps[0], design, theta0, campaign, elasticity_entries), notes, residuals,
                          doubts=doubts)
     union_blocks = [*pb.blocks, *kept]
     model_cols = list(base.independent)
@@ -515,7 +520,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         doubts += _model_transfer(robot, pb, transfer, len(model_cols), base.independent)
     if not kept:  # nothing can show a gain: no candidate pass
         return Diagnosis(result, model.labels(), None, [], [], absorbed,
-                         _unexplained(preps[0], design, theta0), notes, residuals,
+                         _unexplained(preps[0], design, theta0, campaign, elasticity_entries), notes, residuals,
                          doubts=doubts)
     grams = accumulate(union, pieces, keep, block_len, max_blocks=BLOCKS)
     folds = _fold_masks(grams.g.shape[1], FOLDS)
@@ -580,7 +585,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         notes.append(f"{', '.join(s.label() for s in lost[:6])} won the cross-validation but "
                      "did not cut the error on the validation logs: not suggested")
     return Diagnosis(result, model.labels(), [float(x) for x in rmse0], good, bad[:10],
-                     absorbed, _unexplained(preps[0], design, theta0), notes, residuals,
+                     absorbed, _unexplained(preps[0], design, theta0, campaign, elasticity_entries), notes, residuals,
                      not_transferring=lost, doubts=doubts)
 
 
@@ -747,8 +752,12 @@ def _residual_with_states(pieces: Sequence[Piece], step: int
     return np.concatenate(res), np.concatenate(raw), st
 
 
-def _unexplained(prep: Prepared, design: Design, theta: np.ndarray) -> list[dict[str, Any]]:
-    """Structure no catalog effect explains: a resonance in the raw residual spectrum."""
+def _unexplained(prep: Prepared, design: Design, theta: np.ndarray,
+                 campaign: str | None = None, entries: Mapping[int, str] | None = None
+                 ) -> list[dict[str, Any]]:
+    """Structure no catalog effect explains: a resonance in the raw residual spectrum, with
+    what measures it: the campaign entry that does (``entries``), else the entry to add to
+    ``campaign`` (or to a campaign, from the command line)."""
     import scipy.signal as sig
 
     out: list[dict[str, Any]] = []
@@ -777,14 +786,19 @@ def _unexplained(prep: Prepared, design: Design, theta: np.ndarray) -> list[dict
         prominence = float(spec[k] / np.median(spec[near]))
         if prominence > 20:
             fr = float(f[k])
+            entry = (entries or {}).get(j + 1)
+            if entry is not None:
+                todo = f"measured by {entry}"
+            else:
+                where = f"campaigns.{campaign}" if campaign else "campaigns.<campaign>"
+                todo = (f"add an elasticity experiment for joint {j + 1}: {where}.experiments: "
+                        f"[…, {{kind: elasticity, joints: [{j + 1}]}}] (or robid excite --kind "
+                        f"elasticity --joint {j + 1})")
             out.append({"joint": j + 1, "kind": "resonance", "frequency_hz": round(fr, 3),
-                        "peak_over_floor": round(prominence, 1),
+                        "peak_over_floor": round(prominence, 1), "measured_by": entry,
                         "text": f"joint {j + 1} residual has a resonance at {fr:.3g} Hz "
                                 f"({prominence:.3g}× its neighbourhood): joint elasticity? "
-                                f"Add an elasticity experiment for joint {j + 1}: "
-                                "campaigns.<name>.experiments: [{kind: elasticity, "
-                                f"joints: [{j + 1}]}}] (or robid excite --kind elasticity "
-                                f"--joint {j + 1})"})
+                                f"{todo[0].upper()}{todo[1:]}"})
     return out
 
 

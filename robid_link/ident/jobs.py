@@ -48,14 +48,16 @@ def run_job(robot: Robot, data: Sequence[Log], model: Model, *,
             interval: int = 1, method: str = "ols", weight: str = "bisquare",
             motor_side: bool = False, json_files: Mapping[str, str | Path] | None = None,
             report_dir: str | Path | None = None, history: str | Path | None = None,
-            run_id: str | None = None) -> JobOutcome:
+            run_id: str | None = None, campaign: str | None = None,
+            elasticity_entries: Mapping[int, str] | None = None) -> JobOutcome:
     """Run the ``analyses`` (``identify``, ``diagnose``) on one set of inputs.
 
     The model is fitted once: a diagnosis reuses the identification (see ``diagnose``).
     ``json_files`` maps an analysis to the file its JSON document goes to; ``report_dir``
     gets identify's report files and the diagnosis' residual figures; ``history`` (a model
     file) gets one record per analysis, after all of them ran (once per ``run_id`` of a
-    daemon run, so a run resumed after a crash adds no second record).
+    daemon run, so a run resumed after a crash adds no second record). ``campaign`` and
+    ``elasticity_entries``: what the diagnosis names for an unexplained resonance.
     """
     unknown = set(analyses) - set(ANALYSES)
     if unknown or not analyses:
@@ -74,7 +76,8 @@ def run_job(robot: Robot, data: Sequence[Log], model: Model, *,
         from robid_link.ident.diagnose import diagnose
 
         dg = diagnose(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
-                      interval=interval, motor_side=motor_side, result=res)
+                      interval=interval, motor_side=motor_side, result=res,
+                      campaign=campaign, elasticity_entries=elasticity_entries)
         out.diagnosis = dg
         doc = dg.to_dict()
         doc["data_files"] = dg.result.to_dict()["data_files"]

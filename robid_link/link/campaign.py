@@ -266,6 +266,25 @@ async def _pinned_programs(cfg: DaemonConfig, store: Store, ctx: Any, run_id: st
     return out
 
 
+def elasticity_entries(cfg: DaemonConfig) -> dict[int, str]:
+    """Joint → the first campaign experiment that measures its elasticity (what the diagnosis
+    names for an unexplained resonance). Without joints or pairs an experiment measures every
+    joint (listed up to 64: the diagnosis asks only for the robot's)."""
+    out: dict[int, str] = {}
+    for camp in cfg.campaigns.values():
+        for exp in camp.experiments:
+            if exp.kind != "elasticity":
+                continue
+            joints = exp.options.get("joints")
+            pairs = exp.options.get("pairs") or []
+            covered = ([*(joints or ()), *(j for p in pairs for j in p)]
+                       if joints or pairs else list(range(1, 65)))
+            for j in covered:
+                out.setdefault(int(j), f"campaign '{camp.name}' (experiment '{exp.exp_id}', "
+                                       f"robid campaign start {camp.name})")
+    return out
+
+
 async def _identify(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, run_id: str,
                     camp: CampaignDef, shas: list[str], kill_hook: Callable[[str], None]) -> None:
     store.set_run(run_id, "running", step="identifying" + (" and diagnosing"
@@ -275,7 +294,8 @@ async def _identify(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, r
            "model": str(camp.model) if camp.model else None, "add": list(camp.add),
            "method": camp.method, "diagnose": camp.diagnose, "cutoff_hz": camp.cutoff_hz,
            "motor_side": camp.motor_side, "upload": camp.upload,
-           "report_dir": str(store.dir / "reports" / run_id)}
+           "report_dir": str(store.dir / "reports" / run_id), "campaign": camp.name,
+           "elasticity_entries": elasticity_entries(cfg)}
     kill_hook("identifying")
     out = await run_in_worker(ctx, identify_run, job,
                               on_start=lambda: kill_hook("identify_started"))

@@ -78,7 +78,10 @@ def identify_run(job: dict[str, Any]) -> dict[str, Any]:
         done = run_job(robot, data, model, analyses=analyses, cutoff_hz=job.get("cutoff_hz"),
                        method=job.get("method", "ols"), motor_side=job.get("motor_side", False),
                        json_files={k: out / f"{k}.json" for k in analyses}, report_dir=out,
-                       history=job.get("model") or None, run_id=job["run_id"])
+                       history=job.get("model") or None, run_id=job["run_id"],
+                       campaign=job.get("campaign"),
+                       elasticity_entries={int(j): str(e) for j, e in
+                                           job.get("elasticity_entries", {}).items()})
     notes = sorted({f"{w.category.__name__}: {w.message}" for w in caught})
     records, doc, summaries = done.records, done.docs["identify"], done.summaries()
     for rec in records.values():
