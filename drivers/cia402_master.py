@@ -307,10 +307,12 @@ class SyncMaster:
             while self.next_row <= last:
                 index = self.next_row
                 parts = [a.slots.get(index) for a in self.axes]
-                if all(p is not None and p[0] is not None and p[1] is not None for p in parts):
-                    self.answered.append((index, [(p[0][0], p[0][1], p[1][0]) for p in parts]))
-                elif (all(p is not None and p[0] is not None and p[1] is not None
-                          or a.heard > index for a, p in zip(self.axes, parts, strict=True))
+                done = [p for p in parts if p is not None and p[0] is not None
+                        and p[1] is not None]
+                if len(done) == len(parts):
+                    self.answered.append((index, [(p[0][0], p[0][1], p[1][0]) for p in done]))
+                elif (all(p in done or a.heard > index
+                          for a, p in zip(self.axes, parts, strict=True))
                       or last - index >= self.max_missed):
                     self.answered.append((index, None))
                 else:

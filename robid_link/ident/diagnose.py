@@ -442,6 +442,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     base, _ = base_set_for(robot, pb.blocks, pb.transmission)
     theta0 = np.asarray(result.theta)  # same model, same base set: identify's estimate
     attach_predictions(robot, preps, design, theta0)
+    odd = _unexplained(preps[0], design, theta0, campaign, elasticity_entries)
     notes: list[str] = []
     if len(logs) == 1 or all(_same_motion(logs[0], lg) for lg in logs[1:]):
         notes.append("all data is one motion: candidates are scored by blocked "
@@ -503,7 +504,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     residuals = _residual_dict(resid, states, pb.preps[0].filt.fs / step)
     if not kept and not vpieces:  # nothing can show a gain: no union pass
         return Diagnosis(result, model.labels(), None, [], [], absorbed,
-                         _unexplained(preps[0], design, theta0, campaign, elasticity_entries), notes, residuals,
+                         odd, notes, residuals,
                          doubts=doubts)
     union_blocks = [*pb.blocks, *kept]
     model_cols = list(base.independent)
@@ -520,7 +521,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         doubts += _model_transfer(robot, pb, transfer, len(model_cols), base.independent)
     if not kept:  # nothing can show a gain: no candidate pass
         return Diagnosis(result, model.labels(), None, [], [], absorbed,
-                         _unexplained(preps[0], design, theta0, campaign, elasticity_entries), notes, residuals,
+                         odd, notes, residuals,
                          doubts=doubts)
     grams = accumulate(union, pieces, keep, block_len, max_blocks=BLOCKS)
     folds = _fold_masks(grams.g.shape[1], FOLDS)
@@ -585,7 +586,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         notes.append(f"{', '.join(s.label() for s in lost[:6])} won the cross-validation but "
                      "did not cut the error on the validation logs: not suggested")
     return Diagnosis(result, model.labels(), [float(x) for x in rmse0], good, bad[:10],
-                     absorbed, _unexplained(preps[0], design, theta0, campaign, elasticity_entries), notes, residuals,
+                     absorbed, odd, notes, residuals,
                      not_transferring=lost, doubts=doubts)
 
 

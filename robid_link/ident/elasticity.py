@@ -41,6 +41,36 @@ def two_mass_frf(f_hz: np.ndarray, jm: float, ja: float, k: float, d: float, ba:
     return (arm + z) / (jm * s * s * (arm + z) + z * arm)
 
 
+def arm_coulomb_frf(f_hz: np.ndarray, jm: float, ja: float, k: float, d: float, ba: float,
+                    kg: float, fc: float, tau_amp: np.ndarray, drift: np.ndarray
+                    ) -> np.ndarray:
+    """G with Coulomb friction ``fc`` on the arm, as its describing function at each step's
+    torque amplitude and drift: the arm's velocity v0 + V sin ωt reverses when V > |v0|, and
+    fc·sign(v) then has the fundamental (4 fc/π)·√(1 − (v0/V)²) in phase with the velocity:
+    a damper c = (4 fc/(π V))·√(1 − (v0/V)²) on the arm, zero while the drift keeps it one-
+    signed. V = ω·|qa/τ|·|T| depends on c: solved per step by bisection (c = c(V(c)))."""
+    f = np.asarray(f_hz, dtype=float)
+    w = 2 * np.pi * f
+    v0 = np.maximum(np.abs(np.asarray(drift, dtype=float)), 1e-9)
+    amp = np.asarray(tau_amp, dtype=float)
+
+    def gap(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        g = two_mass_frf(f, jm, ja, k, d, ba + c, kg)
+        s = 1j * w
+        z = d * s + k
+        v = w * np.abs(g * z / (ja * s * s + (ba + c) * s + kg + z)) * amp
+        r = np.clip(v0 / np.maximum(v, 1e-300), 0.0, 1.0)
+        return 4 * fc / np.pi * np.sqrt(1.0 - r * r) / np.maximum(v, 1e-300) - c, g
+
+    # c(V) peaks at 2 fc/(π v0) (where V = √2 v0): the root lies below
+    lo, hi = np.zeros_like(f), 2 * max(fc, 0.0) / (np.pi * v0) * 1.001 + 1e-12
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        up = gap(mid)[0] > 0
+        lo, hi = np.where(up, mid, lo), np.where(up, hi, mid)
+    return gap(0.5 * (lo + hi))[1]
+
+
 def coupled_frf(f_hz: np.ndarray, jm: Sequence[float], ja: Sequence[float], jcop: float,
                 k: Sequence[float], d: Sequence[float], ba: Sequence[float] = (0.0, 0.0),
                 kg: np.ndarray | None = None) -> np.ndarray:
@@ -70,6 +100,7 @@ class JointElasticity:
     measures: str | None = None  # the campaign entry that measures it (set by the daemon)
     ba: float = 0.0  # viscous friction on the arm side (N·m·s/rad)
     kg: float = 0.0  # gravity stiffness of the arm at the pose (known, not fitted)
+    fc: float | None = None  # Coulomb friction on the arm side (N·m); None: not fitted
 
     @property
     def f_res_hz(self) -> float:
@@ -81,7 +112,7 @@ class JointElasticity:
 
     def as_dict(self) -> dict[str, Any]:
         return {"joint": self.joint, "jm": self.jm, "ja": self.ja, "k": self.k, "d": self.d,
-                "ba": self.ba, "kg": self.kg, "f_res_hz": self.f_res_hz,
+                "ba": self.ba, "fc_arm": self.fc, "kg": self.kg, "f_res_hz": self.f_res_hz,
                 "f_antires_hz": self.f_antires_hz,
                 "std": dict(self.std), "fit_rms": self.fit_rms, "measures": self.measures}
 
@@ -247,7 +278,10 @@ def _solve(fun: Any, x0: np.ndarray, names: Sequence[str], log_scale: Sequence[b
 def fit_two_mass(frf: Frf, notes: list[str] | None = None, kg: float = 0.0
                  ) -> JointElasticity:
     """Two-mass fit of one joint's FRF (weighted LS on log-magnitude and phase); ``kg`` the
-    arm's known gravity stiffness at the pose."""
+    arm's known gravity stiffness at the pose. With the steps' torque amplitudes and drifts
+    (stepped sines) the arm's Coulomb friction is fitted too (:func:`arm_coulomb_frf`):
+    near the antiresonance the arm swings many times the motor and its friction reverses,
+    a damping that a constant D and Ba would absorb wrongly."""
     notes = notes if notes is not None else []
     joint = frf.joints[0]
     if frf.f_hz.size < 6:
@@ -267,6 +301,8 @@ def fit_two_mass(frf: Frf, notes: list[str] | None = None, kg: float = 0.0
                                 [True] * 4 + [False])
         p = JointElasticity(joint, *map(float, vals[:4]), std=std, fit_rms=rms,
                             ba=float(vals[4]), kg=float(kg))
+        if frf.tau_amp is not None and frf.drift is not None:
+            p = _with_arm_coulomb(frf, band, p, notes)
         cut = None if flagged else _second_mode(frf, p)
         if cut is None:
             return p
@@ -282,6 +318,58 @@ def fit_two_mass(frf: Frf, notes: list[str] | None = None, kg: float = 0.0
                      f"the two-mass fit uses the points below {f_cut:.3g} Hz")
         band = keep
         x0 = np.r_[p.jm, p.ja, p.k, p.d, p.ba]
+
+
+def arm_swing(frf: Frf, p: JointElasticity) -> np.ndarray:
+    """Per FRF point the arm's sine velocity amplitude over the step's drift, by the fitted
+    linear model (above 1 the arm reverses and its Coulomb friction acts at the step's
+    frequency)."""
+    assert frf.tau_amp is not None and frf.drift is not None
+    s = 2j * np.pi * frf.f_hz
+    z = p.d * s + p.k
+    g = two_mass_frf(frf.f_hz, p.jm, p.ja, p.k, p.d, p.ba, p.kg)
+    arm = g * z / (p.ja * s * s + p.ba * s + p.kg + z)
+    return np.abs(s * arm) * frf.tau_amp / np.maximum(np.abs(frf.drift), 1e-12)
+
+
+def _with_arm_coulomb(frf: Frf, band: np.ndarray, p: JointElasticity, notes: list[str]
+                      ) -> JointElasticity:
+    """Where the linear fit ``p`` says the arm reverses (its sine outruns the drift), the fit
+    again with the arm's Coulomb friction (started from a few friction levels, the best
+    kept; the linear fit stays when friction explains nothing), and a note."""
+    assert frf.tau_amp is not None and frf.drift is not None
+    swing = arm_swing(frf, p)[band]
+    if not np.any(swing > 1.0):
+        return p
+    f, g, w = frf.f_hz[band], frf.g[band], _weights(frf)[band]
+    amp, drift = frf.tau_amp[band], frf.drift[band]
+    kg = p.kg
+    worst = int(np.argmax(swing))
+    notes.append(f"joint {p.joint}: the arm's sine outruns the drift at {int(np.sum(swing > 1))} "
+                 f"step(s) (×{swing[worst]:.2g} at {f[worst]:.3g} Hz): its friction reverses "
+                 "there, fitted as Coulomb friction on the arm (describing function); a "
+                 "faster drift or a smaller sine keeps it out")
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        jm, ja, k, d = np.exp(x[:4])
+        model = arm_coulomb_frf(f, jm, ja, k, d, x[4], kg, float(np.exp(x[5])), amp, drift)
+        return np.tile(w, 2) * _logres(model, g)
+
+    best = None
+    scale = float(np.median(amp))
+    for frac in (0.01, 0.1, 1.0):
+        x0 = np.r_[np.log([p.jm, p.ja, p.k, p.d]), p.ba, math.log(frac * scale)]
+        try:
+            fit = _solve(fun, x0, (*_NAMES, "fc"), [True] * 4 + [False, True])
+        except EstimationError:
+            continue
+        if best is None or fit[2] < best[2]:
+            best = fit
+    if best is None or best[2] >= p.fit_rms:
+        return p
+    vals, std, rms = best
+    return JointElasticity(p.joint, *map(float, vals[:4]), std=std, fit_rms=rms,
+                           ba=float(vals[4]), kg=kg, fc=float(vals[5]))
 
 
 def _second_mode(frf: Frf, p: JointElasticity) -> tuple[float, float] | None:
@@ -437,9 +525,14 @@ def _merged_frf(logs: Sequence[Log], target: tuple[int, ...],
     if not parts:
         raise last
     order = np.argsort(np.concatenate([p.f_hz for p in parts]))
-    cat = [np.concatenate([getattr(p, a) for p in parts])[order]
-           for a in ("f_hz", "g", "coherence", "snr")]
-    return Frf(target, *cat, source=parts[0].source)
+    f, g, coh, snr = (np.concatenate([getattr(p, a) for p in parts])[order]
+                      for a in ("f_hz", "g", "coherence", "snr"))
+    amps = [p.tau_amp for p in parts if p.tau_amp is not None]
+    drifts = [p.drift for p in parts if p.drift is not None]
+    whole = len(amps) == len(drifts) == len(parts)
+    return Frf(target, f, g, coh, snr, source=parts[0].source,
+               tau_amp=np.concatenate(amps)[order] if whole else None,
+               drift=np.concatenate(drifts)[order] if whole else None)
 
 
 # ----------------------------------------------------------------------------- figures

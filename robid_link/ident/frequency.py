@@ -66,7 +66,10 @@ class ElasticityOptions:
     measure_periods: float = 6.0
     measure_s: float = 1.0  # 0.5 s left the wrist axes' D ±1.4 % (1 σ) at the example's noise
     drift_fraction: float = 0.04
-    drift_over_sine: float = 8.0
+    # the arm swings at most ~0.45× the drift on the example's axes at 3 (the torque's SNR,
+    # hence D's scatter, grows with the sine: D5 ±1.05 % at 8, ±0.6 % at 3); where the arm
+    # outruns the drift the fit notes it and models the reversing friction
+    drift_over_sine: float = 3.0
     accel_fraction: float = 0.5  # of the acceleration limit, caps the sine at high frequency
 
 
@@ -85,6 +88,11 @@ class Frf:
     snr: np.ndarray
     source: str = "schedule"  # schedule | detected | h1 | reference
     notes: list[str] = field(default_factory=list)
+    #: one joint's stepped sines: per point the torque amplitude |T| (N·m) and the motor's mean
+    #: velocity over the step (rad/s, the drift); what an amplitude-dependent effect (Coulomb
+    #: friction reversing on the arm) needs; None for a pair or an H1 estimate
+    tau_amp: np.ndarray | None = None
+    drift: np.ndarray | None = None
 
     @property
     def accel(self) -> np.ndarray:
@@ -130,8 +138,10 @@ def stepped_sine_schedule(robot: Robot, opts: ElasticityOptions) -> list[dict[st
     for p in opts.pairs:
         groups.append((tuple(p), (1.0, 1.0)))
         groups.append((tuple(p), (1.0, -1.0)))
-    order = ([(g, f) for g in groups[:len(joints)] for f in freqs]
-             + [(g, f) for f in freqs for g in groups[len(joints):]])
+    # every pattern runs through all frequencies in turn: the in-phase and the antiphase step
+    # of one frequency back to back read as one long step from the log alone (the 2×2 FRF
+    # then lost 7 of 24 frequencies: D3 of the example's pair +3.25 %)
+    order = [(g, f) for g in groups for f in freqs]
     sign = 1.0
     for (axes, pattern), f in order:
         w = 2 * math.pi * f
@@ -254,8 +264,9 @@ def sine_amplitudes(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1,
 
 
 def _point(t: np.ndarray, qm: np.ndarray, tau: np.ndarray, f: float, periods: float
-           ) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """(Y (m,), U (m,), coherence, snr) of one step window; blocks of whole periods."""
+           ) -> tuple[np.ndarray, np.ndarray, float, float, float]:
+    """(Y (m,), U (m,), coherence, snr, drift) of one step window (blocks of whole periods);
+    drift the first channel's mean velocity."""
     blocks = int(max(2, min(10, periods // 2)))
     y, yb = sine_amplitudes(t, qm, f, blocks)
     u, ub = sine_amplitudes(t, tau, f, blocks)
@@ -265,7 +276,9 @@ def _point(t: np.ndarray, qm: np.ndarray, tau: np.ndarray, f: float, periods: fl
                 / max(np.sum(abs(sy) ** 2) * np.sum(abs(su) ** 2), 1e-300))
     spread = float(np.std(su) / math.sqrt(blocks))
     snr = float(abs(u[0]) / max(spread, 1e-300))
-    return y, u, coh, snr
+    tc = t - t.mean()
+    drift = float(tc @ (qm[:, 0] - qm[:, 0].mean()) / max(float(tc @ tc), 1e-300))
+    return y, u, coh, snr, drift
 
 
 def frf_from_schedule(t: np.ndarray, q: np.ndarray, tau: np.ndarray,
@@ -277,7 +290,7 @@ def frf_from_schedule(t: np.ndarray, q: np.ndarray, tau: np.ndarray,
     cols = [j - 1 for j in joints]
     if tau_model is not None:
         tau = tau - tau_model
-    by_f: dict[float, list[tuple[np.ndarray, np.ndarray, float, float]]] = {}
+    by_f: dict[float, list[tuple[np.ndarray, np.ndarray, float, float, float]]] = {}
     for st in schedule:
         if "joint" not in st or "f_hz" not in st:
             raise DataError("schedule step without joint/f_hz: not a stepped-sine schedule")
@@ -296,13 +309,15 @@ def frf_from_schedule(t: np.ndarray, q: np.ndarray, tau: np.ndarray,
 
 
 def _assemble(joints: tuple[int, ...], by_f: dict[float, list[Any]], source: str) -> Frf:
-    fs, gs, cohs, snrs = [], [], [], []
+    fs, gs, cohs, snrs, amps, drifts = [], [], [], [], [], []
     for f in sorted(by_f):
         pts = by_f[f]
         if len(joints) == 1:
             y = np.array([p[0][0] for p in pts])
             u = np.array([p[1][0] for p in pts])
             g = np.sum(y * u.conj()) / np.sum(abs(u) ** 2)
+            amps.append(float(np.mean(abs(u))))
+            drifts.append(float(min(abs(p[4]) for p in pts)))
         else:
             if len(pts) < len(joints):
                 continue  # a 2×2 FRF needs one independent input per axis
@@ -319,7 +334,10 @@ def _assemble(joints: tuple[int, ...], by_f: dict[float, list[Any]], source: str
                         f"together: robid excite --pair {joints[0]},{joints[1]})")
     if not fs:
         raise DataError(f"no steps of joint(s) {', '.join(map(str, joints))} in the log")
-    return Frf(joints, np.array(fs), np.array(gs), np.array(cohs), np.array(snrs), source)
+    single = len(joints) == 1
+    return Frf(joints, np.array(fs), np.array(gs), np.array(cohs), np.array(snrs), source,
+               tau_amp=np.array(amps) if single else None,
+               drift=np.array(drifts) if single else None)
 
 
 # ----------------------------------------------------------------------------- from the log

@@ -100,7 +100,10 @@ def test_pair_schedule_drives_both_axes_in_and_out_of_phase():
     pair = [st for st in sched if "joints" in st]
     assert len(pair) == 8 and all(st["joints"] == [2, 3] for st in pair)
     signs = [np.sign(st["amplitudes_rad"][0] * st["amplitudes_rad"][1]) for st in pair]
-    assert signs == [1, -1] * 4  # in phase, then antiphase, at each frequency
+    # in phase through every frequency, then antiphase: two steps back to back at one
+    # frequency would read as one from the log alone
+    assert signs == [1] * 4 + [-1] * 4
+    assert [st["f_hz"] for st in pair[:4]] == [st["f_hz"] for st in pair[4:]]
     assert excited_axes(sched) == ([1], [(2, 3)])
     for st in pair:  # both axes drift through the measured window (friction never reverses)
         a, b = np.searchsorted(traj.t, [st["t_measure"], st["t_end"]])
@@ -260,15 +263,12 @@ def test_every_elastic_axis_of_the_six_axis_example(six_axis_log, known):
     """Jm, Ja, K within 1 % and D within 2 % on every axis (1.5× that from the log alone),
     Jcop of the 2–3 pair within 5 %. Measured figures are printed (pytest -s).
 
-    Known gap: D of a wrist axis can be ~2–3 % off. The arm's Coulomb friction reverses near
-    the antiresonance, where the arm swings 1/(2ζ) times the motor (≈ 8×, the drift/sine
-    ratio): without Coulomb friction D5 is −0.03 %, with it −2.2…−2.5 %. A misfit of D alone is
-    reported as an expected failure naming the axes, not hidden."""
+    D is the noisiest: ±0.5–0.6 % (1 σ) on the wrist axes with the sine at a third of the
+    drift (±1 % at an eighth, where D5 came out −2.5 %)."""
     robot, traj, log, truth = six_axis_log
     res = identify_elasticity(robot, [log], joints=[1, 4, 5, 6], pair=(2, 3),
                               schedule=traj.header["schedule"] if known else None)
     tol = 1.0 if known else 1.5
-    d_off = []
     for p in res.joints:
         t = truth[p.joint]
         err = {n: 100 * (getattr(p, n) / t[n] - 1) for n in ("jm", "ja", "k", "d")}
@@ -276,13 +276,80 @@ def test_every_elastic_axis_of_the_six_axis_example(six_axis_log, known):
               + " ".join(f"{n} {e:+.2f}%" for n, e in err.items()))
         for n in ("jm", "ja", "k"):
             assert abs(err[n]) < tol, (p.joint, n, err[n])
-        if abs(err["d"]) >= 2 * tol:
-            d_off.append(f"joint {p.joint} D {err['d']:+.2f}%")
+        assert abs(err["d"]) < 2 * tol, (p.joint, "d", err["d"])
     jcop = truth[2]["jcop"][3]
     assert res.coupled is not None
     print(f"Jcop {100 * (res.coupled.jcop / jcop - 1):+.2f}%")
     assert res.coupled.jcop == pytest.approx(jcop, rel=0.05)
     assert not any("second resonance" in n for n in res.notes)
-    if d_off:
-        pytest.xfail(f"D beyond {2 * tol:g} %: {', '.join(d_off)} (open, see the README's "
-                     "elasticity figures)")
+
+
+def _resonant_residual(joint: int, f_hz: float = 35.0, fs: float = 500.0):
+    """What the diagnosis' resonance finder reads (duck-typed prepared log and design): a
+    smooth motion, and on ``joint`` a lightly damped mode ringing on noise."""
+    from types import SimpleNamespace
+
+    import scipy.signal as sig
+
+    rng = np.random.default_rng(0)
+    t = np.arange(0.0, 40.0, 1.0 / fs)
+    q = np.column_stack([np.sin(0.3 * t + k) for k in range(3)])
+    r = rng.normal(scale=0.05, size=(t.size, 3))
+    w0 = 2 * np.pi * f_hz
+    b, a = sig.bilinear([w0 ** 2], [1.0, 2 * 0.01 * w0, w0 ** 2], fs)
+    r[:, joint - 1] += sig.lfilter(b, a, rng.normal(size=t.size))
+    prep = SimpleNamespace(tau_model=np.zeros_like(r), tau=r, log=t, q=q,
+                           filt=SimpleNamespace(fs=fs))
+    return prep, SimpleNamespace(robot=SimpleNamespace(n=3))
+
+
+def test_unexplained_resonance_names_the_campaign_entry(tmp_path):
+    """The diagnosis' resonance note names the joint and what measures it: the daemon's
+    campaign entry when one exists, else the entry to add to the run's own campaign."""
+    from robid_link.config import load_daemon_config
+    from robid_link.ident.diagnose import _unexplained
+    from robid_link.link.campaign import elasticity_entries
+    from tests.link.conftest import QUICK, write_config
+
+    cfg = load_daemon_config(write_config(tmp_path, {
+        "quick": QUICK,
+        "stiff": {"experiments": [{"kind": "elasticity", "pairs": [[2, 3]]}],
+                  "identify": False}}))
+    entries = elasticity_entries(cfg)
+    assert set(entries) == {2, 3} and "campaign 'stiff'" in entries[2]
+    prep, design = _resonant_residual(joint=2)
+    [hit] = _unexplained(prep, design, np.zeros(0), "quick", entries)
+    assert hit["joint"] == 2 and hit["frequency_hz"] == pytest.approx(35.0, rel=0.05)
+    assert hit["measured_by"] == entries[2]
+    assert "campaign 'stiff' (experiment" in hit["text"] and "robid campaign start stiff" \
+        in hit["text"]
+    prep, design = _resonant_residual(joint=1)
+    [hit] = _unexplained(prep, design, np.zeros(0), "quick", entries)
+    assert hit["joint"] == 1 and hit["measured_by"] is None
+    assert "campaigns.quick.experiments: […, {kind: elasticity, joints: [1]}]" in hit["text"]
+
+
+def test_arm_coulomb_reversal_is_noted_and_fitted():
+    """Steps where the arm's sine outruns the drift: its Coulomb friction acts at the step's
+    frequency as a damper (describing function, checked against the Fourier coefficient of
+    sign(v0 + V sin θ)); the fit names those steps and recovers D and the friction."""
+    from robid_link.ident.elasticity import arm_coulomb_frf
+
+    theta = np.linspace(0.0, 2 * np.pi, 200_001)[:-1]
+    for v0, v in ((0.3, 1.0), (0.9, 1.0), (0.0, 2.0)):
+        b1 = 2 * np.mean(np.sign(v0 + v * np.sin(theta)) * np.sin(theta))
+        assert b1 == pytest.approx(4 / np.pi * np.sqrt(1 - (v0 / v) ** 2), abs=1e-4)
+    f = np.geomspace(5.0, 80.0, 24)
+    jm, ja, k, d, ba, fc = 0.015, 0.026, 400.0, 0.2, 0.2, 0.3
+    amp = np.full(f.size, 0.08)
+    drift = np.full(f.size, 0.05)
+    g = arm_coulomb_frf(f, jm, ja, k, d, ba, 0.0, fc, amp, drift)
+    lin = two_mass_frf(f, jm, ja, k, d, ba)
+    assert np.max(np.abs(np.log(g / lin))) > 0.05  # the friction shows near the antiresonance
+    frf = Frf((5,), f, g, np.ones(f.size), np.full(f.size, 1e4), tau_amp=amp, drift=drift)
+    notes: list[str] = []
+    p = fit_two_mass(frf, notes)
+    assert any("the arm's sine outruns the drift" in n for n in notes), notes
+    for name, true in (("jm", jm), ("ja", ja), ("k", k), ("d", d)):
+        assert getattr(p, name) == pytest.approx(true, rel=0.01), name
+    assert p.fc == pytest.approx(fc, rel=0.05)
