@@ -82,13 +82,14 @@ class KnownTorque:
             if self.expression is not None:
                 env = {f"{k}{j + 1}": a[:, j] for k, a in (("q", q), ("qd", qd), ("qdd", qdd))
                        for j in range(n)}
+                out = np.zeros((q.shape[0], n))
                 try:
                     val = _Evaluator(env, consts, self.where).run(self.expression)
+                    out[:, (self.joint or 1) - 1] = np.broadcast_to(np.asarray(val, float),
+                                                                     q.shape[0])
                 except (ArithmeticError, ValueError, TypeError) as err:
                     raise ModelError(f"{self.where}.expression ({self.name}): cannot evaluate: "
                                      f"{type(err).__name__}: {str(err)[:80]}") from err
-                out = np.zeros((q.shape[0], n))
-                out[:, (self.joint or 1) - 1] = np.broadcast_to(np.asarray(val, float), q.shape[0])
             else:
                 out = self._call(q, qd, qdd, consts)
         bad = ~np.isfinite(out)
@@ -136,7 +137,7 @@ class KnownTorque:
         if self.joint is not None and self.joint > n:
             raise ModelError(f"{self.where}.joint: the robot has {n} joints")
         if self.expression is not None:
-            for name in _names(ast.parse(self.expression, mode="eval")):
+            for name in _names(_checked_tree(self.expression, self.where)):
                 m = _STATE.match(name)
                 if m and int(m.group(2)) > n:
                     raise ModelError(f"{self.where}.expression: {name}: the robot has {n} "
@@ -273,9 +274,12 @@ def _constants(x: Any, where: str) -> dict[str, float]:
 def _entry_point(spec: str, where: str) -> Callable[..., Any]:
     module, _, attr = spec.partition(":")
     try:
-        fn = getattr(importlib.import_module(module), attr)
-    except ImportError as err:
-        raise ModelError(f"{where}.function: cannot import module {module!r} ({err})") from err
+        mod = importlib.import_module(module)
+    except Exception as err:  # noqa: BLE001 - the user's module: a bad name, its own errors
+        raise ModelError(f"{where}.function: cannot import module {module!r} "
+                         f"({type(err).__name__}: {str(err)[:80]})") from err
+    try:
+        fn = getattr(mod, attr)
     except AttributeError as err:
         raise ModelError(f"{where}.function: module {module!r} has no {attr!r}") from err
     if not callable(fn):

@@ -171,6 +171,7 @@ def test_model_file_round_trip_keeps_known_torques(tmp_path):
     ("sqrt(q2 - 100) * k", "not finite at q"),
     ("10.0 ** 400 * k", "cannot evaluate: OverflowError"),
     ("k * " + "-" * 1500 + "q2", "nested deeper than 100 levels"),  # was a RecursionError
+    ("where(q2 > 0)", "cannot evaluate: ValueError"),  # a tuple: was a traceback
 ])
 def test_unsafe_or_bad_expressions_are_refused(arm3, tmp_path, expr, message):
     with pytest.raises(ModelError, match=message):
@@ -190,6 +191,7 @@ def test_unsafe_or_bad_expressions_are_refused(arm3, tmp_path, expr, message):
     ("  - {joint: 2, expression: q2, identify: [k]}", "'k' does not appear in the expression"),
     ("  - {joint: 2, function: os.path}", "expected 'module:function'"),
     ("  - {joint: 2, function: 'no_such_module_xyz:f'}", "cannot import module"),
+    ("  - {joint: 2, function: '.x:f'}", "cannot import module '.x'"),  # was a traceback
     ("  - {name: a, joint: 2, expression: q2}\n  - {name: a, joint: 3, expression: q3}",
      "duplicate name 'a'"),
 ])
@@ -245,3 +247,15 @@ def test_known_torque_fixes_the_scale_of_unknown_current_gains(arm3, spring_log,
     values = {p.name: p.value for p in res.parameters}
     assert values["fv_2"] == pytest.approx(2.0, rel=0.01)
     assert values["fv_3"] == pytest.approx(2.0, rel=0.01)
+
+
+def test_expression_with_leading_space_and_a_broken_module(arm3, tmp_path, monkeypatch):
+    """An expression with leading blanks is checked as it is evaluated (stripped), and a user
+    module that fails on import is one ModelError naming it (both were tracebacks)."""
+    model = _model(tmp_path, '  - {joint: 2, expression: " 2.0 * q2"}\n')
+    model.blocks(arm3)
+    (tmp_path / "broken_mod_xyz.py").write_text("def f(:\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(ModelError, match=r"cannot import module 'broken_mod_xyz' "
+                                         r"\(SyntaxError"):
+        _model(tmp_path, "  - {joint: 2, function: 'broken_mod_xyz:f'}\n")
