@@ -278,7 +278,9 @@ class CanopenDrivesDriver(Driver):
         ident = [self._sdo(a, 0x1018, s) for s in (1, 2, 3, 4)]
         log.info("%s vendor=0x%08X product=0x%08X revision=0x%08X serial=%d", a.label(), *ident)
         self._sdo(a, 0x1017, 0, self.heartbeat_ms, "<H")
-        self._sdo(a, 0x1019, 0, SYNC_OVERFLOW, "<B")  # SYNCs carry a counter 1..240
+        # SYNCs carry a counter 1..240 (CiA 301: 0x1019 is written while 0x1006 is 0)
+        self._sdo(a, 0x1006, 0, 0)
+        self._sdo(a, 0x1019, 0, SYNC_OVERFLOW, "<B")
         tpdo1, tpdo2 = self.tpdo_maps
         for comm, mapping, cob, entries in ((0x1400, 0x1600, 0x200, RPDO1_MAP),
                                             (0x1800, 0x1A00, 0x180, tpdo1),

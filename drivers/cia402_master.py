@@ -43,8 +43,9 @@ class Axis:
     """One drive (= one joint) as the master sees it; the notifier thread fills the inputs.
 
     ``slots`` holds what the drive answered per SYNC index (its TPDOs carry the SYNC counter),
-    ``[(status, pos), (torque, vel)]`` until both came; ``heard`` is the newest SYNC index any
-    of its TPDOs answered, ``newest`` the newest SYNC index it answered completely."""
+    ``[(status, pos), (torque, vel)]`` until both came; ``heard`` the newest SYNC index each of
+    its two TPDOs answered (each comes in order; the two may overtake each other on a bus),
+    ``newest`` the newest SYNC index it answered completely."""
 
     node: int
     joint: int  # from 1
@@ -53,7 +54,7 @@ class Axis:
     rated_torque_nm: float  # joint torque of 1000 per mille
     window_counts: float  # following-error window
     slots: dict[int, list[Any]] = field(default_factory=dict)
-    heard: int = -1
+    heard: list[int] = field(default_factory=lambda: [-1, -1])
     newest: int = -1
     last: tuple[int, int, int, int, int] | None = None  # status, pos, torque, vel, error
     missed: int = 0
@@ -83,6 +84,7 @@ class Job:
     sync0: int | None = None
     settled: int = 0
     settle_start: float | None = None
+    settle_from: int = 0  # the first SYNC after the last setpoint
     error: str | None = None
     missing_rows: int = 0
     quick_stop: bool = False  # ended by a fault (else finished, or ramped to rest on request)
@@ -114,6 +116,13 @@ def ramp_to_rest(pos: np.ndarray, vel: np.ndarray, decel: np.ndarray, period: fl
         p = p + v * period
         out.append(p.copy())
     return np.array(out).reshape(-1, pos.size)
+
+
+def _lost(axis: Axis, part: list[Any] | None, index: int) -> bool:
+    """Whether what ``axis`` has not answered of SYNC ``index`` is lost: each missing TPDO
+    answered a later SYNC already."""
+    return all((part is not None and part[k] is not None) or axis.heard[k] > index
+               for k in (0, 1))
 
 
 class _Stop(Exception):
@@ -156,9 +165,9 @@ class SyncMaster:
         self.halt_reason: str | None = None
         self.sync_count = 0  # SYNCs sent; the next one has index sync_count
         self.next_row = 0  # the oldest SYNC index not yet recorded or given up
-        # the SYNC indices every drive answered (status, pos, torque per drive), None for one a
-        # drive left unanswered, oldest first; the running job takes what is its own
-        self.answered: list[tuple[int, list[tuple[int, int, int]] | None]] = []
+        # the SYNC indices every drive answered (status, pos, torque, vel per drive), None for
+        # one a drive left unanswered, oldest first; the running job takes what is its own
+        self.answered: list[tuple[int, list[tuple[int, int, int, int]] | None]] = []
         self.overruns = 0
         self.late_streak = 0
         self.sync_times: list[float] = []
@@ -193,7 +202,7 @@ class SyncMaster:
                 return  # given up already (or before the master started)
             axis = self.axes[i]
             axis.slots.setdefault(index, [None, None])[part] = values
-            axis.heard = max(axis.heard, index)
+            axis.heard[part] = max(axis.heard[part], index)
 
     def on_heartbeat(self, i: int, data: bytes) -> None:
         axis = self.axes[i]
@@ -310,9 +319,9 @@ class SyncMaster:
                 done = [p for p in parts if p is not None and p[0] is not None
                         and p[1] is not None]
                 if len(done) == len(parts):
-                    self.answered.append((index, [(p[0][0], p[0][1], p[1][0]) for p in done]))
-                elif (all(p in done or a.heard > index
-                          for a, p in zip(self.axes, parts, strict=True))
+                    self.answered.append((index, [(p[0][0], p[0][1], p[1][0], p[1][1])
+                                                  for p in done]))
+                elif (all(_lost(a, p, index) for a, p in zip(self.axes, parts, strict=True))
                       or last - index >= self.max_missed):
                     self.answered.append((index, None))
                 else:
@@ -328,8 +337,9 @@ class SyncMaster:
         now = time.monotonic()
         for a, s in zip(self.axes, samples, strict=True):
             if a.missed >= self.max_missed:
-                raise _Stop(a, f"no TPDO for {a.missed} SYNC periods (node silent or frames "
-                               "lost)")
+                raise _Stop(a, f"no TPDO for {a.missed} SYNC periods (node silent, frames lost "
+                               "or malformed, or answers later than max_missed "
+                               f"{self.max_missed})")
             if now - a.heartbeat_at > self.heartbeat_timeout_s:
                 raise _Stop(a, f"lost heartbeat (none for {now - a.heartbeat_at:.3g} s)")
             if s is None:
@@ -363,33 +373,40 @@ class SyncMaster:
             if self.ramp_then == "disable":
                 self.idle.set()
                 return CW_SHUTDOWN, self.cmd
-            if self._at_rest(samples, self.cmd):
+            if any(self._at_rest(parts, self.cmd) for _, parts in self.answered
+                   if parts is not None):
                 self.hold, self.mode = self.cmd.copy(), "hold"
                 self.idle.set()
         return CW_ENABLE, self.hold if self.mode == "hold" else self.cmd
 
-    def _at_rest(self, samples: list[Any], target: np.ndarray) -> bool:
-        for a, s in zip(self.axes, samples, strict=True):
-            if s is None or abs(s[3]) > self.standstill[a.joint - 1]:
+    def _at_rest(self, parts: Sequence[tuple[int, ...]], target: np.ndarray) -> bool:
+        """Every drive's answer to one SYNC (status, pos, torque, vel) at rest on target."""
+        for a, p in zip(self.axes, parts, strict=True):
+            if abs(p[3]) > self.standstill[a.joint - 1]:
                 return False
-            if abs(s[1] - int(target[a.joint - 1])) > 0.1 * a.window_counts:
+            if abs(p[1] - int(target[a.joint - 1])) > 0.1 * a.window_counts:
                 return False
         return True
 
     def _settle(self, job: Job, samples: list[Any]) -> None:
+        """After the last setpoint: three SYNCs in a row whose answers show every drive at rest
+        end the job (counted per answered SYNC, not per tick: answers may come in batches),
+        with every row answered so far in its log."""
         now = time.monotonic()
         if job.settle_start is None:
-            job.settle_start = now
-        job.settled = job.settled + 1 if self._at_rest(samples, job.targets[-1]) else 0
+            job.settle_start, job.settle_from = now, self.sync_count
+        for index, parts in self.answered:
+            if parts is not None and index >= job.settle_from:
+                job.settled = job.settled + 1 if self._at_rest(parts, job.targets[-1]) else 0
         if job.settled >= 3:
+            self._record(job)
             self.hold, self.mode = job.targets[-1].copy(), "hold"
             self.job = None
             self._end_job(job, None)
             self.idle.set()
         elif now - job.settle_start > job.settle_timeout_s:
-            moving = next((a for a, s in zip(self.axes, samples, strict=True)
-                           if s is None or abs(s[3]) > self.standstill[a.joint - 1]),
-                          self.axes[0])
+            moving = next((a for a in self.axes if a.last is None
+                           or abs(a.last[3]) > self.standstill[a.joint - 1]), self.axes[0])
             raise _Stop(moving, f"no standstill within {job.settle_timeout_s:g} s after the "
                                 "trajectory ended")
 

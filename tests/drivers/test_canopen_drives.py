@@ -100,21 +100,24 @@ def test_a_fault_mid_motion_stops_every_drive_and_keeps_the_log(
 def test_late_answers_are_logged_at_their_own_sync(tmp_path: Path, robot: Robot,
                                                    program: MotionProgram,
                                                    caplog: pytest.LogCaptureFixture) -> None:
-    """TPDOs up to 6 periods late and bunched (a loaded socketcand host): the log is the one a
+    """TPDOs up to 12 periods late and bunched (a loaded socketcand host): the log is the one a
     prompt bus gives, row for row. The answers carry their SYNC's counter; when they arrive
     counts for nothing (it once paired positions and torques of different SYNCs)."""
     logs = {}
-    for lag in (0, 6):
+    for lag in (0, 12):
         (tmp_path / f"lag{lag}").mkdir()
         with drives(tmp_path / f"lag{lag}", robot, peer_opts={"answer_lag_periods": lag}
                     ) as (driver, _):
             logs[lag] = np.loadtxt(_run(driver, program).decode().splitlines(), delimiter=",",
                                    skiprows=1, ndmin=2)
-    prompt, late = logs[0], logs[6]
+    prompt, late = logs[0], logs[12]
     n = robot.n
     assert "without every drive's answer" not in caplog.text  # no gaps
-    assert np.all(np.diff(late[:, 0]) > 0) and len(late) >= len(prompt) - 8  # the tail may end
-    common = min(len(prompt), len(late))                                  # before it arrives
+    # the end too: standstill is counted per answered SYNC (batched answers once never gave
+    # three fresh ticks in a row: a quick stop at rest) and the job ends with every row that
+    # came in (a batch may bring a few more rows at rest)
+    assert np.all(np.diff(late[:, 0]) > 0) and len(prompt) <= len(late) <= len(prompt) + 12
+    common = len(prompt)
     np.testing.assert_array_equal(late[:common, : 1 + n], prompt[:common, : 1 + n])
     # the torques differ by the noise only (same seed, drawn per SYNC since the drives started)
     spread = np.std(late[:common, 1 + n:] - prompt[:common, 1 + n:], axis=0)
