@@ -10,7 +10,7 @@ import struct
 
 __all__ = ["CW_SHUTDOWN", "CW_SWITCH_ON", "CW_ENABLE", "CW_QUICK_STOP", "CW_DISABLE_VOLTAGE",
            "CW_FAULT_RESET", "MODE_CSP", "drive_state", "error_words", "RPDO1", "TPDO1",
-           "TPDO2", "RPDO1_MAP", "TPDO1_MAP", "TPDO2_MAP", "NMT_RESET_COMM", "NMT_START",
+           "TPDO2", "RPDO1_MAP", "NMT_RESET_COMM", "NMT_START",
            "NMT_PRE_OPERATIONAL", "SYNC_ID", "PROFILE_402", "pdo_entry", "SYNC_OVERFLOW",
            "SYNC_ECHO", "sync_counter", "tpdo_maps"]
 
@@ -62,8 +62,6 @@ def tpdo_maps(echo: tuple[int, int] = SYNC_ECHO) -> tuple[tuple[int, ...], tuple
     return ((pdo_entry(0x6041, 0, 16), pdo_entry(0x6064, 0, 32), pdo_entry(*echo, 8)),
             (pdo_entry(0x606C, 0, 32), pdo_entry(0x6077, 0, 16), pdo_entry(*echo, 8)))
 
-
-TPDO1_MAP, TPDO2_MAP = tpdo_maps()
 
 # statusword patterns (mask, value, state), CiA 402 table 30
 _STATES = ((0x4F, 0x00, "Not ready to switch on"), (0x4F, 0x40, "Switch on disabled"),

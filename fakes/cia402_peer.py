@@ -30,6 +30,7 @@ from robid_link.drivers.cia402 import (
     NMT_PRE_OPERATIONAL,
     NMT_RESET_COMM,
     NMT_START,
+    SYNC_ECHO,
     SYNC_ID,
     error_words,
 )
@@ -344,7 +345,7 @@ class Cia402Peer(Peer):
             d._put(0x606C, 0, int(round(qd[j] * d.cpr)), "<i")
             d._put(0x6077, 0, int(np.clip(round(tau[j] / d.rated_nm * 1000), -32767, 32767)),
                    "<h")
-            d._put(0x2100, 0, counter, "<B")  # the SYNC these values were latched at
+            d._put(*SYNC_ECHO, counter, "<B")  # the SYNC these values were latched at
             if send:
                 self.outbox.extend((due, cob, data) for cob, data in d.tpdo_frames(self.k, twice))
         while self.outbox and self.outbox[0][0] <= self.k and self.network is not None:

@@ -41,6 +41,15 @@ def two_mass_frf(f_hz: np.ndarray, jm: float, ja: float, k: float, d: float, ba:
     return (arm + z) / (jm * s * s * (arm + z) + z * arm)
 
 
+def _motor_and_arm(f: np.ndarray, jm: float, ja: float, k: float, d: float, ba: float,
+                   kg: float) -> tuple[np.ndarray, np.ndarray]:
+    """The two-mass model's motor and arm positions over the motor torque: (qm/τ, qa/τ)."""
+    s = 2j * np.pi * f
+    z = d * s + k
+    g = two_mass_frf(f, jm, ja, k, d, ba, kg)
+    return g, g * z / (ja * s * s + ba * s + kg + z)
+
+
 def arm_coulomb_frf(f_hz: np.ndarray, jm: float, ja: float, k: float, d: float, ba: float,
                     kg: float, fc: float, tau_amp: np.ndarray, drift: np.ndarray
                     ) -> np.ndarray:
@@ -55,10 +64,8 @@ def arm_coulomb_frf(f_hz: np.ndarray, jm: float, ja: float, k: float, d: float, 
     amp = np.asarray(tau_amp, dtype=float)
 
     def gap(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        g = two_mass_frf(f, jm, ja, k, d, ba + c, kg)
-        s = 1j * w
-        z = d * s + k
-        v = w * np.abs(g * z / (ja * s * s + (ba + c) * s + kg + z)) * amp
+        g, arm = _motor_and_arm(f, jm, ja, k, d, ba + c, kg)
+        v = w * np.abs(arm) * amp
         r = np.clip(v0 / np.maximum(v, 1e-300), 0.0, 1.0)
         return 4 * fc / np.pi * np.sqrt(1.0 - r * r) / np.maximum(v, 1e-300) - c, g
 
@@ -279,9 +286,9 @@ def fit_two_mass(frf: Frf, notes: list[str] | None = None, kg: float = 0.0
                  ) -> JointElasticity:
     """Two-mass fit of one joint's FRF (weighted LS on log-magnitude and phase); ``kg`` the
     arm's known gravity stiffness at the pose. With the steps' torque amplitudes and drifts
-    (stepped sines) the arm's Coulomb friction is fitted too (:func:`arm_coulomb_frf`):
-    near the antiresonance the arm swings many times the motor and its friction reverses,
-    a damping that a constant D and Ba would absorb wrongly."""
+    (stepped sines) and an arm whose sine outruns the drift, the arm's Coulomb friction is
+    fitted too (:func:`arm_coulomb_frf`): reversing, it damps amplitude-dependently, which a
+    constant D and Ba would absorb wrongly."""
     notes = notes if notes is not None else []
     joint = frf.joints[0]
     if frf.f_hz.size < 6:
@@ -325,11 +332,9 @@ def arm_swing(frf: Frf, p: JointElasticity) -> np.ndarray:
     linear model (above 1 the arm reverses and its Coulomb friction acts at the step's
     frequency)."""
     assert frf.tau_amp is not None and frf.drift is not None
-    s = 2j * np.pi * frf.f_hz
-    z = p.d * s + p.k
-    g = two_mass_frf(frf.f_hz, p.jm, p.ja, p.k, p.d, p.ba, p.kg)
-    arm = g * z / (p.ja * s * s + p.ba * s + p.kg + z)
-    return np.abs(s * arm) * frf.tau_amp / np.maximum(np.abs(frf.drift), 1e-12)
+    arm = _motor_and_arm(frf.f_hz, p.jm, p.ja, p.k, p.d, p.ba, p.kg)[1]
+    return (2 * np.pi * frf.f_hz * np.abs(arm) * frf.tau_amp
+            / np.maximum(np.abs(frf.drift), 1e-12))
 
 
 def _with_arm_coulomb(frf: Frf, band: np.ndarray, p: JointElasticity, notes: list[str]
