@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEVSTAMP := $(VENV)/.installed-dev
 
-.PHONY: demo test bench validate lint wheel-check clean
+.PHONY: demo test bench validate lint wheel-check clean system-deps
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -22,10 +22,14 @@ $(DEVSTAMP): pyproject.toml | $(BIN)/python
 demo: $(STAMP)
 	$(BIN)/robid demo
 
-test: $(DEVSTAMP)
+# Chromium and PostgreSQL from Debian's packages when missing (browser and store tests)
+system-deps:
+	.ci/system-deps
+
+test: $(DEVSTAMP) system-deps
 	$(BIN)/python -m pytest -q
 
-validate: $(DEVSTAMP)
+validate: $(DEVSTAMP) system-deps
 	ROBID_VALIDATE=1 $(BIN)/python -m pytest -q -m slow --timeout=3600
 
 bench: $(DEVSTAMP)  # the link benches need the drivers' extras (modbus, serial)

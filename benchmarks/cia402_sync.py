@@ -36,7 +36,7 @@ def _sleep_loop(period: float, seconds: float) -> dict[str, float]:
 def _with_drives(period: float, body: Any) -> Any:
     """Open the driver on six fake drives with SYNC ``period`` and run ``body(master)``."""
     from robid_link.fakes.controller import default_truth, make_peer
-    from robid_link.ident.robot import load_robot
+    from robid_link.ident.model.robot import load_robot
     from robid_link.link import registry
     from robid_link.link.driver import RobotInfo
 

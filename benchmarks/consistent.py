@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from robid_link.ident.effects import DEFAULT_MODEL
-from robid_link.ident.identify import identify, load_logs
-from robid_link.ident.robot import load_robot
+from robid_link.ident.fit.identify import identify, load_logs
+from robid_link.ident.model.effects import DEFAULT_MODEL
+from robid_link.ident.model.robot import load_robot
 
 __all__ = ["bench_consistent", "report"]
 

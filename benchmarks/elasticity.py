@@ -24,10 +24,10 @@ PAIR = (2, 3)
 
 def _stepped_sine_log(robot_path: Path, truth_path: Path, out: Path) -> tuple[int, Path]:
     from robid_link.fakes.plant import Plant, load_truth
-    from robid_link.ident.data import write_log_csv
-    from robid_link.ident.excitation import trajectory_states, write_trajectory
-    from robid_link.ident.frequency import ElasticityOptions, elasticity_trajectory
-    from robid_link.ident.robot import load_robot
+    from robid_link.ident.data.logs import write_log_csv
+    from robid_link.ident.elastic.frequency import ElasticityOptions, elasticity_trajectory
+    from robid_link.ident.excite.excitation import trajectory_states, write_trajectory
+    from robid_link.ident.model.robot import load_robot
 
     robot = load_robot(robot_path)
     opts = ElasticityOptions(joints=SINGLES, pairs=(PAIR,), pose=tuple(np.radians(POSE_DEG)))

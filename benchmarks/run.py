@@ -22,9 +22,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from robid_link.ident.excitation import random_fourier  # noqa: E402
-from robid_link.ident.regressor import reference_regressor, rigid_regressor  # noqa: E402
-from robid_link.ident.robot import load_robot  # noqa: E402
+from robid_link.ident.excite.excitation import random_fourier  # noqa: E402
+from robid_link.ident.model.regressor import reference_regressor, rigid_regressor  # noqa: E402
+from robid_link.ident.model.robot import load_robot  # noqa: E402
 
 ROBOT = ROOT / "examples" / "robots" / "industrial6.yaml"
 
@@ -121,9 +121,9 @@ def bench_diagnose(seconds: float, ripple: float = 0.0) -> dict[str, float]:
     """diagnose against one identify on the same 6-axis log (60 s at 1 kHz), in-process."""
     import warnings
 
-    from robid_link.ident.diagnose import diagnose
-    from robid_link.ident.effects import DEFAULT_MODEL
-    from robid_link.ident.identify import identify, load_logs
+    from robid_link.ident.diagnosis.diagnose import diagnose
+    from robid_link.ident.fit.identify import identify, load_logs
+    from robid_link.ident.model.effects import DEFAULT_MODEL
 
     with tempfile.TemporaryDirectory() as tmp:
         data = Path(tmp) / "diag.npz"

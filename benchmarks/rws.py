@@ -18,7 +18,7 @@ import numpy as np
 from robid_link.drivers.file_share import FileShareDriver, log_name
 from robid_link.drivers.rws_api import done_value, log_file
 from robid_link.fakes.controller import default_truth, log_csv, make_peer
-from robid_link.ident.robot import load_robot
+from robid_link.ident.model.robot import load_robot
 from robid_link.link import registry
 from robid_link.link.driver import Done
 

@@ -57,7 +57,7 @@ class TorqueFeedforward:
     def robot(self) -> Any:
         """The Pinocchio model, loaded once (needs ``driver.robot_file``)."""
         if self._robot is None:
-            from robid_link.ident.robot import load_robot
+            from robid_link.ident.model.robot import load_robot
 
             if self.robot_file is None:
                 raise DriverError("driver.robot_file: missing; the drives' torque feedforward "
@@ -74,7 +74,7 @@ class TorqueFeedforward:
 
     def check(self, body: bytes) -> Any:
         """The set's feedforward, or DriverError naming why it is refused."""
-        from robid_link.ident.paramset import feedforward
+        from robid_link.ident.fit.paramset import feedforward
 
         try:
             doc = json.loads(body)
@@ -109,7 +109,7 @@ class TorqueFeedforward:
 
     def torque(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
         """Model torque (N, n) in N·m: τ = Y(q, q̇, q̈)·θ + friction(q̇)."""
-        from robid_link.ident.regressor import reference_regressor
+        from robid_link.ident.model.regressor import reference_regressor
 
         ff = self.ff
         tau = np.zeros_like(q)

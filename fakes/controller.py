@@ -19,8 +19,8 @@ import yaml
 
 from robid_link.exceptions import RobidError
 from robid_link.fakes.plant import Plant, Truth
-from robid_link.ident.excitation import Trajectory, trajectory_states
-from robid_link.ident.robot import Robot
+from robid_link.ident.excite.excitation import Trajectory, trajectory_states
+from robid_link.ident.model.robot import Robot
 from robid_link.link.driver import MotionProgram
 
 __all__ = ["FAULTS", "ControllerCore", "Peer", "RunResult", "default_truth", "log_csv",
@@ -157,7 +157,7 @@ class ControllerCore:
         robot raises RobidError and the previous set stays in use."""
         import json
 
-        from robid_link.ident.paramset import feedforward
+        from robid_link.ident.fit.paramset import feedforward
 
         try:
             doc = json.loads(body)

@@ -16,9 +16,9 @@ import numpy as np
 import pinocchio as pin
 
 from robid_link.exceptions import ConfigError
-from robid_link.ident.effects import moving_sign
-from robid_link.ident.robot import Robot
-from robid_link.ident.robot_check import inertia_problem
+from robid_link.ident.model.effects import moving_sign
+from robid_link.ident.model.robot import Robot
+from robid_link.ident.model.robot_check import inertia_problem
 from robid_link.yamlio import check_keys, read_yaml_mapping
 
 __all__ = ["Truth", "Plant", "perturbed_inertials", "load_truth", "EFFECT_PARAMS"]
@@ -185,6 +185,13 @@ def load_truth(path: str | Path, robot: Robot) -> Truth:
         raise ConfigError(f"{p}: {err}") from err
 
 
+def _or_empty(doc: dict[str, Any], key: str, empty: Any) -> Any:
+    """``doc[key]``, ``empty`` when absent or null: an empty value of the wrong type (``[]``
+    where a mapping belongs) stays wrong and is refused by the check that follows."""
+    value = doc.get(key)
+    return empty if value is None else value
+
+
 def _truth_from_doc(doc: dict[str, Any], robot: Robot) -> Truth:
     n = robot.n
     if "robot" in doc and str(doc["robot"]) != robot.name:
@@ -192,7 +199,7 @@ def _truth_from_doc(doc: dict[str, Any], robot: Robot) -> Truth:
     if "inertials" in doc:
         inertials = _inertials(doc["inertials"], robot)
     elif "perturb" in doc:
-        pert = check_keys(doc["perturb"] or {}, "perturb", optional=("seed", "spread"))
+        pert = check_keys(_or_empty(doc, "perturb", {}), "perturb", optional=("seed", "spread"))
         inertials = perturbed_inertials(
             robot, int(_number(pert.get("seed", 0), "perturb.seed", 0, 2**32 - 1, integer=True)),
             float(_number(pert.get("spread", 0.2), "perturb.spread", 0.0, 0.9)))
@@ -200,7 +207,7 @@ def _truth_from_doc(doc: dict[str, Any], robot: Robot) -> Truth:
         inertials = robot.nominal.copy()
     else:
         raise ConfigError("inertials: missing (and the robot has no nominal inertials)")
-    noise = check_keys(doc.get("noise") or {}, "noise", optional=("tau", "q_resolution"))
+    noise = check_keys(_or_empty(doc, "noise", {}), "noise", optional=("tau", "q_resolution"))
     tau_noise = noise.get("tau", 0.0)
     if isinstance(tau_noise, list):
         if len(tau_noise) != n:
@@ -210,7 +217,7 @@ def _truth_from_doc(doc: dict[str, Any], robot: Robot) -> Truth:
     else:
         _number(tau_noise, "noise.tau", 0.0, 1e6)
     _number(noise.get("q_resolution", 0.0), "noise.q_resolution", 0.0, 1.0)
-    if not isinstance(doc.get("controller", {}) or {}, dict):
+    if not isinstance(_or_empty(doc, "controller", {}), dict):
         raise ConfigError("controller: expected a mapping")
     mode = doc.get("mode", "inverse")
     if mode not in ("inverse", "closed_loop"):
@@ -218,7 +225,7 @@ def _truth_from_doc(doc: dict[str, Any], robot: Robot) -> Truth:
     side = doc.get("side", "joint")
     if side not in ("joint", "motor"):
         raise ConfigError(f"side: expected joint or motor, got {side!r}")
-    effects = _check_effects(doc.get("effects") or [], n, "effects")
+    effects = _check_effects(_or_empty(doc, "effects", []), n, "effects")
     if mode == "inverse" and any(e["name"] in CLOSED_LOOP_ONLY for e in effects):
         raise ConfigError("effects: 'elasticity' needs mode: closed_loop")
     rate = doc.get("rate_hz", 1000.0)

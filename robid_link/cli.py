@@ -327,7 +327,7 @@ def _dispatch(args: argparse.Namespace) -> int:
 
 
 def _load_model(args: argparse.Namespace):
-    from robid_link.ident.effects import DEFAULT_MODEL, load_model, parse_effect, save_model
+    from robid_link.ident.model.effects import DEFAULT_MODEL, load_model, parse_effect, save_model
 
     if args.model and not Path(args.model).exists():
         save_model(args.model, DEFAULT_MODEL)  # the error ladder starts at the default model
@@ -340,8 +340,8 @@ def _load_model(args: argparse.Namespace):
 
 def _inputs(args: argparse.Namespace):
     """The shared inputs of identify and diagnose: robot, model, data and validation logs."""
-    from robid_link.ident.identify import load_logs
-    from robid_link.ident.robot import load_robot
+    from robid_link.ident.fit.identify import load_logs
+    from robid_link.ident.model.robot import load_robot
 
     robot = load_robot(args.robot, args.lock, allow_unlimited=args.allow_unlimited)
     model = _load_model(args)
@@ -351,7 +351,7 @@ def _inputs(args: argparse.Namespace):
 
 
 def _identify(args: argparse.Namespace) -> int:
-    from robid_link.ident.jobs import run_job
+    from robid_link.ident.runner import run_job
 
     robot, model, data, valid = _inputs(args)
     if args.export_urdf and args.method != "consistent":
@@ -364,7 +364,7 @@ def _identify(args: argparse.Namespace) -> int:
     if args.out:
         print(f"\n  wrote {len(job.report_files['identify'])} files to {args.out}")
     if args.export_urdf:  # issue 15 item 6
-        from robid_link.ident.urdf_export import export_urdf
+        from robid_link.ident.model.urdf_export import export_urdf
 
         cons = job.result.consistent
         export_urdf(robot, cons.standard, args.export_urdf, dict(zip(cons.names, cons.theta,
@@ -374,7 +374,7 @@ def _identify(args: argparse.Namespace) -> int:
 
 
 def _diagnose(args: argparse.Namespace) -> int:
-    from robid_link.ident.jobs import run_job
+    from robid_link.ident.runner import run_job
 
     robot, model, data, valid = _inputs(args)
     job = run_job(robot, data, model, analyses=("diagnose",), validate=valid,
@@ -393,8 +393,8 @@ def _diagnose(args: argparse.Namespace) -> int:
 
 
 def _history(args: argparse.Namespace) -> int:
-    from robid_link.ident.history import read_history
-    from robid_link.ident.report import history_figure
+    from robid_link.ident.diagnosis.history import read_history
+    from robid_link.ident.report.figures import history_figure
 
     records = read_history(args.model_file)
     print(f"{args.model_file}: {len(records)} run(s)")
@@ -409,8 +409,8 @@ def _history(args: argparse.Namespace) -> int:
 
 
 def _show_robot(args: argparse.Namespace) -> int:
-    from robid_link.ident.report import draw_robot
-    from robid_link.ident.robot import load_robot
+    from robid_link.ident.model.robot import load_robot
+    from robid_link.ident.report.figures import draw_robot
 
     robot = load_robot(args.robot, args.lock, allow_unlimited=args.allow_unlimited)
     q = np.zeros(robot.n)
@@ -427,7 +427,8 @@ def _show_robot(args: argparse.Namespace) -> int:
 
 
 def _model_add(args: argparse.Namespace) -> int:
-    from robid_link.ident.effects import (
+    from robid_link.ident.diagnosis.history import latest_hypers
+    from robid_link.ident.model.effects import (
         DEFAULT_MODEL,
         REGISTRY,
         EffectSpec,
@@ -435,7 +436,6 @@ def _model_add(args: argparse.Namespace) -> int:
         parse_effect,
         save_model,
     )
-    from robid_link.ident.history import latest_hypers
 
     path = Path(args.model_file)
     model = load_model(path) if path.exists() else DEFAULT_MODEL
@@ -455,9 +455,9 @@ def _model_add(args: argparse.Namespace) -> int:
 
 
 def _excite(args: argparse.Namespace) -> int:
-    from robid_link.ident import excitation as ex
-    from robid_link.ident.effects import load_model
-    from robid_link.ident.robot import load_robot
+    from robid_link.ident.excite import excitation as ex
+    from robid_link.ident.model.effects import load_model
+    from robid_link.ident.model.robot import load_robot
 
     robot = load_robot(args.robot, args.lock, allow_unlimited=args.allow_unlimited)
     if args.kind == "elasticity":
@@ -498,8 +498,8 @@ def _excite(args: argparse.Namespace) -> int:
 
 
 def _excite_elasticity(args: argparse.Namespace, robot: Any) -> int:
-    from robid_link.ident.excitation import write_trajectory
-    from robid_link.ident.frequency import ElasticityOptions, elasticity_trajectory
+    from robid_link.ident.elastic.frequency import ElasticityOptions, elasticity_trajectory
+    from robid_link.ident.excite.excitation import write_trajectory
 
     pose = tuple(np.radians(args.pose)) if args.pose else None
     opts = ElasticityOptions(joints=tuple(args.joint), pairs=tuple(map(_pair, args.pair)),
@@ -523,10 +523,10 @@ def _pair(text: str, option: str = "--pair") -> tuple[int, int]:
 
 def _elasticity(args: argparse.Namespace) -> int:
     from robid_link.config import read_yaml_mapping
-    from robid_link.ident.data import load_log
-    from robid_link.ident.elasticity import elasticity_figures, identify_elasticity
-    from robid_link.ident.report import write_json
-    from robid_link.ident.robot import load_robot
+    from robid_link.ident.data.logs import load_log
+    from robid_link.ident.elastic.elasticity import elasticity_figures, identify_elasticity
+    from robid_link.ident.model.robot import load_robot
+    from robid_link.ident.report.figures import write_json
 
     robot = load_robot(args.robot, args.lock)
     logs = [load_log(p, robot.n, args.fs) for p in args.data]
@@ -538,7 +538,7 @@ def _elasticity(args: argparse.Namespace) -> int:
             raise RobidError(f"{args.schedule}: schedule: missing (not a stepped-sine header)")
     joints = list(args.joint)
     if not joints and pair is None:  # every excited axis, and the pair excited together
-        from robid_link.ident.frequency import detect_steps, excited_axes
+        from robid_link.ident.elastic.frequency import detect_steps, excited_axes
 
         steps = schedule if schedule is not None else detect_steps(
             logs[0].t, logs[0].q, logs[0].tau)
@@ -556,9 +556,9 @@ def _elasticity(args: argparse.Namespace) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    from robid_link.ident.data import write_log_csv
-    from robid_link.ident.excitation import read_trajectory, trajectory_states
-    from robid_link.ident.robot import load_robot
+    from robid_link.ident.data.logs import write_log_csv
+    from robid_link.ident.excite.excitation import read_trajectory, trajectory_states
+    from robid_link.ident.model.robot import load_robot
     from robid_link.link.registry import fake_module
 
     plant = fake_module("plant")

@@ -1,6 +1,6 @@
 """The daemon's config, parsed once into frozen dataclasses whose errors name the key path.
 
-Imports no wing but two one-way edges: experiment kinds (``ident/experiments.py``) and the
+Imports no wing but two one-way edges: experiment kinds (``ident/excite/experiments.py``) and the
 file-name rule of experiment ids (``link/driver.py``). The YAML reader is ``yamlio.py``.
 """
 
@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from robid_link.exceptions import ConfigError, RobidError
-from robid_link.ident.experiments import EXPERIMENT_KINDS, experiment_options
+from robid_link.ident.excite.experiments import EXPERIMENT_KINDS, experiment_options
 from robid_link.link.driver import check_name
 from robid_link.yamlio import check_keys, read_yaml_mapping, yaml_type
 

@@ -41,7 +41,7 @@ def _setup(work: Path, out: Path, driver: dict[str, Any]) -> tuple[Path, Path]:
     out.mkdir(parents=True, exist_ok=True)
     for stale in (model, model.with_name("model.yaml.history.jsonl")):
         stale.unlink(missing_ok=True)
-    from robid_link.ident.effects import DEFAULT_MODEL, save_model
+    from robid_link.ident.model.effects import DEFAULT_MODEL, save_model
 
     save_model(model, DEFAULT_MODEL)
     cfg = {"robot": str(DEMO_ROBOT), "state_dir": str(work / "state"),
@@ -56,7 +56,7 @@ def _setup(work: Path, out: Path, driver: dict[str, Any]) -> tuple[Path, Path]:
 
 def _controller(driver: str, workdir: Path) -> Any:
     """The fake controller of ``driver``'s protocol over the demo robot (not started)."""
-    from robid_link.ident.robot import load_robot
+    from robid_link.ident.model.robot import load_robot
     from robid_link.link.registry import fake_module
 
     plant, ctrl = fake_module("plant"), fake_module("controller")
@@ -96,7 +96,7 @@ async def _campaign(cfg_path: Path, log_file: Path, name: str = "demo") -> dict[
 
 def _add_suggestion(doc: dict[str, Any], model_file: Path) -> Any:
     """The diagnosis's top suggestion added to the model file (with its hyper-parameters)."""
-    from robid_link.ident.effects import EffectSpec, load_model, save_model
+    from robid_link.ident.model.effects import EffectSpec, load_model, save_model
 
     diag = next(r["record"] for r in doc["results"] if r["kind"] == "diagnose")
     if not diag["suggestions"]:
@@ -120,12 +120,12 @@ def _tracking(results: list[dict[str, Any]]) -> dict[str, Any] | None:
 
 def run_demo(work: Path, out: Path, json_path: str | None = None,
              driver: str = "file_share") -> int:
-    from robid_link.ident.effects import load_model
-    from robid_link.ident.history import read_history
-    from robid_link.ident.identify import load_logs
-    from robid_link.ident.jobs import run_job
-    from robid_link.ident.report import history_figure, write_json
-    from robid_link.ident.robot import load_robot
+    from robid_link.ident.diagnosis.history import read_history
+    from robid_link.ident.fit.identify import load_logs
+    from robid_link.ident.model.effects import load_model
+    from robid_link.ident.model.robot import load_robot
+    from robid_link.ident.report.figures import history_figure, write_json
+    from robid_link.ident.runner import run_job
 
     out = out.resolve()  # the daemon's config lives elsewhere: paths in it are absolute
     print(f"robid demo: industrial6 (6 axes), simulated cell; hidden effect: "
@@ -170,7 +170,7 @@ def run_demo(work: Path, out: Path, json_path: str | None = None,
         raise RobidError(f"demo calibration failed: {cal['run']['error']}")
     tracking = _tracking(cal["results"])
     if tracking:
-        from robid_link.ident.report import tracking_figure
+        from robid_link.ident.report.figures import tracking_figure
 
         files.append(tracking_figure(tracking, out / "tracking.png"))
         b, a = tracking["before"], tracking["after"]

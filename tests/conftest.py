@@ -16,11 +16,11 @@ import pinocchio as pin
 import pytest
 
 from robid_link.fakes.plant import Plant, Truth, perturbed_inertials
-from robid_link.ident.data import write_log_csv
-from robid_link.ident.design import base_set_for
-from robid_link.ident.effects import Model
-from robid_link.ident.excitation import random_fourier
-from robid_link.ident.robot import Robot, load_robot
+from robid_link.ident.data.logs import write_log_csv
+from robid_link.ident.excite.excitation import random_fourier
+from robid_link.ident.fit.design import base_set_for
+from robid_link.ident.model.effects import Model
+from robid_link.ident.model.robot import Robot, load_robot
 
 ROOT = Path(__file__).resolve().parent.parent
 ROBOTS = ROOT / "examples" / "robots"

@@ -17,11 +17,11 @@ from robid_link.cli import _parser, main
 from robid_link.config import load_daemon_config
 from robid_link.exceptions import RobidError
 from robid_link.fakes.plant import load_truth
-from robid_link.ident.data import load_log
-from robid_link.ident.effects import load_model, parse_effect
-from robid_link.ident.excitation import read_trajectory
-from robid_link.ident.history import history_path, read_history
-from robid_link.ident.robot import load_robot
+from robid_link.ident.data.logs import load_log
+from robid_link.ident.diagnosis.history import history_path, read_history
+from robid_link.ident.excite.excitation import read_trajectory
+from robid_link.ident.model.effects import load_model, parse_effect
+from robid_link.ident.model.robot import load_robot
 
 from .conftest import ROBOTS, mdh_to_urdf
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from robid_link.exceptions import ConditioningWarning, DataWarning, ExcitationWarning
-from robid_link.ident.effects import Model
-from robid_link.ident.identify import identify, load_logs
-from robid_link.ident.robot import load_robot
+from robid_link.ident.fit.identify import identify, load_logs
+from robid_link.ident.model.effects import Model
+from robid_link.ident.model.robot import load_robot
 
 MODEL = Model.parse(["rigid_body", "viscous", "coulomb", "offset"])
 PEER_RELATIVE_ERROR = 0.0281
@@ -60,8 +60,8 @@ def test_unseen_motion_is_reported_with_the_cad_model(kuka_dir):
 @pytest.mark.kuka
 def test_diagnosis_on_real_data_and_its_effect_on_the_unseen_motion(kuka_dir):
     """Diagnose the default model on files 1+2; add the top suggestion; validate on file 3."""
-    from robid_link.ident.diagnose import diagnose
-    from robid_link.ident.effects import DEFAULT_MODEL, EffectSpec
+    from robid_link.ident.diagnosis.diagnose import diagnose
+    from robid_link.ident.model.effects import DEFAULT_MODEL, EffectSpec
 
     robot = load_robot(kuka_dir / "kuka_lwr4.urdf")
     with warnings.catch_warnings():

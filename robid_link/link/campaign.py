@@ -343,7 +343,7 @@ async def _tracking(cfg: DaemonConfig, store: Store, ctx: Any, run_id: str,
 def drift_flags(store: Store, robot: str, run_id: str | None = None) -> list[Any]:
     """Drift flags of ``robot``'s stored identifications (of one run, or all)."""
     from robid_link.exceptions import ModelError
-    from robid_link.ident.drift import trend
+    from robid_link.ident.diagnosis.drift import trend
 
     try:
         tr = trend(store.results(robot), robot)

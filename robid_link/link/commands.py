@@ -36,14 +36,14 @@ def dispatch(args: argparse.Namespace) -> int:
             print(run_id)
             if not args.wait:
                 if args.json:
-                    from robid_link.ident.report import write_json
+                    from robid_link.ident.report.figures import write_json
 
                     write_json(args.json, {"run_id": run_id, "state": "queued"})
                 return 0
             run = wait_for_run(cfg.control_socket, run_id)
             results = request(cfg.control_socket, {"cmd": "results", "run_id": run_id})
             if args.json:
-                from robid_link.ident.report import write_json
+                from robid_link.ident.report.figures import write_json
 
                 write_json(args.json, {"run": run, "results": results["results"]})
             print(format_results(results["results"]))
@@ -84,7 +84,7 @@ def dispatch(args: argparse.Namespace) -> int:
                 ans = {"runs": store.runs(), "status": _unreachable(err),
                        "drift": [f.message for f in drift_flags(store, _robot_name(cfg))]}
         if args.json:
-            from robid_link.ident.report import write_json
+            from robid_link.ident.report.figures import write_json
 
             write_json(args.json, {"runs": ans["runs"], "status": ans["status"],
                                    "drift": ans.get("drift", [])})
@@ -226,7 +226,7 @@ def format_results(results: list[dict[str, Any]]) -> str:
 
 def _robot_name(cfg: Any) -> str:
     """The robot's name as the store records it (the description's name, else the stem)."""
-    from robid_link.ident.robot import load_robot
+    from robid_link.ident.model.robot import load_robot
 
     try:
         return str(load_robot(cfg.robot, cfg.lock).name)
@@ -239,7 +239,7 @@ def _params(args: argparse.Namespace, cfg: Any) -> int:
     daemon (it owns the store and, for a rollback, the controller link)."""
     import json
 
-    from robid_link.ident.paramset import diff_sets
+    from robid_link.ident.fit.paramset import diff_sets
     from robid_link.link.store import Store
 
     if args.params_cmd in ("approve", "rollback"):
@@ -275,7 +275,7 @@ def _params(args: argparse.Namespace, cfg: Any) -> int:
                 print(f"  {p['name']:<12}{p['value']:>14.6g} ± {p['std']:<10.3g} "
                       f"{p['expression']}")
     if args.json:
-        from robid_link.ident.report import write_json
+        from robid_link.ident.report.figures import write_json
 
         write_json(args.json, {"robot": args.robot, "sets": [
             json.loads(s["body"]) for s in (picked or sets)]})
@@ -283,7 +283,7 @@ def _params(args: argparse.Namespace, cfg: Any) -> int:
 
 
 def _drift(args: argparse.Namespace, res: list[dict[str, Any]]) -> int:
-    from robid_link.ident import drift
+    from robid_link.ident.diagnosis import drift
 
     if args.compare:
         print(drift.compare(res, *args.compare))
@@ -295,11 +295,11 @@ def _drift(args: argparse.Namespace, res: list[dict[str, Any]]) -> int:
         n for n in tr.values if drift.parameter_kind(n, tr.expressions[n])]
     print(tr.table(shown))
     if args.json:
-        from robid_link.ident.report import write_json
+        from robid_link.ident.report.figures import write_json
 
         write_json(args.json, tr.as_dict())
     if args.out:
-        from robid_link.ident.report import trend_figure
+        from robid_link.ident.report.figures import trend_figure
 
         print(f"wrote {trend_figure(tr, shown, Path(args.out))}")
     return 0
@@ -312,7 +312,7 @@ def _fake_controller(args: argparse.Namespace) -> int:
     import threading
 
     from robid_link.atomic import atomic_write
-    from robid_link.ident.robot import load_robot
+    from robid_link.ident.model.robot import load_robot
     from robid_link.link.daemon import setup_logging
     from robid_link.link.registry import fake_module
     from robid_link.safeyaml import load_yaml

@@ -62,7 +62,7 @@ def setup_logging(level: str = "info", stream: TextIO | None = None) -> None:
 
 
 def robot_info(robot_path: str, lock: tuple[str, ...]) -> RobotInfo:
-    from robid_link.ident.robot import load_robot
+    from robid_link.ident.model.robot import load_robot
 
     return RobotInfo.of(load_robot(robot_path, lock))
 
@@ -95,9 +95,9 @@ class Daemon:
         if cfg.worker_start_method == "forkserver":
             # children fork with the numerical stack imported (numba kernels come from cache)
             self.ctx.set_forkserver_preload(["robid_link.link.worker", "robid_link.link.program",
-                                             "robid_link.ident.experiments",
-                                             "robid_link.ident.identify",
-                                             "robid_link.ident.diagnose"])
+                                             "robid_link.ident.excite.experiments",
+                                             "robid_link.ident.fit.identify",
+                                             "robid_link.ident.diagnosis.diagnose"])
         self.store: Store | None = None
         self.driver: Any = None
         self.robot: RobotInfo | None = None

@@ -24,7 +24,7 @@ from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.safeyaml import load_yaml
 
 if TYPE_CHECKING:
-    from robid_link.ident.robot import Robot
+    from robid_link.ident.model.robot import Robot
 
 __all__ = [
     "Driver",

@@ -1,4 +1,4 @@
-"""Motion programs: an experiment's trajectory (``ident/experiments.py`` makes it) checked
+"""Motion programs: an experiment's trajectory (``ident/excite/experiments.py`` makes it) checked
 against the robot's limits before it may leave the daemon, slowed down on request, and packaged
 as the neutral trajectory file (drivers render it for their controller: ``drivers/rapid.py``)."""
 
@@ -12,8 +12,8 @@ import numpy as np
 import yaml
 
 from robid_link.exceptions import ConfigError, UnsafeProgramError
-from robid_link.ident import excitation as ex
-from robid_link.ident.robot import Robot
+from robid_link.ident.excite import excitation as ex
+from robid_link.ident.model.robot import Robot
 from robid_link.link.driver import MotionProgram, check_name
 
 __all__ = ["check_program", "reduced_speed", "make_program", "trajectory_files",

@@ -16,7 +16,7 @@ __all__ = ["generate_program", "check_log", "check_model", "identify_run"]
 
 
 def _robot(robot_path: str, lock: tuple[str, ...]) -> Any:
-    from robid_link.ident.robot import load_robot
+    from robid_link.ident.model.robot import load_robot
 
     return load_robot(robot_path, lock)
 
@@ -25,7 +25,7 @@ def generate_program(robot_path: str, lock: tuple[str, ...], exp_id: str, kind: 
                      options: dict[str, Any], base_dir: str,
                      reduced_speed: float | None = None) -> MotionProgram:
     """Generate, check (limits) and render one experiment's program."""
-    from robid_link.ident.experiments import experiment_trajectory
+    from robid_link.ident.excite.experiments import experiment_trajectory
     from robid_link.link import program as pg
 
     robot = _robot(robot_path, lock)
@@ -39,7 +39,7 @@ def generate_program(robot_path: str, lock: tuple[str, ...], exp_id: str, kind: 
 
 def check_log(n_joints: int, log_path: str) -> dict[str, Any]:
     """Load a captured log as the identification will (columns, joint count, NaN, time)."""
-    from robid_link.ident.data import load_log
+    from robid_link.ident.data.logs import load_log
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -51,7 +51,7 @@ def check_log(n_joints: int, log_path: str) -> dict[str, Any]:
 def check_model(model_path: str | None, add: list[str]) -> list[str]:
     """The model a run's identification will use, built now (file, ``add:`` entries): its
     effect names. Raises the ModelError the identification would raise after the motion."""
-    from robid_link.ident.effects import DEFAULT_MODEL, load_model, parse_effect
+    from robid_link.ident.model.effects import DEFAULT_MODEL, load_model, parse_effect
 
     model = load_model(model_path) if model_path else DEFAULT_MODEL
     for entry in add:
@@ -61,9 +61,9 @@ def check_model(model_path: str | None, add: list[str]) -> list[str]:
 
 def identify_run(job: dict[str, Any]) -> dict[str, Any]:
     """Identify (and diagnose) a run's logs; write the report; return the result records."""
-    from robid_link.ident.effects import DEFAULT_MODEL, load_model, parse_effect
-    from robid_link.ident.identify import load_logs
-    from robid_link.ident.jobs import run_job
+    from robid_link.ident.fit.identify import load_logs
+    from robid_link.ident.model.effects import DEFAULT_MODEL, load_model, parse_effect
+    from robid_link.ident.runner import run_job
 
     robot = _robot(job["robot"], tuple(job["lock"]))
     model = load_model(job["model"]) if job.get("model") else DEFAULT_MODEL
@@ -89,7 +89,7 @@ def identify_run(job: dict[str, Any]) -> dict[str, Any]:
         rec["run_id"] = job["run_id"]
         rec["warnings"] = notes
     (out / "summary.txt").write_text("\n\n".join(summaries) + "\n")
-    from robid_link.ident.paramset import make_parameter_set
+    from robid_link.ident.fit.paramset import make_parameter_set
 
     periods = {s.joint: float(s.opts["period"]) for s in model.specs
                if s.name == "ripple" and s.joint and "period" in s.opts}
@@ -97,7 +97,7 @@ def identify_run(job: dict[str, Any]) -> dict[str, Any]:
     if job.get("upload") and robot.nominal is not None:
         # what a controller runs its computed torque on must be a body that can exist
         # (an inconsistent θ can make its mass matrix indefinite): the consistent fit
-        from robid_link.ident.identify import identify
+        from robid_link.ident.fit.identify import identify
 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the same notes as the fit above
@@ -112,9 +112,9 @@ def identify_run(job: dict[str, Any]) -> dict[str, Any]:
 
 def verify_run(job: dict[str, Any]) -> dict[str, Any]:
     """Tracking of each verification log against the path it was given."""
-    from robid_link.ident.data import load_log
-    from robid_link.ident.excitation import Trajectory
-    from robid_link.ident.verify import tracking
+    from robid_link.ident.data.logs import load_log
+    from robid_link.ident.excite.excitation import Trajectory
+    from robid_link.ident.excite.verify import tracking
     from robid_link.link.driver import MotionProgram
 
     robot = _robot(job["robot"], tuple(job["lock"]))
@@ -133,9 +133,9 @@ def verify_run(job: dict[str, Any]) -> dict[str, Any]:
 
 def elasticity_run(job: dict[str, Any]) -> dict[str, Any]:
     """Elasticity of each stepped-sine log, from the schedule its program carried."""
-    from robid_link.ident.data import load_log
-    from robid_link.ident.elasticity import identify_elasticity
-    from robid_link.ident.frequency import excited_axes
+    from robid_link.ident.data.logs import load_log
+    from robid_link.ident.elastic.elasticity import identify_elasticity
+    from robid_link.ident.elastic.frequency import excited_axes
     from robid_link.link.driver import MotionProgram
 
     robot = _robot(job["robot"], tuple(job["lock"]))

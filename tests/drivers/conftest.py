@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from robid_link.ident import excitation as ex
-from robid_link.ident.robot import Robot, load_robot
+from robid_link.ident.excite import excitation as ex
+from robid_link.ident.model.robot import Robot, load_robot
 from robid_link.link import program as pg
 from robid_link.link.driver import MotionProgram
 

@@ -19,7 +19,7 @@ from robid_link.drivers.abb_rws import AbbRwsDriver
 from robid_link.drivers.rws_api import parse_done, read_credentials, rws_module
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.fakes.controller import default_truth, make_peer
-from robid_link.ident.robot import Robot
+from robid_link.ident.model.robot import Robot
 from robid_link.link import registry
 from robid_link.link.driver import Driver, MotionProgram, RobotInfo
 from tests.drivers.test_contract import RATE_HZ, _cycle, _parse
@@ -157,7 +157,7 @@ def test_a_running_program_is_not_started_twice_by_a_restarted_daemon(
 
 
 def _pset(robot: Robot) -> dict[str, Any]:
-    from robid_link.ident.paramset import make_parameter_set
+    from robid_link.ident.fit.paramset import make_parameter_set
 
     names = [f"{p}_{j}" for p in ("fv", "fc") for j in (1, 2, 3)]
     return make_parameter_set(robot, {"effects": ["viscous", "coulomb"], "parameters": [

@@ -19,8 +19,8 @@ from robid_link.drivers.canopen_drives import CanopenDrivesDriver
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.fakes.cia402_peer import EDS
 from robid_link.fakes.controller import default_truth, make_peer
-from robid_link.ident.paramset import FORMAT, set_sha256
-from robid_link.ident.robot import Robot
+from robid_link.ident.fit.paramset import FORMAT, set_sha256
+from robid_link.ident.model.robot import Robot
 from robid_link.link import registry
 from robid_link.link.driver import Driver, MotionProgram, RobotInfo
 

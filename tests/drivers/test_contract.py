@@ -20,7 +20,7 @@ import pytest
 
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.fakes.controller import default_truth, make_peer
-from robid_link.ident.robot import Robot
+from robid_link.ident.model.robot import Robot
 from robid_link.link import registry
 from robid_link.link.driver import Done, Driver, MotionProgram, RobotInfo
 

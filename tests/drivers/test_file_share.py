@@ -168,8 +168,8 @@ def test_missing_share_and_bad_options(tmp_path: Path) -> None:
 
 def _param_cell(tmp_path: Path, **kw: Any) -> tuple[FileShareDriver, Any, dict[str, Any]]:
     from robid_link.fakes.controller import default_truth, make_peer
-    from robid_link.ident.paramset import make_parameter_set
-    from robid_link.ident.robot import load_robot
+    from robid_link.ident.fit.paramset import make_parameter_set
+    from robid_link.ident.model.robot import load_robot
 
     robot = load_robot(Path(__file__).resolve().parents[2] / "examples/robots/arm3.yaml")
     share = tmp_path / "share"

@@ -16,8 +16,8 @@ from robid_link.exceptions import ConfigError, CycleError, DriverError, Protocol
 from robid_link.link import cycle
 from robid_link.link.cycle import CyclePolicy, run_cycle
 from robid_link.link.driver import Done, MotionProgram
-from robid_link.link.safeopen import NotRegularError, TooLargeError, read_regular
 from robid_link.link.store import Store
+from robid_link.safeopen import NotRegularError, TooLargeError, read_regular
 
 
 def _program() -> MotionProgram:

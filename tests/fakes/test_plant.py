@@ -11,9 +11,9 @@ import scipy.signal as sig
 
 from robid_link.exceptions import ConfigError
 from robid_link.fakes.plant import Plant, Truth, load_truth, spring_torque
-from robid_link.ident.effects import V_REST
-from robid_link.ident.excitation import random_fourier
-from robid_link.ident.robot import load_robot
+from robid_link.ident.excite.excitation import random_fourier
+from robid_link.ident.model.effects import V_REST
+from robid_link.ident.model.robot import load_robot
 
 
 @pytest.fixture(scope="module")
@@ -171,9 +171,9 @@ def test_two_mass_joint_resonance(tmp_path):
 @pytest.mark.filterwarnings("ignore::robid_link.exceptions.ExcitationWarning")
 def test_closed_loop_log_identifies(industrial6, tmp_path):
     """Forward dynamics with Coulomb friction: the default model fits to the noise level."""
-    from robid_link.ident.data import write_log_csv
-    from robid_link.ident.effects import DEFAULT_MODEL
-    from robid_link.ident.identify import identify, load_logs
+    from robid_link.ident.data.logs import write_log_csv
+    from robid_link.ident.fit.identify import identify, load_logs
+    from robid_link.ident.model.effects import DEFAULT_MODEL
 
     traj = random_fourier(industrial6, harmonics=5, base_hz=0.1, seed=1)
     t = np.arange(0.0, 20.0, 0.001)
@@ -209,6 +209,11 @@ def test_closed_loop_log_identifies(industrial6, tmp_path):
         ("noise: {tau: 1, bias: 2}", "noise: unknown key 'bias' (known: q_resolution, tau)"),
         ("rate_hz: -5", "rate_hz: expected a positive number"),
         ("effects: [{name: viscous, fv: abc}]", "effects[0].fv: expected a finite number"),
+        # an empty value of the wrong type is wrong, not absent (the fuzz found `perturb: []`)
+        ("perturb: []", "perturb: expected a mapping, got list"),
+        ("noise: []", "noise: expected a mapping, got list"),
+        ("controller: []", "controller: expected a mapping"),
+        ("effects: {}", "effects: expected a list"),
     ],
 )
 def test_truth_file_errors_name_the_key(arm3, tmp_path, text, message):

@@ -10,16 +10,16 @@ import pinocchio as pin
 import pytest
 
 from robid_link.exceptions import EstimationError
-from robid_link.ident.consistent import (
+from robid_link.ident.fit.consistent import (
     from_log_cholesky,
     log_cholesky,
     pseudo_inertia,
     standard_from_pseudo,
 )
-from robid_link.ident.effects import Model
-from robid_link.ident.identify import build_problem, identify, load_logs
-from robid_link.ident.robot import Robot, load_robot
-from robid_link.ident.urdf_export import export_urdf
+from robid_link.ident.fit.identify import build_problem, identify, load_logs
+from robid_link.ident.model.effects import Model
+from robid_link.ident.model.robot import Robot, load_robot
+from robid_link.ident.model.urdf_export import export_urdf
 from tests.conftest import simulate
 
 MODEL = Model.parse(["rigid_body", "viscous", "coulomb"])
@@ -127,7 +127,7 @@ def test_urdf_export_of_an_mdh_robot_reproduces_the_model(sim_fit):
 
 
 def test_no_cad_prior_is_an_error(sim_fit):
-    from robid_link.ident.consistent import fit_consistent
+    from robid_link.ident.fit.consistent import fit_consistent
 
     robot, _, cons, *_ = sim_fit
     fit = cons.consistent

@@ -7,7 +7,7 @@ import pytest
 import scipy.io
 
 from robid_link.exceptions import DataError, DataWarning
-from robid_link.ident.data import load_log, write_log_csv
+from robid_link.ident.data.logs import load_log, write_log_csv
 
 
 def _log(n=3, samples=200, fs=100.0):

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from robid_link.exceptions import ConditioningWarning, DataWarning
-from robid_link.ident.diagnose import diagnose
-from robid_link.ident.effects import DEFAULT_MODEL, EffectSpec, Model
-from robid_link.ident.identify import identify, load_logs
-from robid_link.ident.robot import load_robot
+from robid_link.ident.diagnosis.diagnose import diagnose
+from robid_link.ident.fit.identify import identify, load_logs
+from robid_link.ident.model.effects import DEFAULT_MODEL, EffectSpec, Model
+from robid_link.ident.model.robot import load_robot
 
 from ..conftest import ROBOTS, simulate
 
@@ -208,8 +208,8 @@ joints:
 )
 def test_closed_form_effects_on_an_unseen_robot(tmp_path, extra, joint, accept):
     from robid_link.fakes.plant import Plant, Truth
-    from robid_link.ident.data import write_log_csv
-    from robid_link.ident.excitation import random_fourier
+    from robid_link.ident.data.logs import write_log_csv
+    from robid_link.ident.excite.excitation import random_fourier
 
     desc = tmp_path / "scara4.yaml"
     desc.write_text(SCARA)

@@ -13,11 +13,18 @@ import pytest
 
 from robid_link.exceptions import ConditioningWarning, DataWarning, ExcitationWarning, ModelError
 from robid_link.fakes.plant import Plant, Truth, perturbed_inertials
-from robid_link.ident.data import write_log_csv
-from robid_link.ident.diagnose import diagnose
-from robid_link.ident.effects import DEFAULT_MODEL, REGISTRY, Block, EffectSpec, Model, parse_effect
-from robid_link.ident.excitation import random_fourier
-from robid_link.ident.identify import identify, load_logs
+from robid_link.ident.data.logs import write_log_csv
+from robid_link.ident.diagnosis.diagnose import diagnose
+from robid_link.ident.excite.excitation import random_fourier
+from robid_link.ident.fit.identify import identify, load_logs
+from robid_link.ident.model.effects import (
+    DEFAULT_MODEL,
+    REGISTRY,
+    Block,
+    EffectSpec,
+    Model,
+    parse_effect,
+)
 
 VISCOUS = {"name": "viscous", "fv": 2.0}
 COULOMB = {"name": "coulomb", "fc": 1.5}
@@ -109,7 +116,7 @@ def test_motor_side_log_names_the_coupled_joints_bearing_friction(industrial6, t
         out[:, 5] += 2.0 * qd[:, 5] + 1.5 * np.sign(qd[:, 5])
         return out
     joint_side = _log(robot, tmp_path / "j.csv", 3, effects=(), extra=friction, duration=30.0)
-    from robid_link.ident.data import load_log
+    from robid_link.ident.data.logs import load_log
     log = load_log(joint_side, robot.n)
     q_m, tau_m = robot.to_motor_side(log.q, log.tau)
     path = tmp_path / "motor.csv"
@@ -306,7 +313,7 @@ def test_following_the_diagnosis_with_validation_helps_on_the_unseen_motion(kuka
     """A user's loop on the real KUKA LWR4+: train on files 1+2, validate on file 3 (another
     motion), add the top suggestion, three rounds: the unseen error never rises and ends
     below the CAD model's."""
-    from robid_link.ident.robot import load_robot
+    from robid_link.ident.model.robot import load_robot
 
     robot = load_robot(kuka_dir / "kuka_lwr4.urdf")
     with warnings.catch_warnings():

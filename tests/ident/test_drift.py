@@ -9,11 +9,11 @@ from typing import Any
 import pytest
 
 from robid_link.exceptions import ModelError
-from robid_link.ident.drift import DEFAULT_MIN_CHANGE, compare, parameter_kind, trend
-from robid_link.ident.effects import DEFAULT_MODEL
-from robid_link.ident.history import result_record
-from robid_link.ident.identify import identify, load_logs
-from robid_link.ident.robot import Robot
+from robid_link.ident.diagnosis.drift import DEFAULT_MIN_CHANGE, compare, parameter_kind, trend
+from robid_link.ident.diagnosis.history import result_record
+from robid_link.ident.fit.identify import identify, load_logs
+from robid_link.ident.model.effects import DEFAULT_MODEL
+from robid_link.ident.model.robot import Robot
 from tests.conftest import simulate
 
 # the arm's a-priori model has no friction: slow logs warn of a torque-scale mismatch

@@ -11,23 +11,23 @@ import pytest
 
 from robid_link.exceptions import DataError, EstimationError
 from robid_link.fakes.plant import Plant, Truth
-from robid_link.ident.data import Log, write_log_csv
-from robid_link.ident.elasticity import (
+from robid_link.ident.data.logs import Log, write_log_csv
+from robid_link.ident.elastic.elasticity import (
     coupled_frf,
     fit_coupled,
     fit_two_mass,
     identify_elasticity,
     two_mass_frf,
 )
-from robid_link.ident.excitation import trajectory_states, write_trajectory
-from robid_link.ident.frequency import (
+from robid_link.ident.elastic.frequency import (
     ElasticityOptions,
     Frf,
     detect_steps,
     elasticity_trajectory,
     excited_axes,
 )
-from robid_link.ident.robot import load_robot
+from robid_link.ident.excite.excitation import trajectory_states, write_trajectory
+from robid_link.ident.model.robot import load_robot
 
 ROBOT = "examples/robots/industrial6.yaml"
 POSE = tuple(np.radians([0, 20, -90, -90, -30, 0]))  # axis 1 decoupled from the others
@@ -197,7 +197,7 @@ def test_cli_elasticity_json_and_figure(plant_log):
 
 def test_cli_excite_elasticity_header(tmp_path):
     from robid_link.cli import main
-    from robid_link.ident.excitation import read_trajectory
+    from robid_link.ident.excite.excitation import read_trajectory
 
     out = tmp_path / "traj.csv"
     assert main(["excite", "--robot", ROBOT, "--kind", "elasticity", "--joint", "2",
@@ -213,7 +213,7 @@ def test_campaign_kind_and_worker(plant_log):
     """The ``elasticity`` experiment kind makes the same program; the daemon's worker fits
     the log with the schedule its program carried and names the entry that measured it."""
     from robid_link.exceptions import ConfigError
-    from robid_link.ident.experiments import experiment_options, experiment_trajectory
+    from robid_link.ident.excite.experiments import experiment_options, experiment_trajectory
     from robid_link.link.program import make_program
     from robid_link.link.worker import elasticity_run
 
@@ -307,7 +307,7 @@ def test_unexplained_resonance_names_the_campaign_entry(tmp_path):
     """The diagnosis' resonance note names the joint and what measures it: the daemon's
     campaign entry when one exists, else the entry to add to the run's own campaign."""
     from robid_link.config import load_daemon_config
-    from robid_link.ident.diagnose import _unexplained
+    from robid_link.ident.diagnosis.diagnose import _unexplained
     from robid_link.link.campaign import elasticity_entries
     from tests.link.conftest import QUICK, write_config
 
@@ -333,7 +333,7 @@ def test_arm_coulomb_reversal_is_noted_and_fitted():
     """Steps where the arm's sine outruns the drift: its Coulomb friction acts at the step's
     frequency as a damper (describing function, checked against the Fourier coefficient of
     sign(v0 + V sin θ)); the fit names those steps and recovers D and the friction."""
-    from robid_link.ident.elasticity import arm_coulomb_frf
+    from robid_link.ident.elastic.elasticity import arm_coulomb_frf
 
     theta = np.linspace(0.0, 2 * np.pi, 200_001)[:-1]
     for v0, v in ((0.3, 1.0), (0.9, 1.0), (0.0, 2.0)):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from robid_link.exceptions import ConfigError
-from robid_link.ident.excitation import (
+from robid_link.ident.excite.excitation import (
     Trajectory,
     check_limits,
     constant_velocity_sweeps,

@@ -7,11 +7,11 @@ import pytest
 from scipy.stats import chi2
 
 from robid_link.exceptions import DataError, DataWarning, ExcitationWarning
-from robid_link.ident.data import write_log_csv
-from robid_link.ident.effects import DEFAULT_MODEL, Model
-from robid_link.ident.estimate import WEIGHTS
-from robid_link.ident.identify import identify, load_logs
-from robid_link.ident.robot import load_robot
+from robid_link.ident.data.logs import write_log_csv
+from robid_link.ident.fit.estimate import WEIGHTS
+from robid_link.ident.fit.identify import identify, load_logs
+from robid_link.ident.model.effects import DEFAULT_MODEL, Model
+from robid_link.ident.model.robot import load_robot
 
 from ..conftest import mdh_to_urdf, simulate
 

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from robid_link.atomic import append_durable
-from robid_link.ident import diagnose as diagnose_module
-from robid_link.ident.effects import DEFAULT_MODEL, save_model
-from robid_link.ident.history import read_history
-from robid_link.ident.identify import identify, load_logs
-from robid_link.ident.jobs import run_job
+from robid_link.ident.diagnosis import diagnose as diagnose_module
+from robid_link.ident.diagnosis.history import read_history
+from robid_link.ident.fit.identify import identify, load_logs
+from robid_link.ident.model.effects import DEFAULT_MODEL, save_model
+from robid_link.ident.runner import run_job
 
 from ..conftest import simulate
 

@@ -11,12 +11,12 @@ import pytest
 
 from robid_link.exceptions import ModelError
 from robid_link.fakes.plant import Plant, Truth, perturbed_inertials, spring_torque
-from robid_link.ident.data import write_log_csv
-from robid_link.ident.design import base_set_for
-from robid_link.ident.diagnose import diagnose
-from robid_link.ident.effects import Model, load_model, save_model
-from robid_link.ident.excitation import random_fourier
-from robid_link.ident.identify import identify, load_logs
+from robid_link.ident.data.logs import write_log_csv
+from robid_link.ident.diagnosis.diagnose import diagnose
+from robid_link.ident.excite.excitation import random_fourier
+from robid_link.ident.fit.design import base_set_for
+from robid_link.ident.fit.identify import identify, load_logs
+from robid_link.ident.model.effects import Model, load_model, save_model
 
 SPRING = {"k": 1500.0, "a": 0.15, "b": 0.2, "l0": 0.1, "phi": 0.4}
 LENGTH = "sqrt(a**2 + b**2 - 2*a*b*cos(q2 + phi))"

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robid_link.ident.design import base_set_for
-from robid_link.ident.effects import DEFAULT_MODEL, Block, Effect, Model
-from robid_link.ident.regressor import reference_regressor, rigid_regressor
-from robid_link.ident.robot import load_robot
+from robid_link.ident.fit.design import base_set_for
+from robid_link.ident.model.effects import DEFAULT_MODEL, Block, Effect, Model
+from robid_link.ident.model.regressor import reference_regressor, rigid_regressor
+from robid_link.ident.model.robot import load_robot
 
 from ..conftest import ROBOTS
 
@@ -79,8 +79,8 @@ def test_base_regressor_reproduces_full_model(industrial6):
     """W_full·θ = W_base·(K·θ) for any θ: the base set loses nothing."""
     blocks = Model.parse(["rigid_body", "viscous", "coulomb", "offset"]).blocks(industrial6)
     base, names = base_set_for(industrial6, blocks)
-    from robid_link.ident.design import block_columns
-    from robid_link.ident.effects import States
+    from robid_link.ident.fit.design import block_columns
+    from robid_link.ident.model.effects import States
 
     q, qd, qdd = _random_states(industrial6, 100, seed=4)
     w = block_columns(industrial6, blocks, States(q, qd, qdd))

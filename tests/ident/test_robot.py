@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from robid_link.exceptions import RobotError
-from robid_link.ident.regressor import rigid_regressor
-from robid_link.ident.robot import load_robot, standard_parameter_names
+from robid_link.ident.model.regressor import rigid_regressor
+from robid_link.ident.model.robot import load_robot, standard_parameter_names
 
 from ..conftest import ROBOTS, mdh_to_urdf
 

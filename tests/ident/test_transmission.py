@@ -10,12 +10,12 @@ import pytest
 
 from robid_link.exceptions import DataError, RobotError
 from robid_link.fakes.plant import Plant, Truth, perturbed_inertials
-from robid_link.ident.data import write_log_csv
-from robid_link.ident.design import base_set_for
-from robid_link.ident.effects import DEFAULT_MODEL, Model
-from robid_link.ident.excitation import random_fourier
-from robid_link.ident.identify import identify, load_logs
-from robid_link.ident.robot import load_robot
+from robid_link.ident.data.logs import write_log_csv
+from robid_link.ident.excite.excitation import random_fourier
+from robid_link.ident.fit.design import base_set_for
+from robid_link.ident.fit.identify import identify, load_logs
+from robid_link.ident.model.effects import DEFAULT_MODEL, Model
+from robid_link.ident.model.robot import load_robot
 
 from ..conftest import ROBOTS, mdh_to_urdf
 
@@ -209,7 +209,7 @@ def test_unknown_gain_identified_through_shared_parameters(tmp_path):
 
 
 def test_current_columns_in_csv_and_npz(tmp_path):
-    from robid_link.ident.data import load_log
+    from robid_link.ident.data.logs import load_log
 
     t = np.arange(50) * 0.01
     q = np.zeros((50, 3))

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from robid_link.fakes.plant import Plant, Truth, perturbed_inertials
-from robid_link.ident.data import write_log_csv
-from robid_link.ident.effects import load_model
-from robid_link.ident.excitation import random_fourier
-from robid_link.ident.identify import identify, load_logs
-from robid_link.ident.robot import Robot
+from robid_link.ident.data.logs import write_log_csv
+from robid_link.ident.excite.excitation import random_fourier
+from robid_link.ident.fit.identify import identify, load_logs
+from robid_link.ident.model.effects import load_model
+from robid_link.ident.model.robot import Robot
 
 from ..conftest import simulate
 
@@ -99,7 +99,7 @@ def test_prior_without_friction_is_not_called_a_unit_error(arm3: Robot, tmp_path
 
 
 def test_every_parameter_says_its_unit_and_side(industrial6: Robot, tmp_path: Path) -> None:
-    from robid_link.ident.results import parameter_unit
+    from robid_link.ident.fit.results import parameter_unit
 
     assert parameter_unit("zz_1", ("revolute",), False) == ("kg·m²", "joint")
     assert parameter_unit("fv_2", ("revolute", "revolute"), True) == ("N·m·s/rad", "motor")
@@ -116,7 +116,7 @@ def test_every_parameter_says_its_unit_and_side(industrial6: Robot, tmp_path: Pa
 def test_parameter_set_keeps_motor_friction_apart(arm3: Robot, tmp_path: Path) -> None:
     """A controller feeds the set's joint friction forward: a motor's friction (motor units)
     goes to ``friction_motor``, never into the joints' lists."""
-    from robid_link.ident.paramset import make_parameter_set
+    from robid_link.ident.fit.paramset import make_parameter_set
 
     res, _ = _identify(arm3, _log(arm3, tmp_path / "p.csv", moving_s=10.0))
     doc = res.to_dict()

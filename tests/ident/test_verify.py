@@ -11,12 +11,12 @@ import pytest
 
 from robid_link.exceptions import ModelError
 from robid_link.fakes.plant import Plant, Truth, perturbed_inertials
-from robid_link.ident.effects import DEFAULT_MODEL
-from robid_link.ident.excitation import trajectory_states
-from robid_link.ident.identify import identify, load_logs
-from robid_link.ident.paramset import diff_sets, feedforward, make_parameter_set, set_sha256
-from robid_link.ident.robot import Robot
-from robid_link.ident.verify import tracking, verify_trajectory
+from robid_link.ident.excite.excitation import trajectory_states
+from robid_link.ident.excite.verify import tracking, verify_trajectory
+from robid_link.ident.fit.identify import identify, load_logs
+from robid_link.ident.fit.paramset import diff_sets, feedforward, make_parameter_set, set_sha256
+from robid_link.ident.model.effects import DEFAULT_MODEL
+from robid_link.ident.model.robot import Robot
 from tests.conftest import simulate
 
 pytestmark = pytest.mark.filterwarnings(

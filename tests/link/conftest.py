@@ -22,7 +22,7 @@ import yaml
 
 from robid_link.fakes.controller import default_truth, make_peer
 from robid_link.fakes.file_share_peer import FileSharePeer
-from robid_link.ident.robot import Robot, load_robot
+from robid_link.ident.model.robot import Robot, load_robot
 
 ROOT = Path(__file__).resolve().parents[2]
 ARM3 = ROOT / "examples" / "robots" / "arm3.yaml"

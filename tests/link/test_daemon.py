@@ -157,8 +157,8 @@ def test_bounded_retries_end_in_a_clear_failure(tmp_path: Path, controller: Any)
 
 
 def test_unsafe_program_never_reaches_the_share(tmp_path: Path, controller: Any) -> None:
-    from robid_link.ident import excitation as ex
-    from robid_link.ident.robot import load_robot
+    from robid_link.ident.excite import excitation as ex
+    from robid_link.ident.model.robot import load_robot
 
     from .conftest import ARM3
 

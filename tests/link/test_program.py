@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from robid_link.exceptions import ConfigError, UnsafeProgramError
-from robid_link.ident import excitation as ex
-from robid_link.ident import experiments as xp
-from robid_link.ident.robot import Robot, load_robot
+from robid_link.ident.excite import excitation as ex
+from robid_link.ident.excite import experiments as xp
+from robid_link.ident.model.robot import Robot, load_robot
 from robid_link.link import program as pg
 
 ROBOTS = Path(__file__).resolve().parents[2] / "examples" / "robots"

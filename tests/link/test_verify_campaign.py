@@ -13,7 +13,7 @@ import numpy as np
 from robid_link.config import load_daemon_config
 from robid_link.fakes.controller import make_peer
 from robid_link.fakes.plant import Truth, perturbed_inertials
-from robid_link.ident.robot import Robot
+from robid_link.ident.model.robot import Robot
 from robid_link.link.daemon import Daemon
 
 from .conftest import QUICK, wait_run, write_config

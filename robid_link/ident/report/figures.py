@@ -12,8 +12,8 @@ import numpy as np
 import yaml
 
 from robid_link.atomic import atomic_write
-from robid_link.ident.results import IdentResult
-from robid_link.ident.robot import Robot
+from robid_link.ident.fit.results import IdentResult
+from robid_link.ident.model.robot import Robot
 
 __all__ = ["write_report", "draw_robot", "write_json", "residual_figures", "history_figure",
            "trend_figure", "tracking_figure"]

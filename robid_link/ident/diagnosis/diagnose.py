@@ -16,8 +16,15 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2
 
-from robid_link.ident.data import Log
-from robid_link.ident.design import (
+from robid_link.ident.data.logs import Log
+from robid_link.ident.data.preprocess import Piece, Prepared, filter_windows, split
+from robid_link.ident.diagnosis.hyperparams import (
+    ProfileRows,
+    profile_effect,
+    refine_effect,
+    screen,
+)
+from robid_link.ident.fit.design import (
     Design,
     attach_predictions,
     base_set_for,
@@ -25,18 +32,11 @@ from robid_link.ident.design import (
     random_states,
     structural_mask,
 )
-from robid_link.ident.effects import REGISTRY, Block, Model, States, effect_label
-from robid_link.ident.estimate import RANK_TOL, Grams, accumulate, long_run_factor, solve
-from robid_link.ident.identify import identify
-from robid_link.ident.preprocess import Piece, Prepared, filter_windows, split
-from robid_link.ident.profile import (
-    ProfileRows,
-    profile_effect,
-    refine_effect,
-    screen,
-)
-from robid_link.ident.results import IdentResult
-from robid_link.ident.robot import Robot
+from robid_link.ident.fit.estimate import RANK_TOL, Grams, accumulate, long_run_factor, solve
+from robid_link.ident.fit.identify import identify
+from robid_link.ident.fit.results import IdentResult
+from robid_link.ident.model.effects import REGISTRY, Block, Model, States, effect_label
+from robid_link.ident.model.robot import Robot
 
 __all__ = ["Suggestion", "Diagnosis", "diagnose", "GAIN_MIN", "P_MAX"]
 

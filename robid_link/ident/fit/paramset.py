@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from robid_link.exceptions import ModelError
-from robid_link.ident.robot import Robot
+from robid_link.ident.model.robot import Robot
 
 __all__ = ["FORMAT", "make_parameter_set", "canonical_bytes", "set_sha256", "Feedforward",
            "feedforward", "diff_sets", "physical_problem"]
@@ -119,14 +119,14 @@ def _projected(robot: Robot, effects: list[str], base: list[dict[str, Any]]
     """θ = θ₀ + K⁺(β − K·θ₀) over the rigid-body columns; None without a-priori inertials."""
     if robot.nominal is None:
         return None
-    from robid_link.ident.design import base_set_for
-    from robid_link.ident.robot import standard_parameter_names
+    from robid_link.ident.fit.design import base_set_for
+    from robid_link.ident.model.robot import standard_parameter_names
 
     values = {p["name"]: float(p["value"]) for p in base}
     standard = standard_parameter_names(robot.n)
     if all(n in values for n in standard):  # a consistent fit: the standard parameters
         return [values[n] for n in standard]
-    from robid_link.ident.effects import Model
+    from robid_link.ident.model.effects import Model
 
     model = Model.parse([e for e in effects if e == "rigid_body"] or ["rigid_body"])
     bs, _ = base_set_for(robot, model.blocks(robot))
@@ -143,7 +143,7 @@ def _projected(robot: Robot, effects: list[str], base: list[dict[str, Any]]
 def physical_problem(theta: np.ndarray) -> str | None:
     """Why standard parameters (10 per link: m, m·c, inertia about the joint frame) describe
     no rigid body, or None: positive mass, inertia about the centre of mass physical."""
-    from robid_link.ident.robot_check import inertia_problem
+    from robid_link.ident.model.robot_check import inertia_problem
 
     for j in range(len(theta) // 10):
         m, h = theta[10 * j], theta[10 * j + 1: 10 * j + 4]

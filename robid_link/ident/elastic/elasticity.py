@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 
 from robid_link.exceptions import EstimationError
-from robid_link.ident.data import Log
-from robid_link.ident.frequency import Frf, frf_from_log, frf_from_schedule, log_schedule
-from robid_link.ident.robot import Robot
+from robid_link.ident.data.logs import Log
+from robid_link.ident.elastic.frequency import Frf, frf_from_log, frf_from_schedule, log_schedule
+from robid_link.ident.model.robot import Robot
 
 __all__ = ["two_mass_frf", "coupled_frf", "gravity_stiffness", "JointElasticity",
            "CoupledElasticity", "ElasticityResult", "fit_two_mass", "fit_coupled",
@@ -484,7 +484,7 @@ def identify_elasticity(robot: Robot, logs: Sequence[Log], *, joints: Sequence[i
 def gravity_stiffness(robot: Robot, q: np.ndarray, inertials: np.ndarray) -> np.ndarray:
     """∂g/∂q (n×n, symmetrized) at the pose q: the stiffness gravity adds to the arm side
     (negative where it pulls the arm away), by central differences of Y(q, 0, 0)·π."""
-    from robid_link.ident.regressor import rigid_regressor
+    from robid_link.ident.model.regressor import rigid_regressor
 
     n = robot.n
     eps = 1e-5

@@ -13,8 +13,8 @@ import numpy as np
 import pinocchio as pin
 
 from robid_link.exceptions import DataError
-from robid_link.ident.excitation import Trajectory, check_limits
-from robid_link.ident.robot import Robot
+from robid_link.ident.excite.excitation import Trajectory, check_limits
+from robid_link.ident.model.robot import Robot
 
 __all__ = ["verify_trajectory", "Tracking", "tracking", "tool_positions"]
 

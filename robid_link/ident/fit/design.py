@@ -13,15 +13,15 @@ from typing import Any
 
 import numpy as np
 
-from robid_link.ident.effects import Block, States
-from robid_link.ident.preprocess import CHUNK, Piece, Prepared, filter_windows
-from robid_link.ident.regressor import (
+from robid_link.ident.data.preprocess import CHUNK, Piece, Prepared, filter_windows
+from robid_link.ident.model.effects import Block, States
+from robid_link.ident.model.regressor import (
     BaseSet,
     preference_order,
     rigid_regressor,
     structural_base_set,
 )
-from robid_link.ident.robot import Robot
+from robid_link.ident.model.robot import Robot
 
 __all__ = [
     "Design",

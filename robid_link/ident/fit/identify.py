@@ -13,26 +13,26 @@ from pathlib import Path
 import numpy as np
 
 from robid_link.exceptions import ConditioningWarning, DataWarning, ExcitationWarning
-from robid_link.ident.consistent import ConsistentFit, fit_consistent
-from robid_link.ident.data import Log, file_sha256, load_log
-from robid_link.ident.design import Design, attach_predictions, make_design, structural_mask
-from robid_link.ident.drives import (
+from robid_link.ident.data.currents import (
     identify_current_gains,
     subtract_known_torques,
     torque_from_currents,
 )
-from robid_link.ident.effects import Model
-from robid_link.ident.estimate import Grams, accumulate, fit
-from robid_link.ident.preprocess import Piece, Prepared, Problem, build_problem, check_counts
-from robid_link.ident.regressor import BaseSet, rigid_regressor
-from robid_link.ident.results import (
+from robid_link.ident.data.logs import Log, file_sha256, load_log
+from robid_link.ident.data.preprocess import Piece, Prepared, Problem, build_problem, check_counts
+from robid_link.ident.fit.consistent import ConsistentFit, fit_consistent
+from robid_link.ident.fit.design import Design, attach_predictions, make_design, structural_mask
+from robid_link.ident.fit.estimate import Grams, accumulate, fit
+from robid_link.ident.fit.results import (
     ErrorStats,
     IdentResult,
     Parameter,
     evaluate_held_out,
     parameter_unit,
 )
-from robid_link.ident.robot import Robot
+from robid_link.ident.model.effects import Model
+from robid_link.ident.model.regressor import BaseSet, rigid_regressor
+from robid_link.ident.model.robot import Robot
 
 __all__ = ["identify", "load_logs"]
 
@@ -129,7 +129,7 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
     var = np.maximum(ms - f.mean_res**2, 0.0)
     fit_err = ErrorStats(np.sqrt(ms), np.sqrt(var), var, int(n_rows[0]))
     cons = None
-    if method == "consistent":  # issue 15 item 6 (ident/consistent.py) — hook begins
+    if method == "consistent":  # issue 15 item 6 (ident/fit/consistent.py) — hook begins
         cons, params, fit_err, design = _consistent(pb, names, design, f.theta, notes,
                                                     int(n_rows[0]))
     # hook ends

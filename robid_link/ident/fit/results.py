@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from robid_link.ident.design import Design, design_chunks, predict_torque
-from robid_link.ident.preprocess import Prepared, Problem, noise_floor
-from robid_link.ident.regressor import rigid_regressor
+from robid_link.ident.data.preprocess import Prepared, Problem, noise_floor
+from robid_link.ident.fit.design import Design, design_chunks, predict_torque
+from robid_link.ident.model.regressor import rigid_regressor
 
 __all__ = ["ErrorStats", "Parameter", "IdentResult", "HeldOut", "evaluate_held_out",
            "StatsAccumulator", "TRACE_SAMPLES", "parameter_unit"]

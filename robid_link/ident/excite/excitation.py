@@ -16,8 +16,8 @@ import numpy as np
 import yaml
 
 from robid_link.exceptions import ConfigError
-from robid_link.ident.effects import DEFAULT_MODEL, Model, States
-from robid_link.ident.robot import Robot
+from robid_link.ident.model.effects import DEFAULT_MODEL, Model, States
+from robid_link.ident.model.robot import Robot
 from robid_link.yamlio import read_yaml_mapping
 
 __all__ = [
@@ -135,7 +135,7 @@ def nominal_torque(robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
     """The a-priori model's torque along a motion, where there are inertials and limits."""
     if robot.nominal is None or not np.isfinite(robot.limits.tau_max).any():
         return None
-    from robid_link.ident.regressor import rigid_regressor
+    from robid_link.ident.model.regressor import rigid_regressor
 
     return rigid_regressor(robot, q, qd, qdd) @ robot.nominal
 
@@ -176,7 +176,7 @@ def fit_limits(robot: Robot, traj: FourierTrajectory, margin: float = LIMIT_MARG
 def excitation_condition(robot: Robot, traj: FourierTrajectory, model: Model = DEFAULT_MODEL,
                          n_samples: int = 200) -> float:
     """Condition number of the column-scaled base regressor over one period."""
-    from robid_link.ident.design import make_design
+    from robid_link.ident.fit.design import make_design
 
     design = _design_cache(robot, model, make_design)
     t = np.linspace(0.0, traj.period_s, n_samples, endpoint=False)
@@ -353,7 +353,7 @@ def write_trajectory(path: str | Path, traj: Trajectory) -> tuple[Path, Path]:
 
 def read_trajectory(path: str | Path) -> Trajectory:
     """A trajectory file (CSV ``t,q1..qn`` + YAML header), checked: one-line errors."""
-    from robid_link.ident.data import read_numeric_csv
+    from robid_link.ident.data.logs import read_numeric_csv
 
     p = Path(path)
     y = p.with_suffix(".yaml")

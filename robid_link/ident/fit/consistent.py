@@ -33,10 +33,10 @@ from typing import Any
 import numpy as np
 
 from robid_link.exceptions import EstimationError
-from robid_link.ident.data import Log
-from robid_link.ident.design import Design
-from robid_link.ident.estimate import Grams, accumulate, joint_stats
-from robid_link.ident.preprocess import Piece
+from robid_link.ident.data.logs import Log
+from robid_link.ident.data.preprocess import Piece
+from robid_link.ident.fit.design import Design
+from robid_link.ident.fit.estimate import Grams, accumulate, joint_stats
 
 __all__ = ["ConsistentFit", "fit_consistent", "pseudo_inertia", "standard_from_pseudo",
            "log_cholesky", "from_log_cholesky", "same_motion", "motion_groups", "LAMBDA_GRID"]

@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 
 from robid_link.exceptions import ConfigError, DataError
-from robid_link.ident.excitation import Trajectory, check_limits
-from robid_link.ident.robot import Robot
+from robid_link.ident.excite.excitation import Trajectory, check_limits
+from robid_link.ident.model.robot import Robot
 
 __all__ = [
     "ElasticityOptions",

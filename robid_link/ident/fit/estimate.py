@@ -15,10 +15,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from robid_link.exceptions import ConditioningWarning, EstimationError
-from robid_link.ident.design import Design, design_chunks
+from robid_link.ident.fit.design import Design, design_chunks
 
 if TYPE_CHECKING:  # pieces only pass through to design_chunks
-    from robid_link.ident.preprocess import Piece
+    from robid_link.ident.data.preprocess import Piece
 
 __all__ = ["WEIGHTS", "TUNING", "RANK_TOL", "Grams", "accumulate", "joint_stats", "solve", "Fit",
            "fit", "long_run_factor"]

@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from robid_link.ident.effects import REGISTRY, Block, States
-from robid_link.ident.robot import Robot
+from robid_link.ident.model.effects import REGISTRY, Block, States
+from robid_link.ident.model.robot import Robot
 
 #: friction_drift's time constants from here on mean a linear drift (see effects.py)
 LINEAR_DRIFT = 1e5

@@ -16,7 +16,7 @@ import numpy as np
 import pinocchio as pin
 
 from robid_link.exceptions import RobotError
-from robid_link.ident.robot_check import UrdfJoint, check_urdf, inertia_problem
+from robid_link.ident.model.robot_check import UrdfJoint, check_urdf, inertia_problem
 from robid_link.yamlio import check_keys, read_yaml_mapping
 
 __all__ = ["Robot", "Limits", "load_robot", "STANDARD_NAMES", "standard_parameter_names"]

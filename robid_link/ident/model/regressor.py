@@ -14,7 +14,7 @@ import numpy as np
 import pinocchio as pin
 import scipy.linalg as sla
 
-from robid_link.ident.robot import Robot
+from robid_link.ident.model.robot import Robot
 
 __all__ = ["rigid_regressor", "reference_regressor", "BaseSet", "structural_base_set"]
 
@@ -324,7 +324,7 @@ def structural_base_set(
 
 def preference_order(n_links: int, n_extra: int) -> list[int]:
     """Rigid columns base to tip in ``_PREFERENCE`` order within a link, then the effects."""
-    from robid_link.ident.robot import STANDARD_NAMES
+    from robid_link.ident.model.robot import STANDARD_NAMES
 
     pos = {nm: k for k, nm in enumerate(STANDARD_NAMES)}
     order = [10 * j + pos[nm] for j in range(n_links) for nm in _PREFERENCE]

@@ -21,9 +21,9 @@ import numpy as np
 import yaml
 
 from robid_link.exceptions import ModelError
-from robid_link.ident.known import KnownTorque, parse_known_torques
-from robid_link.ident.regressor import rigid_regressor
-from robid_link.ident.robot import Robot, standard_parameter_names
+from robid_link.ident.model.known import KnownTorque, parse_known_torques
+from robid_link.ident.model.regressor import rigid_regressor
+from robid_link.ident.model.robot import Robot, standard_parameter_names
 from robid_link.yamlio import check_keys, read_yaml_mapping, yaml_type
 
 __all__ = [

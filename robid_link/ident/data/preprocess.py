@@ -17,9 +17,9 @@ import numba
 import numpy as np
 
 from robid_link.exceptions import DataError, DataWarning
-from robid_link.ident.data import Log
-from robid_link.ident.effects import Block, Model, States
-from robid_link.ident.robot import Robot
+from robid_link.ident.data.logs import Log
+from robid_link.ident.model.effects import Block, Model, States
+from robid_link.ident.model.robot import Robot
 
 __all__ = [
     "DEFAULT_CUTOFF_HZ",

@@ -15,12 +15,12 @@ from dataclasses import replace
 import numpy as np
 
 from robid_link.exceptions import DataError
-from robid_link.ident.data import Log
-from robid_link.ident.design import Design, block_columns, design_chunks, random_states
-from robid_link.ident.effects import Block
-from robid_link.ident.known import KnownTorque, known_torque_total
-from robid_link.ident.preprocess import Prepared, Problem
-from robid_link.ident.robot import Robot
+from robid_link.ident.data.logs import Log
+from robid_link.ident.data.preprocess import Prepared, Problem
+from robid_link.ident.fit.design import Design, block_columns, design_chunks, random_states
+from robid_link.ident.model.effects import Block
+from robid_link.ident.model.known import KnownTorque, known_torque_total
+from robid_link.ident.model.robot import Robot
 
 __all__ = ["torque_from_currents", "subtract_known_torques", "identify_current_gains",
            "unidentifiable_gains"]

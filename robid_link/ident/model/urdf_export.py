@@ -15,7 +15,7 @@ import pinocchio as pin
 
 from robid_link.atomic import atomic_write
 from robid_link.exceptions import RobotError
-from robid_link.ident.robot import Robot
+from robid_link.ident.model.robot import Robot
 
 __all__ = ["inertial_fields", "mdh_to_urdf", "urdf_with_inertials", "export_urdf"]
 

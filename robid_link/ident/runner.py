@@ -9,16 +9,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from robid_link.ident.data import Log
-from robid_link.ident.effects import Model
-from robid_link.ident.history import append_record, result_record
-from robid_link.ident.identify import identify
-from robid_link.ident.report import residual_figures, write_json, write_report
-from robid_link.ident.results import IdentResult
-from robid_link.ident.robot import Robot
+from robid_link.ident.data.logs import Log
+from robid_link.ident.diagnosis.history import append_record, result_record
+from robid_link.ident.fit.identify import identify
+from robid_link.ident.fit.results import IdentResult
+from robid_link.ident.model.effects import Model
+from robid_link.ident.model.robot import Robot
+from robid_link.ident.report.figures import residual_figures, write_json, write_report
 
 if TYPE_CHECKING:  # diagnose (scipy.stats) is imported only when a job diagnoses
-    from robid_link.ident.diagnose import Diagnosis
+    from robid_link.ident.diagnosis.diagnose import Diagnosis
 
 __all__ = ["ANALYSES", "JobOutcome", "run_job"]
 
@@ -73,7 +73,7 @@ def run_job(robot: Robot, data: Sequence[Log], model: Model, *,
         if report_dir is not None:
             out.report_files["identify"] = write_report(res, report_dir)
     if "diagnose" in analyses:
-        from robid_link.ident.diagnose import diagnose
+        from robid_link.ident.diagnosis.diagnose import diagnose
 
         dg = diagnose(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
                       interval=interval, motor_side=motor_side, result=res,

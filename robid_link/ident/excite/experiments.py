@@ -18,8 +18,8 @@ from robid_link.yamlio import check_keys
 if TYPE_CHECKING:
     import numpy as np
 
-    from robid_link.ident.excitation import Trajectory
-    from robid_link.ident.robot import Robot
+    from robid_link.ident.excite.excitation import Trajectory
+    from robid_link.ident.model.robot import Robot
 
 __all__ = ["ExperimentKind", "EXPERIMENT_KINDS", "register_kind", "experiment_options",
            "experiment_trajectory"]
@@ -91,7 +91,7 @@ def experiment_trajectory(robot: Robot, kind: str, opts: Mapping[str, Any],
 def _rigid_body(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) -> Trajectory:
     import numpy as np
 
-    from robid_link.ident import excitation as ex
+    from robid_link.ident.excite import excitation as ex
 
     four, cond = ex.optimize_fourier(robot, harmonics=int(opts["harmonics"]),
                                      base_hz=float(opts["base_hz"]), seed=int(opts["seed"]),
@@ -156,7 +156,7 @@ def _check_friction(opts: dict[str, Any], where: str) -> None:
 def _friction(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) -> Trajectory:
     import numpy as np
 
-    from robid_link.ident import excitation as ex
+    from robid_link.ident.excite import excitation as ex
 
     rate = float(opts["rate_hz"])
     joints = opts["joints"] or list(range(1, robot.n + 1))
@@ -206,7 +206,7 @@ def _check_custom(opts: dict[str, Any], where: str) -> None:
 
 
 def _custom(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) -> Trajectory:
-    from robid_link.ident import excitation as ex
+    from robid_link.ident.excite import excitation as ex
 
     path = Path(opts["trajectory"])
     if base_dir is not None and not path.is_absolute():
@@ -242,7 +242,7 @@ def _check_verify(opts: dict[str, Any], where: str) -> None:
 
 
 def _verify(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) -> Trajectory:
-    from robid_link.ident.verify import verify_trajectory
+    from robid_link.ident.excite.verify import verify_trajectory
 
     return verify_trajectory(robot, speed=float(opts["speed"]), rate_hz=float(opts["rate_hz"]))
 
@@ -283,7 +283,7 @@ def _check_elasticity(opts: dict[str, Any], where: str) -> None:
 def _elasticity(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) -> Trajectory:
     import math
 
-    from robid_link.ident.frequency import ElasticityOptions, elasticity_trajectory
+    from robid_link.ident.elastic.frequency import ElasticityOptions, elasticity_trajectory
 
     pose = opts["pose_deg"]
     if pose is not None and len(pose) != robot.n:

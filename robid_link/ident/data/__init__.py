@@ -1,0 +1,1 @@
+"""The data room: log files in, checked and preprocessed joint-side samples out."""

@@ -1,0 +1,1 @@
+"""Joint elasticity: frequency responses from stepped sines and the two-mass fits."""

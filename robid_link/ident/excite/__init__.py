@@ -1,0 +1,1 @@
+"""What the robot moves: excitation trajectories, experiment kinds, the verification path."""

@@ -1,0 +1,1 @@
+"""The link: the asyncio daemon that drives campaigns through a controller driver."""
