@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -78,7 +78,10 @@ class Frf:
     """Measured FRF points of one excited joint (or of a pair: ``g`` is then (K, 2, 2)).
 
     ``g`` motor position / motor torque (rad/(N·m)); ``coherence`` per point from the
-    period-by-period blocks (1 = noise-free); ``snr`` |T| over its standard error.
+    period-by-period blocks (1 = noise-free); ``snr`` |T| over its standard error; ``g_var``
+    the variance E|ĝ − g|² of each point (each entry for a pair) from the noise the
+    step's sine fit leaves at the neighbouring frequencies (None: unknown, the fit then
+    weights by ``snr`` and ``coherence``); ``rate_hz`` the log's sampling rate.
     """
 
     joints: tuple[int, ...]
@@ -93,6 +96,11 @@ class Frf:
     #: friction reversing on the arm) needs; None for a pair or an H1 estimate
     tau_amp: np.ndarray | None = None
     drift: np.ndarray | None = None
+    g_var: np.ndarray | None = None
+    rate_hz: float | None = None
+    #: one joint's stepped sines: the motor position's harmonics per point (K, H), Q_1…Q_H
+    #: in the log's time base (what a model of an amplitude-dependent effect is driven by)
+    qm_harmonics: np.ndarray | None = None
 
     @property
     def accel(self) -> np.ndarray:
@@ -263,10 +271,22 @@ def sine_amplitudes(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1,
     return whole, per
 
 
-def _point(t: np.ndarray, qm: np.ndarray, tau: np.ndarray, f: float, periods: float
-           ) -> tuple[np.ndarray, np.ndarray, float, float, float]:
-    """(Y (m,), U (m,), coherence, snr, drift) of one step window (blocks of whole periods);
-    drift the first channel's mean velocity."""
+class _Point(NamedTuple):
+    """One step: amplitudes Y, U (m,), coherence and snr of the first channel, its drift,
+    and the residuals' amplitudes at the neighbouring frequencies (bins, m) for the noise."""
+
+    y: np.ndarray
+    u: np.ndarray
+    coherence: float
+    snr: float
+    drift: float
+    noise_y: np.ndarray
+    noise_u: np.ndarray
+    harmonics: np.ndarray
+
+
+def _point(t: np.ndarray, qm: np.ndarray, tau: np.ndarray, f: float, periods: float) -> _Point:
+    """One step window (blocks of whole periods); drift the first channel's mean velocity."""
     blocks = int(max(2, min(10, periods // 2)))
     y, yb = sine_amplitudes(t, qm, f, blocks)
     u, ub = sine_amplitudes(t, tau, f, blocks)
@@ -278,7 +298,37 @@ def _point(t: np.ndarray, qm: np.ndarray, tau: np.ndarray, f: float, periods: fl
     snr = float(abs(u[0]) / max(spread, 1e-300))
     tc = t - t.mean()
     drift = float(tc @ (qm[:, 0] - qm[:, 0].mean()) / max(float(tc @ tc), 1e-300))
-    return y, u, coh, snr, drift
+    return _Point(y, u, coh, snr, drift, _noise_bins(t, qm, f), _noise_bins(t, tau, f),
+                  _harmonics(t, qm[:, 0], f))
+
+
+def _harmonics(t: np.ndarray, x: np.ndarray, f: float, most: int = 9) -> np.ndarray:
+    """Complex amplitudes of x's first ``most`` harmonics of f (on a line: the drift)."""
+    tc = t - t.mean()
+    w = 2 * math.pi * f * t
+    cols = [np.ones(t.size), tc]
+    for h in range(1, most + 1):
+        cols += [np.cos(h * w), np.sin(h * w)]
+    coef = np.linalg.lstsq(np.column_stack(cols), x, rcond=None)[0][2:]
+    return coef[0::2] - 1j * coef[1::2]
+
+
+def _noise_bins(t: np.ndarray, x: np.ndarray, f: float, most: int = 8) -> np.ndarray:
+    """The residual of x's sine fit at f (on a line: the drift), as amplitudes at the
+    neighbouring frequencies f ± k/T of the window T (k = 1…, within f/2…3f/2): orthogonal to
+    the sine over whole periods, each carries the noise an amplitude at f carries (the noise's
+    spectrum is smooth there). Returns (bins, m) complex amplitudes, scaled like X."""
+    x = x.reshape(len(t), -1)
+    tc = t - t.mean()
+    w = 2 * math.pi * f * t
+    a = np.column_stack((np.ones(t.size), tc, np.cos(w), np.sin(w)))
+    res = x - a @ np.linalg.lstsq(a, x, rcond=None)[0]
+    span = float(t[-1] - t[0]) + float(np.median(np.diff(t)))
+    k = max(2, min(most, int(0.5 * f * span)))
+    near = f + np.r_[-k:0, 1:k + 1] / span
+    near = near[near > 0.25 * f]
+    basis = np.exp(-2j * math.pi * np.outer(near, t))
+    return 2.0 / t.size * (basis @ res)
 
 
 def frf_from_schedule(t: np.ndarray, q: np.ndarray, tau: np.ndarray,
@@ -290,7 +340,7 @@ def frf_from_schedule(t: np.ndarray, q: np.ndarray, tau: np.ndarray,
     cols = [j - 1 for j in joints]
     if tau_model is not None:
         tau = tau - tau_model
-    by_f: dict[float, list[tuple[np.ndarray, np.ndarray, float, float, float]]] = {}
+    by_f: dict[float, list[_Point]] = {}
     for st in schedule:
         if "joint" not in st or "f_hz" not in st:
             raise DataError("schedule step without joint/f_hz: not a stepped-sine schedule")
@@ -305,29 +355,52 @@ def frf_from_schedule(t: np.ndarray, q: np.ndarray, tau: np.ndarray,
         periods = (st["t_end"] - st["t_measure"]) * f
         by_f.setdefault(round(float(st.get("f_key", f)), 9), []).append(
             _point(t[a:b], q[a:b][:, cols], tau[a:b][:, cols], f, periods))
-    return _assemble(tuple(joints), by_f, "schedule")
+    frf = _assemble(tuple(joints), by_f, "schedule")
+    frf.rate_hz = 1.0 / float(np.median(np.diff(t)))
+    return frf
 
 
-def _assemble(joints: tuple[int, ...], by_f: dict[float, list[Any]], source: str) -> Frf:
-    fs, gs, cohs, snrs, amps, drifts = [], [], [], [], [], []
+def _siso(pts: Sequence[_Point]) -> tuple[complex, float]:
+    """G and its variance from one or more steps at one frequency: Σ y ū / Σ |u|²; the
+    noise of y − G u (correlated in closed loop) read at the neighbouring bins."""
+    y = np.array([p.y[0] for p in pts])
+    u = np.array([p.u[0] for p in pts])
+    uu = float(np.sum(abs(u) ** 2))
+    g = complex(np.sum(y * u.conj()) / uu)
+    e = [float(np.mean(abs(p.noise_y[:, 0] - g * p.noise_u[:, 0]) ** 2)) for p in pts]
+    return g, float(np.sum(abs(u) ** 2 * np.array(e))) / uu ** 2
+
+
+def _mimo(pts: Sequence[_Point]) -> tuple[np.ndarray, np.ndarray]:
+    """G = Y U⁺ from the steps at one frequency (columns: steps) and the variance of each
+    entry: δG = E U⁺, E the per-step noise of y − G u."""
+    ym = np.column_stack([p.y for p in pts])
+    um = np.column_stack([p.u for p in pts])
+    pinv = np.linalg.pinv(um)
+    g = ym @ pinv
+    e = np.column_stack([np.mean(abs(p.noise_y - p.noise_u @ g.T) ** 2, axis=0)
+                         for p in pts])  # (outputs, steps)
+    return g, e @ abs(pinv) ** 2
+
+
+def _assemble(joints: tuple[int, ...], by_f: dict[float, list[_Point]], source: str) -> Frf:
+    fs, gs, gvar, cohs, snrs, amps, drifts, harms = [], [], [], [], [], [], [], []
     for f in sorted(by_f):
         pts = by_f[f]
         if len(joints) == 1:
-            y = np.array([p[0][0] for p in pts])
-            u = np.array([p[1][0] for p in pts])
-            g = np.sum(y * u.conj()) / np.sum(abs(u) ** 2)
-            amps.append(float(np.mean(abs(u))))
-            drifts.append(float(min(abs(p[4]) for p in pts)))
+            g, var = _siso(pts)
+            amps.append(float(np.mean([abs(p.u[0]) for p in pts])))
+            drifts.append(float(min(abs(p.drift) for p in pts)))
+            harms.append(max(pts, key=lambda p: abs(p.u[0])).harmonics)
         else:
             if len(pts) < len(joints):
                 continue  # a 2×2 FRF needs one independent input per axis
-            ym = np.column_stack([p[0] for p in pts])
-            um = np.column_stack([p[1] for p in pts])
-            g = ym @ np.linalg.pinv(um)
+            g, var = _mimo(pts)
         fs.append(f)
         gs.append(g)
-        cohs.append(min(p[2] for p in pts))
-        snrs.append(min(p[3] for p in pts))
+        gvar.append(var)
+        cohs.append(min(p.coherence for p in pts))
+        snrs.append(min(p.snr for p in pts))
     if not fs and len(joints) > 1 and by_f:
         raise DataError(f"joints {joints[0]},{joints[1]}: a 2×2 FRF needs two independent "
                         "inputs per frequency (steps of each axis, or the pair excited "
@@ -337,7 +410,8 @@ def _assemble(joints: tuple[int, ...], by_f: dict[float, list[Any]], source: str
     single = len(joints) == 1
     return Frf(joints, np.array(fs), np.array(gs), np.array(cohs), np.array(snrs), source,
                tau_amp=np.array(amps) if single else None,
-               drift=np.array(drifts) if single else None)
+               drift=np.array(drifts) if single else None, g_var=np.array(gvar),
+               qm_harmonics=np.array(harms) if single else None)
 
 
 # ----------------------------------------------------------------------------- from the log
@@ -363,19 +437,30 @@ def detect_steps(t: np.ndarray, q: np.ndarray, tau: np.ndarray, *,
         raise DataError(f"log of {t[-1] - t[0]:.3g} s is too short for a stepped-sine analysis")
     # the search on the positions (the reference's sine shows there at every frequency),
     # decimated to ~500 Hz; the measured windows then on the full log
-    r = max(1, int(fs // 500))
+    r = max(1, int(round(fs / 500)))  # fs from the times' median step: 1999.99… Hz is 2 kHz
     qd = q[::r] if r == 1 else _decimate(q, r)
     spans: list[tuple[float, float, float]] = []
     for win in windows_s:
         for t0, t1, f in _runs(t[::r][:len(qd)], qd, fs / r, win, rel_tol):
-            if f * win < 4 or any(min(t1, b) - max(t0, a) > 0.3 * (t1 - t0)
-                                  for a, b, _ in spans):
-                continue
-            spans.append((t0, t1, f))
+            # one candidate per step and frequency: the longest run (windows longer first)
+            if f * win >= 4 and not any(
+                    abs(f - g) < 0.03 * f and min(t1, b) - max(t0, a) > 0.5 * (t1 - t0)
+                    for a, b, g in spans):
+                spans.append((t0, t1, f))
     acc = np.std(np.diff(q, 2, axis=0), axis=0) * fs * fs
     acc_scale = np.maximum(acc, 0.5 * acc.max() + 1e-300)  # an axis that never moves: noise
-    steps = [st for t0, t1, f0 in sorted(spans)
-             if (st := _step_in(t, q, t0, t1, f0, acc_scale)) is not None]
+    # every candidate's own plateau, then the longest plateaus first: a long window's run
+    # may straddle two steps (its plateau then fails or shrinks), a shorter one's fits one
+    found = [st for t0, t1, f0 in sorted(spans)
+             for f in _span_peaks(t, q, t0, t1, f0, acc_scale)
+             if (st := _step_in(t, q, t0, t1, f, acc_scale)) is not None]
+    steps: list[dict[str, Any]] = []
+    for st in sorted(found, key=lambda s: s["t_measure"] - s["t_end"]):
+        a, b = st["t_measure"], st["t_end"]
+        if not any(min(b, o["t_end"]) - max(a, o["t_measure"]) > 0.3 * (b - a)
+                   for o in steps):
+            steps.append(st)
+    steps.sort(key=lambda s: s["t_measure"])
     if not steps:
         raise DataError("no sinusoidal steps found in the log (no stretch of constant-frequency "
                         "motion): is it a stepped-sine log?")
@@ -433,13 +518,28 @@ def _runs(t: np.ndarray, x: np.ndarray, fs: float, win: float, rel_tol: float
 
 def _period_blocks(t: np.ndarray, x: np.ndarray, f: float) -> tuple[np.ndarray, np.ndarray]:
     """Complex amplitudes at f of each whole period of x (columns), a local quadratic removed
-    (the drift and its ramps); returns (block start indices, amplitudes (blocks, columns))."""
+    (the drift and its ramps); returns (block start indices, amplitudes (blocks, columns)).
+    On a uniform time base every block has one design matrix (local time): one projection."""
+    x = x.reshape(len(t), -1)
     per = 1.0 / f
     nblk = int((t[-1] - t[0]) // per)
     edges = np.searchsorted(t, t[0] + per * np.arange(nblk + 1))
-    amps = np.array([sine_amplitudes(t[a:b], x[a:b], f, degree=2)[0]
-                     for a, b in zip(edges[:-1], edges[1:], strict=True)])
-    return edges, amps.reshape(nblk, -1)
+    steps = np.diff(t)
+    dt = float(np.median(steps))
+    size = int(round(per / dt))
+    if np.ptp(steps) > 1e-6 * dt or nblk == 0 or edges[-2] + size > len(t):
+        amps = np.array([sine_amplitudes(t[a:b], x[a:b], f, degree=2)[0]
+                         for a, b in zip(edges[:-1], edges[1:], strict=True)])
+        return edges, amps.reshape(nblk, -1)
+    loc = np.arange(size) * dt
+    lc = loc - loc.mean()
+    w = 2 * math.pi * f
+    design = np.column_stack((np.ones(size), lc, lc * lc, np.cos(w * loc), np.sin(w * loc)))
+    rows = np.linalg.pinv(design)[-2:]  # the cos and sin coefficients
+    blocks = x[edges[:-1, None] + np.arange(size)]  # (blocks, size, columns)
+    coef = np.einsum("kl,blm->bkm", rows, blocks)
+    local = coef[:, 0] - 1j * coef[:, 1]
+    return edges, local * np.exp(-1j * w * t[edges[:-1]])[:, None]
 
 
 def _unexplained(t: np.ndarray, x: np.ndarray, f: float) -> float:
@@ -451,6 +551,47 @@ def _unexplained(t: np.ndarray, x: np.ndarray, f: float) -> float:
     a = np.column_stack((trend, np.cos(w), np.sin(w)))
     res = x - a @ np.linalg.lstsq(a, x, rcond=None)[0]
     return float(np.sum(res * res) / max(np.sum(x * x), 1e-300))
+
+
+def _span_peaks(t: np.ndarray, q: np.ndarray, t0: float, t1: float, f0: float,
+                acc_scale: np.ndarray, most: int = 3) -> list[float]:
+    """f0 and the strongest spectral peaks of a candidate span (the accelerations relative to
+    each joint's own, a quadratic trend removed): a run of windows may straddle two steps of
+    close frequencies (its median frequency then lies between them, where neither has a
+    plateau); each peak is tried for a step of its own."""
+    sel = (t >= t0) & (t <= t1)
+    ts, x = t[sel], q[sel]
+    if ts.size < 16:
+        return [f0]
+    u = np.linspace(-1.0, 1.0, ts.size)
+    trend = np.column_stack((np.ones(ts.size), u, u * u))
+    x = x - trend @ np.linalg.lstsq(trend, x, rcond=None)[0]
+    nfft = 1 << int(math.ceil(math.log2(8 * ts.size)))
+    freqs = np.fft.rfftfreq(nfft, float(np.median(np.diff(ts))))
+    spec = np.abs(np.fft.rfft(x * np.hanning(ts.size)[:, None], nfft, axis=0)) ** 2
+    power = np.sum(spec * ((2 * np.pi * freqs[:, None]) ** 4 / acc_scale ** 2), axis=1)
+    # the neighbouring steps' frequencies (ω⁴ lifts the noise far above them)
+    power[(freqs < max(2.0 / (ts[-1] - ts[0]), f0 / 1.5)) | (freqs > 1.5 * f0)] = 0.0
+    peaks = [i for i in range(1, power.size - 1)
+             if power[i] >= power[i - 1] and power[i] > power[i + 1]
+             and power[i] > 0.05 * power.max()]
+    peaks.sort(key=lambda i: -power[i])
+    return [f0] + [float(freqs[i]) for i in peaks[:most] if abs(freqs[i] - f0) > 0.01 * f0]
+
+
+def _plateau(mag: np.ndarray, levels: np.ndarray, tol: float = 0.03) -> tuple[int, int]:
+    """The longest run of periods whose amplitudes stay within ±``tol`` of one of ``levels``
+    (the amplitudes of the candidate's own periods: a span may hold two steps of different
+    amplitudes). Returns (first, end) period indices."""
+    levels = levels[levels > 0]
+    if not mag.size or not levels.size:
+        return 0, 0
+    on = np.abs(mag[None, :] / levels[:, None] - 1.0) < tol
+    count = np.cumsum(on, axis=1)
+    runs = count - np.maximum.accumulate(np.where(on, 0, count), axis=1)  # run lengths
+    level, end = np.unravel_index(int(np.argmax(runs)), runs.shape)
+    length = int(runs[level, end])
+    return int(end) - length + 1, int(end) + 1
 
 
 def _step_in(t: np.ndarray, q: np.ndarray, t0: float, t1: float, f0: float,
@@ -471,14 +612,11 @@ def _step_in(t: np.ndarray, q: np.ndarray, t0: float, t1: float, f0: float,
     rel = np.median(np.abs(amps[in_run]), axis=0) * (2 * math.pi * f0) ** 2 / acc_scale
     joint = int(np.argmax(rel)) + 1
     x = amps[:, joint - 1]
-    level = float(np.median(np.abs(x[in_run])))
-    on = np.abs(np.abs(x) / max(level, 1e-300) - 1.0) < 0.03
-    best, run = (0, 0), 0
-    for i, ok in enumerate(on):  # the longest run of periods on the plateau
-        run = run + 1 if ok else 0
-        if run > best[1] - best[0]:
-            best = (i - run + 1, i + 1)
-    first, last = best
+    for tol in (0.03, 0.06, 0.1):  # looser where a transient beats with the sine (the arm
+        first, last = _plateau(np.abs(x), np.abs(x[in_run]), tol)  # ringing at the
+        # antiresonance, lightly damped)
+        if last - first >= 8:
+            break
     last -= 1 if last - first > 8 else 0  # the ramp out may start in the last one
     if int(0.6 * (last - first)) < 4:
         return None
@@ -512,18 +650,23 @@ def _step_in(t: np.ndarray, q: np.ndarray, t0: float, t1: float, f0: float,
 def _refine(t: np.ndarray, x: np.ndarray, f0: float, span_bins: float = 1.5) -> float:
     """The frequency near f0 whose sinusoid (on a quadratic trend) leaves the least residual
     (least squares; the projected power alone is biased by the trend): a grid over ±1.5 bins
-    of the window (side lobes), then golden section around the best."""
+    of the window (side lobes), then golden section around the best. The trend is projected
+    out once; per frequency only the sine pair is."""
     from scipy.optimize import minimize_scalar
 
     tc = t - t.mean()
     x = x.reshape(len(t), -1)
     x = x / np.maximum(x.std(axis=0), 1e-300)
+    trend = np.linalg.qr(np.column_stack((np.ones(t.size), tc, tc * tc)))[0]
+    xd = x - trend @ (trend.T @ x)
+    total = float(np.sum(xd * xd))
 
     def neg(f: float) -> float:
         w = 2 * math.pi * f * t
-        a = np.column_stack((np.ones(t.size), tc, tc * tc, np.cos(w), np.sin(w)))
-        res = x - a @ np.linalg.lstsq(a, x, rcond=None)[0]
-        return float(np.sum(res * res))
+        b = np.column_stack((np.cos(w), np.sin(w)))
+        b = b - trend @ (trend.T @ b)
+        r = b.T @ xd
+        return total - float(np.sum(r * np.linalg.solve(b.T @ b, r)))
 
     span = span_bins / (t[-1] - t[0])
     grid = f0 + np.linspace(-span, span, 31)
