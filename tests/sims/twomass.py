@@ -1,5 +1,6 @@
 """An independent simulator of elastic joints for the elasticity tests: motor and arm on a spring
-and damper (one axis, or a pair whose arms share a coupled inertia), closed by its own loops,
+and damper (one axis, optionally a third mass behind the arm, or a pair whose arms share a
+coupled inertia), closed by its own loops,
 excited by its own stepped sines, logged as the house CSV (t, q…, tau…) with its schedule.
 
 Written for the tests without the analysis' code or the project's plant (robid_link.ident and
@@ -29,7 +30,8 @@ __all__ = ["Axis", "Loop", "SteppedSine", "Noise", "Run", "simulate", "robot_yam
 class Axis:
     """One elastic joint: motor ``jm`` – spring ``k`` ∥ damper ``d`` – arm ``ja``; ``ba`` the
     arm's viscous friction, ``kg`` gravity's stiffness on the arm at the pose (restoring > 0),
-    ``fc_arm`` / ``fc_motor`` Coulomb friction, ``bm`` the motor's viscous friction."""
+    ``fc_arm`` / ``fc_motor`` Coulomb friction, ``bm`` the motor's viscous friction;
+    ``third`` a third mass j3 on a spring k3 ∥ damper d3 behind the arm (a second mode)."""
 
     jm: float
     ja: float
@@ -40,6 +42,7 @@ class Axis:
     fc_arm: float = 0.0
     bm: float = 0.0
     fc_motor: float = 0.0
+    third: tuple[float, float, float] | None = None  # (j3, k3, d3): a mass behind the arm
 
 
 @dataclass(frozen=True)
@@ -130,28 +133,38 @@ class _Mechanics:
 
     def __init__(self, axes: Sequence[Axis], jcop: float, lag_s: float, h: float) -> None:
         n = len(axes)
-        self.n, self.dof, self.h = n, 2 * n, h
-        nd = 2 * n
+        tools = [i for i, a in enumerate(axes) if a.third is not None]
+        nd = 2 * n + len(tools)  # motors, arms, then the third masses
+        self.n, self.dof, self.h = n, nd, h
         m = np.zeros((nd, nd))
         c = np.zeros((nd, nd))
         k = np.zeros((nd, nd))
+
+        def couple(i: int, j: int, stiff: float, damp: float) -> None:
+            for mat, v in ((k, stiff), (c, damp)):
+                mat[i, i] += v
+                mat[j, j] += v
+                mat[i, j] -= v
+                mat[j, i] -= v
+
         for i, a in enumerate(axes):
             mo, ar = i, n + i
             m[mo, mo], m[ar, ar] = a.jm, a.ja
-            for mat, v in ((k, a.k), (c, a.d)):
-                mat[mo, mo] += v
-                mat[ar, ar] += v
-                mat[mo, ar] -= v
-                mat[ar, mo] -= v
+            couple(mo, ar, a.k, a.d)
             c[mo, mo] += a.bm
             c[ar, ar] += a.ba
             k[ar, ar] += a.kg
+        for t, i in enumerate(tools):
+            j3, k3, d3 = axes[i].third  # type: ignore[misc]
+            m[2 * n + t, 2 * n + t] = j3
+            couple(n + i, 2 * n + t, k3, d3)
         if n == 2:
             m[2, 3] = m[3, 2] = jcop
         if np.any(np.linalg.eigvalsh(m) <= 0):
             raise ValueError("twomass: the inertia matrix is not positive definite")
         self.m, self.c, self.k = m, c, k
-        self.fc = np.array([a.fc_motor for a in axes] + [a.fc_arm for a in axes])
+        self.fc = np.array([a.fc_motor for a in axes] + [a.fc_arm for a in axes]
+                           + [0.0] * len(tools))
         self.lag = lag_s
         self.dz = 2 * nd + (n if lag_s > 0 else 0)
         self.nw = 2 * n + 1
@@ -415,8 +428,8 @@ def simulate(axes: Sequence[Axis], loop: Loop, excitation: SteppedSine, *,
     gains = [_gains(loop, a.jm + a.ja) for a in axes]
     alpha = 1.0 - math.exp(-2 * math.pi * loop.velocity_filter_hz * h)
     z = np.zeros(mech.dz)
-    state: dict[str, Any] = {"stuck": frozenset(i for i in range(2 * n) if mech.fc[i] > 0),
-                             "signs": (1,) * (2 * n)}
+    state: dict[str, Any] = {"stuck": frozenset(i for i in range(mech.dof) if mech.fc[i] > 0),
+                             "signs": (1,) * mech.dof}
     y_prev = np.zeros(n)
     vf = np.zeros(n)
     integ = np.zeros(n)
@@ -453,7 +466,8 @@ def simulate(axes: Sequence[Axis], loop: Loop, excitation: SteppedSine, *,
         tau_log = tau_log + rng.normal(scale=noise.tau, size=tau_log.shape)
     t = np.arange(q_log.shape[0]) / log_rate_hz
     truth = {i + 1: {"jm": a.jm, "ja": a.ja, "k": a.k, "d": a.d, "ba": a.ba, "kg": a.kg,
-                     "fc_arm": a.fc_arm, "bm": a.bm, "fc_motor": a.fc_motor, "jcop": jcop}
+                     "fc_arm": a.fc_arm, "bm": a.bm, "fc_motor": a.fc_motor, "jcop": jcop,
+                     "third": a.third}
              for i, a in enumerate(axes)}
     return Run(t, q_log, tau_log, schedule, truth, tuple(map(float, pose_a)),
                {"loop": loop.kind, "rate_hz": loop.rate_hz, "log_rate_hz": log_rate_hz})

@@ -374,6 +374,13 @@ def fit_two_mass(frf: Frf, notes: list[str] | None = None, kg: float = 0.0
     if frf.tau_amp is not None and frf.drift is not None:
         best = _try_arm_coulomb(frf, best, kg, hold, sig, tests, notes)
     best = _try_third_mass(frf, best, kg, hold, sig, second, tests, notes)
+    if "fc" in best.values or "j3" in best.values:  # the hold was chosen on the two masses
+        for other in holds:
+            if other != hold:
+                fit = _fit_siso(frf, best.values, kg, other, sig, fc="fc" in best.values,
+                                third="j3" in best.values, max_nfev=2000,
+                                friction=best.extra["friction"] or "stick-slip")
+                best = fit if fit.rss < best.rss else best
     return _joint(joint, frf, best, kg, sig, tests)
 
 
@@ -501,7 +508,7 @@ def _try_third_mass(frf: Frf, base: _Fit, kg: float, hold: float, sig: np.ndarra
     if best is None:
         return base
     try:
-        best = _fit_siso(frf, best.values, kg, hold, sig, third=True, max_nfev=300)
+        best = _fit_siso(frf, best.values, kg, hold, sig, third=True, max_nfev=2000)
     except EstimationError:
         return base
     stat, p = f_test(base, best)
