@@ -27,7 +27,12 @@ from robid_link.ident.elastic.experiment import (
     step_axes,
     stepped_sine_schedule,
 )
-from robid_link.ident.elastic.sines import harmonics, noise_bins, sine_amplitudes
+from robid_link.ident.elastic.sines import (
+    harmonics,
+    noise_bins,
+    sine_amplitudes,
+    without_transient,
+)
 
 __all__ = [
     "ElasticityOptions",
@@ -88,8 +93,9 @@ class Frf:
 
 
 class _Point(NamedTuple):
-    """One step: amplitudes Y, U (m,), coherence and snr of the first channel, its drift,
-    and the residuals' amplitudes at the neighbouring frequencies (bins, m) for the noise."""
+    """One step: amplitudes Y, U (m,) less a decaying transient's share, coherence and snr of
+    the first channel, its drift, the noise at the neighbouring bins (bins, m) and the factor
+    from their mean square to an amplitude's variance, the motor's harmonics."""
 
     y: np.ndarray
     u: np.ndarray
@@ -98,6 +104,7 @@ class _Point(NamedTuple):
     drift: float
     noise_y: np.ndarray
     noise_u: np.ndarray
+    inflate: float
     harmonics: np.ndarray
 
 
@@ -114,7 +121,11 @@ def _point(t: np.ndarray, qm: np.ndarray, tau: np.ndarray, f: float, periods: fl
     snr = float(abs(u[0]) / max(spread, 1e-300))
     tc = t - t.mean()
     drift = float(tc @ (qm[:, 0] - qm[:, 0].mean()) / max(float(tc @ tc), 1e-300))
-    return _Point(y, u, coh, snr, drift, noise_bins(t, qm, f), noise_bins(t, tau, f),
+    k, bins_y = noise_bins(t, qm, f)
+    bins_u = noise_bins(t, tau, f)[1]
+    y, noise_y, inflate = without_transient(k, y, bins_y)
+    u, noise_u, _ = without_transient(k, u, bins_u)
+    return _Point(y, u, coh, snr, drift, noise_y, noise_u, inflate,
                   harmonics(t, qm[:, 0], f))
 
 
@@ -158,7 +169,8 @@ def _siso(pts: Sequence[_Point]) -> tuple[complex, float]:
     u = np.array([p.u[0] for p in pts])
     uu = float(np.sum(abs(u) ** 2))
     g = complex(np.sum(y * u.conj()) / uu)
-    e = [float(np.mean(abs(p.noise_y[:, 0] - g * p.noise_u[:, 0]) ** 2)) for p in pts]
+    e = [p.inflate * float(np.mean(abs(p.noise_y[:, 0] - g * p.noise_u[:, 0]) ** 2))
+         for p in pts]
     return g, float(np.sum(abs(u) ** 2 * np.array(e))) / uu ** 2
 
 
@@ -169,7 +181,7 @@ def _mimo(pts: Sequence[_Point]) -> tuple[np.ndarray, np.ndarray]:
     um = np.column_stack([p.u for p in pts])
     pinv = np.linalg.pinv(um)
     g = ym @ pinv
-    e = np.column_stack([np.mean(abs(p.noise_y - p.noise_u @ g.T) ** 2, axis=0)
+    e = np.column_stack([p.inflate * np.mean(abs(p.noise_y - p.noise_u @ g.T) ** 2, axis=0)
                          for p in pts])  # (outputs, steps)
     return g, e @ abs(pinv) ** 2
 
