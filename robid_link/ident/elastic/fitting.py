@@ -517,7 +517,9 @@ def _try_third_mass(frf: Frf, base: _Fit, kg: float, hold: float, sig: np.ndarra
     rigid = {k: v for k, v in b.items() if k not in ("j3", "f3", "z3")}
     rigid["ja"] = b["ja"] + b["j3"]
     effect = _effect(frf, best, rigid, kg, hold)
-    kept = p < ALPHA and effect > MIN_EFFECT and f_res < f2 < 1.05 * f_top
+    # a mode of its own: apart from the first resonance (a tiny mass tuned to it only
+    # reshapes the resonance a transient left in the points) and inside the band
+    kept = p < ALPHA and effect > MIN_EFFECT and 1.25 * f_res < f2 < 1.05 * f_top
     tests["third_mass"] = {"F": stat, "p": p, "df": [best.k - base.k, best.n - best.k],
                            "f_hz": f2, "effect": effect, "kept": bool(kept)}
     if not kept:
