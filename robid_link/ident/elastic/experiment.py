@@ -83,7 +83,7 @@ def stepped_sine_schedule(robot: Robot, opts: ElasticityOptions) -> list[dict[st
     t = 0.0
     # one axis at a time, then each pair with both axes drifting (friction never reverses on
     # either) and sines in phase, then in antiphase: two independent inputs per frequency
-    groups = [((j,), (1.0,)) for j in joints]
+    groups: list[tuple[tuple[int, ...], tuple[float, ...]]] = [((j,), (1.0,)) for j in joints]
     for p in opts.pairs:
         groups.append((tuple(p), (1.0, 1.0)))
         groups.append((tuple(p), (1.0, -1.0)))

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -25,6 +26,7 @@ from robid_link.ident.elastic.models import (
     coupled_frf,
     motor_and_arm,
 )
+from robid_link.ident.elastic.results import CoupledElasticity, JointElasticity
 from robid_link.ident.elastic.stickslip import arm_stick_slip_frf
 
 __all__ = ["JointElasticity", "CoupledElasticity", "fit_two_mass", "fit_coupled", "arm_swing",
@@ -39,68 +41,6 @@ MIN_EFFECT = 0.01
 #: describing function of stick-slip, the hold's images; a few 1e-4 on clean logs
 SIGMA_FLOOR = 5e-4
 _NAMES = ("jm", "ja", "k", "d", "ba")
-
-
-@dataclass(frozen=True)
-class JointElasticity:
-    """Two-mass parameters of one joint (units of the log's side), with what the fit found in
-    the log (``delay_s``, ``hold_s``) and the F-tests of the extensions (``tests``)."""
-
-    joint: int
-    jm: float
-    ja: float
-    k: float
-    d: float
-    std: dict[str, float]
-    fit_rms: float  # RMS of the log-FRF residual (≈ relative error of the points)
-    measures: str | None = None  # the campaign entry that measures it (set by the daemon)
-    ba: float = 0.0  # viscous friction on the arm side (N·m·s/rad)
-    kg: float = 0.0  # gravity stiffness of the arm at the pose (known, not fitted)
-    fc: float | None = None  # Coulomb friction on the arm side (N·m); None: not in the model
-    delay_s: float = 0.0  # the logged torque acts this much later than logged (fitted)
-    hold_s: float = 0.0  # the torque held over a sample of this length (0: not held)
-    third: tuple[float, float, float] | None = None  # (j3, k3, d3) of a third mass on the arm
-    chi2: float = 1.0  # weighted residual over its degrees of freedom (≈ 1: fits to the noise)
-    tests: dict[str, dict[str, Any]] = field(default_factory=dict)
-
-    @property
-    def f_res_hz(self) -> float:
-        return math.sqrt(self.k * (self.jm + self.ja) / (self.jm * self.ja)) / (2 * math.pi)
-
-    @property
-    def f_antires_hz(self) -> float:
-        return math.sqrt(self.k / self.ja) / (2 * math.pi)
-
-    def model_frf(self, f_hz: np.ndarray, *, logged: bool = False) -> np.ndarray:
-        """The fitted linear model's q_m/τ (the arm's Coulomb friction left out); ``logged``:
-        as the log shows it (hold and delay)."""
-        g = motor_and_arm(np.asarray(f_hz), self.jm, self.ja, self.k, self.d, self.ba,
-                          self.kg, self.third)[0]
-        return as_logged(f_hz, g, self.jm, delay_s=self.delay_s, hold_s=self.hold_s) \
-            if logged else g
-
-    def as_dict(self) -> dict[str, Any]:
-        third = None if self.third is None else dict(zip(("j3", "k3", "d3"), self.third,
-                                                         strict=True))
-        return {"joint": self.joint, "jm": self.jm, "ja": self.ja, "k": self.k, "d": self.d,
-                "ba": self.ba, "fc_arm": self.fc, "kg": self.kg, "f_res_hz": self.f_res_hz,
-                "f_antires_hz": self.f_antires_hz,
-                "std": dict(self.std), "fit_rms": self.fit_rms, "measures": self.measures,
-                "delay_s": self.delay_s, "hold_s": self.hold_s, "third_mass": third,
-                "chi2": self.chi2, "tests": {k: dict(v) for k, v in self.tests.items()}}
-
-
-@dataclass(frozen=True)
-class CoupledElasticity:
-    joints: tuple[int, int]
-    jcop: float
-    std: dict[str, float]
-    fit_rms: float
-    kg: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 0.0), (0.0, 0.0))
-
-    def as_dict(self) -> dict[str, Any]:
-        return {"joints": list(self.joints), "jcop": self.jcop, "std": dict(self.std),
-                "fit_rms": self.fit_rms}
 
 
 # ----------------------------------------------------------------------------- start values
@@ -583,7 +523,7 @@ def fit_coupled(frf: Frf, notes: list[str] | None = None, kg: np.ndarray | None 
     holds = [0.0] + ([1.0 / frf.rate_hz] if frf.rate_hz else [])
     fits = []
     for hold in holds:
-        fit = _lsq(pars, lambda v, hold=hold: resid(v, hold))
+        fit = _lsq(pars, partial(resid, hold=hold))
         fit.extra["hold_s"] = hold
         fits.append(fit)
     fit = min(fits, key=lambda x: x.rss)

@@ -190,6 +190,8 @@ def _assemble(joints: tuple[int, ...], by_f: dict[float, list[_Point]], source: 
     fs, gs, gvar, cohs, snrs, amps, drifts, harms = [], [], [], [], [], [], [], []
     for f in sorted(by_f):
         pts = by_f[f]
+        g: Any
+        var: Any
         if len(joints) == 1:
             g, var = _siso(pts)
             amps.append(float(np.mean([abs(p.u[0]) for p in pts])))

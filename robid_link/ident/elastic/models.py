@@ -15,7 +15,7 @@ __all__ = ["two_mass_frf", "three_mass_frf", "motor_and_arm", "arm_coulomb_frf",
            "coupled_frf", "as_logged"]
 
 
-def _arm(s: np.ndarray, ja: float, ba: float, kg: float,
+def _arm(s: np.ndarray, ja: float, ba: float | np.ndarray, kg: float,
          third: tuple[float, float, float] | None) -> np.ndarray:
     """The arm's impedance (torque over position): Ja s² + Ba s + Kg, plus a third mass j3 on
     a spring k3 ∥ damper d3 when given."""
@@ -42,8 +42,9 @@ def three_mass_frf(f_hz: np.ndarray, jm: float, ja: float, k: float, d: float, b
     return motor_and_arm(np.asarray(f_hz), jm, ja, k, d, ba, kg, (j3, k3, d3))[0]
 
 
-def motor_and_arm(f: np.ndarray, jm: float, ja: float, k: float, d: float, ba: float,
-                  kg: float, third: tuple[float, float, float] | None = None
+def motor_and_arm(f: np.ndarray, jm: float, ja: float, k: float, d: float,
+                  ba: float | np.ndarray, kg: float,
+                  third: tuple[float, float, float] | None = None
                   ) -> tuple[np.ndarray, np.ndarray]:
     """The motor's and the arm's positions over the motor torque: (qm/τ, qa/τ)."""
     s = 2j * np.pi * np.asarray(f, dtype=float)
