@@ -34,8 +34,9 @@ __all__ = ["JointElasticity", "CoupledElasticity", "fit_two_mass", "fit_coupled"
 
 #: significance level of the F-tests that admit arm friction or a third mass into the model
 ALPHA = 1e-3
-#: the least change of the FRF (|Δ log G| at some point) for which an extension that passes its
-#: F-test is kept and named: smaller, it absorbs what the model approximates (hold, aliasing)
+#: the least change of the fitted FRF (|Δ log G| at some point, from the two-mass fit) for which
+#: an extension that passes its F-test is kept and named: smaller, it absorbs what the model
+#: approximates (a plant integrated in steps, the hold's images, a transient's leftovers)
 MIN_EFFECT = 0.01
 #: the model's own approximations, relative (added to each point's noise in quadrature): the
 #: describing function of stick-slip, the hold's images; a few 1e-4 on clean logs
@@ -372,8 +373,7 @@ def _try_arm_coulomb(frf: Frf, base: _Fit, kg: float, hold: float, sig: np.ndarr
             stat, p = f_test(base, best)
         except EstimationError:
             pass
-    linear = {k: v for k, v in best.values.items() if k != "fc"}
-    effect = _effect(frf, best, linear, kg, hold)
+    effect = _effect(frf, best, base, kg)
     kept = p < ALPHA and effect > MIN_EFFECT
     tests["arm_coulomb"] = {"F": stat, "p": p, "df": [best.k - base.k, best.n - best.k],
                             "effect": effect, "model": best.extra["friction"],
@@ -393,11 +393,12 @@ def _try_arm_coulomb(frf: Frf, base: _Fit, kg: float, hold: float, sig: np.ndarr
     return best
 
 
-def _effect(frf: Frf, fit: _Fit, without: dict[str, float], kg: float, hold: float) -> float:
-    """How much an extension changes the fitted FRF at the measured points (largest
-    |Δ log G|): below ``MIN_EFFECT`` it only absorbs the model's small approximations."""
-    a = _siso_model(frf, fit.values, kg, hold, friction=fit.extra["friction"])
-    b = _siso_model(frf, without, kg, hold)
+def _effect(frf: Frf, ext: _Fit, base: _Fit, kg: float) -> float:
+    """How much the extended fit moves the fitted FRF at the measured points from the base
+    fit (largest |Δ log G|): below ``MIN_EFFECT`` it only absorbs what the model approximates
+    (a plant integrated in discrete steps, the hold's images, a transient's leftovers)."""
+    a = _siso_model(frf, ext.values, kg, ext.extra["hold_s"], friction=ext.extra["friction"])
+    b = _siso_model(frf, base.values, kg, base.extra["hold_s"])
     return float(np.max(np.abs(np.log(a / b))))
 
 
@@ -453,10 +454,7 @@ def _try_third_mass(frf: Frf, base: _Fit, kg: float, hold: float, sig: np.ndarra
         return base
     stat, p = f_test(base, best)
     f2 = _second_mode_hz(best.values, kg)[1]
-    b = best.values
-    rigid = {k: v for k, v in b.items() if k not in ("j3", "f3", "z3")}
-    rigid["ja"] = b["ja"] + b["j3"]
-    effect = _effect(frf, best, rigid, kg, hold)
+    effect = _effect(frf, best, base, kg)
     # a mode of its own: apart from the first resonance (a tiny mass tuned to it only
     # reshapes the resonance a transient left in the points) and inside the band
     kept = p < ALPHA and effect > MIN_EFFECT and 1.25 * f_res < f2 < 1.05 * f_top
@@ -464,6 +462,7 @@ def _try_third_mass(frf: Frf, base: _Fit, kg: float, hold: float, sig: np.ndarra
                            "f_hz": f2, "effect": effect, "kept": bool(kept)}
     if not kept:
         return base
+    b = best.values
     k3 = (_third(b) or (0.0, 0.0, 0.0))[1]
     notes.append(f"joint {frf.joints[0]}: a second resonance near {f2:.3g} Hz: a three-mass "
                  f"model (a third mass {b['j3']:.3g} on {k3:.4g} N·m/rad behind the arm) "
