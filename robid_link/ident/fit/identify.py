@@ -41,13 +41,16 @@ POOR_EXCITATION_COND = 1e3
 
 
 def load_logs(robot: Robot, paths: Sequence[str | Path], fs: float | None = None,
-              motor_side: bool = False) -> list[Log]:
+              motor_side: bool = False, topic: str | None = None) -> list[Log]:
     """Read logs and bring them to the joint side: currents → torques (the robot's
     ``current_gain``; drives without one keep their current until identification), motor →
-    joint side through the transmission, encoder offsets removed."""
+    joint side through the transmission, encoder offsets removed. ROS recordings are matched
+    to the robot's joints by name (``topic``: which of their topics)."""
     logs = []
     for p in paths:
-        log = torque_from_currents(robot, load_log(p, robot.n, fs))
+        log = torque_from_currents(robot, load_log(p, robot.n, fs, joint_names=robot.joint_names,
+                                                   topic=topic,
+                                                   effort_current=robot.effort_current))
         if motor_side:
             log.q, log.qd, log.qdd, log.tau = robot.to_joint_side(log.q, log.qd, log.qdd, log.tau)
         else:
@@ -152,7 +155,8 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
         n_standard=len(names),
         least_excited=least,
         hypers=hypers,
-        data_files=[{"path": lg.path, "sha256": file_sha256(lg.path), "role": role}
+        data_files=[{"path": lg.path, "sha256": file_sha256(lg.path), "role": role,
+                     **({"source": lg.source} if lg.source else {})}
                     for role, logs in (("data", data), ("validate", validate or ()))
                     for lg in logs],
         validation_source=pb.validation_source,
