@@ -9,7 +9,8 @@ import zipfile
 NEEDED = ("robid_link/examples/robots/industrial6.yaml", "robid_link/examples/link/daemon.yaml",
           "robid_link/systemd/robid-link.service", "robid_link/fakes/plant.py",
           "robid_link/fakes/controller.py", "robid_link/drivers/file_share.py",
-          "robid_link/drivers/rapid.py", "robid_link/py.typed")
+          "robid_link/drivers/rapid.py", "robid_link/cli/__init__.py",
+          "robid_link/cli/__main__.py", "robid_link/py.typed")
 
 
 def main(path: str) -> int:

@@ -151,7 +151,7 @@ def test_the_walk_sees_the_package() -> None:
     assert "robid_link.ident.fit.design" in GRAPH["robid_link.ident.fit.identify"]
     assert "robid_link.fakes.plant" in GRAPH["robid_link.fakes.controller"]
     # `from pkg import module`
-    assert "robid_link.ident.excite.excitation" in GRAPH["robid_link.cli"]
+    assert "robid_link.ident.excite.excitation" in GRAPH["robid_link.cli.robot"]
 
 
 def test_the_cycle_finder_finds_a_cycle(monkeypatch: pytest.MonkeyPatch) -> None:

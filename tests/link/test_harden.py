@@ -16,10 +16,10 @@ from typing import Any
 import pytest
 import yaml
 
+from robid_link.cli.runs import _unreachable
 from robid_link.config import load_daemon_config
 from robid_link.exceptions import ConfigError, DaemonUnreachable, StoreFullError
 from robid_link.link import campaign as cp
-from robid_link.link.commands import _unreachable
 from robid_link.link.control import request
 from robid_link.link.daemon import Daemon
 from robid_link.link.store import Store
@@ -312,7 +312,7 @@ def test_start_json_without_wait_writes_the_run_id(tmp_path: Path,
     import json
 
     from robid_link import cli
-    from robid_link.link import commands
+    from robid_link.cli import campaign as commands
 
     cfg = write_config(tmp_path, {"c": FRICTION})
     monkeypatch.setattr(commands, "request", lambda *a, **k: {"ok": True, "run_id": "r1"})

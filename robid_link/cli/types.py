@@ -1,5 +1,6 @@
-"""argparse ``type=`` checks for ``robid``'s options: finite numbers, bounded integers and output
-paths, refused at parse time — before any work — with one line naming the option.
+"""What the command groups of ``robid`` share: the command record, the one-line error, the
+options several groups take, and the ``type=`` checks that refuse a bad value at parse time —
+before any work — with one line naming the option.
 """
 
 from __future__ import annotations
@@ -8,9 +9,39 @@ import argparse
 import math
 import os
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["finite_float", "positive_float", "bounded_int", "output_path", "OneLineParser"]
+from robid_link.exceptions import RobidError
+
+__all__ = ["Command", "OneLineParser", "error_line", "finite_float", "positive_float",
+           "bounded_int", "output_path", "robot_options", "seed_option", "config_option",
+           "axis_pair"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Command:
+    """One sub-command of ``robid``. ``options`` adds its arguments to its parser; ``check``
+    refuses contradictory options before any work (raise a ``RobidError``); ``run`` does the
+    work and returns the exit status. A command with ``commands`` is a group (``campaign
+    start``, ``model add``): its sub-commands run, it does not."""
+
+    name: str
+    help: str
+    options: Callable[[argparse.ArgumentParser], None] | None = None
+    run: Callable[[argparse.Namespace], int] | None = None
+    check: Callable[[argparse.Namespace], None] | None = None
+    commands: tuple[Command, ...] = ()
+
+    def __post_init__(self) -> None:
+        if (self.run is None) == (not self.commands):
+            raise ValueError(f"command {self.name!r}: give it either run or sub-commands")
+
+
+def error_line(message: str) -> str:
+    """Every error of ``robid``, usage or run, is this one line on stderr."""
+    return f"robid: error: {message}"
+
 
 #: magnitudes beyond any joint angle, frequency or duration the tool deals with
 _HUGE = 1e9
@@ -109,4 +140,33 @@ class OneLineParser(argparse.ArgumentParser):
 
     def error(self, message: str) -> None:  # type: ignore[override]
         first = message.strip().splitlines()[0] if message.strip() else "invalid usage"
-        self.exit(2, f"robid: error: {first} (see {self.prog} --help)\n")
+        self.exit(2, error_line(f"{first} (see {self.prog} --help)") + "\n")
+
+
+def robot_options(p: argparse.ArgumentParser) -> None:
+    """``--robot``, ``--lock``, ``--allow-unlimited``: the robot description and how to read it."""
+    p.add_argument("--robot", required=True,
+                   help="robot description: MDH YAML (.yaml) or URDF (.urdf)")
+    p.add_argument("--lock", action="append", default=[], metavar="NAME",
+                   help="URDF joint to lock (e.g. gripper fingers); repeatable")
+    p.add_argument("--allow-unlimited", action="store_true",
+                   help="accept revolute/prismatic joints without consistent position limits "
+                   "(logged as a warning); otherwise such a robot file is refused")
+
+
+def seed_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seed", type=bounded_int(0, 2**32 - 1), default=0,
+                   help="random seed (default 0)")
+
+
+def config_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", required=True, metavar="C", help="daemon config (YAML)")
+
+
+def axis_pair(text: str, option: str = "--pair") -> tuple[int, int]:
+    """``J1,J2``: two axes excited or fitted together."""
+    try:
+        a, b = (int(x) for x in text.split(","))
+    except ValueError as err:
+        raise RobidError(f"{option} {text}: expected two axes J1,J2") from err
+    return (a, b)
