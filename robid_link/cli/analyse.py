@@ -23,11 +23,13 @@ __all__ = ["COMMANDS"]
 def _shared_inputs(p: argparse.ArgumentParser) -> None:
     robot_options(p)
     p.add_argument("--data", action="append", required=True, metavar="LOG",
-                   help="log file (.csv, .npz, .mat); repeat to identify on several")
+                   help="log (.csv, .npz, .mat, a ROS 2 bag folder, .mcap, a ROS 1 .bag); "
+                        "repeat to identify on several")
     p.add_argument("--validate", action="append", metavar="LOG",
                    help="held-out log(s); default: the last 20 %% of each --data file")
     p.add_argument("--fs", type=positive_float(1e6), metavar="HZ",
                    help="sampling rate in Hz (needed for .mat logs)")
+    _topic_option(p)
     p.add_argument("--cutoff", type=positive_float(1e6), metavar="HZ",
                    help="zero-phase low-pass cutoff (default 10 Hz, at most 40 %% of Nyquist)")
     p.add_argument("--interval", type=bounded_int(1, 100_000), default=1, metavar="K",
@@ -38,6 +40,12 @@ def _shared_inputs(p: argparse.ArgumentParser) -> None:
                    "[rigid_body, viscous, coulomb]")
     p.add_argument("--add", action="append", default=[], metavar="EFFECT[@J]",
                    help="add an effect to the model for this run; repeatable")
+
+
+def _topic_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--topic", metavar="NAME",
+                   help="ROS bags: the joint-state (or controller-state) topic to read; "
+                        "default the bag's JointState topic (/joint_states among several)")
 
 
 def _load_model(args: argparse.Namespace) -> Any:
@@ -59,8 +67,9 @@ def _inputs(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
 
     robot = load_robot(args.robot, args.lock, allow_unlimited=args.allow_unlimited)
     model = _load_model(args)
-    data = load_logs(robot, args.data, args.fs, args.motor_side)
-    valid = load_logs(robot, args.validate, args.fs, args.motor_side) if args.validate else None
+    data = load_logs(robot, args.data, args.fs, args.motor_side, topic=args.topic)
+    valid = (load_logs(robot, args.validate, args.fs, args.motor_side, topic=args.topic)
+             if args.validate else None)
     return robot, model, data, valid
 
 
@@ -204,8 +213,9 @@ def _elasticity_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lock", action="append", default=[], metavar="NAME",
                    help="URDF joint to lock; repeatable")
     p.add_argument("--data", action="append", required=True, metavar="LOG",
-                   help="stepped-sine log (.csv, .npz, .mat); repeatable")
+                   help="stepped-sine log (.csv, .npz, .mat or a ROS bag); repeatable")
     p.add_argument("--fs", type=positive_float(1e6), help="sampling rate in Hz (.mat logs)")
+    _topic_option(p)
     p.add_argument("--joint", type=bounded_int(1, 64), action="append", default=[], metavar="J",
                    help="axis to fit (1-based); repeatable; default every excited axis")
     p.add_argument("--joints", metavar="J1,J2", help="a pair of axes for the coupled fit")
@@ -227,7 +237,8 @@ def _elasticity(args: argparse.Namespace) -> int:
     from robid_link.ident.report.figures import write_json
 
     robot = load_robot(args.robot, args.lock)
-    logs = [load_log(p, robot.n, args.fs) for p in args.data]
+    logs = [load_log(p, robot.n, args.fs, joint_names=robot.joint_names, topic=args.topic,
+                     effort_current=robot.effort_current) for p in args.data]
     pair = axis_pair(args.joints, "--joints") if args.joints else None
     schedule = None
     if args.schedule:

@@ -281,12 +281,18 @@ def test_effort_as_current_from_the_transmission(tmp_path, motion, arm3):
 def test_the_cli_reads_a_bag(tmp_path, arm3, motion, capsys):
     from robid_link.cli import main
 
-    path = write_bag(tmp_path / "cli_bag", "sqlite3", motion.data)
+    path = write_bag(tmp_path / "cli_bag", "sqlite3", motion.data, second_topic=True)
     out = tmp_path / "r.json"
-    assert main(["identify", "--robot", arm3.source, "--data", str(path), "--json",
-                 str(out)]) == 0
+    assert main(["identify", "--robot", arm3.source, "--data", str(path), "--topic",
+                 "/joint_states", "--json", str(out)]) == 0
     import json
 
     doc = json.loads(out.read_text())
     assert doc["relative_error"] < 0.1
+    assert doc["data_files"][0]["source"]["topic"] == "/joint_states"
+    capsys.readouterr()
+    assert main(["diagnose", "--robot", arm3.source, "--data", str(path), "--topic",
+                 "/wrench"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("robid: error: ") and "no topic /wrench" in err and "\n" not in err
     shutil.rmtree(path)
