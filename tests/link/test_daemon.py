@@ -17,9 +17,10 @@ import pytest
 
 from robid_link.config import load_daemon_config
 from robid_link.exceptions import ConfigError, UnsafeProgramError
+from robid_link.jobs import MotionProgram
 from robid_link.link.control import request
 from robid_link.link.daemon import Daemon
-from robid_link.link.driver import Done, Driver, MotionProgram
+from robid_link.link.driver import Done, Driver
 
 from .conftest import QUICK, wait_run, write_config
 
