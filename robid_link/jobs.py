@@ -133,8 +133,16 @@ def _encode(value: Any) -> Any:
     if isinstance(value, Mapping):
         return {str(k): _encode(v) for k, v in value.items()}
     if isinstance(value, tuple | list):
+        if all(type(v) in _PLAIN for v in value):  # a row of numbers: no walk per element
+            return list(value)
         return [_encode(v) for v in value]
     return value
+
+
+_PLAIN = (int, float, str, bool, type(None))
+#: element types of tuples decoded in one pass (a bad element falls back to the walk that
+#: names it); bool is not an int here
+_FAST: dict[Any, tuple[type, ...]] = {float: (int, float), int: (int,), str: (str,)}
 
 
 def _what(value: Any) -> str:
@@ -186,6 +194,9 @@ def _decode(value: Any, hint: Any, rec: str, path: str) -> Any:
     if origin is tuple:
         if not isinstance(value, list):
             raise bad("a list")
+        fast = _FAST.get(args[0])
+        if fast is not None and all(type(v) in fast for v in value):
+            return tuple(map(args[0], value))
         return tuple(_decode(v, args[0], rec, f"{path}[{i}]") for i, v in enumerate(value))
     if origin in (dict, Mapping):
         if not isinstance(value, dict):

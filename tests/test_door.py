@@ -103,6 +103,10 @@ def _wire(name: str, **change: Any) -> str:
     (_wire("verify-job", runs=[{**SAMPLES["verify-run"].to_dict(), "program": {
         **PROGRAM.to_dict(), "files": {"traj.csv": "not base64!"}}}]),
      "verify-job: unknown key 'runs[0].schema'"),
+    (_wire("feedforward-table", tau=[[1.0, 2.0], [1.0, "2"]]),
+     "feedforward-table: key 'tau[1][1]': expected a number, got '2'"),
+    (_wire("model-check", effects=["rigid_body", True]),
+     "model-check: key 'effects[1]': expected a string, got True"),
     ("[1, 2]", "record: expected a JSON object, got a list"),
     ("{", "record: not JSON"),
 ])
