@@ -8,7 +8,6 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import logging
-import random
 import secrets
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -16,6 +15,7 @@ from typing import Any
 
 from robid_link.exceptions import CycleError, DataError, DriverError, ProtocolError
 from robid_link.link.driver import Done, Driver, MotionProgram
+from robid_link.link.retry import Backoff
 from robid_link.link.store import Store
 
 __all__ = ["CyclePolicy", "run_cycle", "new_nonce"]
@@ -32,6 +32,11 @@ class CyclePolicy:
     timeout_s: float
     retries: int = 2
     backoff_s: float = 2.0
+    backoff_cap_s: float = 60.0
+
+    @property
+    def backoff(self) -> Backoff:
+        return Backoff(self.backoff_s, max(self.backoff_s, self.backoff_cap_s))
 
 
 def new_nonce() -> str:
@@ -120,7 +125,7 @@ async def run_cycle(store: Store, driver: Driver, run_id: str, exp_id: str,
                 store.step(run_id, exp_id, "failed", error=str(err))
                 raise CycleError(f"experiment {exp_id}: {err} (after {attempt} attempt"
                                  f"{'s' if attempt > 1 else ''})") from err
-            delay = policy.backoff_s * 2 ** (attempt - 1) * random.uniform(0.5, 1.5)
+            delay = policy.backoff.delay(attempt)
             store.note(run_id, exp_id, "retry", attempt=attempt + 1, delay_s=round(delay, 3))
             await asyncio.sleep(delay)
             nonce, state = None, "pending"
