@@ -75,14 +75,15 @@ async def _session(cfg: Path, sc: dict[str, Any], first: bool) -> None:
         if first:
             run_id = (await d.handle({"cmd": "start", "campaign": "c"}))["run_id"]
         else:
-            run_id = d.store.runs(1)[0]["run_id"]
+            run_id = (await d.store.runs(1))[0]["run_id"]
 
-        def over() -> bool:
-            return d.store.run(run_id)["state"] not in ("queued", "running")  # type: ignore
+        async def over() -> bool:
+            return (await d.store.run(run_id))["state"] not in ("queued",  # type: ignore
+                                                                "running")
 
-        while not over() and not stop.is_set():
+        while not await over() and not stop.is_set():
             if first and sc["cancel"] and any(
-                    e["state"] == "given" for e in d.store.experiments(run_id)):
+                    e["state"] == "given" for e in await d.store.experiments(run_id)):
                 await d.handle({"cmd": "cancel", "run_id": run_id})
             await asyncio.sleep(0.02)
 

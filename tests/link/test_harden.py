@@ -6,6 +6,7 @@ cleaned failed attempts)."""
 from __future__ import annotations
 
 import asyncio
+import inspect
 import logging
 import os
 import socket
@@ -22,7 +23,7 @@ from robid_link.link import campaign as cp
 from robid_link.link.commands import _unreachable
 from robid_link.link.control import request
 from robid_link.link.daemon import Daemon
-from robid_link.link.store import Store
+from robid_link.link.store import SqliteStore, Store
 
 from .conftest import QUICK, write_config
 
@@ -39,10 +40,21 @@ def with_daemon(cfg_path: Path, body: Callable[[Daemon], Awaitable[Any]]) -> Any
     return asyncio.run(go())
 
 
-async def until(pred: Callable[[], bool], timeout_s: float = 60.0) -> None:
+async def until(pred: Callable[[], Any], timeout_s: float = 60.0) -> None:
+    """Wait for ``pred()`` (a bool, or an awaitable of one: a store read) to hold."""
     async with asyncio.timeout(timeout_s):
-        while not pred():
+        while True:
+            got = pred()
+            if inspect.isawaitable(got):
+                got = await got
+            if got:
+                return
             await asyncio.sleep(0.05)
+
+
+async def state_is(d: Daemon, run_id: str, state: str) -> bool:
+    assert d.store is not None
+    return (await d.store.run(run_id))["state"] == state
 
 
 def _ready(tmp: Path) -> list[str]:
@@ -76,7 +88,7 @@ def test_cancel_withdraws_the_ready_of_a_running_run_and_drops_a_queued_one(
         await asyncio.sleep(0.3)
         assert d.store is not None
         status = await d.handle({"cmd": "status"})
-        return (d.store.run(first), d.store.run(second),
+        return (await d.store.run(first), await d.store.run(second),
                 [s["state"] for s in status["runs"]])
 
     first, second, states = with_daemon(cfg, body)
@@ -138,7 +150,7 @@ def test_start_refuses_before_anything_is_given(tmp_path: Path, change: dict,
     async def body(d: Daemon) -> str:
         with pytest.raises(Exception) as info:
             await d.handle({"cmd": "start", "campaign": "c"})
-        assert d.store is not None and d.store.runs() == []
+        assert d.store is not None and await d.store.runs() == []
         return str(info.value)
 
     assert message in with_daemon(cfg, body)
@@ -161,8 +173,11 @@ def test_full_state_dir_pauses_refuses_serves_status_and_resumes(
     disk = _Disk(monkeypatch)
     disk.free = 1 << 40
     cfg = write_config(tmp_path, {"c": FRICTION})
-    with Store(tmp_path / "state") as store:  # a run left over, resumed on a full disk
-        run_id = cp.create_run(load_daemon_config(cfg), store, "c", "operator")
+    async def left_over() -> str:  # a run left over, resumed on a full disk
+        async with SqliteStore(tmp_path / "state") as store:
+            return await cp.create_run(load_daemon_config(cfg), store, "c", "operator")
+
+    run_id = asyncio.run(left_over())
     disk.free = 0
 
     async def body(d: Daemon) -> tuple[dict, str, dict]:
@@ -171,10 +186,10 @@ def test_full_state_dir_pauses_refuses_serves_status_and_resumes(
         with pytest.raises(StoreFullError, match="MiB free"):
             await d.handle({"cmd": "start", "campaign": "c"})
         status = await d.handle({"cmd": "status"})
-        paused = d.store.run(run_id)
+        paused = await d.store.run(run_id)
         disk.free = 1 << 40
-        await until(lambda: d.store.run(run_id)["state"] == "completed")  # type: ignore
-        return paused, status["status"], d.store.run(run_id)
+        await until(lambda: state_is(d, run_id, "completed"))
+        return paused, status["status"], await d.store.run(run_id)
 
     with caplog.at_level(logging.INFO, logger="robid"), controller():
         paused, line, done = with_daemon(cfg, body)
@@ -225,8 +240,8 @@ def test_internal_error_line_carries_its_cause(tmp_path: Path,
 
     async def body(d: Daemon) -> dict:
         ans = await d.handle({"cmd": "start", "campaign": "c"})
-        await until(lambda: d.store.run(ans["run_id"])["state"] == "failed")  # type: ignore
-        return d.store.run(ans["run_id"])  # type: ignore[union-attr]
+        await until(lambda: state_is(d, ans["run_id"], "failed"))
+        return await d.store.run(ans["run_id"])  # type: ignore[union-attr]
 
     with caplog.at_level(logging.ERROR, logger="robid.daemon"):
         run = with_daemon(cfg, body)
