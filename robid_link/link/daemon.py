@@ -104,6 +104,9 @@ class Daemon:
         self._queue: asyncio.Queue[str] = asyncio.Queue()
         self._current: str | None = None
         self._run_task: asyncio.Task[None] | None = None
+        # held while a run is taken from the queue and started, and while a cancel decides:
+        # the store is read with awaits, and a queued run must never start once cancelled
+        self._handover = asyncio.Lock()
         self._cancelling: set[str] = set()
         self._run_ended = asyncio.Event()
         self._paused: list[str] = []  # runs waiting for space in the state_dir, in order
@@ -181,11 +184,14 @@ class Daemon:
         assert self.store is not None
         while True:
             run_id = await self._queue.get()
-            if (await self.store.run(run_id))["state"] not in ("queued", "running"):
-                continue  # cancelled while it waited
-            self._current = run_id
-            self._run_ended.clear()
-            self.notifier.send(STATUS=await self._status_line())
+            async with self._handover:  # a cancel finds the run queued or started, never between
+                if (await self.store.run(run_id))["state"] not in ("queued", "running"):
+                    continue  # cancelled while it waited
+                self._current = run_id
+                self._run_ended.clear()
+                status = await self._status_line()
+                self._launch(run_id)
+            self.notifier.send(STATUS=status)
             try:
                 await self._execute(run_id)
             finally:
@@ -193,12 +199,17 @@ class Daemon:
                 self._run_ended.set()
                 self.notifier.send(STATUS=await self._status_line())
 
-    async def _execute(self, run_id: str) -> None:
-        """One run in its own task (``cancel`` stops it); a full state_dir pauses it."""
+    def _launch(self, run_id: str) -> None:
+        """The run's own task (``cancel`` stops it); awaited by ``_execute`` with no await in
+        between, so it never runs unwatched."""
         assert self.store is not None and self.robot is not None
         self._run_task = asyncio.create_task(
             cp.execute_run(self.cfg, self.store, self.driver, self.ctx, run_id, self.robot.n,
                            self._kill), name=f"robid-run-{run_id}")
+
+    async def _execute(self, run_id: str) -> None:
+        """Await the run's task; a cancel finishes it, a full state_dir pauses it."""
+        assert self.store is not None and self._run_task is not None
         try:
             await self._run_task
         except asyncio.CancelledError:
@@ -379,18 +390,22 @@ class Daemon:
         """A queued (or paused) run is dropped; the running one stops at its next step,
         after its 'ready' was withdrawn."""
         assert self.store is not None
-        state = (await self.store.run(run_id))["state"]
-        if state not in ("queued", "running"):
-            raise ConfigError(f"run {run_id} is {state}: nothing to cancel")
-        if run_id == self._current and self._run_task is not None:
-            self._cancelling.add(run_id)
-            self._run_task.cancel()
+        async with self._handover:
+            state = (await self.store.run(run_id))["state"]
+            if state not in ("queued", "running"):
+                raise ConfigError(f"run {run_id} is {state}: nothing to cancel")
+            started = run_id == self._current and self._run_task is not None
+            if started:
+                assert self._run_task is not None
+                self._cancelling.add(run_id)
+                self._run_task.cancel()
+            else:
+                if run_id in self._paused:
+                    self._paused.remove(run_id)
+                await self._finish_cancel(run_id)
+        if started:
             async with asyncio.timeout(60):
                 await self._run_ended.wait()
-        else:
-            if run_id in self._paused:
-                self._paused.remove(run_id)
-            await self._finish_cancel(run_id)
         return {"ok": True, "run_id": run_id, "state": (await self.store.run(run_id))["state"],
                 "message": f"run {run_id} cancelled; nothing of it is left for the "
                            "controller"}

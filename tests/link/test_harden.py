@@ -10,6 +10,7 @@ import inspect
 import logging
 import os
 import socket
+import threading
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -96,6 +97,45 @@ def test_cancel_withdraws_the_ready_of_a_running_run_and_drops_a_queued_one(
     assert second["experiments"][0]["attempt"] == 0  # never given
     assert first["experiments"][0]["state"] == "withdrawn"
     assert _ready(tmp_path) == []
+
+
+def test_a_run_cancelled_while_the_runner_takes_it_from_the_queue_never_moves(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The runner reads a queued run's state from the store (an await) before it starts it;
+    a cancel arriving then must win: the run ends cancelled, nothing of it left out."""
+    cfg = write_config(tmp_path, {"c": FRICTION})  # no controller: nobody answers
+    real_run = Store.run
+    target: dict[str, str] = {}
+    held, release = threading.Event(), threading.Event()
+
+    def run(store: Store, run_id: str) -> dict[str, Any]:  # on the store's thread
+        if run_id == target.get("second") and not held.is_set():
+            held.set()  # the runner's read of the queued run: hold it there
+            release.wait(30)
+        return real_run(store, run_id)
+
+    monkeypatch.setattr(Store, "run", run)
+
+    async def body(d: Daemon) -> tuple[dict, list[str], str | None]:
+        first = (await d.handle({"cmd": "start", "campaign": "c"}))["run_id"]
+        await until(lambda: bool(_ready(tmp_path)))
+        target["second"] = (await d.handle({"cmd": "start", "campaign": "c"}))["run_id"]
+        # the runner takes the second once the first ends (its answer waits behind the hold)
+        cancel_first = asyncio.create_task(d.handle({"cmd": "cancel", "run_id": first}))
+        await until(held.is_set)
+        cancel = asyncio.create_task(d.handle({"cmd": "cancel",
+                                               "run_id": target["second"]}))
+        for _ in range(20):
+            await asyncio.sleep(0)  # the cancel is under way while the runner is held
+        release.set()
+        await cancel_first
+        await cancel
+        await asyncio.sleep(0.5)  # room for a wrongly started run to show itself
+        assert d.store is not None
+        return (await d.store.run(target["second"]), _ready(tmp_path), d._current)
+
+    second, ready, current = with_daemon(cfg, body)
+    assert second["state"] == "cancelled" and ready == [] and current is None
 
 
 def test_a_ready_left_by_a_cancel_interrupted_by_a_kill_is_withdrawn_at_start(
