@@ -51,6 +51,8 @@ log = logging.getLogger("robid.driver.abb_rws")
 _IDENT = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,31}$")
 _START = {"regain": "continue", "execmode": "continue", "cycle": "once", "condition": "none",
           "stopatbp": "disabled", "alltaskbytsp": "false"}
+#: a file upload's Content-Type: RWS 2.0 refuses any but its versioned types (HTTP 415)
+_UPLOAD_TYPE = {1: None, 2: "application/octet-stream;v=2.0"}
 
 
 class _Lost(Exception):
@@ -206,7 +208,10 @@ class AbbRwsDriver(Driver):
         lost connections; 401 and TLS failures are refused at once, in one line."""
         assert self._http is not None
         url = self._url.with_path(path, encoded=True)
-        headers = {} if path.startswith("/fileservice") else self.api.headers(form is not None)
+        headers = self.api.headers(form is not None)
+        if path.startswith("/fileservice"):
+            upload = _UPLOAD_TYPE[self.api.version] if raw is not None else None
+            headers = {"Content-Type": upload} if upload else {}
         data = urlencode(form).encode() if form is not None else raw
         last = ""
         retries = self._retries if retries is None else retries
@@ -287,7 +292,14 @@ class AbbRwsDriver(Driver):
             await self._call("mastership_release", {}, what="release RAPID mastership")
 
     async def _put_file(self, remote: str, data: bytes) -> None:
-        await self._request("PUT", f"/fileservice/{remote}", raw=data, what=f"upload {remote}")
+        await self._request("PUT", self._file_uri(remote), raw=data, what=f"upload {remote}")
+
+    def _file_uri(self, remote: str) -> str:
+        """The file service's URI of a controller path; RWS 1.0 names environment variables
+        in small case there (``$home``, ABB's RWS manual, "File Service")."""
+        if self.api.version == 1 and remote.startswith("$HOME/"):
+            remote = "$home/" + remote[len("$HOME/"):]
+        return f"/fileservice/{remote}"
 
     # -- the cycle
     async def _put_program(self, program: MotionProgram) -> None:
@@ -411,7 +423,7 @@ class AbbRwsDriver(Driver):
 
     async def _fetch_logs(self, done: Done) -> bytes:
         remote = log_file(done.exp_id, done.nonce)
-        status, body, _ = await self._request("GET", f"/fileservice/{remote}",
+        status, body, _ = await self._request("GET", self._file_uri(remote),
                                               what=f"download {remote}", missing_ok=True)
         if status == 404:
             raise DriverError(f"{self.name}: {remote}: log missing although 'done' was given")

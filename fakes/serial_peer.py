@@ -1,6 +1,7 @@
-"""The controller end of the serial line protocol (``docs/serial_line_protocol.md``) on the
-master side of a pseudo-terminal pair; the daemon opens the slave through a stable symlink
-``<workdir>/tty`` (a pulled cable comes back as a new pty behind the same name).
+"""The controller end of the serial line protocol (``docs/serial_line_protocol.md``, written
+from that page) on the master side of a pseudo-terminal pair; the daemon opens the slave
+through a stable symlink ``<workdir>/tty`` (a pulled cable comes back as a new pty behind the
+same name).
 
 Own faults: ``flip_bytes`` (a bit flipped in ``flip_rate`` of the frames either way: CRCs
 catch them, frames are resent), ``cable_pulled`` (mid-log the line is gone for ``pull_s`` and
@@ -22,16 +23,37 @@ import select
 import threading
 import time
 import tty
+import zlib
 from pathlib import Path
 from typing import Any
 
-from robid_link.drivers.serial_line import MAX_LINE, decode_frame, encode_frame
 from robid_link.fakes.controller import ControllerCore, Peer, RunResult
 
-__all__ = ["SerialPeer"]
+__all__ = ["SerialPeer", "frame", "frame_fields"]
 
 log = logging.getLogger("robid.fake_controller")
 PROGRAM_FILES = ("traj.csv", "traj.yaml")
+#: the longest line either side accepts (page: "Frames")
+MAX_LINE = 24_000
+
+
+def frame(*fields: object) -> bytes:
+    """One frame (page: "Frames"): ASCII fields joined by single spaces, ``*``, the CRC-32
+    (IEEE 802.3) of everything before the ``*`` as 8 upper-case hex digits, ``\n``."""
+    body = " ".join(str(f) for f in fields).encode("ascii", "replace")  # free text: ASCII
+    return body + b"*" + f"{zlib.crc32(body):08X}".encode() + b"\n"
+
+
+def frame_fields(line: bytes) -> list[str] | None:
+    """The fields of a received line; None when it is no frame or its CRC does not match
+    (upper-case hex exactly: a flipped case bit is damage too)."""
+    body, star, crc = line.rstrip(b"\n").rpartition(b"*")
+    if not star or crc != f"{zlib.crc32(body):08X}".encode():
+        return None
+    try:
+        return body.decode("ascii").split(" ")
+    except UnicodeDecodeError:
+        return None
 
 
 class _Pacer:
@@ -120,12 +142,16 @@ class SerialPeer(Peer):
 
     # -- bytes
     def _write(self, *fields: object) -> None:
-        frame = bytearray(encode_frame(*fields))
+        self._send(frame(*fields))
+
+    def _send(self, data: bytes) -> None:
+        """One frame onto the line (damaged at random under ``flip_bytes``)."""
+        out = bytearray(data)
         if self.core.fault == "flip_bytes" and self._rng.random() < self.flip_rate:
-            frame[self._rng.randrange(len(frame) - 1)] ^= 1 << self._rng.randrange(7)
+            out[self._rng.randrange(len(out) - 1)] ^= 1 << self._rng.randrange(7)
         with self._write_lock:
-            self._tx.take(len(frame))
-            view = memoryview(frame)
+            self._tx.take(len(out))
+            view = memoryview(out)
             while view:
                 with self._fd_lock:
                     fd = self._master
@@ -163,7 +189,7 @@ class SerialPeer(Peer):
     # -- frames
     def _handle(self, line: bytes) -> None:
         self.frames_in += 1
-        f = decode_frame(line)
+        f = frame_fields(line)
         if f is None:
             self.frames_bad += 1
             self._write("NAK")
