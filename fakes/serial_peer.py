@@ -93,7 +93,8 @@ class SerialPeer(Peer):
         self._jobs: queue.Queue[tuple[str, str] | None] = queue.Queue()
         self._files: dict[tuple[str, str], tuple[int, str, bytearray]] = {}
         self._state: dict[tuple[str, str], str] = {}  # BUSY / DONE / ERR
-        self._results: dict[tuple[str, str], RunResult] = {}
+        self._results: dict[tuple[str, str], RunResult] = {}  # logs not cleared yet
+        self._done: dict[tuple[str, str], tuple[int, str]] = {}  # length, SHA-256
         self._errors: dict[tuple[str, str], tuple[int, str]] = {}
         self._programs: dict[str, dict[str, bytes]] = {}
         self._pulled = False
@@ -276,15 +277,15 @@ class SerialPeer(Peer):
         if self._state.get(key) == "ERR":
             code, text = self._errors[key]
             self._write("ERR", *key, code, text)
-        elif key in self._results:
-            res = self._results[key]
+        elif key in self._done:  # also after CLEAR: STAT always has an answer
             self.answer_times.setdefault(key[1], time.perf_counter())
-            self._write("DONE", *key, len(res.log), res.sha256)
+            self._write("DONE", *key, *self._done[key])
 
     def offer_log(self, exp_id: str, nonce: str, data: bytes) -> None:
         """A finished program's log, as if it had run (benchmarks of the log transfer)."""
         self._state[(exp_id, nonce)] = "DONE"
-        self._results[(exp_id, nonce)] = RunResult(exp_id, nonce, None, data, data)
+        self._results[(exp_id, nonce)] = res = RunResult(exp_id, nonce, None, data, data)
+        self._done[(exp_id, nonce)] = (len(res.log), res.sha256)
 
     # -- the worker
     def _work(self) -> None:
@@ -305,6 +306,7 @@ class SerialPeer(Peer):
                 self._answer(key)
                 continue
             self._results[key] = res
+            self._done[key] = (len(res.log), res.sha256)
             if res.fault == "stale_semaphore":  # an older attempt's answer shows first
                 self._write("DONE", key[0], "0stale0", 1, "0" * 64)
                 time.sleep(0.2)
