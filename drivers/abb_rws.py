@@ -441,7 +441,9 @@ class AbbRwsDriver(Driver):
         robid module loads it and answers ``robid_params_ack`` = ``<sha16> OK`` (or
         ``<sha16> ERR <reason>``). A rare operation: the answer is read every 0.2 s under
         the caller's timeout."""
-        robot = re.sub(r"[^A-Za-z0-9_\-]", "_", str(doc.get("robot", "robot")))[:40]
+        # robid_params holds the path: a RAPID string holds at most 80 characters, and
+        # "$HOME/robid/params/" + ".<tag>.json" leave 39 for the robot's name
+        robot = re.sub(r"[^A-Za-z0-9_\-]", "_", str(doc.get("robot", "robot")))[:39]
         tag = hashlib.sha256(body).hexdigest()[:16]
         remote = f"{HOME}/params/{robot}.{tag}.json"
         await self._put_file(remote, body)

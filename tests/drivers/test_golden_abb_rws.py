@@ -233,3 +233,19 @@ def test_peer_answers_the_transcript(tmp_path: Path, robot: Robot, version: int)
         asyncio.run(_replay(peer, doc, names, gate))
     assert core.runs == [("exp1", doc["nonce"], names["traj_csv"], names["traj_yaml"])]
     assert core.loaded == [names["params"]]
+
+
+def test_a_long_robot_name_fits_a_rapid_string(tmp_path: Path, robot: Robot) -> None:
+    """``robid_params`` holds the set's path: a RAPID string, at most 80 characters (the fake
+    controller refuses a longer one, as RAPID does)."""
+    core = golden.ScriptedCore(robot, b"")
+    doc = {"format": "robid-parameter-set/1", "robot": "r" * 60, "theta": [1.0]}
+    with RwsPeer(core, tmp_path, version=1) as peer:
+        async def upload() -> None:
+            driver = registry.make_driver(peer.driver_options())
+            driver.bind_robot(RobotInfo.of(robot))
+            async with driver:
+                await driver.upload_parameters(doc, timeout_s=10)
+
+        asyncio.run(upload())
+    assert len(peer.vars["robid_params"]) == 80 and len(core.loaded) == 1
