@@ -36,7 +36,7 @@ REGISTER_OFFSETS = {"command": 0, "exp": 1, "nonce_hi": 2, "nonce_lo": 3,
                     "daemon_heartbeat": 4, "status": 5, "exp_echo": 6, "nonce_echo_hi": 7,
                     "nonce_echo_lo": 8, "error_code": 9, "plc_heartbeat": 10}
 # command and status values (page: "Register map")
-RUN, ABORT = 1, 2
+CMD_IDLE, CMD_RUN, CMD_ABORT = 0, 1, 2
 IDLE, BUSY, DONE, ERROR = 0, 1, 2, 3
 # error codes (page: "Register map")
 E_PROGRAM, E_SUPERVISION, E_ESTOP = 1, 2, 4
@@ -174,17 +174,17 @@ class ModbusPeer(Peer):
         cmd, busy = self.get("command"), self._job is not None and not self._job.done()
         request = (self.get("exp"), self.get("nonce_hi"), self.get("nonce_lo"))
         running = (self.get("exp_echo"), self.get("nonce_echo_hi"), self.get("nonce_echo_lo"))
-        if cmd == ABORT and running == request and self.get("status") == BUSY:
+        if cmd == CMD_ABORT and running == request and self.get("status") == BUSY:
             if self._job is not None:
                 self._job.cancel()
             self.set(status=IDLE, error_code=0)
-        elif cmd == RUN and not busy and self.get("status") != BUSY and (
+        elif cmd == CMD_RUN and not busy and self.get("status") != BUSY and (
                 request != self._last and request[0] > 0):
             self._last = request
             self.set(exp_echo=request[0], nonce_echo_hi=request[1], nonce_echo_lo=request[2],
                      error_code=0, status=BUSY)
             self._job = asyncio.create_task(self._run_program(*request), name="fake-plc-job")
-        elif cmd == IDLE and self.get("status") in (DONE, ERROR):
+        elif cmd == CMD_IDLE and self.get("status") in (DONE, ERROR):
             self.set(status=IDLE)  # the daemon acknowledged
 
     async def _run_program(self, n: int, hi: int, lo: int) -> None:
