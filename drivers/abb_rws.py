@@ -53,6 +53,8 @@ log = logging.getLogger("robid.driver.abb_rws")
 _IDENT = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,31}$")
 _START = {"regain": "continue", "execmode": "continue", "cycle": "once", "condition": "none",
           "stopatbp": "disabled", "alltaskbytsp": "false"}
+#: a file upload's Content-Type: RWS 2.0 refuses any but its versioned types (HTTP 415)
+_UPLOAD_TYPE = {1: None, 2: "application/octet-stream;v=2.0"}
 
 
 class _Lost(Exception):
@@ -187,7 +189,10 @@ class AbbRwsDriver(Driver):
         lost connections; 401 and TLS failures are refused at once, in one line."""
         assert self._http is not None
         url = self._url.with_path(path, encoded=True)
-        headers = {} if path.startswith("/fileservice") else self.api.headers(form is not None)
+        headers = self.api.headers(form is not None)
+        if path.startswith("/fileservice"):
+            upload = _UPLOAD_TYPE[self.api.version] if raw is not None else None
+            headers = {"Content-Type": upload} if upload else {}
         data = urlencode(form).encode() if form is not None else raw
         last = ""
         retries = self._retries if retries is None else retries
@@ -268,7 +273,14 @@ class AbbRwsDriver(Driver):
             await self._call("mastership_release", {}, what="release RAPID mastership")
 
     async def _put_file(self, remote: str, data: bytes) -> None:
-        await self._request("PUT", f"/fileservice/{remote}", raw=data, what=f"upload {remote}")
+        await self._request("PUT", self._file_uri(remote), raw=data, what=f"upload {remote}")
+
+    def _file_uri(self, remote: str) -> str:
+        """The file service's URI of a controller path; RWS 1.0 names environment variables
+        in small case there (``$home``, ABB's RWS manual, "File Service")."""
+        if self.api.version == 1 and remote.startswith("$HOME/"):
+            remote = "$home/" + remote[len("$HOME/"):]
+        return f"/fileservice/{remote}"
 
     # -- the cycle
     async def _put_program(self, program: MotionProgram) -> None:
@@ -392,7 +404,7 @@ class AbbRwsDriver(Driver):
 
     async def _fetch_logs(self, done: Done) -> bytes:
         remote = log_file(done.exp_id, done.nonce)
-        status, body, _ = await self._request("GET", f"/fileservice/{remote}",
+        status, body, _ = await self._request("GET", self._file_uri(remote),
                                               what=f"download {remote}", missing_ok=True)
         if status == 404:
             raise DriverError(f"{self.name}: {remote}: log missing although 'done' was given")
@@ -410,7 +422,9 @@ class AbbRwsDriver(Driver):
         robid module loads it and answers ``robid_params_ack`` = ``<sha16> OK`` (or
         ``<sha16> ERR <reason>``). A rare operation: the answer is read every 0.2 s under
         the caller's timeout."""
-        robot = re.sub(r"[^A-Za-z0-9_\-]", "_", str(doc.get("robot", "robot")))[:40]
+        # robid_params holds the path: a RAPID string holds at most 80 characters, and
+        # "$HOME/robid/params/" + ".<tag>.json" leave 39 for the robot's name
+        robot = re.sub(r"[^A-Za-z0-9_\-]", "_", str(doc.get("robot", "robot")))[:39]
         tag = hashlib.sha256(body).hexdigest()[:16]
         remote = f"{HOME}/params/{robot}.{tag}.json"
         await self._put_file(remote, body)
