@@ -14,7 +14,7 @@ import yaml
 
 from robid_link.fakes.controller import ControllerCore, RunResult, default_truth
 from robid_link.ident.model.robot import Robot
-from robid_link.link.driver import MotionProgram
+from robid_link.jobs import MotionProgram
 
 GOLDEN = Path(__file__).resolve().parents[1] / "golden"
 _MARK = re.compile(r"<<(\w+)>>")

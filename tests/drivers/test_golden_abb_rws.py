@@ -23,8 +23,8 @@ from yarl import URL
 
 from robid_link.fakes.rws_peer import RwsPeer
 from robid_link.ident.model.robot import Robot
+from robid_link.jobs import RobotInfo
 from robid_link.link import registry
-from robid_link.link.driver import RobotInfo
 from tests.drivers import golden
 
 VERSIONS = [pytest.param(1, id="rws1"), pytest.param(2, id="rws2")]

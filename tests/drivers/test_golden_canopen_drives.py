@@ -18,8 +18,8 @@ pytest.importorskip("canopen")
 
 from robid_link.fakes.controller import default_truth, make_peer  # noqa: E402
 from robid_link.ident.model.robot import Robot  # noqa: E402
+from robid_link.jobs import RobotInfo  # noqa: E402
 from robid_link.link import registry  # noqa: E402
-from robid_link.link.driver import RobotInfo  # noqa: E402
 from tests.drivers import golden  # noqa: E402
 from tests.drivers.conftest import bump_program  # noqa: E402
 

@@ -20,8 +20,8 @@ from pymodbus.client import AsyncModbusTcpClient  # noqa: E402
 
 from robid_link.fakes.modbus_peer import ModbusPeer  # noqa: E402
 from robid_link.ident.model.robot import Robot  # noqa: E402
+from robid_link.jobs import RobotInfo  # noqa: E402
 from robid_link.link import registry  # noqa: E402
-from robid_link.link.driver import RobotInfo  # noqa: E402
 from tests.drivers import golden  # noqa: E402
 
 

@@ -21,8 +21,8 @@ serial = pytest.importorskip("serial")
 
 from robid_link.fakes.serial_peer import SerialPeer  # noqa: E402
 from robid_link.ident.model.robot import Robot  # noqa: E402
+from robid_link.jobs import RobotInfo  # noqa: E402
 from robid_link.link import registry  # noqa: E402
-from robid_link.link.driver import RobotInfo  # noqa: E402
 from tests.drivers import golden  # noqa: E402
 
 
