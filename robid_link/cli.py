@@ -82,14 +82,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
                    help="write the result as JSON")
     p.add_argument("--out", metavar="DIR", type=output_path("dir"),
-                   help="write figures, parameter table and YAML")
+                   help="write report.html, figures, parameter table and YAML")
 
     p = sub.add_parser("diagnose", help="find where the model fails and which effect is missing")
     _shared_inputs(p)
     p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
                    help="write the diagnosis as JSON")
     p.add_argument("--out", metavar="DIR", type=output_path("dir"),
-                   help="write residual figures per joint")
+                   help="write report.html and residual figures per joint")
 
     p = sub.add_parser("history", help="the error ladder of a model file")
     p.add_argument("model_file", help="model file whose history (.history.jsonl) to show")
@@ -161,7 +161,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="logs on the motor side: results in motor units (no conversion)")
     p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
                    help="write the result as JSON")
-    p.add_argument("--out", metavar="DIR", type=output_path("dir"), help="Bode figures")
+    p.add_argument("--out", metavar="DIR", type=output_path("dir"),
+                   help="write report.html and Bode figures")
 
     p = sub.add_parser("simulate", help="run a trajectory on the simulated robot, write a log")
     _robot_options(p)
@@ -362,7 +363,8 @@ def _identify(args: argparse.Namespace) -> int:
                   else None, report_dir=args.out, history=args.model or None)
     print(job.result.summary())
     if args.out:
-        print(f"\n  wrote {len(job.report_files['identify'])} files to {args.out}")
+        print(f"\n  wrote {len(job.report_files['identify'])} files to {args.out}; report: "
+              f"{job.report_html}")
     if args.export_urdf:  # issue 15 item 6
         from robid_link.ident.model.urdf_export import export_urdf
 
@@ -385,7 +387,8 @@ def _diagnose(args: argparse.Namespace) -> int:
     assert dg is not None  # "diagnose" was asked for
     print(dg.summary())
     if args.out:
-        print(f"  wrote {len(job.report_files['diagnose'])} figures to {args.out}")
+        print(f"  wrote {len(job.report_files['diagnose'])} figures to {args.out}; report: "
+              f"{job.report_html}")
     if dg.suggestions and args.model:
         s = dg.suggestions[0]
         print(f"  next: robid model add {args.model} {s.label()}")
@@ -550,8 +553,11 @@ def _elasticity(args: argparse.Namespace) -> int:
     if args.json:
         write_json(args.json, res.to_dict())
     if args.out:
+        from robid_link.ident.report.html import write_html_report
+
         paths = elasticity_figures(res, args.out)
-        print(f"\n  wrote {len(paths)} figure(s) to {args.out}")
+        page = write_html_report(args.out, elasticity=res, robot=robot)
+        print(f"\n  wrote {len(paths)} figure(s) to {args.out}; report: {page}")
     return 0
 
 
