@@ -184,7 +184,18 @@ def _parser() -> argparse.ArgumentParser:
                    "cell): file_share, abb_rws, canopen_drives, modbus_plc, serial_line")
 
     _link_parsers(sub)
+    _web_parser(sub)
     return ap
+
+
+def _web_parser(sub: Any) -> None:
+    p = sub.add_parser("web", help="the operator's page, read-only, from a config's state dir "
+                       "(no daemon needed)")
+    p.add_argument("--config", required=True, help="daemon config (YAML)")
+    p.add_argument("--listen", metavar="HOST:PORT",
+                   help="address to serve (default web.listen of the config, else "
+                        "127.0.0.1:8765; another than loopback needs web.tls_cert, "
+                        "web.tls_key and a token)")
 
 
 def _link_parsers(sub: Any) -> None:
@@ -322,6 +333,18 @@ def _dispatch(args: argparse.Namespace) -> int:
         return _simulate(args)
     if args.cmd == "elasticity":
         return _elasticity(args)
+    if args.cmd in ("web", "daemon"):  # the page: robid web, and the daemon's own
+        from robid_link.web.command import daemon_service, run_web
+
+        if args.cmd == "web":
+            return run_web(args.config, args.listen)
+        import asyncio
+
+        from robid_link.config import load_daemon_config
+        from robid_link.link.daemon import run_daemon
+
+        cfg = load_daemon_config(args.config)
+        return asyncio.run(run_daemon(cfg, [daemon_service(cfg)] if cfg.web.listen else []))
     from robid_link.link.commands import dispatch
 
     return dispatch(args)

@@ -14,7 +14,8 @@ NEEDED = ("robid_link/examples/robots/industrial6.yaml", "robid_link/examples/li
           "robid_link/ident/report/templates/report.html.j2",
           "robid_link/ident/report/static/uPlot.iife.min.js",
           "robid_link/ident/report/static/report.js",
-          "robid_link/ident/report/static/LICENSE.uPlot")
+          "robid_link/ident/report/static/LICENSE.uPlot",
+          "robid_link/web/templates/runs.html.j2", "robid_link/web/server.py")
 
 
 def main(path: str) -> int:

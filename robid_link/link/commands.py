@@ -1,11 +1,11 @@
-"""The link's sub-commands of ``robid``: daemon, fake-controller, campaign, status, results.
+"""The link's sub-commands of ``robid``: fake-controller, campaign, status, results (``daemon``
+starts in cli.py, with the web page when the config asks for it).
 Operator commands talk to the daemon over its control socket; ``status`` and ``results`` read
 the store directly when no daemon answers."""
 
 from __future__ import annotations
 
 import argparse
-import asyncio
 import sys
 import time
 from pathlib import Path
@@ -19,10 +19,6 @@ __all__ = ["dispatch", "wait_for_run", "format_runs", "format_results"]
 
 
 def dispatch(args: argparse.Namespace) -> int:
-    if args.cmd == "daemon":
-        from robid_link.link.daemon import run_daemon
-
-        return asyncio.run(run_daemon(load_daemon_config(args.config)))
     if args.cmd == "fake-controller":
         return _fake_controller(args)
     cfg = load_daemon_config(args.config)

@@ -54,7 +54,7 @@ DRAWN = """els => els.map(el => {
     for (let i = 3; i < d.length; i += 4 * 5) if (d[i] > 0) out.ink++;
   }
   out.points = 0;
-  for (const p of window.robidReport.plots) {
+  for (const p of window.robidReport ? window.robidReport.plots : []) {
     if (!el.contains(p.el)) continue;
     for (const s of p.u.data.slice(1)) {
       const ys = Array.isArray(s) && Array.isArray(s[1]) ? s[1] : s;  // a scatter: [xs, ys]

@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from robid_link.ident.elastic.elasticity import ElasticityResult
 
 __all__ = ["render_html", "write_html_report", "write_document", "read_report_data",
-           "add_to_report", "REPORT_NAME"]
+           "static_text", "add_to_report", "REPORT_NAME"]
 
 REPORT_NAME = "report.html"
 _STATIC = ("uPlot.min.css", "report.css", "uPlot.iife.min.js", "report.js")
@@ -36,7 +36,8 @@ _DATA_TAG = re.compile(r'<script type="application/json" id="robid-data">(.*?)</
 
 
 @cache
-def _static(name: str) -> str:
+def static_text(name: str) -> str:
+    """A file of the report's static folder (styles, scripts) as text."""
     return (resources.files("robid_link.ident.report") / "static" / name).read_text("utf-8")
 
 
@@ -78,14 +79,15 @@ def _embed(doc: Mapping[str, Any]) -> str:
     return text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
 
 
-def render_html(doc: Mapping[str, Any]) -> str:
-    """One self-contained page of a report document (``report_document``)."""
+def render_html(doc: Mapping[str, Any], nav: Sequence[tuple[str, str]] = ()) -> str:
+    """One self-contained page of a report document (``report_document``); ``nav``: (label,
+    link) pairs above it (the operator's page)."""
     import markupsafe
 
-    static = {name.replace(".", "_").replace("-", "_"): markupsafe.Markup(_static(name))
+    static = {name.replace(".", "_").replace("-", "_"): markupsafe.Markup(static_text(name))
               for name in _STATIC}
     return str(_environment().get_template("report.html.j2").render(
-        doc=doc, static=static, data=markupsafe.Markup(_embed(doc))))
+        doc=doc, static=static, data=markupsafe.Markup(_embed(doc)), nav=list(nav)))
 
 
 def read_report_data(path: str | Path) -> dict[str, Any]:
