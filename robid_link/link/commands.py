@@ -15,7 +15,7 @@ from robid_link.config import load_daemon_config
 from robid_link.exceptions import DaemonUnreachable, RobidError
 from robid_link.link.control import PREFLIGHT_TIMEOUT_S, request
 
-__all__ = ["dispatch", "wait_for_run", "format_runs", "format_results"]
+__all__ = ["dispatch", "wait_for_run", "format_runs", "format_results", "report_lines"]
 
 
 def dispatch(args: argparse.Namespace) -> int:
@@ -43,6 +43,8 @@ def dispatch(args: argparse.Namespace) -> int:
 
                 write_json(args.json, {"run": run, "results": results["results"]})
             print(format_results(results["results"]))
+            for line in report_lines(cfg.state_dir, [run_id]):
+                print(line)
             return 0 if run["state"] == "completed" else 1
         if args.campaign_cmd == "cancel":
             ans = request(cfg.control_socket, {"cmd": "cancel", "run_id": args.run_id},
@@ -86,6 +88,9 @@ def dispatch(args: argparse.Namespace) -> int:
                                    "drift": ans.get("drift", [])})
         print(f"daemon: {ans['status']}")
         print(format_runs(ans["runs"]))
+        for line in report_lines(cfg.state_dir, [r["run_id"] for r in ans["runs"]
+                                                 if r["state"] == "completed"]):
+            print(line)
         for line in ans.get("drift", []):
             print(f"drift: {line}")
         return 0
@@ -103,8 +108,22 @@ def dispatch(args: argparse.Namespace) -> int:
         if args.trend or args.compare:
             return _drift(args, res)
         print(format_results(res))
+        for line in report_lines(cfg.state_dir, [r["run_id"] for r in reversed(res)]):
+            print(line)
         return 0
     raise AssertionError(args.cmd)
+
+
+def report_lines(state_dir: Path, run_ids: list[str], most: int = 5) -> list[str]:
+    """``report RUN: PATH`` of the first ``most`` of these runs that have a report.html."""
+    out = []
+    for run_id in dict.fromkeys(run_ids):
+        page = state_dir / "reports" / run_id / "report.html"
+        if page.is_file():
+            out.append(f"report {run_id}: {page}")
+        if len(out) == most:
+            break
+    return out
 
 
 def _unreachable(err: DaemonUnreachable) -> str:

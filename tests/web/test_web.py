@@ -276,3 +276,14 @@ def test_the_daemon_serves_its_page_with_actions(tmp_path):
     refused, status, answer, runs = asyncio.run(go())
     assert refused == 403 and runs == 0
     assert status == 400 and answer["error"] == "run nope: not in the store"
+
+
+def test_status_and_results_print_the_report_of_a_finished_run(cell, capsys):
+    from robid_link.cli import main
+
+    page = cell.state / "reports" / cell.runs["reported"] / "report.html"
+    for cmd in ("status", "results"):
+        assert main([cmd, "--config", str(cell.config)]) == 0
+        out = capsys.readouterr().out
+        assert f"report {cell.runs['reported']}: {page}" in out, cmd
+        assert cell.runs["older"] not in out.split("report ")[-1]  # it has no report.html
