@@ -3,12 +3,11 @@ report is the worker's report.html page of the same document."""
 
 from __future__ import annotations
 
-import json
 import time
 from functools import cache
 from typing import Any
 
-from robid_link.ident.report.html import render_html, static_text
+from robid_link.ident.report.html import embed_json, render_html, static_text
 
 __all__ = ["runs_page", "run_page", "compare_page", "trend_page", "params_page",
            "message_page"]
@@ -35,11 +34,6 @@ def _num(x: Any, digits: int = 4) -> str:
     return f"{x:.{digits}g}" if isinstance(x, float) else str(x)
 
 
-def _json(doc: Any) -> str:
-    text = json.dumps(doc, ensure_ascii=False, separators=(",", ":"), allow_nan=False)
-    return text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
-
-
 @cache
 def _environment() -> Any:
     import jinja2
@@ -49,7 +43,7 @@ def _environment() -> Any:
                              autoescape=True, trim_blocks=True, lstrip_blocks=True,
                              undefined=jinja2.StrictUndefined)
     env.filters.update(when=_when, ago=_ago, num=_num,
-                       json=lambda d: markupsafe.Markup(_json(d)))
+                       json=lambda d: markupsafe.Markup(embed_json(d)))
     env.globals["static"] = {name: markupsafe.Markup(static_text(name)) for name in
                              ("report.css", "uPlot.min.css", "uPlot.iife.min.js")}
     return env

@@ -11,22 +11,10 @@ from robid_link.config import load_daemon_config
 from robid_link.link.store import Store
 from robid_link.web.server import WebServer
 
-from ..web.cell import build_cell, serving
+from ..web.cell import TOKEN, Recorder, build_cell, serving
 from .test_report_page import DRAWN, _empty
 
 pytestmark = pytest.mark.browser
-
-TOKEN = "operator-token-0123456789"
-
-
-class Recorder:
-    def __init__(self) -> None:
-        self.calls: list[dict] = []
-
-    async def __call__(self, req: dict) -> dict:
-        self.calls.append(req)
-        return {"ok": True, "run_id": "r-new"}
-
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory):

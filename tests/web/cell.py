@@ -27,10 +27,22 @@ from robid_link.link.store import Store
 
 from ..conftest import ROBOTS, simulate
 
+TOKEN = "operator-token-0123456789"
 TRACKING = {"joint_rms": [2e-3, 1e-3, 1e-3], "joint_max": [6e-3, 3e-3, 3e-3],
             "tool_rms_mm": 0.4, "tool_max_mm": 1.4, "residual_mm": 0.5}
 QUICK = {"experiments": [{"kind": "rigid_body", "duration_s": 10, "harmonics": 4,
                           "evaluations": 40, "rate_hz": 100}], "timeout_s": 20}
+
+
+class Recorder:
+    """The daemon's request handler as the page sees it: records, answers like the daemon."""
+
+    def __init__(self) -> None:
+        self.calls: list[dict[str, Any]] = []
+
+    async def __call__(self, req: dict[str, Any]) -> dict[str, Any]:
+        self.calls.append(req)
+        return {"ok": True, "run_id": "r-new"}
 
 
 @dataclass

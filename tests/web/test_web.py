@@ -21,25 +21,12 @@ from robid_link.exceptions import ConfigError
 from robid_link.link.store import Store
 from robid_link.web.server import WebServer, load_token
 
-from .cell import build_cell, serving, write_config
-
-TOKEN = "operator-token-0123456789"
+from .cell import TOKEN, Recorder, build_cell, serving, write_config
 
 
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory):
     return build_cell(tmp_path_factory.mktemp("cell"))
-
-
-class Recorder:
-    """The daemon's request handler as the page sees it: records, answers like the daemon."""
-
-    def __init__(self) -> None:
-        self.calls: list[dict[str, Any]] = []
-
-    async def __call__(self, req: dict[str, Any]) -> dict[str, Any]:
-        self.calls.append(req)
-        return {"ok": True, "run_id": "r-new"}
 
 
 def get(url: str, headers: dict[str, str] | None = None) -> tuple[int, str, Any]:

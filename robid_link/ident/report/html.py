@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from robid_link.ident.elastic.elasticity import ElasticityResult
 
 __all__ = ["render_html", "write_html_report", "write_document", "read_report_data",
-           "static_text", "add_to_report", "REPORT_NAME"]
+           "static_text", "embed_json", "add_to_report", "REPORT_NAME"]
 
 REPORT_NAME = "report.html"
 _STATIC = ("uPlot.min.css", "report.css", "uPlot.iife.min.js", "report.js")
@@ -73,8 +73,8 @@ def _clean(x: Any) -> Any:
     return x
 
 
-def _embed(doc: Mapping[str, Any]) -> str:
-    """The document as JSON that cannot end its script element early."""
+def embed_json(doc: Any) -> str:
+    """``doc`` as strict JSON (NaN, ∞ → null) that cannot end a script element early."""
     text = json.dumps(_clean(doc), ensure_ascii=False, separators=(",", ":"), allow_nan=False)
     return text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
 
@@ -87,7 +87,7 @@ def render_html(doc: Mapping[str, Any], nav: Sequence[tuple[str, str]] = ()) -> 
     static = {name.replace(".", "_").replace("-", "_"): markupsafe.Markup(static_text(name))
               for name in _STATIC}
     return str(_environment().get_template("report.html.j2").render(
-        doc=doc, static=static, data=markupsafe.Markup(_embed(doc)), nav=list(nav)))
+        doc=doc, static=static, data=markupsafe.Markup(embed_json(doc)), nav=list(nav)))
 
 
 def read_report_data(path: str | Path) -> dict[str, Any]:
