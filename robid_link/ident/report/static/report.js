@@ -251,7 +251,7 @@
       legend: {show: spec.groups.length > 1, live: false},
       scales: {x: {time: false}},
       series: series,
-      axes: [Object.assign({label: spec.xLabel}, AXIS), Object.assign({label: spec.yLabel, size: 55}, AXIS)],
+      axes: [Object.assign({label: spec.xLabel, space: 35}, AXIS), Object.assign({label: spec.yLabel, size: 55}, AXIS)],
       cursor: {drag: {x: true, y: true}, points: {show: false}},
     }, data);
   }
@@ -485,10 +485,14 @@
         if (same && k) { same.text += "," + k; continue; }
         labels.push({at: pts[k], text: k ? String(k) : "base"});
       }
+      const placed = [];  // labels whose points are close on screen go one line lower
       for (const l of labels) {
         const p = proj(l.at);
         el("circle", {cx: p[0], cy: p[1], r: l.text === "base" ? 7 : 5, fill: l.text === "base" ? "#50607a" : "#1d2330"});
-        el("text", {x: p[0] + 8, y: p[1] - 6, "font-size": 13, "font-weight": 600}, l.text);
+        let y = p[1] - 6;
+        while (placed.some(q => Math.abs(q[0] - p[0]) < 30 && Math.abs(q[1] - y) < 13)) y += 14;
+        placed.push([p[0], y]);
+        el("text", {x: p[0] + 8, y: y, "font-size": 13, "font-weight": 600}, l.text);
       }
       const gn = Math.hypot(...dr.gravity);
       if (gn > 0) {
