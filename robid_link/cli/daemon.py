@@ -22,12 +22,20 @@ __all__ = ["COMMANDS"]
 
 
 def _daemon(args: argparse.Namespace) -> int:
+    """The daemon, with the operator's page as a service when the config has ``web.listen``
+    (the CLI hands it over: the link never imports the web room)."""
     import asyncio
 
     from robid_link.config import load_daemon_config
     from robid_link.link.daemon import run_daemon
 
-    return asyncio.run(run_daemon(load_daemon_config(args.config)))
+    cfg = load_daemon_config(args.config)
+    services = []
+    if cfg.web.listen:
+        from robid_link.web.command import daemon_service
+
+        services.append(daemon_service(cfg))
+    return asyncio.run(run_daemon(cfg, services))
 
 
 def _config_check(args: argparse.Namespace) -> int:
