@@ -10,7 +10,7 @@ does not transfer is not suggested, and the model's own effects are checked the 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -26,11 +26,11 @@ from robid_link.ident.diagnosis.hyperparams import (
 )
 from robid_link.ident.fit.design import (
     Design,
-    attach_predictions,
     base_set_for,
     block_columns,
     random_states,
     structural_mask,
+    with_predictions,
 )
 from robid_link.ident.fit.estimate import RANK_TOL, Grams, accumulate, long_run_factor, solve
 from robid_link.ident.fit.identify import identify
@@ -432,16 +432,14 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     logs = [*data, *(validate or ())]
     pb = result.problem
     _ = result.rmse  # the held-out figures read the fitted problem's model-torque inputs
-    # copies: the model's predictions attached below must not change what the result reads
-    preps = [replace(p) for p in (*pb.preps, *pb.vpreps)]
+    base, _ = base_set_for(robot, pb.blocks, pb.transmission)
+    theta0 = np.asarray(result.theta)  # same model, same base set: identify's estimate
+    design = result.design
+    preps = with_predictions(robot, [*pb.preps, *pb.vpreps], design, theta0)
     # with validation logs, candidates are profiled and cross-validated on the training logs
     # and then scored on the validation logs (a new motion); without, all the data is one pool
     pieces, _ = split(preps[: len(pb.preps)] if pb.vpreps else preps, None, holdout=0.0)
     vpieces = split(preps[len(pb.preps):], None, holdout=0.0)[0] if pb.vpreps else []
-    design = result.design
-    base, _ = base_set_for(robot, pb.blocks, pb.transmission)
-    theta0 = np.asarray(result.theta)  # same model, same base set: identify's estimate
-    attach_predictions(robot, preps, design, theta0)
     odd = _unexplained(preps[0], design, theta0, campaign, elasticity_entries)
     notes: list[str] = []
     if len(logs) == 1 or all(_same_motion(logs[0], lg) for lg in logs[1:]):
