@@ -198,7 +198,8 @@ def refine_survivors(rows: ProfileRows, kept: list[Candidate], profiled: set[str
     for name in sorted({c.block.effect.name for c in kept if c.block.key in profiled}):
         group = [c.block for c in kept if c.block.effect.name == name and c.block.key in profiled]
         fine = dict(zip(map(id, group), refine_effect(rows, group), strict=True))
-        kept = [replace(c, block=fine.get(id(c.block), c.block)) for c in kept]
+        kept = [replace(c, block=fine[id(c.block)]) if id(c.block) in fine else c
+                for c in kept]
     return kept
 
 

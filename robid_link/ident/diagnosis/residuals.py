@@ -72,12 +72,15 @@ def residual_rows(pieces: Sequence[Piece], step: int
     raw: list[np.ndarray] = []
     parts: dict[str, list[np.ndarray]] = {k: [] for k in ("q", "qd", "qdd", "t", "tr", "rate")}
     for pc in pieces:
-        prep = pc.prep
+        prep, model = pc.prep, pc.prep.tau_model
+        if model is None:
+            raise ValueError("residual_rows needs the model's torque on the logs "
+                             "(with_predictions)")
         for a, b, ca, cb, at_edge in filter_windows(pc, step):
-            filtered = prep.filt.apply(prep.tau[ca:cb] - prep.tau_model[ca:cb], edges=at_edge)
+            filtered = prep.filt.apply(prep.tau[ca:cb] - model[ca:cb], edges=at_edge)
             idx = np.arange(a, b, step)
             res.append(filtered[a - ca: b - ca: step])
-            raw.append(prep.tau[idx] - prep.tau_model[idx])
+            raw.append(prep.tau[idx] - model[idx])
             parts["q"].append(prep.q[idx])
             parts["qd"].append(prep.qd[idx])
             parts["qdd"].append(prep.qdd[idx])
@@ -85,9 +88,9 @@ def residual_rows(pieces: Sequence[Piece], step: int
             if prep.tau_rigid is not None and prep.tau_rate is not None:
                 parts["tr"].append(prep.tau_rigid[idx])
                 parts["rate"].append(prep.tau_rate[idx])
-    cat = {k: np.concatenate(v) if v else None for k, v in parts.items()}
+    cat = {k: np.concatenate(v) for k, v in parts.items() if v}
     st = States(cat["q"], cat["qd"], cat["qdd"], cat["t"], pieces[0].prep.transmission,
-                cat["tr"], cat["rate"])
+                cat.get("tr"), cat.get("rate"))
     return np.concatenate(res), np.concatenate(raw), st
 
 
@@ -96,9 +99,13 @@ def profile_rows(robot: Robot, pool: ResidualPool) -> ProfileRows:
     dense regressor on them: where hyper-parameters are profiled and candidates screened."""
     states = pool.states
     every = max(1, len(states) // PROFILE_ROWS)
-    sub_states = States(*(None if a is None else a[::every] for a in (
-        states.q, states.qd, states.qdd, states.t)), states.transmission,
-        *(None if a is None else a[::every] for a in (states.tau_rigid, states.tau_rate)))
+
+    def thin(a: np.ndarray | None) -> np.ndarray | None:
+        return None if a is None else a[::every]
+
+    sub_states = States(states.q[::every], states.qd[::every], states.qdd[::every],
+                        thin(states.t), states.transmission, thin(states.tau_rigid),
+                        thin(states.tau_rate))
     return ProfileRows(robot, sub_states, pool.raw[::every], pool.resid[::every],
                        pool.design.expand(pool.design.compact(sub_states)))
 
