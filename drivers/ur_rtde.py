@@ -14,16 +14,13 @@ parameter upload: the capability is absent.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import hashlib
 import logging
-import os
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from robid_link.drivers import ur_rtde_codec as rtde
 from robid_link.drivers.ur_rtde_record import (
     DONE,
     ROBOT_MODES,
@@ -35,8 +32,15 @@ from robid_link.drivers.ur_rtde_record import (
     Recording,
     mode_name,
 )
+from robid_link.drivers.ur_rtde_session import (
+    E_SERIES_HZ,
+    RtdeOptions,
+    RtdeSession,
+    open_session,
+    reason,
+)
 from robid_link.drivers.ur_script import Knots, marker_tag, plan_knots, render_script
-from robid_link.exceptions import ConfigError, DriverError, ProtocolError
+from robid_link.exceptions import ConfigError, DriverError
 from robid_link.link.driver import Done, Driver, MotionProgram, RobotInfo
 
 __all__ = ["UrRtdeDriver"]
@@ -44,9 +48,6 @@ __all__ = ["UrRtdeDriver"]
 log = logging.getLogger("robid.driver.ur_rtde")
 
 TORQUE_FIELDS = ("target_moment", "actual_current")
-#: a controller generation's highest RTDE output frequency (URControl major version)
-MAX_HZ = {3: 125.0}
-E_SERIES_HZ = 500.0
 _KEEP_RUNS = 8
 
 
@@ -74,42 +75,6 @@ class _Attempt:
     error: DriverError | None = None
     task: asyncio.Task[None] | None = None
     script_conn: asyncio.Task[None] | None = None
-
-
-class _Session:
-    """One RTDE connection: set up for the run's recipe, then read package after package."""
-
-    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        self.reader, self.writer = reader, writer
-        self.recipe: rtde.Recipe | None = None
-        self.version: tuple[int, int, int, int] = (0, 0, 0, 0)
-
-    async def ask(self, request: bytes, kind: int) -> bytes:
-        """Send one request and read up to its answer (text messages on the way are logged)."""
-        self.writer.write(request)
-        await self.writer.drain()
-        for _ in range(64):
-            got, payload = await rtde.read_package(self.reader)
-            if got == kind:
-                return payload
-            if got == rtde.TEXT_MESSAGE:
-                _log_text(payload)
-                continue
-            raise ProtocolError(f"RTDE: expected a {rtde.PACKAGE_NAMES[kind]} answer, got "
-                                f"package type {got}")
-        raise ProtocolError(f"RTDE: no {rtde.PACKAGE_NAMES[kind]} answer among 64 text messages")
-
-    async def close(self) -> None:
-        self.writer.close()
-        with contextlib.suppress(OSError, TimeoutError, asyncio.IncompleteReadError):
-            async with asyncio.timeout(1.0):
-                await self.writer.wait_closed()
-
-
-def _log_text(payload: bytes) -> None:
-    level, source, message = rtde.parse_text_message(payload)
-    log.log(logging.WARNING if level in ("exception", "error", "warning") else logging.INFO,
-            "driver=ur_rtde controller %s from %s: %s", level, source, message[:200])
 
 
 class UrRtdeDriver(Driver):
@@ -213,9 +178,9 @@ class UrRtdeDriver(Driver):
             log.warning("driver=ur_rtde closing during experiment %s: stopping the program",
                         active.key[0])
             await self._cancel_tasks(active)
-            reason = await self._stop_program()
+            how = await self._stop_program()
             self._finish(active, error=DriverError(f"{self.name}: the link closed during "
-                                                   f"experiment {active.key[0]}; {reason}"))
+                                                   f"experiment {active.key[0]}; {how}"))
         for att in list(self._attempts.values()):
             await self._cancel_tasks(att)
 
@@ -238,7 +203,10 @@ class UrRtdeDriver(Driver):
                 finally:
                     writer.close()
         except (OSError, TimeoutError) as err:
-            raise DriverError(f"{self.name}: dashboard {where}: {_reason(err)}") from err
+            raise DriverError(f"{self.name}: dashboard {where}: {reason(err)}") from err
+        except ValueError as err:  # a line past the reader's limit: not a dashboard answer
+            raise DriverError(f"{self.name}: dashboard {where}: answer of over 64 KiB to "
+                              f"{command!r}") from err
         if not answer.endswith(b"\n"):
             raise DriverError(f"{self.name}: dashboard {where} closed without answering "
                               f"{command!r}")
@@ -255,7 +223,7 @@ class UrRtdeDriver(Driver):
                 await writer.drain()
         except (OSError, TimeoutError) as err:
             raise DriverError(f"{self.name}: script port {self.where('script_port')}: "
-                              f"{_reason(err)}") from err
+                              f"{reason(err)}") from err
 
         async def drain_loop() -> None:
             try:
@@ -274,7 +242,7 @@ class UrRtdeDriver(Driver):
         try:
             answer = await self._dashboard("stop")
         except DriverError as err:
-            answer = f"dashboard {_reason(err.__cause__ or err)}"
+            answer = f"dashboard {reason(err.__cause__ or err)}"
         if answer.startswith("Stopped"):
             log.warning("driver=ur_rtde program stopped through the dashboard")
             return "program stopped (dashboard)"
@@ -285,115 +253,27 @@ class UrRtdeDriver(Driver):
             await asyncio.gather(task, return_exceptions=True)
         except DriverError as err:
             line = f"could not stop the program ({answer}; script port " \
-                   f"{_reason(err.__cause__ or err)})"
+                   f"{reason(err.__cause__ or err)})"
             log.error("driver=ur_rtde %s", line)
             return line
         log.warning("driver=ur_rtde dashboard stop: %s; stopj sent on the script port", answer)
         return "program stopped (stopj on the script port)"
 
     # -- RTDE
-    def _fields(self, torque: str) -> tuple[str, ...]:
-        return ("timestamp", "actual_q", "actual_qd", torque, "runtime_state", "robot_mode",
-                "safety_mode", f"output_int_register_{self.marker_register}")
-
-    async def _session(self) -> tuple[_Session, str]:
-        """Connect, negotiate, set up the recipe and start: (session, torque field)."""
-        where = self.where("rtde_port")
-        try:
-            async with asyncio.timeout(self.io_timeout_s):
-                session = _Session(*await asyncio.open_connection(self.host,
-                                                                  self.ports["rtde_port"]))
-        except (OSError, TimeoutError) as err:
-            raise DriverError(f"{self.name}: RTDE {where}: {_reason(err)}") from err
-        try:
-            async with asyncio.timeout(self.io_timeout_s):
-                torque = await self._setup(session)
-        except TimeoutError as err:
-            await session.close()
-            raise DriverError(f"{self.name}: RTDE {where}: no answer within "
-                              f"{self.io_timeout_s:g} s during set-up") from err
-        except (OSError, asyncio.IncompleteReadError) as err:
-            await session.close()
-            raise DriverError(f"{self.name}: RTDE {where}: connection lost during set-up "
-                              f"({_reason(err)})") from err
-        except BaseException:
-            await session.close()
-            raise
-        return session, torque
-
-    async def _setup(self, s: _Session) -> str:
-        where = self.where("rtde_port")
-        answer = await s.ask(rtde.request_protocol_version(2), rtde.REQUEST_PROTOCOL_VERSION)
-        if not rtde.parse_accepted(rtde.REQUEST_PROTOCOL_VERSION, answer):
-            raise DriverError(f"{self.name}: the controller at {where} refused RTDE protocol "
-                              "version 2 (URControl 3.2 or older: update the robot's software)")
-        s.version = rtde.parse_urcontrol_version(
-            await s.ask(rtde.get_urcontrol_version(), rtde.GET_URCONTROL_VERSION))
-        self.controller_version = s.version
-        top = MAX_HZ.get(s.version[0], E_SERIES_HZ)
-        if self.frequency > top:
-            raise DriverError(f"driver.frequency: {self.frequency:g} Hz is above the "
-                              f"{top:g} Hz of this controller (URControl "
-                              f"{'.'.join(map(str, s.version[:3]))})")
-        torque = "target_moment" if self.torque == "auto" else self.torque
-        try:
-            s.recipe = await self._recipe(s, torque)
-        except rtde.MissingFields as err:
-            if not (self.torque == "auto" and err.names == ("target_moment",)
-                    and self.current_gain is not None):
-                hint = ("; give driver.current_gain to log actual_current instead"
-                        if err.names == ("target_moment",) else
-                        "; set driver.marker_register to a register this controller has "
-                        "(0-23 before URControl 3.9/5.3)" if f"output_int_register_"
-                        f"{self.marker_register}" in err.names else "")
-                raise DriverError(f"{self.name}: {err} by the controller at {where} "
-                                  f"(URControl {'.'.join(map(str, s.version[:3]))}){hint}"
-                                  ) from err
-            log.info("driver=ur_rtde target_moment not available: logging actual_current "
-                     "times driver.current_gain")
-            torque = "actual_current"
-            s.recipe = await self._recipe(s, torque)
-        if not rtde.parse_accepted(rtde.START, await s.ask(rtde.start(), rtde.START)):
-            raise DriverError(f"{self.name}: the controller at {where} refused to start the "
-                              "RTDE stream")
-        return torque
-
-    async def _recipe(self, s: _Session, torque: str) -> rtde.Recipe:
-        names = self._fields(torque)
-        recipe = rtde.parse_setup_outputs(
-            await s.ask(rtde.setup_outputs(self.frequency, names), rtde.SETUP_OUTPUTS), names)
-        want = ("DOUBLE", "VECTOR6D", "VECTOR6D", "VECTOR6D", "UINT32", "INT32", "INT32",
-                "INT32")
-        for name, got, exp in zip(names, recipe.types, want, strict=True):
-            if got != exp:
-                raise ProtocolError(f"{self.name}: RTDE output field {name} has type {got}, "
-                                    f"expected {exp}")
-        return recipe
-
-    async def _next_values(self, s: _Session) -> tuple[Any, ...]:
-        """The next data package's values (text messages logged on the way)."""
-        assert s.recipe is not None
-        layout = s.recipe.layout
-        while True:
-            kind, payload = await rtde.read_package(s.reader)
-            if kind == rtde.TEXT_MESSAGE:
-                _log_text(payload)
-                continue
-            if kind != rtde.DATA_PACKAGE:
-                raise ProtocolError(f"{self.name}: corrupt RTDE stream: package type {kind} "
-                                    "where data packages flow")
-            if len(payload) != layout.size:
-                what = "truncated" if len(payload) < layout.size else "corrupt"
-                raise ProtocolError(f"{self.name}: {what} RTDE data package: {len(payload)} "
-                                    f"bytes, the recipe needs {layout.size}")
-            if payload[0] != s.recipe.id:
-                raise ProtocolError(f"{self.name}: corrupt RTDE data package for recipe "
-                                    f"{payload[0]}, the stream was set up as recipe "
-                                    f"{s.recipe.id}")
-            return layout.unpack(payload)
+    def _rtde_options(self) -> RtdeOptions:
+        return RtdeOptions(self.host, self.ports["rtde_port"], self.frequency, self.torque,
+                           self.current_gain, self.marker_register, self.io_timeout_s)
 
     # -- the cycle
     async def _put_program(self, program: MotionProgram) -> None:
+        known = self._programs.get(program.exp_id)
+        if known is None or known[0].sha256 != program.sha256:
+            # seconds of numerical work for a long program: not on the daemon's event loop
+            knots = await asyncio.to_thread(self._prepare, program)
+            self._programs[program.exp_id] = (program, knots)
+
+    def _prepare(self, program: MotionProgram) -> Knots:
+        """The program's knots, checked: six revolute joints, the path, the script's size."""
         traj = program.trajectory()
         if traj.q.shape[1] != 6 or any(t != "revolute" for t in traj.joint_types):
             raise DriverError(f"{self.name}: program {program.exp_id} has {traj.q.shape[1]} "
@@ -406,7 +286,7 @@ class UrRtdeDriver(Driver):
                               f"of URScript ({knots.intervals + 1} knots every {knots.h:.3f} s), "
                               f"above driver.max_script_bytes ({self.max_script_bytes}): "
                               "shorten the experiment or raise the limit")
-        self._programs[program.exp_id] = (program, knots)
+        return knots
 
     def _render(self, program: MotionProgram, knots: Knots, exp_id: str, nonce: str) -> bytes:
         traj = program.trajectory()
@@ -425,8 +305,9 @@ class UrRtdeDriver(Driver):
         if exp_id not in self._programs:
             raise DriverError(f"{self.name}: no program was put for experiment {exp_id}")
         program, knots = self._programs[exp_id]
-        script = self._render(program, knots, exp_id, nonce)
-        session, torque = await self._session()
+        script = await asyncio.to_thread(self._render, program, knots, exp_id, nonce)
+        session = await open_session(self._rtde_options())
+        self.controller_version, torque = session.version, session.torque
         try:
             await self._check_idle(session, exp_id)
         except BaseException:
@@ -449,23 +330,24 @@ class UrRtdeDriver(Driver):
                                        name=f"ur_rtde-record-{exp_id}")
         self._forget_old()
         log.info("driver=ur_rtde exp=%s nonce=%s program sent (%d bytes, %d knots every %.3f s,"
-                 " %s, %g Hz)", exp_id, nonce, len(script), knots.intervals + 1, knots.h,
-                 torque, self.frequency)
+                 " path within %.1e rad, acceleration within %.1f %%; %s, %g Hz)", exp_id,
+                 nonce, len(script), knots.intervals + 1, knots.h, knots.error_rad,
+                 100 * knots.accel_error, torque, self.frequency)
 
-    async def _check_idle(self, s: _Session, exp_id: str) -> None:
+    async def _check_idle(self, s: RtdeSession, exp_id: str) -> None:
         """Before motion: the first data package says robot running, safety normal, nothing
         playing."""
         assert s.recipe is not None
         slots = s.recipe.slices()
         try:
             async with asyncio.timeout(self.stream_timeout_s + self.io_timeout_s):
-                values = await self._next_values(s)
+                values = await s.next_values()
         except TimeoutError as err:
             raise DriverError(f"{self.name}: RTDE {self.where('rtde_port')} started but sent no "
                               "data package") from err
         except (OSError, asyncio.IncompleteReadError) as err:
             raise DriverError(f"{self.name}: RTDE {self.where('rtde_port')}: connection lost "
-                              f"({_reason(err)})") from err
+                              f"({reason(err)})") from err
         runtime, robot_mode, safety = (values[slots[f]][0] for f in
                                        ("runtime_state", "robot_mode", "safety_mode"))
         if robot_mode != RUNNING:
@@ -479,7 +361,7 @@ class UrRtdeDriver(Driver):
                               f"{mode_name(RUNTIME_STATES, runtime)} on the controller; refusing "
                               f"to start experiment {exp_id}")
 
-    async def _record_loop(self, att: _Attempt, s: _Session) -> None:
+    async def _record_loop(self, att: _Attempt, s: RtdeSession) -> None:
         """Read every package until the attempt ends; on any failure the stop goes out first,
         then the failure is stored."""
         rec, loop = att.rec, asyncio.get_running_loop()
@@ -491,29 +373,31 @@ class UrRtdeDriver(Driver):
             while True:
                 try:
                     async with asyncio.timeout(self.stream_timeout_s):
-                        v = await self._next_values(s)
+                        v = await s.next_values()
                 except TimeoutError:
                     raise DriverError(f"{self.name}: the RTDE stream stopped: no data package "
                                       f"for {self.stream_timeout_s:g} s during experiment "
                                       f"{rec.exp_id}") from None
                 except (OSError, asyncio.IncompleteReadError) as err:
                     raise DriverError(f"{self.name}: RTDE connection to {where} lost during "
-                                      f"experiment {rec.exp_id} ({_reason(err)})") from err
+                                      f"experiment {rec.exp_id} ({reason(err)})") from err
                 was = rec.stage
                 state = rec.feed(v[ts][0], v[q], v[qd], v[tau], v[rt][0], v[rm][0], v[sm][0],
                                  v[mk][0], loop.time())
                 if was == "sent" and rec.stage != "sent":
                     await self._close_script_conn(att)
                 if state == DONE:
+                    await s.pause(self.io_timeout_s)
                     break
         except EndedEarly as err:  # already stopped: nothing to stop
             self._finish(att, error=err)
             return
         except DriverError as err:
-            reason = await self._stop_program()
-            self._finish(att, error=type(err)(f"{err}; {reason}"))
+            how = await self._stop_program()
+            self._finish(att, error=type(err)(f"{err}; {how}"))
             return
         finally:
+            rec.received = s.packages
             await s.close()
             await self._close_script_conn(att)
         try:
@@ -529,7 +413,7 @@ class UrRtdeDriver(Driver):
             return
         rec = att.rec
         gaps = rec.inter_arrival_s()
-        self.last_stats = {"packages": rec.packages, "rows": rec.rows, "missed": rec.missed,
+        self.last_stats = {"packages": rec.received, "rows": rec.rows, "missed": rec.missed,
                            "path_missed": rec.path_missed,
                            "p99_inter_arrival_ms": float(np.percentile(gaps, 99) * 1e3)
                            if gaps.size else float("nan"),
@@ -600,24 +484,12 @@ class UrRtdeDriver(Driver):
                 log.warning("driver=ur_rtde exp=%s nonce=%s given up: stopping the program",
                             exp_id, nonce)
                 await self._cancel_tasks(att)
-                reason = await self._stop_program()
+                how = await self._stop_program()
                 self._finish(att, error=DriverError(f"{self.name}: experiment {exp_id} "
-                                                    f"withdrawn; {reason}"))
+                                                    f"withdrawn; {how}"))
             return
         state = await self._dashboard("programState")
         if state.startswith(("PLAYING", "PAUSED")):  # given before a restart, maybe ours
             log.warning("driver=ur_rtde exp=%s nonce=%s given up while a program is %s: "
                         "stopping it", exp_id, nonce, state.split()[0].lower())
             await self._stop_program()
-
-
-def _reason(err: BaseException) -> str:
-    """A short cause: 'connection closed', 'Connection refused', 'timed out', …"""
-    if isinstance(err, asyncio.IncompleteReadError):
-        return "connection closed"
-    if isinstance(err, OSError) and err.errno:
-        return os.strerror(err.errno)
-    if isinstance(err, TimeoutError):
-        return "timed out"
-    text = str(err).splitlines()[0][:160] if str(err) else ""
-    return f"{type(err).__name__}: {text}" if text else type(err).__name__

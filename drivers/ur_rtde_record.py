@@ -59,7 +59,8 @@ class Recording:
     torque_gain: np.ndarray | None = None  # N·m/A when the torque field is actual_current
     stage: str = "sent"  # sent → playing → path → done
     rows: int = 0
-    packages: int = 0
+    packages: int = 0  # data packages fed
+    received: int = 0  # data packages the session read in all (set-up check and pause too)
     missed: int = 0  # packages the controller skipped, from the time stamps
     path_missed: int = 0  # of which on the path (holes in the log)
     arrivals: list[np.ndarray] = field(default_factory=list)

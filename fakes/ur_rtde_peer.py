@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import io
 import logging
 import re
 import struct
@@ -28,11 +27,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from robid_link.exceptions import RobidError
 from robid_link.fakes.controller import ControllerCore, Peer
-from robid_link.fakes.urscript_vm import Machine, ScriptError, compile_program
+from robid_link.fakes.ur_program import Motion, simulate
+from robid_link.fakes.urscript_vm import ScriptError, compile_program
 
 __all__ = ["UrRtdePeer"]
 
@@ -58,22 +57,6 @@ _FMT = {"DOUBLE": "d", "VECTOR6D": "6d", "INT32": "i", "UINT32": "I", "VECTOR6IN
 _STATES = {1: "STOPPED", 2: "PLAYING", 4: "PAUSED"}
 _MAX_PROGRAM = 16_000_000
 _STOP_ONLY = re.compile(r"^\s*(stopj|stopl)\s*\([^()]*\)\s*$|^\s*halt\s*$")
-
-
-@dataclass
-class _Motion:
-    """One program: compiling (``start`` None), then following ``rows`` (q, qd, τ at ``rate``)."""
-
-    name: str
-    fault: str | None = None
-    start: float | None = None
-    rate: float = 1.0
-    rows: np.ndarray = field(default_factory=lambda: np.zeros((1, 18)))
-    events: list[tuple[float, int, int]] = field(default_factory=list)  # (τ, register, value)
-    fault_at: float = 0.0
-    duration: float = 0.0
-    next_event: int = 0
-    struck: bool = False  # the fault at fault_at has happened
 
 
 @dataclass
@@ -133,7 +116,7 @@ class UrRtdePeer(Peer):
         self._handlers: set[asyncio.Task[Any]] = set()
         self._workers: list[threading.Thread] = []
         self.clients: list[_Client] = []
-        self.motion: _Motion | None = None
+        self.motion: Motion | None = None
         self.runtime, self.safety, self.robot_mode = 1, 1, 7
         self.registers: dict[int, int] = {}
         self.q, self.qd, self.tau = np.zeros(6), np.zeros(6), np.zeros(6)
@@ -270,7 +253,7 @@ class UrRtdePeer(Peer):
     def _hold(self, row: np.ndarray) -> None:
         self.q, self.qd, self.tau = row[:6].copy(), np.zeros(6), row[12:].copy()
 
-    def _strike(self, m: _Motion, row: np.ndarray) -> None:
+    def _strike(self, m: Motion, row: np.ndarray) -> None:
         if m.fault == "fail":
             log.info("protective stop in %s", m.name)
             self._hold(row)
@@ -282,7 +265,7 @@ class UrRtdePeer(Peer):
             for c in self.clients:
                 c.writer.transport.abort()
 
-    def _end(self, m: _Motion, how: str) -> None:
+    def _end(self, m: Motion, how: str) -> None:
         if self.motion is m:
             self.motion = None
             self.runtime = 1
@@ -302,90 +285,65 @@ class UrRtdePeer(Peer):
         return True
 
     def _play(self, text: str) -> None:
-        """A program from the script port: it replaces the running one and plays; a program
-        that only stops (``stopj(a)``, ``halt``) is a stop request."""
-        try:
-            program = compile_program(text)
-        except ScriptError as err:
-            log.warning("script port: program refused: %s", err)
-            return
+        """A program from the script port: compiled (a program with a syntax error is refused
+        and nothing changes), then it replaces the running one and plays; a program that only
+        stops (``stopj(a)``, ``halt``) is a stop request. Compiling and simulating run in a
+        thread: the controller's streams go on meanwhile."""
         if _STOP_ONLY.match(text):
             self.stops.append("script")
             self._stop_program("script")
             return
-        self._stop_program("script")
         self._programs += 1
-        self.programs.append(program.name)
-        m = _Motion(program.name, start=None)
-        self.motion, self.runtime = m, 2
+        run = self._programs
         assert self._loop is not None
         loop = self._loop
+        accepted = threading.Event()
+
+        def post(*call: Any) -> None:
+            with contextlib.suppress(RuntimeError):  # the controller was shut down
+                loop.call_soon_threadsafe(*call)
 
         def work() -> None:
             try:
-                self._simulate(program, m)
+                program = compile_program(text)
+            except ScriptError as err:
+                log.warning("script port: program refused: %s", err)
+                return
+            m = Motion(program.name, start=None)
+            post(self._accept, m, accepted)
+            if not accepted.wait(30):
+                return
+            try:
+                simulate(self.core, program, m, q_start=m.rows[0, :6], steptime=self.series
+                         .steptime, run=run, fault_at=self.fault_at)
             except (ScriptError, RobidError, ValueError) as err:
-                post: tuple[Any, ...] = (self._failed, m, str(err))
-            else:
-                post = (self._moving, m)
+                post(self._failed, m, str(err))
+                return
             if m.fault != "never_answer":
-                with contextlib.suppress(RuntimeError):  # the controller was shut down
-                    loop.call_soon_threadsafe(*post)
+                post(self._moving, m)
 
         self._workers = [w for w in self._workers if w.is_alive()]
         worker = threading.Thread(target=work, name="fake-ur-program", daemon=True)
         self._workers.append(worker)
         worker.start()
 
-    def _failed(self, m: _Motion, reason: str) -> None:
+    def _accept(self, m: Motion, accepted: threading.Event) -> None:
+        """The compiled program replaces the running one and plays from where the arm is."""
+        self._stop_program("script")
+        self.programs.append(m.name)
+        m.rows = np.concatenate([self.q, np.zeros(6), self.tau])[None]
+        self.motion, self.runtime = m, 2
+        accepted.set()
+
+    def _failed(self, m: Motion, reason: str) -> None:
         log.warning("program %s: runtime error: %s", m.name, reason)
         self._end(m, "failed")
 
-    def _moving(self, m: _Motion) -> None:
+    def _moving(self, m: Motion) -> None:
         """The arm starts at the next controller step (clients' clocks are on that grid)."""
         if self.motion is m:
             step = self.series.steptime
             m.start = self._boot + (int((self._now() - self._boot) / step) + 1) * step
-
-    def _simulate(self, program: Any, m: _Motion) -> None:
-        """Run the script on a machine, the arm's motion on the plant (the core's run)."""
-        step = self.series.steptime
-        qd_max = float(np.min(self.core.robot.limits.qd_max))
-        machine = program.run(Machine(self.q.tolist(), steptime=step,
-                                      qd_max=qd_max if np.isfinite(qd_max) else 3.2))
-        if not machine.targets:
-            machine.targets.append(self.q.tolist())
-        q = np.asarray(machine.targets)
-        t = np.arange(q.shape[0] + 1) * step
-        q = np.vstack([q, q[-1:]])
-        buf = io.StringIO()
-        np.savetxt(buf, np.column_stack([t, q]), delimiter=",", fmt="%.9g",
-                   header="t," + ",".join(f"q{j}" for j in range(1, 7)), comments="")
-        head = yaml.safe_dump({"rate_hz": 1.0 / step, "kind": "custom",
-                               "robot": self.core.robot.name,
-                               "joint_types": ["revolute"] * 6}).encode()
-        res = self.core.run(m.name, str(self._programs), buf.getvalue().encode(), head)
-        m.fault = res.fault
-        if res.fault == "never_answer":
-            return
-        data = res.log
-        if res.fault == "fail":  # the core reports failure; the arm moves until it stops
-            data = self.core.simulate(self.core.trajectory(buf.getvalue().encode(), head),
-                                      self.core.seed + len(self.core.handled))
-        elif res.error is not None:
-            raise RobidError(res.error)
-        arr = np.loadtxt(io.BytesIO(data), delimiter=",", skiprows=1, ndmin=2)
-        qd = np.gradient(arr[:, 1:7], arr[:, 0], axis=0) if arr.shape[0] > 1 else \
-            np.zeros((1, 6))
-        m.rows = np.column_stack([arr[:, 1:7], qd, arr[:, 7:13]])
-        m.rate = float((arr.shape[0] - 1) / max(arr[-1, 0] - arr[0, 0], 1e-9))
-        m.duration = float(arr[-1, 0] - arr[0, 0])
-        m.events = [(k * step, reg, value) for k, reg, value in machine.registers]
-        path = [tau_ for tau_, _, _ in m.events]
-        lo, hi = (min(path), max(path)) if len(path) >= 2 else (0.0, m.duration)
-        m.fault_at = lo + self.fault_at * (hi - lo) if m.fault else float("inf")
-        for text in machine.messages:
-            log.info("program %s: textmsg %s", m.name, text)
 
     # -- RTDE
     def _field(self, name: str) -> str | None:
@@ -463,6 +421,10 @@ class UrRtdePeer(Peer):
             if client.task is not None:
                 client.task.cancel()
                 await asyncio.gather(client.task, return_exceptions=True)
+            if client.names:
+                log.info("RTDE client closed: %d packages sent, %d skipped (this host late), "
+                         "%d dropped (the client did not read)", client.sent, client.skipped,
+                         client.dropped)
 
     def _rtde_answer(self, c: _Client, kind: int, payload: bytes) -> bytes:
         fault = self.core.fault
