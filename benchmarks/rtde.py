@@ -44,12 +44,8 @@ def _program(seconds: float) -> Any:
                                   "rtde_bench")
 
 
-def _identify_loop(work: Path, stop: threading.Event, runs: list[float]) -> None:
-    """``robid identify`` on a 60 s 1 kHz 6-axis log, again and again, until ``stop``."""
-    from benchmarks.run import _make_npz
-
-    data = work / "load.npz"
-    _make_npz(data, 60_000, 1000.0)
+def _identify_loop(data: Path, stop: threading.Event, runs: list[float]) -> None:
+    """``robid identify`` on ``data`` in another process, again and again, until ``stop``."""
     while not stop.is_set():
         t0 = time.perf_counter()
         subprocess.run([sys.executable, "-m", "robid_link.cli", "identify", "--robot",
@@ -71,9 +67,13 @@ async def _stream(options: dict[str, Any], robot: Any, program: Any, seconds: fl
 
 
 def bench_rtde(seconds: float = 600.0) -> dict[str, Any]:
+    from benchmarks.run import _make_npz
+
     robot, program = _program(seconds)
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
+        # made before the stream: its numba kernels hold this process's interpreter lock
+        _make_npz(work / "load.npz", 60_000, 1000.0)
         (work / "cell").mkdir()
         (work / "truth.yaml").write_text(TRUTH)
         ready, log = work / "ready.json", work / "controller.log"
@@ -84,7 +84,8 @@ def bench_rtde(seconds: float = 600.0) -> dict[str, Any]:
                  "--workdir", str(work / "cell"), "--robot", str(ROBOT), "--truth",
                  str(work / "truth.yaml"), "--ready-file", str(ready)],
                 stdout=out, stderr=subprocess.STDOUT)
-            load = threading.Thread(target=_identify_loop, args=(work, stop, runs),
+            load = threading.Thread(target=_identify_loop,
+                                    args=(work / "load.npz", stop, runs),
                                     name="bench-identify")
             try:
                 end = time.monotonic() + 60

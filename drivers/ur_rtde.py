@@ -140,6 +140,7 @@ class UrRtdeDriver(Driver):
         self._programs: dict[str, tuple[MotionProgram, Knots]] = {}
         self._attempts: dict[tuple[str, str], _Attempt] = {}
         self._active: _Attempt | None = None
+        self._tasks: set[asyncio.Task[None]] = set()
         self.controller_version: tuple[int, int, int, int] | None = None
         #: the last attempt's stream figures (benchmarks, logs)
         self.last_stats: dict[str, float] = {}
@@ -178,11 +179,14 @@ class UrRtdeDriver(Driver):
             log.warning("driver=ur_rtde closing during experiment %s: stopping the program",
                         active.key[0])
             await self._cancel_tasks(active)
-            how = await self._stop_program()
+            how = await self._stop_program(not_started=active.rec.stage == "sent")
             self._finish(active, error=DriverError(f"{self.name}: the link closed during "
                                                    f"experiment {active.key[0]}; {how}"))
         for att in list(self._attempts.values()):
             await self._cancel_tasks(att)
+        for task in list(self._tasks):  # attempts already acknowledged or withdrawn
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
 
     # -- small connections: dashboard and script port
     async def _dashboard(self, command: str) -> str:
@@ -236,14 +240,17 @@ class UrRtdeDriver(Driver):
 
         return asyncio.create_task(drain_loop(), name="ur_rtde-script-port")
 
-    async def _stop_program(self) -> str:
-        """Dashboard ``stop``; when the dashboard cannot, ``stopj`` on the script port. Returns
-        how it went (for the failure's line); never raises."""
+    async def _stop_program(self, not_started: bool = False) -> str:
+        """Dashboard ``stop``; ``stopj`` on the script port when the dashboard cannot, or when
+        the program may not have started yet (a controller still compiling it has nothing to
+        stop: a newer program on the script port replaces it). Returns how it went (for the
+        failure's line); never raises."""
         try:
             answer = await self._dashboard("stop")
         except DriverError as err:
             answer = f"dashboard {reason(err.__cause__ or err)}"
-        if answer.startswith("Stopped"):
+        stopped = answer.startswith("Stopped")
+        if stopped and not not_started:
             log.warning("driver=ur_rtde program stopped through the dashboard")
             return "program stopped (dashboard)"
         try:
@@ -257,7 +264,8 @@ class UrRtdeDriver(Driver):
             log.error("driver=ur_rtde %s", line)
             return line
         log.warning("driver=ur_rtde dashboard stop: %s; stopj sent on the script port", answer)
-        return "program stopped (stopj on the script port)"
+        return "program stopped (dashboard and stopj)" if stopped else \
+            "program stopped (stopj on the script port)"
 
     # -- RTDE
     def _rtde_options(self) -> RtdeOptions:
@@ -328,6 +336,8 @@ class UrRtdeDriver(Driver):
         self._attempts[key] = self._active = att
         att.task = asyncio.create_task(self._record_loop(att, session),
                                        name=f"ur_rtde-record-{exp_id}")
+        self._tasks.add(att.task)
+        att.task.add_done_callback(self._tasks.discard)
         self._forget_old()
         log.info("driver=ur_rtde exp=%s nonce=%s program sent (%d bytes, %d knots every %.3f s,"
                  " path within %.1e rad, acceleration within %.1f %%; %s, %g Hz)", exp_id,
@@ -369,6 +379,7 @@ class UrRtdeDriver(Driver):
         sl = s.recipe.slices()
         ts, q, qd, tau, rt, rm, sm, mk = (sl[f] for f in s.recipe.names)
         where = self.where("rtde_port")
+        error: DriverError | None = None
         try:
             while True:
                 try:
@@ -390,22 +401,23 @@ class UrRtdeDriver(Driver):
                     await s.pause(self.io_timeout_s)
                     break
         except EndedEarly as err:  # already stopped: nothing to stop
-            self._finish(att, error=err)
-            return
+            error = err
         except DriverError as err:
-            how = await self._stop_program()
-            self._finish(att, error=type(err)(f"{err}; {how}"))
-            return
+            how = await self._stop_program(not_started=rec.stage == "sent")
+            error = type(err)(f"{err}; {how}")
         finally:
             rec.received = s.packages
             await s.close()
             await self._close_script_conn(att)
-        try:
-            data = await asyncio.to_thread(rec.log_bytes)
-        except DriverError as err:
-            self._finish(att, error=err)
-            return
-        self._finish(att, data=data)
+        if error is None:
+            try:
+                data = await asyncio.to_thread(rec.log_bytes)
+            except DriverError as err:
+                error = err
+        if error is not None:
+            self._finish(att, error=error)
+        else:
+            self._finish(att, data=data)
 
     def _finish(self, att: _Attempt, *, data: bytes | None = None,
                 error: DriverError | None = None) -> None:
@@ -480,11 +492,13 @@ class UrRtdeDriver(Driver):
     async def _withdraw(self, exp_id: str, nonce: str) -> None:
         att = self._attempts.pop((exp_id, nonce), None)
         if att is not None:
-            if not att.finished.is_set():
+            if att.finished.is_set():
+                await self._cancel_tasks(att)  # its task may still be closing the session
+            else:
                 log.warning("driver=ur_rtde exp=%s nonce=%s given up: stopping the program",
                             exp_id, nonce)
                 await self._cancel_tasks(att)
-                how = await self._stop_program()
+                how = await self._stop_program(not_started=att.rec.stage == "sent")
                 self._finish(att, error=DriverError(f"{self.name}: experiment {exp_id} "
                                                     f"withdrawn; {how}"))
             return

@@ -11,7 +11,8 @@ goes back to stopped (1). Own faults (``fault_at``: the share of the path where 
 NOT_FOUND at the next set-up), ``rtde_refuse_v2`` (the next version request refused). Core faults:
 ``fail`` is a protective stop, ``die`` the controller gone, ``never_answer`` a program that never
 moves nor ends, ``truncated_log``/``corrupt_log`` one short / foreign-recipe data package,
-``answer_twice`` a second playing→stopped blip, ``nan_log`` NaN in actual_q.
+``answer_twice`` a second playing→stopped blip, ``nan_log`` NaN in actual_q. ``compile_s``
+delays every program (a controller slow to compile a long script).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import logging
 import re
 import struct
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -92,7 +94,7 @@ class UrRtdePeer(Peer):
                  series: str = "e", missing_field: str = "actual_qd",
                  absent: list[str] | tuple[str, ...] = (),
                  current_gain: list[float] | None = None, slow_every: int = 5,
-                 fault_at: float = 0.5) -> None:
+                 fault_at: float = 0.5, compile_s: float = 0.0) -> None:
         super().__init__(core, workdir)
         if core.robot.n != 6:
             raise RobidError(f"the fake UR controller moves 6 joints; robot {core.robot.name} "
@@ -106,6 +108,7 @@ class UrRtdePeer(Peer):
         self.absent = set(absent)
         self.gain = np.asarray(current_gain or [0.1, 0.1, 0.1, 0.05, 0.05, 0.05], dtype=float)
         self.slow_every, self.fault_at = max(1, int(slow_every)), float(fault_at)
+        self.compile_s = float(compile_s)  # a controller slow to compile (long scripts)
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop: asyncio.Event | None = None
@@ -123,6 +126,7 @@ class UrRtdePeer(Peer):
         self._blip: tuple[float, float] | None = None
         self._boot = 0.0
         self._programs = 0
+        self._received = 0  # programs and stop requests received on the script port
         self.stops: list[str] = []  # stop requests received: dashboard, script (stopj)
         self.programs: list[str] = []  # names of the programs received, in order
 
@@ -289,12 +293,13 @@ class UrRtdePeer(Peer):
         and nothing changes), then it replaces the running one and plays; a program that only
         stops (``stopj(a)``, ``halt``) is a stop request. Compiling and simulating run in a
         thread: the controller's streams go on meanwhile."""
+        self._received += 1
         if _STOP_ONLY.match(text):
             self.stops.append("script")
             self._stop_program("script")
             return
         self._programs += 1
-        run = self._programs
+        run, seq = self._programs, self._received
         assert self._loop is not None
         loop = self._loop
         accepted = threading.Event()
@@ -304,13 +309,14 @@ class UrRtdePeer(Peer):
                 loop.call_soon_threadsafe(*call)
 
         def work() -> None:
+            time.sleep(self.compile_s)
             try:
                 program = compile_program(text)
             except ScriptError as err:
                 log.warning("script port: program refused: %s", err)
                 return
             m = Motion(program.name, start=None)
-            post(self._accept, m, accepted)
+            post(self._accept, m, seq, accepted)
             if not accepted.wait(30):
                 return
             try:
@@ -327,8 +333,12 @@ class UrRtdePeer(Peer):
         self._workers.append(worker)
         worker.start()
 
-    def _accept(self, m: Motion, accepted: threading.Event) -> None:
-        """The compiled program replaces the running one and plays from where the arm is."""
+    def _accept(self, m: Motion, seq: int, accepted: threading.Event) -> None:
+        """The compiled program replaces the running one and plays from where the arm is,
+        unless a stop or another program came in after it (it was replaced before it ran)."""
+        if seq != self._received:
+            log.info("program %s replaced before it started", m.name)
+            return
         self._stop_program("script")
         self.programs.append(m.name)
         m.rows = np.concatenate([self.q, np.zeros(6), self.tau])[None]

@@ -258,6 +258,33 @@ def test_script_reproduces_the_program_on_the_controllers_interpreter(ur6: Robot
         assert np.allclose(m.targets[start - 1], traj.q[0], atol=1e-6)  # movej to the start
 
 
+def test_knots_keep_the_programs_accelerations(ur6: Robot) -> None:
+    """A smooth excitation gets knots whose C² spline follows its accelerations within about
+    1 % of their peak (a C¹ curve jumps at every knot: a torque ripple at the knot rate); a
+    program with steps in acceleration still renders, with finer knots."""
+    from robid_link.drivers.ur_script import spline
+    from robid_link.ident.excite.excitation import random_fourier
+    from robid_link.link import program as pg
+
+    four = random_fourier(ur6, harmonics=8, base_hz=0.1, seed=1)
+    t = np.arange(0.0, 20.0, 1 / 250)
+    q, _, qdd = four.evaluate(t)
+    traj = pg.make_program(ur6, _custom(ur6, t, q), "exp1").trajectory()
+    knots = plan_knots(traj, 1e-4)
+    inner = (t > 4 * knots.h) & (t < t[-1] - 4 * knots.h)
+    err = np.abs(spline(knots, t[inner], 2) - qdd[inner]).max(axis=0)
+    assert np.all(err < 0.015 * np.abs(qdd).max(axis=0))
+    assert 0.03 <= knots.h <= 0.2
+    bump = plan_knots(bump_program(ur6, 3.0, 0.4).trajectory(), 1e-4)  # steps at both ends
+    assert bump.error_rad < 1e-4
+
+
+def _custom(robot: Robot, t: np.ndarray, q: np.ndarray) -> Any:
+    from robid_link.ident.excite import excitation as ex
+
+    return ex.Trajectory(t, q, 250.0, "custom", robot.name)
+
+
 def test_interpreter_refuses_what_a_controller_would() -> None:
     with pytest.raises(ScriptError, match="line 2"):
         compile_program("def p():\n  x = = 1\nend\n")
@@ -349,6 +376,21 @@ def test_a_fault_stops_the_program_first_then_fails_in_one_line(
         assert not isinstance(err.value, DriverTimeoutError)
         assert peer.stops[:1] == ["dashboard"] and stored[0][:1] == ["dashboard"]
         assert peer.runtime == 1  # the controller is stopped
+
+
+def test_a_program_that_does_not_start_is_stopped_on_the_script_port_too(tmp_path: Path,
+                                                                         ur6: Robot) -> None:
+    """Still compiling when the driver gives up: the dashboard has nothing to stop, ``stopj``
+    on the script port replaces the program before it ever runs."""
+    with ur_peer(tmp_path, ur6, compile_s=1.0) as peer:
+        drv = _driver(peer, ur6, start_timeout_s=0.3)
+        with pytest.raises(DriverError, match=r"did not start the program within 0\.3 s "
+                                              r"\(runtime state STOPPED \(1\)\); program "
+                                              r"stopped \(stopj on the script port\)"):
+            _cycle(drv, bump_program(ur6, 1.0, 0.1))
+        time.sleep(1.5)
+        assert peer.stops == ["dashboard", "script"]
+        assert peer.programs == [] and peer.runtime == 1  # it never ran
 
 
 def test_a_dead_controller_is_one_line_naming_both_failures(tmp_path: Path, ur6: Robot
