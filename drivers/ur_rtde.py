@@ -7,8 +7,9 @@ checked stopped with the robot running and its safety normal, then the URScript 
 (the controller drops slow readers) and records the rows on the path. take: the program's
 ``runtime_state`` back from playing (2) to stopped (1) with the path's end marker. A lost
 connection, a stalled stream, a protective stop or a malformed package stop the program
-(dashboard ``stop``, else ``stopj`` on the script port) before the failure is stored. UR has no
-parameter upload: the capability is absent.
+(dashboard ``stop``; ``stopj`` on the script port when the dashboard cannot or the program may
+not have started yet) before the failure is stored. UR has no parameter upload: the capability
+is absent.
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ log = logging.getLogger("robid.driver.ur_rtde")
 
 TORQUE_FIELDS = ("target_moment", "actual_current")
 _KEEP_RUNS = 8
+_GRACE_S = 0.2  # a second look before a silent stream counts as stopped
 
 
 def _positive(key: str, value: Any, lo: float = 0.0, hi: float = float("inf")) -> float:
@@ -61,6 +63,10 @@ def _port(key: str, value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or not 0 < value < 65536:
         raise ConfigError(f"driver.{key}: expected a TCP port 1-65535, got {value!r}")
     return value
+
+
+class _PartlySent(DriverError):
+    """The script port failed while the program was being written: part of it may be there."""
 
 
 @dataclass
@@ -219,15 +225,21 @@ class UrRtdeDriver(Driver):
     async def _send_script(self, script: bytes) -> asyncio.Task[None]:
         """The program on the script port; the connection stays open (its state messages read
         and dropped) until the program plays, so closing cannot reset unread script bytes."""
+        where = self.where("script_port")
         try:
             async with asyncio.timeout(self.io_timeout_s):
                 reader, writer = await asyncio.open_connection(self.host,
                                                                self.ports["script_port"])
+        except (OSError, TimeoutError) as err:
+            raise DriverError(f"{self.name}: script port {where}: {reason(err)}") from err
+        try:
+            async with asyncio.timeout(self.io_timeout_s):
                 writer.write(script)
                 await writer.drain()
         except (OSError, TimeoutError) as err:
-            raise DriverError(f"{self.name}: script port {self.where('script_port')}: "
-                              f"{reason(err)}") from err
+            writer.close()
+            raise _PartlySent(f"{self.name}: script port {where}: {reason(err)} while "
+                              "sending the program") from err
 
         async def drain_loop() -> None:
             try:
@@ -329,6 +341,10 @@ class UrRtdeDriver(Driver):
         att = _Attempt(key, rec)
         try:
             att.script_conn = await self._send_script(script)
+        except _PartlySent as err:  # part of it may have reached the controller
+            await session.close()
+            how = await self._stop_program(not_started=True)
+            raise DriverError(f"{err}; {how}") from err
         except BaseException:
             await session.close()
             raise
@@ -383,12 +399,7 @@ class UrRtdeDriver(Driver):
         try:
             while True:
                 try:
-                    async with asyncio.timeout(self.stream_timeout_s):
-                        v = await s.next_values()
-                except TimeoutError:
-                    raise DriverError(f"{self.name}: the RTDE stream stopped: no data package "
-                                      f"for {self.stream_timeout_s:g} s during experiment "
-                                      f"{rec.exp_id}") from None
+                    v = await self._next_in_time(s, rec.exp_id)
                 except (OSError, asyncio.IncompleteReadError) as err:
                     raise DriverError(f"{self.name}: RTDE connection to {where} lost during "
                                       f"experiment {rec.exp_id} ({reason(err)})") from err
@@ -418,6 +429,23 @@ class UrRtdeDriver(Driver):
             self._finish(att, error=error)
         else:
             self._finish(att, data=data)
+
+    async def _next_in_time(self, s: RtdeSession, exp_id: str) -> tuple[Any, ...]:
+        """The next data package within ``stream_timeout_s``. When the wait runs out, a short
+        second look: a daemon process descheduled for a while (the worker busy on every core)
+        finds what the controller sent meanwhile waiting in the socket, a stalled stream
+        does not."""
+        try:
+            async with asyncio.timeout(self.stream_timeout_s):
+                return await s.next_values()
+        except TimeoutError:
+            pass
+        try:
+            async with asyncio.timeout(_GRACE_S):
+                return await s.next_values()
+        except TimeoutError:
+            raise DriverError(f"{self.name}: the RTDE stream stopped: no data package for "
+                              f"{self.stream_timeout_s:g} s during experiment {exp_id}") from None
 
     def _finish(self, att: _Attempt, *, data: bytes | None = None,
                 error: DriverError | None = None) -> None:

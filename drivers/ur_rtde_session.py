@@ -59,6 +59,7 @@ class RtdeSession:
         self.version: tuple[int, int, int, int] = (0, 0, 0, 0)
         self.torque = "target_moment"
         self.packages = 0  # data packages read
+        self._pending: asyncio.Future[tuple[Any, ...]] | None = None
 
     async def ask(self, request: bytes, kind: int) -> bytes:
         """Send one request and read up to its answer (text messages on the way are logged)."""
@@ -77,7 +78,17 @@ class RtdeSession:
 
     async def next_values(self) -> tuple[Any, ...]:
         """The next data package's values (text messages logged on the way); a package of the
-        wrong size or recipe is a ProtocolError."""
+        wrong size or recipe is a ProtocolError. A caller's timeout never cuts a package in
+        two: the read goes on and the next call gets its result."""
+        if self._pending is None:
+            self._pending = asyncio.ensure_future(self._read_values())
+        try:
+            return await asyncio.shield(self._pending)
+        finally:
+            if self._pending is not None and self._pending.done():
+                self._pending = None
+
+    async def _read_values(self) -> tuple[Any, ...]:
         assert self.recipe is not None
         layout = self.recipe.layout
         while True:
@@ -104,12 +115,19 @@ class RtdeSession:
         is left unread. A controller that does not answer in time is simply left."""
         with contextlib.suppress(OSError, TimeoutError, asyncio.IncompleteReadError, DriverError):
             async with asyncio.timeout(timeout_s):
+                if self._pending is not None:  # a package being read: finish it first
+                    await self._pending
+                    self._pending = None
                 self.writer.write(rtde.pause())
                 await self.writer.drain()
                 while (kind := (await rtde.read_package(self.reader))[0]) != rtde.PAUSE:
                     self.packages += kind == rtde.DATA_PACKAGE
 
     async def close(self) -> None:
+        if self._pending is not None:
+            self._pending.cancel()
+            await asyncio.gather(self._pending, return_exceptions=True)
+            self._pending = None
         self.writer.close()
         with contextlib.suppress(OSError, TimeoutError, asyncio.IncompleteReadError):
             async with asyncio.timeout(1.0):

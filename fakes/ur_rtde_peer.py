@@ -497,7 +497,8 @@ class UrRtdePeer(Peer):
             delay = nxt - loop.time()
             if delay > 0:
                 await asyncio.sleep(delay)
-            elif delay < -1.0:  # the host stalled: skip, like a controller short of time
+            elif delay < -5.0:  # this host stalled for long: skip, as a controller short of
+                # time does; shorter lags go out late in a burst, time-stamped by schedule
                 skip = int(-delay / period)
                 nxt += skip * period
                 c.skipped += skip

@@ -296,6 +296,43 @@ def test_interpreter_refuses_what_a_controller_would() -> None:
             Machine([0.0] * 6))
 
 
+# ------------------------------------------------------------------------ the recording
+def test_recording_follows_the_run_as_the_stream_tells_it() -> None:
+    from robid_link.drivers.ur_rtde_record import DONE, EndedEarly, Recording
+
+    q, z = (0.1,) * 6, (0.0,) * 6
+
+    def rec(**kw: Any) -> Recording:
+        return Recording("exp1", 77, 500.0, 0.0, 1.0, kw.pop("rows", 100), **kw)
+
+    r = rec()
+    assert r.feed(0.000, q, z, z, 1, 7, 1, 0, now=0.1) is None  # not started yet
+    assert r.feed(0.002, q, z, z, 2, 7, 1, 0, now=0.2) is None and r.stage == "playing"
+    for k in range(3):  # on the path; one package skipped by the controller
+        r.feed(0.004 + 0.002 * k + (0.002 if k == 2 else 0), q, z, z, 2, 7, 1, 77, now=0.3)
+    assert r.feed(0.012, q, z, z, 1, 7, 1, -77, now=0.4) == DONE
+    assert r.rows == 3 and r.missed == 1 and r.path_missed == 1
+    assert r.table()[:, 0] == pytest.approx([0.0, 0.002, 0.006])
+    with pytest.raises(DriverError, match=r"did not start the program within 1 s"):
+        rec().feed(0.0, q, z, z, 1, 7, 1, 0, now=1.5)
+    r = rec()
+    r.feed(0.0, q, z, z, 2, 7, 1, 77, now=0.1)
+    with pytest.raises(EndedEarly, match=r"stopped before the end of its path \(0\.002 s"):
+        r.feed(0.002, q, z, z, 1, 7, 1, 77, now=0.2)
+    with pytest.raises(DriverError, match=r"paused \(PAUSED \(4\)\)"):
+        _paused(rec())
+    r = rec(rows=2)
+    r.feed(0.0, q, z, z, 2, 7, 1, 77, now=0.1)
+    r.feed(0.002, q, z, z, 2, 7, 1, 77, now=0.1)
+    with pytest.raises(DriverError, match="still on its path after 2 samples"):
+        r.feed(0.004, q, z, z, 2, 7, 1, 77, now=0.1)
+
+
+def _paused(r: Any) -> None:
+    r.feed(0.0, (0.1,) * 6, (0.0,) * 6, (0.0,) * 6, 2, 7, 1, 77, now=0.1)
+    r.feed(0.002, (0.1,) * 6, (0.0,) * 6, (0.0,) * 6, 4, 7, 1, 77, now=0.2)
+
+
 # ------------------------------------------------------------------------ the link
 def _driver(peer: Any, robot: Robot, **opts: Any) -> UrRtdeDriver:
     drv = registry.make_driver({**peer.driver_options(), **opts})
