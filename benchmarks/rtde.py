@@ -59,7 +59,8 @@ async def _stream(options: dict[str, Any], robot: Any, program: Any, seconds: fl
                   ) -> dict[str, float]:
     # the fake controller shares these two cores with the load (a real one does not): a stall
     # of its own process must not read as a stopped stream; the gaps are reported instead
-    driver = registry.make_driver({**options, "start_timeout_s": 600.0, "stream_timeout_s": 5.0})
+    driver: Any = registry.make_driver({**options, "start_timeout_s": 600.0,
+                                        "stream_timeout_s": 5.0})
     driver.bind_robot(RobotInfo.of(robot))
     async with driver:
         await driver.put_program(program)
@@ -81,7 +82,8 @@ def bench_rtde(seconds: float = 600.0) -> dict[str, Any]:
         (work / "cell").mkdir()
         (work / "truth.yaml").write_text(TRUTH)
         ready, log = work / "ready.json", work / "controller.log"
-        stop, runs = threading.Event(), []
+        stop = threading.Event()
+        runs: list[float] = []
         with open(log, "wb") as out:
             peer = subprocess.Popen(
                 [sys.executable, "-m", "robid_link.cli", "fake-controller", "--driver", "ur_rtde",
