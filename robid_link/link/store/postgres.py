@@ -36,8 +36,9 @@ def is_store_url(text: str) -> bool:
 def check_store_url(value: Any, key: str = "store") -> URL:
     """The URL of a PostgreSQL store, for psycopg 3. A password in it is refused (one line
     that does not print it: ``config.check_store_url``)."""
+    checked = config_store_url(value, key)
     try:
-        url = make_url(config_store_url(value, key))
+        url = make_url(checked)
     except (ArgumentError, ValueError) as err:
         raise ConfigError(f"{key}: not a valid URL ({type(err).__name__})") from None
     return url.set(drivername="postgresql+psycopg")

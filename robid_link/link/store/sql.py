@@ -53,12 +53,12 @@ class Store:
     ``Store(state_dir, url=URL, robot=NAME)``: a robot's view of a plant's PostgreSQL store,
     exclusive for that robot, its raw logs under ``state_dir`` (or ``log_store``);
     ``readonly=True``: an operator's reader; ``exclusive=False``: a writer of results that is
-    no daemon (the fleet's re-identification)."""
+    no daemon (the fleet's re-identification), of an existing store unless ``create``."""
 
     def __init__(self, state_dir: str | Path | None = None, *, url: str | None = None,
                  robot: str | None = None, readonly: bool = False,
                  exclusive: bool | None = None, reserve_bytes: int = RESERVE_BYTES,
-                 log_store: str | None = None) -> None:
+                 log_store: str | None = None, create: bool = False) -> None:
         self.dir = Path(state_dir) if state_dir is not None else None
         self.robot = robot
         self.readonly = readonly
@@ -66,6 +66,7 @@ class Store:
         self.reserve_bytes = reserve_bytes
         self.conn: Connection | None = None
         self._lock_fd: int | None = None
+        self._create = create
         if url is None and self.dir is None:
             raise ValueError("a store needs a state dir or a URL")
         self.backend: SqliteBackend | PostgresBackend = (
@@ -96,7 +97,7 @@ class Store:
             return
         with self._tx() as c:
             self.backend.migration_lock(c)
-            if not self.exclusive and sc.schema_version(c) is None:
+            if not (self.exclusive or self._create) and sc.schema_version(c) is None:
                 raise ConfigError(f"{self.where} holds no store yet")
             sc.migrate(c, self.where)
             if self.exclusive and self.robot is not None:
