@@ -4,7 +4,9 @@ Sections: the file-share give→take hand-off (inotify, polling, the original 1 
 link against the file share (hand-off, log transfer, `--only rws`); the
 batched regressor against a per-sample loop over Pinocchio's computeJointTorqueRegressor; the
 closed-loop plant; diagnose against identify; robid elasticity against identify on a log of the
-same length; identify end-to-end on 1,000,000 samples.
+same length; identify end-to-end on 1,000,000 samples; the fleet report over a synthetic plant
+on a local Dask cluster of 1 and 2 workers, and the store's write latency on SQLite and
+PostgreSQL (`--only fleet`).
 """
 
 from __future__ import annotations
@@ -154,7 +156,7 @@ def main() -> int:
     ap.add_argument("--samples", type=int, default=1_000_000)
     ap.add_argument("--only", choices=("identify", "regressor", "plant", "diagnose", "handoff",
                                         "canopen", "rws", "consistent", "modbus", "serial",
-                                        "elasticity"))
+                                        "elasticity", "fleet"))
     args = ap.parse_args()
     print("robid_link benchmarks (2-core machine; ratios are against baselines run here)\n")
     if args.only in (None, "handoff"):
@@ -212,6 +214,11 @@ def main() -> int:
 
         report_elasticity(bench_elasticity(
             ROBOT, ROBOT.parent / "industrial6.elastic.truth.yaml", _make_npz))
+    if args.only in (None, "fleet"):  # issue 22
+        from benchmarks.fleet import bench_fleet
+        from benchmarks.fleet import report as report_fleet
+
+        report_fleet(bench_fleet())
     if args.only in (None, "identify"):
         r = bench_identify(args.samples)
         print(f"identify end to end, {r['samples']:,} samples at 1 kHz, 6 axes, no decimation: "

@@ -17,6 +17,8 @@ from robid_link.ident.diagnosis import drift
 __all__ = ["analyse", "fleet_view", "summary", "robot_inputs", "REPORT_FORMAT"]
 
 REPORT_FORMAT = "robid-fleet/1"
+#: the parts of an identify record the tasks read
+_RECORD_KEYS = ("time", "robot", "effects", "parameters", "relative_error")
 
 
 def robot_inputs(store: Any) -> list[tuple[str, str, list[dict[str, Any]]]]:
@@ -25,7 +27,11 @@ def robot_inputs(store: Any) -> list[tuple[str, str, list[dict[str, Any]]]]:
     rows_by_robot: dict[str, list[dict[str, Any]]] = {}
     for row in store.results(model_version=None):
         if row["kind"] == "identify":
-            rows_by_robot.setdefault(row["robot"], []).append(row)
+            rec = row["record"]  # what the tasks read of it: less to send to a worker
+            rows_by_robot.setdefault(row["robot"], []).append({
+                "run_id": row["run_id"], "kind": "identify",
+                "model_version": row["model_version"],
+                "record": {k: rec.get(k) for k in _RECORD_KEYS}})
     out = []
     for info in store.robots():
         rows = rows_by_robot.get(info["robot"], [])
