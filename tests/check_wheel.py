@@ -10,7 +10,8 @@ NEEDED = ("robid_link/examples/robots/industrial6.yaml", "robid_link/examples/li
           "robid_link/systemd/robid-link.service", "robid_link/fakes/plant.py",
           "robid_link/fakes/controller.py", "robid_link/drivers/file_share.py",
           "robid_link/drivers/rapid.py", "robid_link/cli/__init__.py",
-          "robid_link/cli/__main__.py", "robid_link/py.typed")
+          "robid_link/cli/__main__.py", "robid_link/py.typed",
+          "robid_link/link/store/sql.py", "robid_link/fleet/analysis.py")
 
 
 def main(path: str) -> int:
