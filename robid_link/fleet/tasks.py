@@ -112,7 +112,7 @@ def _fetch(url: str, sha: str) -> bytes:
     """A stored log's bytes (a folder path or an fsspec URL), checked against its hash."""
     try:
         if "://" in url:
-            import fsspec
+            import fsspec  # type: ignore[import-untyped]
 
             with fsspec.open(url, "rb") as fh:
                 data = fh.read()

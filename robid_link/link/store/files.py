@@ -87,7 +87,7 @@ class CellFiles:
     def _upload(self, sha: str, data: bytes) -> None:
         """The log's copy at the remote log store (an object store's PUT is durable when it
         returns); an existing copy of the same size is kept."""
-        import fsspec
+        import fsspec  # type: ignore[import-untyped]
 
         assert self.remote is not None
         url = log_url(self.remote, sha)
