@@ -6,7 +6,9 @@ link against the file share (hand-off, log transfer, `--only rws`); a 500 Hz RTD
 batched regressor against a per-sample loop over Pinocchio's computeJointTorqueRegressor; the
 closed-loop plant; diagnose against identify; robid elasticity against identify on a log of the
 same length; the demo's report.html (size, first render in Chromium); the web page's
-/api/runs with 1,000 runs; identify end-to-end on 1,000,000 samples.
+/api/runs with 1,000 runs; identify end-to-end on 1,000,000 samples; the fleet report over a
+synthetic plant on a local Dask cluster of 1 and 2 workers, and the store's write latency on
+SQLite and PostgreSQL (`--only fleet`).
 """
 
 from __future__ import annotations
@@ -156,7 +158,7 @@ def main() -> int:
     ap.add_argument("--samples", type=int, default=1_000_000)
     ap.add_argument("--only", choices=("identify", "regressor", "plant", "diagnose", "handoff",
                                         "canopen", "rws", "consistent", "modbus", "serial",
-                                        "elasticity", "report", "web", "rtde"))
+                                        "elasticity", "report", "web", "rtde", "fleet"))
     ap.add_argument("--rtde-seconds", type=float, default=600.0,
                     help="length of the RTDE stream under load (default 600: 10 minutes)")
     args = ap.parse_args()
@@ -231,6 +233,11 @@ def main() -> int:
         from benchmarks.web import report as report_web
 
         report_web(bench_web())
+    if args.only in (None, "fleet"):  # issue 22
+        from benchmarks.fleet import bench_fleet
+        from benchmarks.fleet import report as report_fleet
+
+        report_fleet(bench_fleet())
     if args.only in (None, "identify"):
         r = bench_identify(args.samples)
         print(f"identify end to end, {r['samples']:,} samples at 1 kHz, 6 axes, no decimation: "
