@@ -202,8 +202,10 @@ def design_chunks(design: Design, piece: Piece, interval: int = 1, filtered: boo
             yield design.compact(prep.states(a, b)), prep.tau[a:b], np.arange(a, b)
         return
     for a, b, ca, cb, at_edge in filter_windows(piece, interval, chunk):
-        c = prep.filt.apply(design.compact(prep.states(ca, cb)), edges=at_edge)
-        yield c[a - ca: b - ca: interval], prep.tau_f[a:b:interval], np.arange(a, b, interval)
+        c = design.compact(prep.states(ca, cb))
+        prep.filt.apply_inplace(c, edges=at_edge)
+        yield c[a - ca: b - ca: interval], prep.tau_f_rows(a, b)[::interval], \
+            np.arange(a, b, interval)
 
 
 def predict_torque(design: Design, prep: Prepared, theta: np.ndarray,

@@ -17,6 +17,7 @@ import numpy as np
 from robid_link.ident.data.preprocess import Prepared, Problem, noise_floor
 from robid_link.ident.fit.design import Design, design_chunks, predict_torque
 from robid_link.ident.model.regressor import rigid_regressor
+from robid_link.ident.model.robot import Robot
 
 __all__ = ["ErrorStats", "Parameter", "IdentResult", "HeldOut", "evaluate_held_out",
            "StatsAccumulator", "TRACE_SAMPLES", "parameter_unit"]
@@ -139,31 +140,47 @@ def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> He
         return HeldOut(None, None, [])
     acc = StatsAccumulator(robot.n)
     nom = StatsAccumulator(robot.n) if robot.nominal is not None else None
+    # traces thinned as they stream: every step-th row of each file's validation rows
+    total: dict[str, int] = {}
+    for pc in problem.valid:
+        total[pc.prep.log.path] = total.get(pc.prep.log.path, 0) + len(pc)
     parts: dict[str, dict[str, list[np.ndarray]]] = {}
+    seen = dict.fromkeys(total, 0)
     for pc in problem.valid:
         known = pc.prep.tau_known
+        path = pc.prep.log.path
+        step = max(1, total[path] // TRACE_SAMPLES)
         for c, tau, idx in design_chunks(design, pc, filtered=False):
             pred = design.predict(c, theta)
             if known is not None:  # known torques: subtracted from τ, added back to both
                 tau, pred = tau + known[idx], pred + known[idx]
             acc.add(tau - pred, tau)
-            tr = parts.setdefault(pc.prep.log.path, {"t": [], "tau": [], "pred": []})
-            tr["t"].append(pc.prep.log.t[idx])
-            tr["tau"].append(tau)
-            tr["pred"].append(pred)
+            keep = (-seen[path]) % step
+            seen[path] += idx.size
+            tr = parts.setdefault(path, {"t": [], "tau": [], "pred": []})
+            tr["t"].append(pc.prep.log.t[idx[keep::step]])
+            tr["tau"].append(tau[keep::step])
+            tr["pred"].append(pred[keep::step])
             if nom is not None:
-                st = pc.prep.states(int(idx[0]), int(idx[-1]) + 1)
-                pred_nom = rigid_regressor(robot, st.q, st.qd, st.qdd) @ robot.nominal
+                pred_nom = _nominal_torque(robot, pc.prep, int(idx[0]), int(idx[-1]) + 1)
                 if known is not None:
                     pred_nom = pred_nom + known[idx]
                 nom.add(tau - pred_nom, tau)
-    traces = []
-    for path, tr in parts.items():
-        t = np.concatenate(tr["t"])
-        step = max(1, t.size // TRACE_SAMPLES)
-        traces.append({"file": path, "t": t[::step], "tau": np.concatenate(tr["tau"])[::step],
-                       "pred": np.concatenate(tr["pred"])[::step]})
+    traces = [{"file": path, "t": np.concatenate(tr["t"]), "tau": np.concatenate(tr["tau"]),
+               "pred": np.concatenate(tr["pred"])} for path, tr in parts.items()]
     return HeldOut(acc.stats(), None if nom is None else nom.stats(), traces)
+
+
+def _nominal_torque(robot: Robot, prep: Prepared, lo: int, hi: int, chunk: int = 4096
+                    ) -> np.ndarray:
+    """The a-priori model's torque at rows [lo, hi) (its dense regressor a few rows at a
+    time: (rows, n, 10 n) is large)."""
+    st = prep.states(lo, hi)
+    out = np.empty((hi - lo, robot.n))
+    for a in range(0, hi - lo, chunk):
+        b = min(a + chunk, hi - lo)
+        out[a:b] = rigid_regressor(robot, st.q[a:b], st.qd[a:b], st.qdd[a:b]) @ robot.nominal
+    return out
 
 
 @dataclass

@@ -12,7 +12,6 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 import pinocchio as pin
-import scipy.linalg as sla
 
 from robid_link.ident.model.robot import Robot
 
@@ -296,7 +295,7 @@ def structural_base_set(
     norms = np.linalg.norm(w, axis=0)
     live = [i for i in order if norms[i] > tol * max(1.0, norms.max())]
     wn = w[:, live] / norms[live]
-    r = sla.qr(wn, mode="r", check_finite=False)[0]
+    r = np.linalg.qr(wn, mode="r")
     diag = np.abs(np.diag(r))
     indep = [live[k] for k in range(len(live)) if diag[k] > 1e-7]
     dep = [i for i in range(p) if i not in indep]
