@@ -16,7 +16,7 @@ import numpy as np
 
 from robid_link.ident.data.preprocess import Prepared, Problem, noise_floor
 from robid_link.ident.fit.design import Design, design_chunks, predict_torque
-from robid_link.ident.model.regressor import rigid_regressor
+from robid_link.ident.model.dynamics import rigid_torque
 from robid_link.ident.model.robot import Robot
 
 __all__ = ["ErrorStats", "Parameter", "IdentResult", "HeldOut", "evaluate_held_out",
@@ -171,16 +171,10 @@ def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> He
     return HeldOut(acc.stats(), None if nom is None else nom.stats(), traces)
 
 
-def _nominal_torque(robot: Robot, prep: Prepared, lo: int, hi: int, chunk: int = 4096
-                    ) -> np.ndarray:
-    """The a-priori model's torque at rows [lo, hi) (its dense regressor a few rows at a
-    time: (rows, n, 10 n) is large)."""
+def _nominal_torque(robot: Robot, prep: Prepared, lo: int, hi: int) -> np.ndarray:
+    """The a-priori model's torque at rows [lo, hi) (inverse dynamics, no regressor)."""
     st = prep.states(lo, hi)
-    out = np.empty((hi - lo, robot.n))
-    for a in range(0, hi - lo, chunk):
-        b = min(a + chunk, hi - lo)
-        out[a:b] = rigid_regressor(robot, st.q[a:b], st.qd[a:b], st.qdd[a:b]) @ robot.nominal
-    return out
+    return rigid_torque(robot, st.q, st.qd, st.qdd, robot.nominal)
 
 
 @dataclass
