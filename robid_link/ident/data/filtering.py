@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from robid_link.ident.model.threads import kernel_threads
+
 __all__ = ["FILTER_ORDER", "ZeroPhaseFilter", "Track", "butter_lowpass_sos",
            "sos_steady_state", "TRACK_EVERY"]
 
@@ -65,8 +67,12 @@ class ZeroPhaseFilter:
         if not self.active or x.shape[0] == 0:
             return
         sos = np.ascontiguousarray(self.sos)
-        _filtfilt_inplace(sos, np.ascontiguousarray(sos_steady_state(sos)), x,
-                          self.padlen(x.shape[0], edges), numba.get_num_threads())
+        zi = np.ascontiguousarray(sos_steady_state(sos))
+        threads = kernel_threads()
+        if threads == 1:
+            _filtfilt_part(sos, zi, x, self.padlen(x.shape[0], edges), 0, x.shape[1])
+        else:
+            _filtfilt_inplace(sos, zi, x, self.padlen(x.shape[0], edges), threads)
 
 
 def butter_lowpass_sos(order: int, cutoff_hz: float, fs: float) -> np.ndarray:

@@ -52,9 +52,10 @@ __all__ = [
 #: a handful of harmonics), so 10 Hz keeps them with < 0.1 % amplitude error while removing
 #: the noise that double differentiation amplifies. Capped at 40 % of the Nyquist rate.
 DEFAULT_CUTOFF_HZ = 10.0
-#: samples per chunk when building design rows: a chunk's compact columns (16384 × the
-#: design's non-zeros) are the largest buffer of a pass, whatever the log's length
-CHUNK = 16384
+#: samples per chunk when building design rows: a chunk's compact columns (8192 × the
+#: design's non-zeros, one per slot of ``threads.in_slots``) are the largest buffers of a
+#: pass, whatever the log's length
+CHUNK = 8192
 
 
 class _Channels:
@@ -369,13 +370,15 @@ def noise_floor(pieces: Sequence[Piece]) -> np.ndarray | None:
 def filter_windows(piece: Piece, interval: int = 1, chunk: int = CHUNK
                    ) -> Iterator[tuple[int, int, int, int, bool]]:
     """Chunks [a, b) of a piece's rows kept at ``interval`` (on the grid of its filtering
-    segment), each with the window [ca, cb) to filter over — padded so the filter has settled
+    segment; about ``chunk`` raw rows each, whatever the interval), each with the window
+    [ca, cb) to filter over — padded so the filter has settled
     at a and b — and whether the window reaches the segment's edge (odd extension only there,
     as in τ's filtering)."""
     pad = 3 * piece.prep.filt.settle if piece.prep.filt.active else 0
     first = piece.lo + (-(piece.lo - piece.ctx_lo) % interval)
-    for a in range(first, piece.hi, chunk * interval):
-        b = min(a + chunk * interval, piece.hi)
+    span = max(1, chunk // interval) * interval  # ≤ chunk raw rows: the filter needs them all
+    for a in range(first, piece.hi, span):
+        b = min(a + span, piece.hi)
         ca, cb = max(piece.ctx_lo, a - pad), min(piece.ctx_hi, b + pad)
         yield a, b, ca, cb, ca == piece.ctx_lo or cb == piece.ctx_hi
 

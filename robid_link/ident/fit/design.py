@@ -29,6 +29,7 @@ __all__ = [
     "base_set_for",
     "block_columns",
     "design_chunks",
+    "design_rows",
     "make_design",
     "predict_torque",
     "random_states",
@@ -99,10 +100,11 @@ class Design:
             plan.append((np.array(dst, dtype=int), np.array(src, dtype=int)))
         return plan
 
-    def compact(self, st: States) -> np.ndarray:
-        """(N, nnz) base-column entries of every joint row, joint after joint."""
+    def compact(self, st: States, buf: np.ndarray | None = None) -> np.ndarray:
+        """(N, nnz) base-column entries of every joint row, joint after joint (in the first
+        rows of ``buf`` when given: a pass reuses one buffer)."""
         n_samp = len(st)
-        out = np.empty((n_samp, self.nnz))
+        out = np.empty((n_samp, self.nnz)) if buf is None else buf[:n_samp]
         n = self.robot.n
         for blk, (dst, src) in zip(self.blocks, self._gathers, strict=True):
             if dst.size == 0:
@@ -201,11 +203,22 @@ def design_chunks(design: Design, piece: Piece, interval: int = 1, filtered: boo
             b = min(a + chunk, piece.hi)
             yield design.compact(prep.states(a, b)), prep.tau[a:b], np.arange(a, b)
         return
-    for a, b, ca, cb, at_edge in filter_windows(piece, interval, chunk):
-        c = design.compact(prep.states(ca, cb))
-        prep.filt.apply_inplace(c, edges=at_edge)
-        yield c[a - ca: b - ca: interval], prep.tau_f_rows(a, b)[::interval], \
-            np.arange(a, b, interval)
+    for window in filter_windows(piece, interval, chunk):
+        yield design_rows(design, piece, window, interval)
+
+
+def design_rows(design: Design, piece: Piece, window: tuple[int, int, int, int, bool],
+                interval: int = 1, buf: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The training rows of one ``filter_windows`` window of a piece: parallel-filtered
+    compact columns (in ``buf`` when given), filtered torque and sample index, decimated by
+    ``interval``."""
+    a, b, ca, cb, at_edge = window
+    prep = piece.prep
+    c = design.compact(prep.states(ca, cb), buf)
+    prep.filt.apply_inplace(c, edges=at_edge)
+    return c[a - ca: b - ca: interval], prep.tau_f_rows(a, b)[::interval], \
+        np.arange(a, b, interval)
 
 
 def predict_torque(design: Design, prep: Prepared, theta: np.ndarray,

@@ -16,7 +16,9 @@ import numba
 import numpy as np
 
 from robid_link.exceptions import ConditioningWarning, EstimationError
-from robid_link.ident.fit.design import Design, design_chunks
+from robid_link.ident.data.preprocess import filter_windows
+from robid_link.ident.fit.design import Design, design_chunks, design_rows
+from robid_link.ident.model.threads import SLOTS, in_slots
 
 if TYPE_CHECKING:  # pieces only pass through to design_chunks
     from robid_link.ident.data.preprocess import Piece
@@ -76,27 +78,43 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
     """One pass over the training rows into per-joint, per-time-block augmented Grams.
 
     Joint j's rows are non-zero only in its structural columns, so its Gram is built on
-    those alone (a large saving for the outer joints of a serial robot). The Grams of the
-    joints are summed by the threads of ``_gram_kernel`` (joints split between them).
+    those alone (a large saving for the outer joints of a serial robot). The chunks of the
+    pass go to ``SLOTS`` threads (``in_slots``), each summing into Grams of its own; the
+    slots' Grams are added in slot order.
     """
     total = sum(_n_rows(pc, interval) for pc in pieces)
     k_blocks = int(min(max_blocks, max(2, total // max(1, block_len))))
     p, n = design.p, design.robot.n
     sizes = np.diff(design.offsets)
     width = int(sizes.max()) + 2
-    gc = np.zeros((n, k_blocks, width, width))
     offsets = np.asarray(design.offsets, dtype=np.int64)
-    parts, ptr = _joint_parts(sizes)
-    no_weight = np.ones((0, n))
-    seen = 0
+    tasks: list[tuple[Piece, tuple[int, int, int, int, bool], int]] = []  # + first row
+    first = 0
     for pc in pieces:
-        for c, y, idx in design_chunks(design, pc, interval=interval, filtered=True):
-            m = c.shape[0]
-            bid = (np.arange(seen, seen + m) * k_blocks) // total
-            seen += m
-            sw = np.sqrt(row_weight(c, y, idx)) if row_weight is not None else no_weight
-            _gram_kernel(c, np.ascontiguousarray(y), np.ascontiguousarray(sw), bid, offsets,
-                         parts, ptr, gc)
+        for window in filter_windows(pc, interval):
+            tasks.append((pc, window, first))
+            first += len(range(window[0], window[1], interval))
+    slots = [np.zeros((n, k_blocks, width, width)) for _ in range(min(SLOTS, len(tasks)))]
+    rows = max((w[3] - w[2] for _, w, _ in tasks), default=0)
+    bufs: list[np.ndarray | None] = [None] * len(slots)  # one chunk buffer per slot
+    no_weight = np.ones((0, n))
+
+    def work(task: tuple[Piece, tuple[int, int, int, int, bool], int], slot: int) -> None:
+        pc, window, at = task
+        if bufs[slot] is None:
+            bufs[slot] = np.empty((rows, design.nnz))
+        c, y, idx = design_rows(design, pc, window, interval, bufs[slot])
+        bid = (np.arange(at, at + c.shape[0]) * k_blocks) // total
+        sw = np.sqrt(row_weight(c, y, idx)) if row_weight is not None else no_weight
+        _gram_serial(c, np.ascontiguousarray(y), np.ascontiguousarray(sw), bid, offsets,
+                     slots[slot])
+
+    in_slots(tasks, work)
+    bufs.clear()
+    gc = slots[0]
+    for extra in slots[1:]:
+        gc += extra
+    slots.clear()
     g = np.zeros((n, k_blocks, p + 2, p + 2))
     for j in range(n):
         sup = np.concatenate((design.support[j], [p, p + 1]))
@@ -174,6 +192,13 @@ def _gram_joint(c, y, sw, j, off, s, bid, g):
                         if bb + 1 < width:
                             gb[a + 1, bb + 1] += s11
         r = end
+
+
+@numba.njit(cache=True, nogil=True)
+def _gram_serial(c, y, sw, bid, offsets, g):
+    """Every joint's rows of a chunk into its Grams g[j] (n, K, w, w), on this thread."""
+    for j in range(offsets.size - 1):
+        _gram_joint(c, y, sw, j, offsets[j], offsets[j + 1] - offsets[j], bid, g[j])
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)

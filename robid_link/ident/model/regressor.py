@@ -14,6 +14,7 @@ import numpy as np
 import pinocchio as pin
 
 from robid_link.ident.model.robot import Robot
+from robid_link.ident.model.threads import kernel_threads
 
 __all__ = ["rigid_regressor", "reference_regressor", "BaseSet", "structural_base_set",
            "robot_arrays"]
@@ -237,8 +238,12 @@ def rigid_regressor(
         if out is None:
             raise ValueError("rigid_regressor: a compact dest needs an out array")
         flat = out
-    _regressor_kernel(q, qd, qdd, *robot_arrays(robot), np.ascontiguousarray(dest, np.int64),
-                      flat, numba.get_num_threads(), dense)
+    args = (q, qd, qdd, *robot_arrays(robot), np.ascontiguousarray(dest, np.int64), flat)
+    threads = kernel_threads()
+    if threads == 1:
+        _regressor_part(*args, 0, nsamp, dense)
+    else:
+        _regressor_kernel(*args, threads, dense)
     return out
 
 
