@@ -13,6 +13,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+
+# as `robid` runs: BLAS on one thread (the passes spread their chunks over the cores); before
+# numpy is imported
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import subprocess
 import sys
 import tempfile

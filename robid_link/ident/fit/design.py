@@ -23,6 +23,7 @@ from robid_link.ident.model.regressor import (
     structural_base_set,
 )
 from robid_link.ident.model.robot import Robot
+from robid_link.ident.model.threads import in_slots
 
 __all__ = [
     "Design",
@@ -246,11 +247,15 @@ def with_predictions(robot: Robot, preps: Sequence[Prepared], design: Design,
         n = len(prep.log)
         full = np.zeros((n, robot.n))
         rigid = np.zeros((n, robot.n))
-        for a in range(0, n, CHUNK):
-            b = min(a + CHUNK, n)
+
+        def work(a: int, slot: int, prep: Prepared = prep, full: np.ndarray = full,
+                 rigid: np.ndarray = rigid) -> None:
+            b = min(a + CHUNK, len(prep.log))
             c = design.compact(prep.states(a, b))
             full[a:b] = design.predict(c, theta)
             rigid[a:b] = design.predict(c, rigid_theta)
+
+        in_slots(range(0, n, CHUNK), work)
         out.append(replace(prep, tau_rigid=rigid, tau_model=full,
                            tau_rate=np.gradient(full, 1.0 / prep.filt.fs, axis=0)))
     return out
