@@ -1,11 +1,15 @@
 """`make bench`: figures printed as ratios against baselines measured in the same run.
 
 Sections: the file-share give→take hand-off (inotify, polling, the original 1 s loop); the RWS
-link against the file share (hand-off, log transfer, `--only rws`); the
+link against the file share (hand-off, log transfer, `--only rws`); a 500 Hz RTDE stream of
+`--rtde-seconds` while identification runs (`--only rtde`: packages lost, inter-arrival); the
 batched regressor against a per-sample loop over Pinocchio's computeJointTorqueRegressor; the
 closed-loop plant; diagnose against identify; robid elasticity against identify on a log of the
 same length; the demo's report.html (size, first render in Chromium); the web page's
-/api/runs with 1,000 runs; identify end-to-end on 1,000,000 samples.
+/api/runs with 1,000 runs; identify end-to-end on 1,000,000 samples; the fleet report over a
+synthetic plant on a local Dask cluster of 1 and 2 workers, and the store's write latency on
+SQLite and PostgreSQL (`--only fleet`). Every figure, with its unit, baseline and target, also
+goes to build/bench.json; `--readme` prints the README's table from that file.
 """
 
 from __future__ import annotations
@@ -191,8 +195,8 @@ def bench_diagnose(seconds: float, ripple: float = 0.0) -> dict[str, float]:
 
 
 #: the sections in the order they run (``--only serial`` runs the modbus section's serial part)
-SECTIONS = ("handoff", "canopen", "rws", "modbus", "regressor", "plant", "diagnose",
-            "consistent", "elasticity", "report", "web", "identify")
+SECTIONS = ("handoff", "canopen", "rws", "modbus", "rtde", "regressor", "plant", "diagnose",
+            "consistent", "elasticity", "report", "web", "fleet", "identify")
 
 
 def main() -> int:
@@ -201,6 +205,8 @@ def main() -> int:
     ap.add_argument("--only", choices=(*SECTIONS, "serial"))
     ap.add_argument("--readme", action="store_true",
                     help="print the README's performance table from build/bench.json")
+    ap.add_argument("--rtde-seconds", type=float, default=600.0,
+                    help="length of the RTDE stream under load (default 600: 10 minutes)")
     args = ap.parse_args()
     if args.readme:
         from benchmarks.figures import readme_table
@@ -369,7 +375,32 @@ def _web(fig: Figures, args: argparse.Namespace) -> None:  # issue 20: the opera
             target="≤ 50 ms", ok=r["runs_ms"] <= 50)
 
 
-SECTION = {"identify": _identify, "regressor": _regressor, "plant": _plant,
+def _rtde(fig: Figures, args: argparse.Namespace) -> None:  # Universal Robots over RTDE
+    from benchmarks.rtde import bench_rtde
+    from benchmarks.rtde import report as report_rtde
+
+    r = bench_rtde(args.rtde_seconds)
+    report_rtde(r)
+    fig.add("rtde_lost", float(r["lost"]), "packages", label=f"RTDE 500 Hz, {r['seconds']:.0f} s "
+            "with identifications alongside: packages lost", baseline=("packages sent",
+                                                                     float(r["sent"]), ""),
+            target="0", ok=r["lost"] == 0, p99_inter_arrival_ms=r["p99_inter_arrival_ms"])
+
+
+def _fleet(fig: Figures, args: argparse.Namespace) -> None:  # issue 22
+    from benchmarks.fleet import bench_fleet
+    from benchmarks.fleet import report as report_fleet
+
+    r = bench_fleet()
+    report_fleet(r)
+    n = r["robots"]
+    fig.add("fleet_ms_per_robot", 1e3 * r["dask2_s"] / n, "ms", label=f"fleet report, {n} robots "
+            "on a local Dask cluster of 2 workers, per robot",
+            baseline=("in this process", 1e3 * r["inline_s"] / n, "ms"))
+
+
+SECTION = {"identify": _identify, "rtde": _rtde, "fleet": _fleet, "regressor": _regressor,
+           "plant": _plant,
            "diagnose": _diagnose, "handoff": _handoff, "canopen": _canopen, "rws": _rws,
            "consistent": _consistent, "modbus": _modbus, "elasticity": _elasticity,
            "report": _report, "web": _web}
