@@ -57,7 +57,21 @@ def _one_line_warnings() -> None:
     warnings.simplefilter("default")
 
 
+def _single_threaded_blas() -> None:
+    """BLAS on one thread unless the user chose (OPENBLAS_NUM_THREADS and the like): the
+    numerical passes spread their chunks over the cores themselves (``threads.in_slots``),
+    and a multi-threaded BLAS on small products only spins against them, and against the
+    other processes of a shared machine. Read by OpenBLAS when numpy is first imported."""
+    import os
+
+    if not any(k in os.environ for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
+                                         "MKL_NUM_THREADS")):
+        os.environ["OPENBLAS_NUM_THREADS"] = "1"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    if "numpy" not in sys.modules:
+        _single_threaded_blas()
     try:
         args = _parser().parse_args(argv)
     except SystemExit as exc:  # a usage error (already printed in one line), --help, --version
