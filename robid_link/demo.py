@@ -4,7 +4,8 @@ A temporary share and state dir; the fake controller (a thread) over a simulated
 whose truth holds an effect the default model does not know; the daemon; one campaign
 (excitation → generate/give/take/load → identification → diagnosis) started over the control
 socket with a progress display; then the suggested effect is added to the model file and the
-stored logs are identified again: the error ladder. Report files go to ``--out``.
+stored logs are identified again: the error ladder. Report files go to ``--out``; its
+report.html is the first run's, with the error ladder and the verification's tracking added.
 """
 
 from __future__ import annotations
@@ -36,7 +37,8 @@ CALIBRATE = {**CAMPAIGN, "experiments": [RIGID, "upload", {"kind": "verify"}],
              "diagnose": False}
 
 
-def _setup(work: Path, out: Path, driver: dict[str, Any]) -> tuple[Path, Path]:
+def _setup(work: Path, out: Path, driver: dict[str, Any], calibrate: bool = True
+           ) -> tuple[Path, Path]:
     model = out / "model.yaml"
     out.mkdir(parents=True, exist_ok=True)
     for stale in (model, model.with_name("model.yaml.history.jsonl")):
@@ -47,8 +49,9 @@ def _setup(work: Path, out: Path, driver: dict[str, Any]) -> tuple[Path, Path]:
     cfg = {"robot": str(DEMO_ROBOT), "state_dir": str(work / "state"),
            "control_socket": str(work / "control.sock"),
            "driver": driver,
-           "campaigns": {"demo": {**CAMPAIGN, "model": str(model)},
-                         "calibrate": {**CALIBRATE, "model": str(model)}}}
+           "campaigns": {"demo": {**CAMPAIGN, "model": str(model)}}}
+    if calibrate:  # only over a link that can upload a parameter set
+        cfg["campaigns"]["calibrate"] = {**CALIBRATE, "model": str(model)}
     path = work / "daemon.yaml"
     path.write_text(yaml.safe_dump(cfg, sort_keys=False))
     return path, model
@@ -72,7 +75,7 @@ def _controller(driver: str, workdir: Path) -> Any:
 
 
 async def _campaign(cfg_path: Path, log_file: Path, name: str = "demo") -> dict[str, Any]:
-    from robid_link.link.commands import wait_for_run
+    from robid_link.cli.runs import wait_for_run
     from robid_link.link.control import PREFLIGHT_TIMEOUT_S, request
     from robid_link.link.daemon import Daemon, setup_logging
 
@@ -132,8 +135,12 @@ def run_demo(work: Path, out: Path, json_path: str | None = None,
           f"{HIDDEN['name']}@{HIDDEN['joint']} (the default model does not know it)")
     print(f"  fake controller ({driver}) and daemon with a temporary state dir; "
           f"daemon log: {out / 'daemon.log'}")
+    from robid_link.link.driver import CAP_UPLOAD
+    from robid_link.link.registry import driver_class
+
+    can_upload = CAP_UPLOAD in driver_class(driver).capabilities
     with _controller(driver, work / "cell") as peer:
-        cfg_path, model_file = _setup(work, out, peer.driver_options())
+        cfg_path, model_file = _setup(work, out, peer.driver_options(), can_upload)
         doc = asyncio.run(_campaign(cfg_path, out / "daemon.log"))
         run = doc["run"]
         if run["state"] != "completed":
@@ -141,10 +148,15 @@ def run_demo(work: Path, out: Path, json_path: str | None = None,
         report = work / "state" / "reports" / run["run_id"]
         print((report / "summary.txt").read_text())
         spec = _add_suggestion(doc, model_file)
-        print("  calibrate and verify: the verification path on the controller's CAD model, "
-              "identification" + (f" with {spec.label()}" if spec else "") + ", upload, the "
-              "path again")
-        cal = asyncio.run(_campaign(cfg_path, out / "daemon.log", "calibrate"))
+        cal = None
+        if can_upload:
+            print("  calibrate and verify: the verification path on the controller's CAD "
+                  "model, identification" + (f" with {spec.label()}" if spec else "")
+                  + ", upload, the path again")
+            cal = asyncio.run(_campaign(cfg_path, out / "daemon.log", "calibrate"))
+        else:
+            print(f"  calibrate and verify: skipped, the {driver} link cannot upload a "
+                  "parameter set")
     files = []
     for f in sorted(report.iterdir()):
         shutil.copy2(f, out / f.name)
@@ -161,14 +173,18 @@ def run_demo(work: Path, out: Path, json_path: str | None = None,
                         history=model_file)
         files += final.report_files["identify"]
         final_rmse = final.result.rmse.tolist()
-    files.append(history_figure(read_history(model_file), out / "error_ladder.png"))
+    ladder = read_history(model_file)
+    files.append(history_figure(ladder, out / "error_ladder.png"))
     print("\n  error ladder, validation RMSE per joint [N·m]:")
     print("    default model : " + " ".join(f"{x:7.3f}" for x in first["rmse"]))
     if spec is not None:
         print(f"    + {model.labels()[-1]:<12}: " + " ".join(f"{x:7.3f}" for x in final_rmse))
-    if cal["run"]["state"] != "completed":
+    if cal is not None and cal["run"]["state"] != "completed":
         raise RobidError(f"demo calibration failed: {cal['run']['error']}")
-    tracking = _tracking(cal["results"])
+    tracking = _tracking(cal["results"]) if cal is not None else None
+    from robid_link.ident.report.html import add_to_report
+
+    page = add_to_report(out / "report.html", history=ladder, tracking=tracking)
     if tracking:
         from robid_link.ident.report.figures import tracking_figure
 
@@ -181,6 +197,7 @@ def run_demo(work: Path, out: Path, json_path: str | None = None,
               f"{b['tool_max_mm']:.3f} → {a['tool_max_mm']:.3f} mm, after the stop "
               f"{b['residual_mm']:.3f} → {a['residual_mm']:.3f} mm")
     print(f"\nrobid demo: run {run['run_id']} completed; {len(files)} report files in {out}/")
+    print(f"  open the report: {page}")
     if json_path:
         write_json(json_path, {"run": run, "results": doc["results"], "hidden": HIDDEN,
                                "model": model.labels(), "final_rmse": final_rmse,

@@ -12,29 +12,30 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from robid_link import jobs as jb
 from robid_link.config import CampaignDef, DaemonConfig, ExperimentDef
 from robid_link.exceptions import ApprovalError, ConfigError, RobidError, StoreFullError
+from robid_link.jobs import MotionProgram
 from robid_link.link.cycle import CyclePolicy, run_cycle
-from robid_link.link.driver import CAP_UPLOAD, Driver, MotionProgram, parameter_bytes
-from robid_link.link.store import Store
-from robid_link.link.worker import (
-    check_log,
-    check_model,
-    elasticity_run,
-    generate_program,
-    identify_run,
-    run_in_worker,
-    verify_run,
-)
+from robid_link.link.driver import CAP_UPLOAD, Driver, FeedforwardSource, parameter_bytes
+from robid_link.link.store import AsyncStore, Store
+from robid_link.link.worker import run_here, run_in_worker
 
-__all__ = ["TRIGGERS", "plan", "check_capabilities", "create_run", "prepare_programs",
-           "preflight", "check_config", "describe_campaigns", "execute_run"]
+__all__ = ["TRIGGERS", "plan", "stored_name", "check_capabilities", "create_run",
+           "prepare_programs", "preflight", "check_config", "describe_campaigns", "execute_run",
+           "resonance_hints", "feedforward_source", "drift_flags", "drift_flags_of"]
 
 log = logging.getLogger("robid.campaign")
 
 TRIGGERS = ("operator", "timer")
 BEFORE_SUFFIX = "-before"
 SLOW_SUFFIX = "-slow"
+
+
+def stored_name(cfg: DaemonConfig, description_name: str) -> str:
+    """The robot's name in the store: ``robot_name`` of the config, else its description's
+    (robots of one type share a description; a plant's store tells them apart by this)."""
+    return cfg.robot_name or description_name
 
 
 def plan(camp: CampaignDef) -> list[tuple[str, ExperimentDef, float | None]]:
@@ -77,17 +78,23 @@ def _check_driver_caps(cfg: DaemonConfig, name: str, caps: frozenset[str], drive
                           "parameters; set upload: false or use a driver that can")
 
 
-def _model_args(cfg: DaemonConfig, name: str) -> tuple[str | None, list[str]]:
+def _model_job(cfg: DaemonConfig, name: str) -> jb.ModelCheckJob:
     camp = cfg.campaigns[name]
     if camp.model is not None and not camp.model.is_file():
         raise ConfigError(f"campaigns.{name}.model: {camp.model}: file not found")
-    return (str(camp.model) if camp.model else None), list(camp.add)
+    return jb.ModelCheckJob(str(camp.model) if camp.model else None, camp.add)
 
 
-async def preflight(cfg: DaemonConfig, store: Store, ctx: Any, campaign: str) -> None:
+def _program_job(cfg: DaemonConfig, exp_id: str, exp: ExperimentDef, slow: float | None
+                 ) -> jb.ProgramJob:
+    return jb.ProgramJob(str(cfg.robot), cfg.lock, exp_id, exp.kind, exp.options,
+                         str(cfg.base_dir), slow)
+
+
+async def preflight(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: str) -> None:
     """Everything a run of ``campaign`` will need, checked before any program is given: the
     model file and ``add:`` effects load, every program generates and passes the limits."""
-    await run_in_worker(ctx, check_model, *_model_args(cfg, campaign))
+    await run_in_worker(ctx, _model_job(cfg, campaign))
     await prepare_programs(cfg, store, ctx, campaign)
 
 
@@ -98,10 +105,9 @@ def check_config(cfg: DaemonConfig, driver: Driver) -> dict[str, str | None]:
     for name in cfg.campaigns:
         try:
             _check_driver_caps(cfg, name, frozenset(driver.capabilities), driver.name)
-            check_model(*_model_args(cfg, name))
+            run_here(_model_job(cfg, name))
             for exp_id, exp, slow in plan(cfg.campaigns[name]):
-                generate_program(str(cfg.robot), cfg.lock, exp_id, exp.kind, exp.options,
-                                 str(cfg.base_dir), slow)
+                run_here(_program_job(cfg, exp_id, exp, slow))
             verdict[name] = None
         except RobidError as err:
             verdict[name] = str(err)
@@ -117,14 +123,20 @@ def describe_campaigns(cfg: DaemonConfig) -> list[dict[str, Any]]:
             for name, camp in cfg.campaigns.items()]
 
 
-def create_run(cfg: DaemonConfig, store: Store, campaign: str, trigger: str) -> str:
+async def create_run(cfg: DaemonConfig, store: AsyncStore, campaign: str, trigger: str
+                     ) -> str:
     if campaign not in cfg.campaigns:
         raise ConfigError(f"campaign {campaign!r}: not in {cfg.path} "
                           f"(known: {', '.join(sorted(cfg.campaigns))})")
     if trigger not in TRIGGERS:
         raise ConfigError(f"trigger: expected operator or timer, got {trigger!r}")
-    exps = [(exp_id, exp.kind) for exp_id, exp, _ in plan(cfg.campaigns[campaign])]
-    return store.create_run(campaign, trigger, {"campaign": campaign}, exps)
+    camp = cfg.campaigns[campaign]
+    exps = [(exp_id, exp.kind) for exp_id, exp, _ in plan(camp)]
+    # how the run identifies: what a fleet re-identification repeats with another model
+    spec = {"campaign": campaign, "identify": {"method": camp.method,
+                                               "cutoff_hz": camp.cutoff_hz,
+                                               "motor_side": camp.motor_side}}
+    return await store.create_run(campaign, trigger, spec, exps)
 
 
 def _program_key(cfg: DaemonConfig, exp: ExperimentDef, slow: float | None, exp_id: str) -> str:
@@ -146,14 +158,14 @@ def _program_key(cfg: DaemonConfig, exp: ExperimentDef, slow: float | None, exp_
     return h.hexdigest()
 
 
-async def prepare_programs(cfg: DaemonConfig, store: Store, ctx: Any, campaign: str
+async def prepare_programs(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: str
                            ) -> list[tuple[str, MotionProgram]]:
     """Generate (or take from the cache) and limit-check every program of a campaign."""
     out = []
     for exp_id, exp, slow in plan(cfg.campaigns[campaign]):
         key = _program_key(cfg, exp, slow, exp_id)
         sha = await _generated(cfg, store, ctx, campaign, key, exp_id, exp, slow)
-        out.append((exp_id, store.load_program(sha)))
+        out.append((exp_id, await store.load_program(sha)))
     return out
 
 
@@ -163,11 +175,11 @@ async def prepare_programs(cfg: DaemonConfig, store: Store, ctx: Any, campaign: 
 _generating: dict[tuple[int, str], asyncio.Future[None]] = {}
 
 
-async def _generated(cfg: DaemonConfig, store: Store, ctx: Any, campaign: str, key: str,
+async def _generated(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: str, key: str,
                      exp_id: str, exp: ExperimentDef, slow: float | None) -> str:
     token = (id(store), key)
     while True:
-        sha = store.program_for(key)
+        sha = await store.program_for(key)
         if sha is not None:
             return sha
         pending = _generating.get(token)
@@ -177,9 +189,8 @@ async def _generated(cfg: DaemonConfig, store: Store, ctx: Any, campaign: str, k
     done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
     _generating[token] = done
     try:
-        prog = await run_in_worker(ctx, generate_program, str(cfg.robot), cfg.lock,
-                                   exp_id, exp.kind, exp.options, str(cfg.base_dir), slow)
-        sha = store.put_program(key, prog)
+        prog = await run_in_worker(ctx, _program_job(cfg, exp_id, exp, slow))
+        sha = await store.put_program(key, prog)
     finally:
         del _generating[token]
         done.set_result(None)
@@ -188,22 +199,22 @@ async def _generated(cfg: DaemonConfig, store: Store, ctx: Any, campaign: str, k
     return sha
 
 
-async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, run_id: str,
+async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: Any, run_id: str,
                       n_joints: int, kill_hook: Callable[[str], None] = lambda step: None
                       ) -> None:
     """Run or resume ``run_id`` to completed/failed (logs are checked for ``n_joints``, the
     robot's). Cancellation leaves it resumable."""
-    run = store.run(run_id)
+    run = await store.run(run_id)
     camp = cfg.campaigns.get(run["campaign"])
     if camp is None:
-        store.set_run(run_id, "failed", error=f"campaign {run['campaign']!r} is no longer in "
-                      f"{cfg.path}")
+        await store.set_run(run_id, "failed", error=f"campaign {run['campaign']!r} is no "
+                            f"longer in {cfg.path}")
         return
-    store.set_run(run_id, "running", step="generating programs")
+    await store.set_run(run_id, "running", step="generating programs")
     try:
         programs = await _pinned_programs(cfg, store, ctx, run_id, run["campaign"])
         if run["trigger"] == "timer":
-            missing = [e for e, p in programs if not store.approved(p.sha256)]
+            missing = [e for e, p in programs if not await store.approved(p.sha256)]
             if missing:
                 raise ApprovalError(f"unattended run refused: program of experiment "
                                     f"{missing[0]} ({dict(programs)[missing[0]].sha256[:12]}) "
@@ -211,10 +222,10 @@ async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any,
                                     f"{run['campaign']} --config {cfg.path}")
 
         # the identification's inputs, before the first motion (a config edited since start)
-        await run_in_worker(ctx, check_model, *_model_args(cfg, run["campaign"]))
+        await run_in_worker(ctx, _model_job(cfg, run["campaign"]))
 
-        async def check(path: str) -> dict[str, Any]:
-            return await run_in_worker(ctx, check_log, n_joints, path)
+        async def check(path: str) -> jb.LogCheck:
+            return await run_in_worker(ctx, jb.LogCheckJob(path, n_joints))
 
         kinds = {e: d.kind for e, d, _ in plan(camp)}
         first = [(e, p) for e, p in programs if not after_upload(camp, e)]
@@ -222,7 +233,8 @@ async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any,
         shas: dict[str, str] = {}
 
         async def cycle(k: int, exp_id: str, program: MotionProgram) -> None:
-            store.set_run(run_id, "running", step=f"experiment {k}/{len(programs)} {exp_id}")
+            await store.set_run(run_id, "running",
+                                step=f"experiment {k}/{len(programs)} {exp_id}")
             policy = CyclePolicy(camp.timeout_s or 2 * program.duration_s + 60.0, camp.retries,
                                  camp.backoff_s)
             shas[exp_id] = await run_cycle(store, driver, run_id, exp_id, program, policy,
@@ -232,32 +244,32 @@ async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any,
             await cycle(k, exp_id, program)
         if camp.identify:
             data = [s for e, s in shas.items() if kinds.get(e) not in ("verify", "elasticity")]
-            await _identify(cfg, store, driver, ctx, run_id, camp, data, kill_hook)
+            await _identify(cfg, store, driver, ctx, run_id, camp, data, n_joints, kill_hook)
         for k, (exp_id, program) in enumerate(then, len(first) + 1):
             await cycle(k, exp_id, program)
         await _tracking(cfg, store, ctx, run_id, camp, [(e, p, shas[e]) for e, p in programs
                                                         if kinds.get(e) == "verify"])
-        await _elasticity(cfg, store, ctx, run_id, [(e, p, shas[e]) for e, p in programs
-                                                    if kinds.get(e) == "elasticity"])
+        await _elasticity(cfg, store, ctx, run_id, camp, [(e, p, shas[e]) for e, p in programs
+                                                          if kinds.get(e) == "elasticity"])
     except StoreFullError:
         raise  # not the run's fault: it waits, journaled as it is, until space returns
     except RobidError as err:
-        store.set_run(run_id, "failed", error=str(err))
+        await store.set_run(run_id, "failed", error=str(err))
         log.error("run=%s failed: %s", run_id, err)
         return
-    store.set_run(run_id, "completed")
+    await store.set_run(run_id, "completed")
     log.info("run=%s completed", run_id)
 
 
-async def _pinned_programs(cfg: DaemonConfig, store: Store, ctx: Any, run_id: str,
+async def _pinned_programs(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
                            campaign: str) -> list[tuple[str, MotionProgram]]:
     """Programs of the run; an experiment already handed out keeps the program it was given
     (a config edited between a crash and the restart cannot change a half-run experiment)."""
     fresh = dict(await prepare_programs(cfg, store, ctx, campaign))
     out = []
-    for row in store.experiments(run_id):
+    for row in await store.experiments(run_id):
         if row["program_sha"]:
-            out.append((row["exp_id"], store.load_program(row["program_sha"])))
+            out.append((row["exp_id"], await store.load_program(row["program_sha"])))
         elif row["exp_id"] in fresh:
             out.append((row["exp_id"], fresh[row["exp_id"]]))
         else:
@@ -267,9 +279,9 @@ async def _pinned_programs(cfg: DaemonConfig, store: Store, ctx: Any, run_id: st
 
 
 def elasticity_entries(cfg: DaemonConfig) -> dict[int, str]:
-    """Joint → the first campaign experiment that measures its elasticity (what the diagnosis
-    names for an unexplained resonance). Without joints or pairs an experiment measures every
-    joint (listed up to 64: the diagnosis asks only for the robot's)."""
+    """Joint → the first campaign experiment that measures its elasticity. Without joints or
+    pairs an experiment measures every joint (listed up to 64: hints ask only for the
+    robot's)."""
     out: dict[int, str] = {}
     for camp in cfg.campaigns.values():
         for exp in camp.experiments:
@@ -285,40 +297,60 @@ def elasticity_entries(cfg: DaemonConfig) -> dict[int, str]:
     return out
 
 
-async def _identify(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, run_id: str,
-                    camp: CampaignDef, shas: list[str], kill_hook: Callable[[str], None]) -> None:
-    store.set_run(run_id, "running", step="identifying" + (" and diagnosing"
-                                                           if camp.diagnose else ""))
-    job = {"run_id": run_id, "robot": str(cfg.robot), "lock": list(cfg.lock),
-           "logs": [str(store.check_log(s)) for s in shas],
-           "model": str(camp.model) if camp.model else None, "add": list(camp.add),
-           "method": camp.method, "diagnose": camp.diagnose, "cutoff_hz": camp.cutoff_hz,
-           "motor_side": camp.motor_side, "upload": camp.upload,
-           "report_dir": str(store.dir / "reports" / run_id), "campaign": camp.name,
-           "elasticity_entries": elasticity_entries(cfg)}
+def resonance_hints(cfg: DaemonConfig, campaign: str, n_joints: int
+                    ) -> tuple[jb.ResonanceHint, ...]:
+    """Per joint, what the diagnosis says of an unexplained resonance in a run of
+    ``campaign``: the campaign experiment that measures the joint's elasticity, else the
+    entry to add to ``campaign`` (the config's language stays on the link's side)."""
+    entries = elasticity_entries(cfg)
+    out = []
+    for j in range(1, n_joints + 1):
+        entry = entries.get(j)
+        todo = (f"measured by {entry}" if entry is not None else
+                f"add an elasticity experiment for joint {j}: campaigns.{campaign}.experiments: "
+                f"[…, {{kind: elasticity, joints: [{j}]}}] (or robid excite --kind elasticity "
+                f"--joint {j})")
+        out.append(jb.ResonanceHint(j, entry, todo))
+    return tuple(out)
+
+
+async def _identify(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: Any, run_id: str,
+                    camp: CampaignDef, shas: list[str], n_joints: int,
+                    kill_hook: Callable[[str], None]) -> None:
+    await store.set_run(run_id, "running", step="identifying" + (" and diagnosing"
+                                                                 if camp.diagnose else ""))
+    job = jb.IdentifyJob(
+        run_id=run_id, robot=str(cfg.robot), lock=cfg.lock,
+        logs=tuple([str(await store.check_log(s)) for s in shas]),
+        report_dir=str(store.dir / "reports" / run_id),
+        model=str(camp.model) if camp.model else None, add=camp.add, method=camp.method,
+        diagnose=camp.diagnose, cutoff_hz=camp.cutoff_hz, motor_side=camp.motor_side,
+        upload=camp.upload, resonance_hints=resonance_hints(cfg, camp.name, n_joints),
+        campaign=camp.name)
     kill_hook("identifying")
-    out = await run_in_worker(ctx, identify_run, job,
-                              on_start=lambda: kill_hook("identify_started"))
-    for kind, rec in out["records"].items():
-        store.add_result(run_id, out["robot"], kind, rec)
+    out: jb.IdentifyOutcome = await run_in_worker(
+        ctx, job, on_start=lambda: kill_hook("identify_started"))
+    robot = stored_name(cfg, out.robot)
+    for kind, rec in out.records.items():
+        await store.add_result(run_id, robot, kind, rec)
     log.info("run=%s identified: rmse %s", run_id,
-             " ".join(f"{x:.3g}" for x in out["records"]["identify"]["rmse"] or []))
-    for flag in drift_flags(store, out["robot"], run_id):
-        store.note(run_id, None, "drift", parameter=flag.parameter, kind=flag.kind,
+             " ".join(f"{x:.3g}" for x in out.records["identify"]["rmse"] or []))
+    for flag in drift_flags_of(await store.results(robot), robot, run_id):
+        await store.note(run_id, None, "drift", parameter=flag.parameter, kind=flag.kind,
                    change=round(flag.change, 4), sigmas=round(flag.sigmas, 1))
         log.warning("run=%s drift: %s", run_id, flag.message)
-    pset = out["parameter_set"]
+    pset = dict(out.parameter_set.doc)
     body = parameter_bytes(pset)
-    version = store.add_param_set(pset, body)
-    log.info("run=%s parameter set %d of %s: %s", run_id, version, out["robot"],
+    version = await store.add_param_set(pset, body)
+    log.info("run=%s parameter set %d of %s: %s", run_id, version, robot,
              pset["sha256"][:12])
     if camp.upload:
-        trigger = store.run(run_id)["trigger"]
-        await upload_set(store, driver, out["robot"], pset["sha256"], run_id,
+        trigger = (await store.run(run_id))["trigger"]
+        await upload_set(store, driver, robot, pset["sha256"], run_id,
                          unattended=trigger == "timer")
 
 
-async def _tracking(cfg: DaemonConfig, store: Store, ctx: Any, run_id: str,
+async def _tracking(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
                     camp: CampaignDef, runs: list[tuple[str, MotionProgram, str]]) -> None:
     """How the robot followed each verification path (before / after the upload)."""
     if not runs:
@@ -329,54 +361,71 @@ async def _tracking(cfg: DaemonConfig, store: Store, ctx: Any, run_id: str,
             return "before"
         return "after" if camp.upload else "check"
 
-    job = {"robot": str(cfg.robot), "lock": list(cfg.lock), "runs": [
-        {"exp_id": e, "phase": phase(e), "log": str(store.check_log(sha)),
-         "files": dict(p.files)} for e, p, sha in runs]}
-    out = await run_in_worker(ctx, verify_run, job)
-    for rec in out["records"]:
+    job = jb.VerifyJob(str(cfg.robot), cfg.lock, tuple([
+        jb.VerifyRun(e, phase(e), str(await store.check_log(sha)), p) for e, p, sha in runs]),
+        report_dir=str(store.dir / "reports" / run_id), run_id=run_id, campaign=camp.name)
+    out: jb.VerifyOutcome = await run_in_worker(ctx, job)
+    for rec in map(dict, out.records):
         rec["run_id"] = run_id
-        store.add_result(run_id, out["robot"], f"verify_{rec['phase']}", rec)
+        await store.add_result(run_id, stored_name(cfg, out.robot), f"verify_{rec['phase']}",
+                               rec)
         log.info("run=%s %s: tool RMS %.3f mm, max %.3f mm", run_id, rec["experiment"],
                  rec["tracking"]["tool_rms_mm"], rec["tracking"]["tool_max_mm"])
 
 
-def drift_flags(store: Store, robot: str, run_id: str | None = None) -> list[Any]:
-    """Drift flags of ``robot``'s stored identifications (of one run, or all)."""
-    from robid_link.exceptions import ModelError
-    from robid_link.ident.diagnosis.drift import trend
-
-    try:
-        tr = trend(store.results(robot), robot)
-    except ModelError:  # no identification with parameters yet
-        return []
-    return [f for f in tr.flags if run_id is None or f.run_id == run_id]
+def drift_flags(store: Store, robot: str, run_id: str | None = None) -> list[jb.DriftFlag]:
+    """Drift flags of ``robot``'s stored identifications (of one run, or all), read from a
+    blocking store (the operator commands' reader)."""
+    return drift_flags_of(store.results(robot), robot, run_id)
 
 
-async def _elasticity(cfg: DaemonConfig, store: Store, ctx: Any, run_id: str,
-                      runs: list[tuple[str, MotionProgram, str]]) -> None:
+def drift_flags_of(results: list[dict[str, Any]], robot: str, run_id: str | None = None
+                   ) -> list[jb.DriftFlag]:
+    """Drift flags of ``robot`` in its stored ``results`` (of one run, or all): a DriftJob run
+    here (pure Python, quick: the status answers with it)."""
+    report = run_here(jb.DriftJob(robot, tuple(results), run_id))
+    assert isinstance(report, jb.DriftReport)
+    return list(report.flags)
+
+
+def feedforward_source(cfg: DaemonConfig, ctx: Any) -> FeedforwardSource:
+    """What a ``CAP_FEEDFORWARD`` driver calls for the torques of its setpoints: a
+    FeedforwardJob on the daemon's robot in a worker process."""
+
+    async def source(pset: jb.ParameterSet, period_s: float, q: Any) -> jb.FeedforwardTable:
+        job = jb.FeedforwardJob(str(cfg.robot), cfg.lock, pset, float(period_s),
+                                tuple(tuple(float(x) for x in row) for row in q))
+        table: jb.FeedforwardTable = await run_in_worker(ctx, job)
+        return table
+
+    return source
+
+
+async def _elasticity(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
+                      camp: CampaignDef, runs: list[tuple[str, MotionProgram, str]]) -> None:
     """Two-mass fits of each elasticity experiment (its schedule from the program header)."""
     if not runs:
         return
-    store.set_run(run_id, "running", step="elasticity")
-    job = {"robot": str(cfg.robot), "lock": list(cfg.lock), "runs": [
-        {"exp_id": e, "log": str(store.check_log(sha)), "files": dict(p.files)}
-        for e, p, sha in runs]}
-    out = await run_in_worker(ctx, elasticity_run, job)
-    rec = {"kind": "elasticity", "run_id": run_id, "robot": out["robot"],
-           "experiments": out["results"]}
-    store.add_result(run_id, out["robot"], "elasticity", rec)
-    for res in out["results"]:
+    await store.set_run(run_id, "running", step="elasticity")
+    job = jb.ElasticityJob(str(cfg.robot), cfg.lock, tuple([
+        jb.ElasticityRun(e, str(await store.check_log(sha)), p) for e, p, sha in runs]),
+        report_dir=str(store.dir / "reports" / run_id), run_id=run_id, campaign=camp.name)
+    out: jb.ElasticityOutcome = await run_in_worker(ctx, job)
+    rec = {"kind": "elasticity", "run_id": run_id, "robot": out.robot,
+           "experiments": [dict(r) for r in out.results]}
+    await store.add_result(run_id, stored_name(cfg, out.robot), "elasticity", rec)
+    for res in out.results:
         for j in res["result"].get("joints", []):
             log.info("run=%s %s joint %d: K %.4g, D %.4g, f_res %.3g Hz", run_id,
                      res["experiment"], j["joint"], j["k"], j["d"], j["f_res_hz"])
 
 
-async def upload_set(store: Store, driver: Driver, robot: str, sha: str, run_id: str | None,
+async def upload_set(store: AsyncStore, driver: Driver, robot: str, sha: str, run_id: str | None,
                      *, unattended: bool, timeout_s: float = 120.0) -> None:
     """Send a stored parameter set to the controller. Unattended runs send only a set an
     operator approved; every attempt is recorded; the controller's acknowledgement (or its
     absence: the set is withdrawn, the controller keeps its old one) is the outcome."""
-    row = next((s for s in store.param_sets(robot) if s["sha256"] == sha), None)
+    row = next((s for s in await store.param_sets(robot) if s["sha256"] == sha), None)
     if row is None:
         raise ConfigError(f"robot {robot}: no parameter set {sha[:12]}")
     if unattended and not row["approved"]:
@@ -385,12 +434,12 @@ async def upload_set(store: Store, driver: Driver, robot: str, sha: str, run_id:
                             f"{row['version']} --robot {robot} --config C")
     import json
 
-    store.record_upload(robot, sha, run_id, "sent")
+    await store.record_upload(robot, sha, run_id, "sent")
     try:
         await driver.upload_parameters(json.loads(row["body"]), timeout_s=timeout_s)
     except RobidError as err:
-        store.record_upload(robot, sha, run_id, "failed", str(err))
+        await store.record_upload(robot, sha, run_id, "failed", str(err))
         raise
-    store.record_upload(robot, sha, run_id, "acknowledged")
+    await store.record_upload(robot, sha, run_id, "acknowledged")
     log.info("robot=%s parameter set %d (%s) loaded by the controller", robot, row["version"],
              sha[:12])

@@ -16,8 +16,9 @@ from robid_link.drivers.modbus_plc import ModbusPlcDriver, nonce_tag, register_m
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.fakes.controller import default_truth, make_peer
 from robid_link.ident.model.robot import Robot
+from robid_link.jobs import MotionProgram, RobotInfo
 from robid_link.link import registry
-from robid_link.link.driver import Driver, MotionProgram, RobotInfo
+from robid_link.link.driver import Driver
 
 from . import test_contract as contract
 
@@ -115,7 +116,7 @@ def test_nonce_tags() -> None:
 @pytest.mark.parametrize(("over", "match"), [
     ({"host": None}, r"driver\.host: missing"),
     ({"share": None}, r"driver\.share: missing"),
-    ({"port": 70000}, r"driver\.port: expected a number between 1 and 65535"),
+    ({"port": 70000}, r"driver\.port: expected an integer in \[1, 65535\]"),
     ({"device_id": "x"}, r"driver\.device_id: expected an integer"),
     ({"registers": {"colour": 3}}, r"driver\.registers\.colour: unknown register"),
     ({"registers": {"status": -1}}, r"driver\.registers\.status: expected an address"),

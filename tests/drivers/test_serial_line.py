@@ -16,8 +16,9 @@ from robid_link.drivers.serial_line import SerialLineDriver, decode_frame, encod
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.fakes.controller import default_truth, make_peer
 from robid_link.ident.model.robot import Robot
+from robid_link.jobs import MotionProgram, RobotInfo
 from robid_link.link import registry
-from robid_link.link.driver import Driver, MotionProgram, RobotInfo
+from robid_link.link.driver import Driver
 
 from .conftest import bump_program
 from .test_contract import RATE_HZ
@@ -93,9 +94,9 @@ def test_a_missing_port_is_one_line(tmp_path: Path) -> None:
 @pytest.mark.parametrize(("over", "match"), [
     ({"port": None}, r"driver\.port: missing"),
     ({"baudrate": "fast"}, r"driver\.baudrate: expected an integer"),
-    ({"chunk_bytes": 10**6}, r"driver\.chunk_bytes: expected an integer between 16 and 16384"),
+    ({"chunk_bytes": 10**6}, r"driver\.chunk_bytes: expected an integer in \[16, 16384\]"),
     ({"retries": -1}, r"driver\.retries"),
-    ({"io_timeout_s": 0}, r"driver\.io_timeout_s: expected a positive number"),
+    ({"io_timeout_s": 0}, r"driver\.io_timeout_s: expected a number > 0"),
     ({"reopen_s": "x"}, r"driver\.reopen_s"),
 ])
 def test_config_errors_name_the_key(over: dict[str, Any], match: str) -> None:

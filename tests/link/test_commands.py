@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import io
 
-from robid_link.link.commands import format_results, format_runs, wait_for_run
+from robid_link.cli.runs import format_results, format_runs, wait_for_run
 
 
 def _result(run: str, robot: str, rmse: list[float], kind: str = "identify") -> dict:
@@ -30,7 +30,7 @@ def test_runs_table_and_progress(monkeypatch) -> None:  # type: ignore[no-untype
     assert "unsafe program refused" in format_runs(runs)
     states = iter([{**runs[0], "state": "running", "step": "experiment 2/2 friction",
                     "error": None}, runs[0]])
-    import robid_link.link.commands as cmd
+    import robid_link.cli.runs as cmd
 
     monkeypatch.setattr(cmd, "request", lambda path, req: {"runs": [next(states)]})
     out = io.StringIO()
@@ -42,7 +42,7 @@ def test_runs_table_and_progress(monkeypatch) -> None:  # type: ignore[no-untype
 
 
 def test_results_compare_stiffness_with_the_previous_run() -> None:
-    from robid_link.link.commands import format_results
+    from robid_link.cli.runs import format_results
 
     def rec(k: float) -> dict:
         return {"experiments": [{"experiment": "stiff", "result": {"joints": [

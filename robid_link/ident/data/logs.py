@@ -1,4 +1,4 @@
-"""Log files (CSV, npz, FDURoID .mat) → checked, uniformly sampled joint-side logs.
+"""Log files (CSV, npz, FDURoID .mat, ROS bags) → checked, uniformly sampled joint-side logs.
 
 Every bad input raises a one-line :class:`DataError` naming the file and the problem.
 """
@@ -11,12 +11,15 @@ import math
 import warnings
 import zipfile
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from robid_link.exceptions import DataError, DataWarning, RobidError
+from robid_link.ident.data.bags import is_bag, read_bag
 
 __all__ = ["Log", "load_log", "file_sha256", "write_log_csv", "read_numeric_csv",
            "MAX_LOG_BYTES", "MAX_ARRAY_BYTES"]
@@ -50,6 +53,10 @@ class Log:
     #: raw currents (samples × n) of drives whose gain is to be identified (zero elsewhere;
     #: their share of ``tau`` is left out until then)
     currents: np.ndarray | None = None
+    #: where the samples came from beyond the file (a bag's storage, topic, time range)
+    source: dict[str, Any] = field(default_factory=dict)
+    #: commanded positions at the same time stamps (a controller state's reference), if logged
+    q_ref: np.ndarray | None = None
 
     @property
     def fs(self) -> float:
@@ -64,16 +71,32 @@ class Log:
 
 
 def file_sha256(path: str | Path) -> str:
+    """SHA-256 of a log file; of a folder (a ROS 2 bag), over its files' names and bytes."""
+    p = Path(path)
     h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
+    files = sorted(f for f in p.rglob("*") if f.is_file()) if p.is_dir() else [p]
+    for f in files:
+        if p.is_dir():
+            h.update(f.relative_to(p).as_posix().encode() + b"\0")
+        with open(f, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
     return h.hexdigest()
 
 
-def load_log(path: str | Path, n_joints: int, fs: float | None = None) -> Log:
-    """Read and check a log; resample jittered time stamps, split at gaps."""
+def load_log(path: str | Path, n_joints: int, fs: float | None = None, *,
+             joint_names: Sequence[str] | None = None, topic: str | None = None,
+             effort_current: np.ndarray | None = None) -> Log:
+    """Read and check a log; resample jittered time stamps, split at gaps. A ROS recording
+    (:mod:`.bags`) needs the robot's ``joint_names`` (joints are matched by name); ``topic``
+    picks its topic and ``effort_current`` marks joints whose effort is a drive current."""
     p = Path(path)
+    if p.exists() and is_bag(p):
+        if joint_names is None or len(joint_names) != n_joints:
+            raise DataError(f"{p}: a ROS recording needs the robot's joint names")
+        return _load_bag(p, joint_names, topic, effort_current, fs)
+    if topic is not None:
+        raise DataError(f"{p}: --topic {topic} applies to ROS bags, this is not one")
     if not p.is_file():
         raise DataError(f"{p}: log file not found")
     suffix = p.suffix.lower()
@@ -84,8 +107,24 @@ def load_log(path: str | Path, n_joints: int, fs: float | None = None) -> Log:
     elif suffix == ".mat":
         cols = _read_mat(p, n_joints, fs)
     else:
-        raise DataError(f"{p}: unknown log format '{suffix}' (expected .csv, .npz or .mat)")
+        raise DataError(f"{p}: unknown log format '{suffix}' (expected .csv, .npz, .mat, a ROS "
+                        "2 bag folder, .mcap or a ROS 1 .bag)")
     return _check_and_grid(p, cols, n_joints, fs)
+
+
+def _load_bag(p: Path, names: Sequence[str], topic: str | None,
+              effort_current: np.ndarray | None, fs: float | None) -> Log:
+    bag = read_bag(p, names, topic)
+    cols = {"t": bag.t, "q": bag.q, "tau": bag.tau}
+    cols.update({k: v for k, v in (("qd", bag.qd), ("q_ref", bag.q_ref)) if v is not None})
+    for note in bag.notes:
+        warnings.warn(note, DataWarning, stacklevel=3)
+    log = _check_and_grid(p, cols, len(names), fs)
+    if effort_current is not None and np.any(effort_current):
+        log.current = np.asarray(effort_current, dtype=bool)
+    log.notes[:0] = bag.notes
+    log.source = dict(bag.source, t_start_s=float(log.t[0]), t_end_s=float(log.t[-1]))
+    return log
 
 
 # ----------------------------------------------------------------------------- readers
@@ -293,7 +332,7 @@ def _npz_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.n
         if key in ("t", "q", "qd", "qdd", "tau") and np.asarray(a).dtype.kind not in "iuf":
             raise DataError(f"{p}: array '{key}' holds {np.asarray(a).dtype}, expected numbers")
     out = {"t": np.asarray(cols["t"], dtype=float).reshape(-1)}
-    for key in ("q", "qd", "qdd", "tau"):
+    for key in ("q", "qd", "qdd", "tau", "q_ref"):
         if key not in cols:
             continue
         a = np.asarray(cols[key], dtype=float)
@@ -346,7 +385,7 @@ def _check_and_grid(p: Path, cols: dict[str, np.ndarray], n: int, fs: float | No
                      f"{dt[gaps].max():.3g} s); the log is split into {len(pieces)} segments")
         warnings.warn(notes[-1], DataWarning, stacklevel=3)
     jitter = float(np.max(np.abs(dt[dt <= GAP_FACTOR * h] - h)) / h)
-    keys = [k for k in ("q", "qd", "qdd", "tau") if k in cols]
+    keys = [k for k in ("q", "qd", "qdd", "tau", "q_ref") if k in cols]
     if jitter > JITTER_TOL:
         notes.append(f"{p.name}: time step varies by up to {100 * jitter:.0f} % around "
                      f"{1e3 * h:.3g} ms; resampled onto a uniform grid")
@@ -359,7 +398,7 @@ def _check_and_grid(p: Path, cols: dict[str, np.ndarray], n: int, fs: float | No
             grid = tt[0] + h * np.arange(int(np.floor((tt[-1] - tt[0]) / h + 1e-9)) + 1)
             out["t"].append(grid)
             for k in keys:
-                out[k].append(_interp(grid, tt, cols[k][a:b], cubic=(k == "q")))
+                out[k].append(_interp(grid, tt, cols[k][a:b], cubic=k in ("q", "q_ref")))
             segs.append(slice(start, start + grid.size))
             start += grid.size
         arrays = {k: np.concatenate(v) for k, v in out.items()}
@@ -368,7 +407,8 @@ def _check_and_grid(p: Path, cols: dict[str, np.ndarray], n: int, fs: float | No
         segs = [slice(a, b) for a, b in pieces]
     return Log(path=str(p), t=arrays["t"], q=arrays["q"], tau=arrays["tau"],
                qd=arrays.get("qd"), qdd=arrays.get("qdd"), segments=segs, notes=notes,
-               current=current if current is not None and current.any() else None)
+               current=current if current is not None and current.any() else None,
+               q_ref=arrays.get("q_ref"))
 
 
 def _interp(grid: np.ndarray, t: np.ndarray, y: np.ndarray, cubic: bool) -> np.ndarray:

@@ -65,6 +65,8 @@ class Robot:
     encoder_offsets: np.ndarray | None = None
     #: torque per ampere of each drive, on the log's side; NaN: identify it from the logs
     current_gain: np.ndarray | None = None
+    #: (n,) joints whose ROS effort is a drive current (``transmission.effort``)
+    effort_current: np.ndarray | None = None
     source: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -75,10 +77,6 @@ class Robot:
     @property
     def gravity(self) -> np.ndarray:
         return np.array(self.model.gravity.linear, dtype=float)
-
-    @property
-    def parameter_names(self) -> list[str]:
-        return standard_parameter_names(self.n)
 
     def pin_q(self, q: np.ndarray) -> np.ndarray:
         """Joint angles (…, n) → Pinocchio configuration (…, nq)."""
@@ -256,6 +254,7 @@ def _load_mdh(p: Path, allow_unlimited: bool) -> Robot:
         transmission=tx.matrix,
         encoder_offsets=tx.offsets,
         current_gain=tx.current_gain,
+        effort_current=tx.effort_current,
         source=str(p),
     )
 
@@ -345,9 +344,10 @@ class _Transmission:
     matrix: np.ndarray | None = None
     offsets: np.ndarray | None = None
     current_gain: np.ndarray | None = None
+    effort_current: np.ndarray | None = None
 
 
-_TX_KEYS = ("ratios", "coupling", "offsets", "current_gain")
+_TX_KEYS = ("ratios", "coupling", "offsets", "current_gain", "effort")
 
 
 def transmission_path(urdf: str | Path) -> Path:
@@ -420,7 +420,19 @@ def _transmission(x: Any, names: Sequence[str], types: Sequence[str], p: Path, k
         if np.any(gains == 0):
             raise RobotError(f"{p}: {key}.current_gain: a gain of 0 turns every current into "
                              "no torque (null: identify it from the logs)")
-    return _Transmission(t, offsets, gains)
+    return _Transmission(t, offsets, gains, _effort(x.get("effort"), names, p, key))
+
+
+def _effort(x: Any, names: Sequence[str], p: Path, key: str) -> np.ndarray | None:
+    """``effort``: what a ROS joint state's effort holds, ``torque`` (default) or ``current``
+    (the drive's current, turned into a torque by ``current_gain``); one word or per joint."""
+    if x is None:
+        return None
+    raw = [x] * len(names) if isinstance(x, str) else _per_joint(x, names, f"{key}.effort", p)
+    bad = next((v for v in raw if v not in ("torque", "current")), None)
+    if bad is not None or not raw:
+        raise RobotError(f"{p}: {key}.effort: expected torque or current, got {str(bad)[:40]!r}")
+    return np.array([v == "current" for v in raw])
 
 
 def _coupling(coupling: Any, names: Sequence[str], p: Path, key: str) -> np.ndarray:
@@ -503,5 +515,6 @@ def _load_urdf(p: Path, lock: Sequence[str], allow_unlimited: bool) -> Robot:
         transmission=tx.matrix,
         encoder_offsets=tx.offsets,
         current_gain=tx.current_gain,
+        effort_current=tx.effort_current,
         source=str(p),
     )
