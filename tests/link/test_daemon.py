@@ -73,6 +73,25 @@ def test_campaign_runs_to_completion(tmp_path: Path, controller: Any) -> None:
     assert ctrl.core.feedforward.sha256 == params["sha256"]  # the controller loaded it
 
 
+def test_a_campaign_keeps_its_logs_in_the_log_store_folder(tmp_path: Path,
+                                                           controller: Any) -> None:
+    """``log_store: FOLDER`` (a plant's central log folder): the cycle finds the log it
+    stored there, the run completes, nothing is written under the state dir's logs."""
+    central = tmp_path / "central"
+    cfg = write_config(tmp_path, {"one": ONE}, log_store=str(central))
+
+    async def body(d: Daemon) -> dict:
+        return await start(d)
+
+    with controller() as ctrl:
+        run = with_daemon(cfg, body)
+    assert run["state"] == "completed", run["error"]
+    assert len(ctrl.handled) == 1
+    sha = run["experiments"][0]["log_sha"]
+    assert [p.name for p in central.rglob("*.csv")] == [f"{sha}.csv"]
+    assert list((tmp_path / "state" / "logs").rglob("*.csv")) == []
+
+
 @pytest.mark.parametrize("fault, journal_error", [
     ("never_answer", "no 'done' for experiment rigid_body"),
     ("truncated_log", "truncated log"),
