@@ -17,7 +17,7 @@ from robid_link.kinds import KIND_OPTIONS, experiment_options
 from robid_link.yamlio import check_keys, read_yaml_mapping, yaml_type
 
 __all__ = ["load_daemon_config", "DaemonConfig", "CampaignDef",
-           "ExperimentDef", "WebConfig", "check_store_url"]
+           "ExperimentDef", "WebConfig", "check_store_url", "robot_name"]
 
 
 # ----------------------------------------------------------------------------- daemon config
@@ -93,6 +93,14 @@ class DaemonConfig:
     @property
     def base_dir(self) -> Path:
         return self.path.parent
+
+
+def robot_name(cfg: DaemonConfig, description_name: str | None) -> str:
+    """The robot's name in the store, on its page and in its commands: the config's
+    ``robot_name``, else the robot description's name (robots of one type share it; a plant's
+    store tells them apart by ``robot_name``), else the description file's stem (a
+    description that does not load: ``description_name`` None)."""
+    return cfg.robot_name or description_name or cfg.robot.stem
 
 
 def check_store_url(value: Any, key: str = "store") -> str:

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from robid_link import jobs as jb
-from robid_link.config import CampaignDef, DaemonConfig, ExperimentDef
+from robid_link.config import CampaignDef, DaemonConfig, ExperimentDef, robot_name
 from robid_link.exceptions import ApprovalError, ConfigError, RobidError, StoreFullError
 from robid_link.jobs import MotionProgram
 from robid_link.link.cycle import CyclePolicy, run_cycle
@@ -21,7 +21,7 @@ from robid_link.link.driver import CAP_UPLOAD, Driver, FeedforwardSource, parame
 from robid_link.link.store import AsyncStore, Store
 from robid_link.link.worker import run_here, run_in_worker
 
-__all__ = ["TRIGGERS", "plan", "stored_name", "check_capabilities", "create_run",
+__all__ = ["TRIGGERS", "plan", "check_capabilities", "create_run",
            "prepare_programs", "preflight", "check_config", "describe_campaigns", "execute_run",
            "resonance_hints", "feedforward_source", "drift_flags", "drift_flags_of"]
 
@@ -30,12 +30,6 @@ log = logging.getLogger("robid.campaign")
 TRIGGERS = ("operator", "timer")
 BEFORE_SUFFIX = "-before"
 SLOW_SUFFIX = "-slow"
-
-
-def stored_name(cfg: DaemonConfig, description_name: str) -> str:
-    """The robot's name in the store: ``robot_name`` of the config, else its description's
-    (robots of one type share a description; a plant's store tells them apart by this)."""
-    return cfg.robot_name or description_name
 
 
 def plan(camp: CampaignDef) -> list[tuple[str, ExperimentDef, float | None]]:
@@ -330,7 +324,7 @@ async def _identify(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: A
     kill_hook("identifying")
     out: jb.IdentifyOutcome = await run_in_worker(
         ctx, job, on_start=lambda: kill_hook("identify_started"))
-    robot = stored_name(cfg, out.robot)
+    robot = robot_name(cfg, out.robot)
     for kind, rec in out.records.items():
         await store.add_result(run_id, robot, kind, rec)
     log.info("run=%s identified: rmse %s", run_id,
@@ -366,7 +360,7 @@ async def _tracking(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
     out: jb.VerifyOutcome = await run_in_worker(ctx, job)
     for rec in map(dict, out.records):
         rec["run_id"] = run_id
-        await store.add_result(run_id, stored_name(cfg, out.robot), f"verify_{rec['phase']}",
+        await store.add_result(run_id, robot_name(cfg, out.robot), f"verify_{rec['phase']}",
                                rec)
         log.info("run=%s %s: tool RMS %.3f mm, max %.3f mm", run_id, rec["experiment"],
                  rec["tracking"]["tool_rms_mm"], rec["tracking"]["tool_max_mm"])
@@ -411,7 +405,7 @@ async def _elasticity(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: st
     out: jb.ElasticityOutcome = await run_in_worker(ctx, job)
     rec = {"kind": "elasticity", "run_id": run_id, "robot": out.robot,
            "experiments": [dict(r) for r in out.results]}
-    await store.add_result(run_id, stored_name(cfg, out.robot), "elasticity", rec)
+    await store.add_result(run_id, robot_name(cfg, out.robot), "elasticity", rec)
     for res in out.results:
         for j in res["result"].get("joints", []):
             log.info("run=%s %s joint %d: K %.4g, D %.4g, f_res %.3g Hz", run_id,

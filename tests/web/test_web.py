@@ -265,6 +265,65 @@ def test_the_daemon_serves_its_page_with_actions(tmp_path):
     assert status == 400 and answer["error"] == "run nope: not in the store"
 
 
+def _named(path: Path, robot_name: str | None = None, robot: str | None = None) -> Path:
+    """The config at ``path`` with ``robot_name`` (and another robot description) set."""
+    import yaml
+
+    doc = yaml.safe_load(path.read_text())
+    doc.update({k: v for k, v in (("robot_name", robot_name), ("robot", robot)) if v})
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_the_daemons_page_names_the_robot_as_its_store_does(tmp_path):
+    """``robot_name: cell-a``: the daemon's page shows cell-a's runs, trend and parameter
+    sets (it showed the description's name, arm3, and none of them)."""
+    import aiohttp
+
+    from robid_link.link.daemon import Daemon
+    from robid_link.web.command import daemon_service
+
+    cfg = load_daemon_config(_named(write_config(tmp_path, listen="127.0.0.1:0"), "cell-a"))
+    record = {"robot": "arm3", "parameters": [{"name": "m_1", "value": 1.0, "std": 0.1}],
+              "effects": [], "rmse": [1.0]}
+
+    async def go() -> tuple[str | None, dict[str, Any], dict[str, Any], dict[str, Any]]:
+        async with Daemon(cfg, env={}) as d, daemon_service(cfg)(d) as srv, \
+                aiohttp.ClientSession() as http:
+            assert d.store is not None
+            run_id = await d.store.create_run("nightly", "operator", {}, [("a", "rigid_body")])
+            await d.store.add_result(run_id, "cell-a", "identify", record)
+            await d.store.add_param_set({"sha256": "ab" * 32, "robot": "cell-a",
+                                         "run_id": run_id}, b"{}")
+            got = []
+            for page in ("runs", "trend", "params"):
+                async with http.get(srv.url + "api/" + page) as r:
+                    got.append(await r.json())
+            return d.robot_name, *got
+
+    name, runs, trend, params = asyncio.run(go())
+    assert name == runs["robot"] == trend["robot"] == "cell-a"
+    assert len(runs["runs"]) == 1 and [r["version"] for r in trend["runs"]] == [1]
+    assert [r["robot"] for r in params["robots"]] == ["cell-a"]
+
+
+@pytest.mark.parametrize("robot_name, robot, expected", [
+    ("cell-a", None, "cell-a"),  # the config's name first
+    (None, None, "arm3"),  # else the description's
+    (None, "broken.yaml", "broken"),  # else the file's stem (read-only commands still open)
+])
+def test_one_rule_names_the_robot(tmp_path, robot_name, robot, expected):
+    """``config.robot_name``: what the daemon, its page, ``robid web`` and the operator's
+    commands call the robot."""
+    from robid_link.config import robot_name as rule
+    from robid_link.ident.model.robot import description_name
+
+    (tmp_path / "broken.yaml").write_text("joints: 3\n")
+    path = _named(write_config(tmp_path), robot_name, robot and str(tmp_path / robot))
+    cfg = load_daemon_config(path)
+    assert rule(cfg, description_name(cfg.robot, cfg.lock)) == expected
+
+
 def test_status_and_results_print_the_report_of_a_finished_run(cell, capsys):
     from robid_link.cli import main
 
