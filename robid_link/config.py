@@ -103,10 +103,14 @@ def robot_name(cfg: DaemonConfig, description_name: str | None) -> str:
     return cfg.robot_name or description_name or cfg.robot.stem
 
 
+#: connection parameters of libpq that are secrets (in a URL's query string as in its user info)
+_SECRET_PARAMS = frozenset({"password", "sslpassword"})
+
+
 def check_store_url(value: Any, key: str = "store") -> str:
     """A PostgreSQL URL with no password in it (the password comes from PGPASSWORD or a
     PGPASSFILE); the one line refusing one never prints it."""
-    from urllib.parse import urlsplit
+    from urllib.parse import parse_qsl, urlsplit
 
     if not isinstance(value, str) or not value.startswith(("postgresql://", "postgresql+psycopg://",
                                                            "postgres://")):
@@ -117,7 +121,8 @@ def check_store_url(value: Any, key: str = "store") -> str:
         parts.port  # noqa: B018 - raises on a bad port
     except ValueError:
         raise ConfigError(f"{key}: not a valid URL") from None
-    if parts.password is not None:
+    query = {k.lower() for k, _ in parse_qsl(parts.query, keep_blank_values=True)}
+    if parts.password is not None or query & _SECRET_PARAMS:
         raise ConfigError(f"{key}: the URL holds a password; give it in PGPASSWORD or a "
                           "PGPASSFILE (~/.pgpass), never in the config or on the command line")
     if not parts.hostname or not parts.path.strip("/"):

@@ -132,6 +132,34 @@ def test_the_password_comes_from_the_environment(tmp_path: Path, pg_url: str,
     assert len(bad.stderr.strip().splitlines()) == 1 and "nope" not in bad.stderr
 
 
+@pytest.mark.parametrize("url", [
+    "postgresql://robid:s3cr3t-pw@db.plant:5432/robid",
+    "postgresql://robid@db.plant:5432/robid?password=s3cr3t-pw",
+    "postgresql+psycopg://robid@db.plant/robid?sslmode=require&PASSWORD=s3cr3t-pw",
+    "postgres://robid@db.plant/robid?sslpassword=s3cr3t-pw",
+])
+def test_a_password_in_the_store_url_is_refused_unprinted(tmp_path: Path, url: str,
+                                                          capsys: pytest.CaptureFixture[str]
+                                                          ) -> None:
+    """The password comes from PGPASSWORD or a PGPASSFILE: one in the URL (its user info or
+    its query string) is refused in one line that does not print it, by the config, the
+    store and ``--store``, before any connection."""
+    from robid_link.cli import main
+    from robid_link.config import load_daemon_config
+    from tests.link.conftest import write_config
+
+    with pytest.raises(ConfigError, match=r"daemon.yaml: store: the URL holds a password") as err:
+        load_daemon_config(write_config(tmp_path, store=url))
+    assert "s3cr3t" not in str(err.value) and "\n" not in str(err.value)
+    with pytest.raises(ConfigError, match=r"^store: the URL holds a password") as err:
+        Store(None, url=url, readonly=True)
+    assert "s3cr3t" not in str(err.value)
+    assert main(["status", "--store", url]) == 2
+    out, errors = capsys.readouterr()
+    assert "s3cr3t" not in out + errors and len(errors.strip().splitlines()) == 1
+    assert "the URL holds a password" in errors
+
+
 def test_logs_in_a_central_log_store(tmp_path: Path) -> None:
     """``log_store``: a folder holds the logs instead of the state dir; an fsspec URL gets a
     copy of each before its row; the row says where."""
