@@ -417,6 +417,10 @@ class Daemon:
         assert self.store is not None
         cmd, robot, ref = req["cmd"], str(req.get("robot")), req.get("set")
         by = str(req.get("by", "operator"))
+        if robot != self.robot_name:  # its store rows and its controller are another's
+            raise ConfigError(f"robot {robot}: this daemon holds robot {self.robot_name}; "
+                              f"{'approve' if cmd == 'params_approve' else 'roll back'} "
+                              f"{robot}'s parameter sets with {robot}'s own daemon")
         sets = await self.store.param_sets(robot)
         if not sets:
             raise ConfigError(f"robot {robot}: no parameter set stored yet")

@@ -18,6 +18,8 @@ from robid_link.exceptions import ConfigError, StoreLockedError
 from robid_link.link.store import Store
 from robid_link.link.store.schema import SCHEMA_VERSION
 
+from .conftest import Backend
+
 #: the schema of the SQLite-only store (version 1), as its daemons created it
 V1 = """
 CREATE TABLE runs (run_id TEXT PRIMARY KEY, campaign TEXT NOT NULL, trigger TEXT NOT NULL,
@@ -113,6 +115,29 @@ def test_robots_share_a_database_and_each_is_held_once(tmp_path: Path, pg_url: s
     Store(tmp_path / "other", url=pg_url, robot="a").close()  # released with its session
     with Store(None, url=pg_url, readonly=True) as plant:
         assert sorted(r["robot"] for r in plant.runs()) == ["a", "b"]
+
+
+def test_another_robots_parameter_set_is_refused_naming_both(tmp_path: Path,
+                                                             backend: Backend) -> None:
+    """Robot a's store may read robot b's sets (``params show``), but approving one was a
+    silent no-op (the daemon then answered 'approved'): refused in one line naming both."""
+    body = b'{"x": 1}'
+    sha = hashlib.sha256(body).hexdigest()
+    with backend.store(tmp_path / "b", robot="b") as b:
+        run_b = b.create_run("cal", "operator", {}, [])
+        b.add_param_set({"sha256": sha, "robot": "b", "run_id": run_b}, body)
+    with backend.store(tmp_path / "a" if backend.url else tmp_path / "b", robot="a") as a:
+        assert [s["sha256"] for s in a.param_sets("b")] == [sha]
+        with pytest.raises(ConfigError, match=r"^parameter set 1 of robot b \(\w{12}\): this "
+                                              r"store is robot a's; approve it with robot "
+                                              r"b's daemon$"):
+            a.approve_param_set(sha, "op")
+        with pytest.raises(ConfigError, match=r"^parameter set 0{12}: not in the store$"):
+            a.approve_param_set("0" * 64, "op")
+    with backend.store(tmp_path / "b", robot="b") as b:
+        assert b.param_sets("b")[0]["approved"] is None
+        b.approve_param_set(sha, "op")
+        assert b.param_sets("b")[0]["approved_by"] == "op"
 
 
 def test_the_password_comes_from_the_environment(tmp_path: Path, pg_url: str,
