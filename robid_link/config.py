@@ -25,7 +25,7 @@ __all__ = ["load_daemon_config", "DaemonConfig", "CampaignDef",
 _DAEMON_REQUIRED = ("robot", "state_dir", "control_socket", "driver", "campaigns")
 _DAEMON_OPTIONAL = ("lock", "socket_mode", "worker_start_method", "log_level", "web", "store",
                     "robot_name", "log_store")
-_WEB_OPTIONAL = ("listen", "tls_cert", "tls_key", "token", "token_file")
+_WEB_OPTIONAL = ("listen", "tls_cert", "tls_key", "token", "token_file", "hosts")
 _CAMPAIGN_OPTIONAL = ("identify", "diagnose", "model", "add", "method", "retries", "backoff_s",
                       "timeout_s", "reduced_speed_first", "cutoff_hz", "motor_side", "upload")
 
@@ -61,13 +61,15 @@ class CampaignDef:
 class WebConfig:
     """``web:``: the operator's page. ``listen`` HOST:PORT (the daemon serves it when set);
     TLS certificate and key; the token actions need (given, or in ``token_file``, by default
-    ``web.token`` in the state dir, mode 0600)."""
+    ``web.token`` in the state dir, mode 0600); ``hosts``: the names the page is reached by
+    besides the listen host and localhost (a request naming another Host is refused)."""
 
     listen: str | None = None
     tls_cert: Path | None = None
     tls_key: Path | None = None
     token: str | None = None
     token_file: Path | None = None
+    hosts: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -257,7 +259,27 @@ def _web(raw: Any, base: Path) -> WebConfig:
         raise ConfigError("web: give token or token_file, not both")
     paths = {k: _path(base, raw[k], f"web.{k}") if raw.get(k) else None
              for k in ("tls_cert", "tls_key", "token_file")}
-    return WebConfig(listen=raw.get("listen"), token=raw.get("token"), **paths)
+    return WebConfig(listen=raw.get("listen"), token=raw.get("token"),
+                     hosts=_web_hosts(raw.get("hosts", [])), **paths)
+
+
+def _web_hosts(raw: Any) -> tuple[str, ...]:
+    """``web.hosts``: host names or addresses, without a scheme or a port."""
+    import ipaddress
+    import re
+
+    if not isinstance(raw, list):
+        raise ConfigError(f"web.hosts: expected a list of host names, got {raw!r}")
+    for k, name in enumerate(raw):
+        try:
+            ok = isinstance(name, str) and (re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9.-]*", name)
+                                            is not None or bool(ipaddress.ip_address(name)))
+        except ValueError:
+            ok = False
+        if not ok:
+            raise ConfigError(f"web.hosts[{k}]: expected a host name or address (no scheme "
+                              f"or port), got {name!r}")
+    return tuple(name.lower().rstrip(".") for name in raw)
 
 
 def load_daemon_config(path: str | Path) -> DaemonConfig:

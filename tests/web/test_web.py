@@ -154,6 +154,66 @@ def test_actions_need_the_token_and_the_csrf_cookie(cell):
     assert _runs(cell.state) == before
 
 
+def _status_for_host(cfg: Any, listen_host: str | None, host: str, post: bool = False
+                     ) -> tuple[int, str]:
+    """The page's answer to a request naming ``host`` in its Host header."""
+    from aiohttp.test_utils import TestClient, TestServer
+
+    from robid_link.web.server import make_app
+
+    async def go() -> tuple[int, str]:
+        app = make_app(cfg, "arm3", actions=Recorder(), token=TOKEN, listen_host=listen_host)
+        async with TestClient(TestServer(app)) as client:
+            if post:
+                r = await client.post("/actions/start", data={"campaign": "nightly"},
+                                      headers={"Host": host,
+                                               "Authorization": f"Bearer {TOKEN}"})
+            else:
+                r = await client.get("/api/runs", headers={"Host": host})
+            return r.status, await r.text()
+
+    return asyncio.run(go())
+
+
+@pytest.mark.parametrize("listen_host, host, served", [
+    ("127.0.0.1", "127.0.0.1:8765", True),
+    ("127.0.0.1", "localhost:8765", True),
+    ("127.0.0.1", "LOCALHOST.", True),
+    ("127.0.0.1", "[::1]:8765", True),
+    ("127.0.0.1", "attacker.example:8765", False),  # DNS rebinding: a name that is not ours
+    ("127.0.0.1", "10.1.2.3:8765", False),
+    (None, "127.0.0.1", True),  # make_app alone: loopback names only
+    (None, "attacker.example", False),
+    ("10.1.2.3", "10.1.2.3:8765", True),
+    ("10.1.2.3", "cell-12.plant.example", False),
+    ("0.0.0.0", "10.9.8.7:8765", True),  # every address: any address, still no other name
+    ("0.0.0.0", "[fe80::1]:8765", True),
+    ("0.0.0.0", "attacker.example", False),
+    ("cell-12.plant.example", "Cell-12.Plant.Example:8765", True),
+    ("127.0.0.1", "cell-12.plant.example", True),  # web.hosts names it
+])
+def test_a_foreign_host_header_is_refused(cell, listen_host, host, served):
+    """DNS rebinding: a page of another name that resolves to the page's address must get
+    nothing (runs, parameter sets, actions): only the listen host, the loopback names and
+    ``web.hosts`` are served, anything else is 421 with one line."""
+    base = load_daemon_config(cell.config)
+    cfg = base.__class__(**{**base.__dict__, "web": base.web.__class__(
+        hosts=("cell-12.plant.example",) if listen_host == "127.0.0.1" else ())})
+    for post in (False, True):
+        status, text = _status_for_host(cfg, listen_host, host, post)
+        if served:
+            assert status == 200, (host, post, text)
+        else:
+            assert status == 421, (host, post, text)
+            assert text.count("\n") == 1 and "not a name of this page" in text
+            assert "web.hosts" in text
+
+
+def test_web_hosts_names_hosts(tmp_path):
+    cfg = load_daemon_config(write_config(tmp_path, hosts=["cell-12.plant.example", "10.0.0.7"]))
+    assert cfg.web.hosts == ("cell-12.plant.example", "10.0.0.7")
+
+
 def test_the_read_only_page_refuses_every_action(cell):
     cfg = load_daemon_config(cell.config)
     before = _runs(cell.state)
@@ -232,6 +292,9 @@ def test_the_token_file_is_private(tmp_path):
     ({"port": 1}, "web: unknown key 'port'"),
     ({"token": "short"}, "web.token: at least 16 characters"),
     ({"token": TOKEN, "token_file": "t"}, "web: give token or token_file, not both"),
+    ({"hosts": "cell-12"}, "web.hosts: expected a list of host names, got 'cell-12'"),
+    ({"hosts": ["http://cell-12"]}, r"web.hosts\[0\]: expected a host name or address "
+     r"\(no scheme or port\), got 'http://cell-12'"),
 ])
 def test_web_config_errors_name_the_key(tmp_path, web, message):
     with pytest.raises(ConfigError, match=message):
