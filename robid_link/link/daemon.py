@@ -351,7 +351,8 @@ class Daemon:
         await self.store.require_space()
         trigger = req.get("trigger", "operator")
         if str(req.get("campaign")) in self.cfg.campaigns:  # else create_run says so
-            await cp.preflight(self.cfg, self.store, self.ctx, str(req.get("campaign")))
+            await cp.preflight(self.cfg, self.store, self.ctx, str(req.get("campaign")),
+                               str(trigger))
         run_id = await cp.create_run(self.cfg, self.store, str(req.get("campaign")), trigger)
         self._queue.put_nowait(run_id)
         log.info("run=%s queued campaign=%s trigger=%s", run_id, req.get("campaign"), trigger)

@@ -223,8 +223,8 @@ class _App:
             return _refuse(request, "CSRF check failed (reload the page and submit again)")
         req = {"cmd": {"start": "start", "cancel": "cancel", "approve": "params_approve"}[name],
                **{k: str(form[k]) for k in _ACTIONS[name] if form.get(k)}, "by": "web"}
-        if name == "start":
-            req["trigger"] = "operator"
+        if name == "start":  # unattended: the page may be far from the cell
+            req["trigger"] = "web"
         try:
             ans = await self.actions(req)
         except RobidError as err:

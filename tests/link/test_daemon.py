@@ -229,6 +229,32 @@ def test_unattended_runs_need_approved_programs(tmp_path: Path, controller: Any)
     assert ran["state"] == "completed" and len(ctrl.handled) == 1
 
 
+def test_a_web_start_runs_only_approved_programs(tmp_path: Path, controller: Any) -> None:
+    """The page may be far from the cell: its start is unattended. Before the programs are
+    approved it is refused in one line and nothing is queued or given; once approved it runs,
+    and after a restart it is still held to the approvals (its trigger is stored)."""
+    from robid_link.exceptions import ApprovalError
+
+    cfg = write_config(tmp_path, {"one": ONE})
+    web = {"cmd": "start", "campaign": "one", "trigger": "web", "by": "web"}
+
+    async def body(d: Daemon) -> tuple[str, int, dict]:
+        assert d.store is not None
+        with pytest.raises(ApprovalError) as err:
+            await d.handle(web)
+        runs = len(await d.store.runs())
+        await d.handle({"cmd": "approve", "campaign": "one"})
+        ans = await d.handle(web)
+        return str(err.value), runs, await wait_run(d, ans["run_id"])
+
+    with controller() as ctrl:
+        refused, runs, ran = with_daemon(cfg, body)
+    assert re.fullmatch(r"web start refused: program of experiment rigid_body \(\w{12}\) is "
+                        r"not approved; run: robid campaign approve one --config \S+", refused)
+    assert runs == 0 and ctrl.handled[1:] == []
+    assert ran["state"] == "completed" and ran["trigger"] == "web" and len(ctrl.handled) == 1
+
+
 def test_reduced_speed_first_run(tmp_path: Path, controller: Any) -> None:
     cfg = write_config(tmp_path, {"one": {**ONE, "reduced_speed_first": 0.5}})
 

@@ -148,7 +148,7 @@ def test_actions_need_the_token_and_the_csrf_cookie(cell):
                             {"Authorization": f"Bearer {TOKEN}"})
         assert status == 200 and json.loads(text)["ok"]
         assert rec.calls == [{"cmd": "start", "campaign": "nightly", "by": "web",
-                              "trigger": "operator"},
+                              "trigger": "web"},
                              {"cmd": "cancel", "run_id": "r1", "by": "web"}]
         assert post(url + "actions/reboot", form, {"Cookie": cookie})[0] == 404
     assert _runs(cell.state) == before
@@ -326,6 +326,33 @@ def test_the_daemon_serves_its_page_with_actions(tmp_path):
     refused, status, answer, runs = asyncio.run(go())
     assert refused == 403 and runs == 0
     assert status == 400 and answer["error"] == "run nope: not in the store"
+
+
+def test_the_daemons_page_starts_only_approved_programs(tmp_path):
+    """A start from the page is unattended (the page may be far from the cell): with the
+    token and programs nobody approved, it is refused in one line and nothing is queued."""
+    import aiohttp
+
+    from robid_link.link.daemon import Daemon
+    from robid_link.web.command import daemon_service
+
+    cfg = load_daemon_config(write_config(tmp_path, listen="127.0.0.1:0"))
+
+    async def go() -> tuple[int, dict[str, Any], int]:
+        async with Daemon(cfg, env={}) as d, daemon_service(cfg)(d) as srv, \
+                aiohttp.ClientSession() as http:
+            token = (tmp_path / "state" / "web.token").read_text().strip()
+            async with http.post(srv.url + "actions/start", data={"campaign": "nightly"},
+                                 headers={"Authorization": f"Bearer {token}"}) as r:
+                status, answer = r.status, await r.json()
+            assert d.store is not None
+            return status, answer, len(await d.store.runs())
+
+    status, answer, runs = asyncio.run(go())
+    assert status == 400 and runs == 0
+    assert answer["error"].startswith("web start refused: program of experiment ")
+    assert "robid campaign approve nightly --config" in answer["error"]
+    assert "\n" not in answer["error"]
 
 
 def _named(path: Path, robot_name: str | None = None, robot: str | None = None) -> Path:
