@@ -49,11 +49,14 @@ def wait_for_run(socket_path: Path, run_id: str, poll_s: float = 0.5,
             stream.write(("\r\033[K" if tty else "") + line + ("" if tty else "\n"))
             stream.flush()
             last = line
-        if run["state"] in ("completed", "failed", "cancelled"):
+        if run["state"] in ("completed", "failed", "cancelled", "interrupted"):
             if tty:
                 stream.write("\n")
             if run["state"] == "failed":
                 stream.write(f"run {run_id} failed: {run['error']}\n")
+            elif run["state"] == "interrupted":
+                stream.write(f"run {run_id} interrupted by a daemon restart: it waits for "
+                             f"robid campaign resume {run_id}\n")
             return run
         time.sleep(poll_s)
 
@@ -65,6 +68,9 @@ def format_runs(runs: list[dict[str, Any]]) -> str:
     for r in runs:
         p = r["progress"]
         tail = r.get("error") if r["state"] == "failed" else (r.get("step") or "")
+        if r["state"] == "interrupted":
+            since = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(r["state_since"]))
+            tail = f"since {since}, {tail}"
         lines.append(f"{r['run_id']:<24} {r['campaign']:<12} {r['trigger']:<8} "
                      f"{r['state']:<10} {p['stored']}/{p['total']} logs  {tail or ''}")
     return "\n".join(lines)

@@ -1,6 +1,7 @@
 """The link daemon: store (locked state dir), driver, control socket, campaign runner and
-systemd notifications in one event loop. SIGTERM stops between journaled steps; a restart
-resumes every unfinished run."""
+systemd notifications in one event loop. SIGTERM stops between journaled steps; a restarted
+daemon finishes the bookkeeping of every unfinished run (what was given before is taken and
+stored) and then leaves it ``interrupted``: no motion until an operator resumes it."""
 
 from __future__ import annotations
 
@@ -102,6 +103,8 @@ class Daemon:
         self._cancelling: set[str] = set()
         self._run_ended = asyncio.Event()
         self._paused: list[str] = []  # runs waiting for space in the state_dir, in order
+        # runs found unfinished at start: their first execution gives nothing to the controller
+        self._bookkeeping: set[str] = set()
         self._full: str | None = None  # the one line while the state_dir is full
         self._stop = asyncio.Event()
         self.ready = asyncio.Event()
@@ -135,9 +138,7 @@ class Daemon:
                                                           cfg.socket_mode))
             tg = await stack.enter_async_context(asyncio.TaskGroup())
             await self._withdraw_orphans()
-            for run_id in await self.store.unfinished_runs():
-                log.info("run=%s resuming", run_id)
-                self._queue.put_nowait(run_id)
+            await self._interrupted_at_start()
             self._tasks = [tg.create_task(self._runner_loop(), name="robid-runner"),
                            tg.create_task(self._space_loop(), name="robid-space"),
                            tg.create_task(self._preflight_all(), name="robid-preflight")]
@@ -159,8 +160,8 @@ class Daemon:
         """Cancel the loops (the current step is journaled: an unfinished run resumes at the
         next start), then close the control socket, the driver and the store. The body's own
         exception goes on unchanged (not wrapped into the TaskGroup's ExceptionGroup)."""
-        log.info("stopping: the current step is journaled; an unfinished run resumes at the "
-                 "next start")
+        log.info("stopping: the current step is journaled; an unfinished run waits for an "
+                 "operator's resume after the next start")
         self.notifier.send(STOPPING=1, STATUS="stopping")
         for task in self._tasks:
             task.cancel()
@@ -194,11 +195,26 @@ class Daemon:
 
     def _launch(self, run_id: str) -> None:
         """The run's own task (``cancel`` stops it); awaited by ``_execute`` with no await in
-        between, so it never runs unwatched."""
+        between, so it never runs unwatched. A run found unfinished at start only has its
+        bookkeeping done (no motion)."""
         assert self.store is not None and self.robot is not None
+        may_give = run_id not in self._bookkeeping
         self._run_task = asyncio.create_task(
             cp.execute_run(self.cfg, self.store, self.driver, self.ctx, run_id, self.robot.n,
-                           self._kill), name=f"robid-run-{run_id}")
+                           self._kill, may_give=may_give), name=f"robid-run-{run_id}")
+
+    async def _interrupted_at_start(self) -> None:
+        """Unfinished runs at start: a cancel that was under way is finished; every other run
+        gets its bookkeeping (queued, no motion), then waits for an operator's resume."""
+        assert self.store is not None
+        for run_id in await self.store.unfinished_runs():
+            if any(j["step"] == "cancel_requested" for j in await self.store.journal(run_id)):
+                log.info("run=%s a cancel was under way: finishing it", run_id)
+                await self._finish_cancel(run_id)
+                continue
+            log.info("run=%s interrupted by a restart: bookkeeping, no motion", run_id)
+            self._bookkeeping.add(run_id)
+            self._queue.put_nowait(run_id)
 
     async def _execute(self, run_id: str) -> None:
         """Await the run's task; a cancel finishes it, a full state_dir pauses it."""
@@ -217,19 +233,27 @@ class Daemon:
             cause = f"{type(err).__name__}: {err}"
             log.error("run=%s internal error: %s", run_id, cause, exc_info=err)
             with contextlib.suppress(StoreFullError):
+                await self._withdraw_out(run_id)  # the stop first, then the failure
                 await self.store.set_run(run_id, "failed", error=f"internal error: {cause}")
         finally:
             self._cancelling.discard(run_id)
+            if run_id not in self._paused:  # a paused bookkeeping goes on without motion
+                self._bookkeeping.discard(run_id)
 
     async def _finish_cancel(self, run_id: str) -> None:
         """Withdraw what is still out (so no controller runs it later), keep a log that was
         already announced, journal, state ``cancelled``."""
         assert self.store is not None
+        await self._withdraw_out(run_id)
+        await self.store.set_run(run_id, "cancelled", error="cancelled by the operator")
+        log.info("run=%s cancelled", run_id)
+
+    async def _withdraw_out(self, run_id: str) -> None:
+        """Take back every program of the run that may still be out."""
+        assert self.store is not None
         for row in await self.store.experiments(run_id):
             if row["state"] in ("giving", "given", "taken") and row["nonce"]:
                 await self._withdraw_row(row)
-        await self.store.set_run(run_id, "cancelled", error="cancelled by the operator")
-        log.info("run=%s cancelled", run_id)
 
     async def _withdraw_row(self, row: dict[str, Any]) -> None:
         """Take back an experiment's 'ready'; a log the controller already announced is
@@ -243,7 +267,7 @@ class Daemon:
                                                              row["done_size"]))
                     await self.store.put_log(data, run_id=run_id, exp_id=exp_id)
                 await self.driver.withdraw(exp_id, nonce)
-        except (DriverError, OSError, TimeoutError) as err:
+        except (DriverError, OSError, TimeoutError) as err:  # OSError: the store is full
             log.warning("run=%s exp=%s withdraw failed: %s", run_id, exp_id, err)
             return
         await self.store.step(run_id, exp_id, "withdrawn")
@@ -305,19 +329,27 @@ class Daemon:
     async def _status_line(self) -> str:
         if self._full:
             return f"{self._full}; {len(self._paused)} run(s) paused"
+        assert self.store is not None
+        held = [r for r in await self.store.runs(100) if r["state"] == "interrupted"]
+        waiting = ""
+        if held:
+            since = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(
+                min(r["state_since"] for r in held)))
+            waiting = (f"; {len(held)} run(s) interrupted, waiting for an operator since "
+                       f"{since} (robid campaign resume RUN)")
         current = self._current
         if current is None:
-            return f"idle, {self._queue.qsize()} run(s) queued"
-        assert self.store is not None
+            return f"idle, {self._queue.qsize()} run(s) queued{waiting}"
         run = await self.store.run(current)
         return (f"run {current} ({run['campaign']}): {run['step'] or run['state']}, "
-                f"{run['progress']['stored']}/{run['progress']['total']} logs")
+                f"{run['progress']['stored']}/{run['progress']['total']} logs{waiting}")
 
     # ----------------------------------------------------------------- control requests
     def _command_table(self) -> dict[str, Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]]:
         """The control socket's commands: name → handler of the request."""
         return {"ping": self._ping, "start": self._start, "status": self._status,
                 "cancel": lambda req: self._cancel(str(req.get("run_id"))),
+                "resume": self._resume,
                 "results": self._results, "list": self._list, "approve": self._approve,
                 "params_approve": self._params, "params_rollback": self._params}
 
@@ -379,14 +411,33 @@ class Daemon:
                                           "duration_s": p.duration_s}
                                          for e, p in programs]}
 
+    async def _resume(self, req: dict[str, Any]) -> dict[str, Any]:
+        """An operator's go-ahead for a run interrupted by a restart (the CLI's ``campaign
+        resume``, the operator's page): it is queued and moves again from where it stopped."""
+        assert self.store is not None
+        run_id, by = str(req.get("run_id")), str(req.get("by", "operator"))
+        async with self._handover:  # (on a full disk it is paused before any motion)
+            state = (await self.store.run(run_id))["state"]
+            if state != "interrupted":
+                raise ConfigError(f"run {run_id} is {state}: only an interrupted run is "
+                                  "resumed")
+            await self.store.note(run_id, None, "resumed", by=by)
+            await self.store.set_run(run_id, "queued", step=f"resumed by {by}")
+            self._queue.put_nowait(run_id)
+        log.info("run=%s resumed by %s", run_id, by)
+        return {"ok": True, "run_id": run_id, "state": "queued",
+                "message": f"run {run_id} resumed by {by}: queued"}
+
     async def _cancel(self, run_id: str) -> dict[str, Any]:
-        """A queued (or paused) run is dropped; the running one stops at its next step,
-        after its 'ready' was withdrawn."""
+        """A queued, paused or interrupted run is dropped; the running one stops at its next
+        step, after its 'ready' was withdrawn. The request is journaled first: a daemon that
+        dies during the cancel finishes it at its next start."""
         assert self.store is not None
         async with self._handover:
             state = (await self.store.run(run_id))["state"]
-            if state not in ("queued", "running"):
+            if state not in ("queued", "running", "interrupted"):
                 raise ConfigError(f"run {run_id} is {state}: nothing to cancel")
+            await self.store.note(run_id, None, "cancel_requested")
             started = run_id == self._current and self._run_task is not None
             if started:
                 assert self._run_task is not None

@@ -42,7 +42,7 @@ _SCHEMA = """
 CREATE TABLE IF NOT EXISTS runs (
     run_id TEXT PRIMARY KEY, campaign TEXT NOT NULL, trigger TEXT NOT NULL,
     state TEXT NOT NULL, created REAL NOT NULL, started REAL, finished REAL,
-    spec TEXT NOT NULL, error TEXT, step TEXT);
+    spec TEXT NOT NULL, error TEXT, step TEXT, state_since REAL);
 CREATE TABLE IF NOT EXISTS experiments (
     run_id TEXT NOT NULL, exp_id TEXT NOT NULL, position INTEGER NOT NULL,
     kind TEXT NOT NULL, state TEXT NOT NULL, attempt INTEGER NOT NULL DEFAULT 0,
@@ -99,7 +99,14 @@ class Store:
             self.db.execute("PRAGMA journal_mode=WAL")
             self.db.execute("PRAGMA synchronous=FULL")
             self.db.executescript(_SCHEMA)
+            self._migrate()
         self.db.row_factory = sqlite3.Row
+
+    def _migrate(self) -> None:
+        """Columns added since a store was created (an older daemon's state_dir)."""
+        have = {r[1] for r in self.db.execute("PRAGMA table_info(runs)")}
+        if "state_since" not in have:
+            self.db.execute("ALTER TABLE runs ADD COLUMN state_since REAL")
 
     def _lock(self) -> None:
         path = self.dir / "lock"
@@ -167,9 +174,9 @@ class Store:
         run_id = time.strftime("%Y%m%d-%H%M%S-") + uuid.uuid4().hex[:6]
         now = time.time()
         with self._tx() as db:
-            db.execute("INSERT INTO runs (run_id, campaign, trigger, state, created, spec) "
-                       "VALUES (?, ?, ?, 'queued', ?, ?)",
-                       (run_id, campaign, trigger, now, json.dumps(spec)))
+            db.execute("INSERT INTO runs (run_id, campaign, trigger, state, created, spec, "
+                       "state_since) VALUES (?, ?, ?, 'queued', ?, ?, ?)",
+                       (run_id, campaign, trigger, now, json.dumps(spec), now))
             for pos, (exp_id, kind) in enumerate(experiments):
                 db.execute("INSERT INTO experiments (run_id, exp_id, position, kind, state, "
                            "updated) VALUES (?, ?, ?, ?, 'pending', ?)",
@@ -187,9 +194,11 @@ class Store:
                        "started = CASE WHEN ? = 'running' THEN COALESCE(started, ?) "
                        "ELSE started END, "
                        "finished = CASE WHEN ? IN ('completed', 'failed', 'cancelled') THEN ? "
-                       "ELSE NULL END "
+                       "ELSE NULL END, "
+                       "state_since = CASE WHEN state = ? THEN COALESCE(state_since, created) "
+                       "ELSE ? END "
                        "WHERE run_id = ?",
-                       (state, error, step, state, now, state, now, run_id))
+                       (state, error, step, state, now, state, now, state, now, run_id))
             self._journal(db, run_id, None, state, {"error": error} if error else {})
 
     def run(self, run_id: str) -> dict[str, Any]:
@@ -220,6 +229,8 @@ class Store:
     def _run_dict(self, row: sqlite3.Row) -> dict[str, Any]:
         d = dict(row)
         d["spec"] = json.loads(d["spec"])
+        if d.get("state_since") is None:  # a run of an older store, untouched since
+            d["state_since"] = d["created"]
         exps = self.experiments(d["run_id"])
         d["experiments"] = exps
         d["progress"] = {"stored": sum(e["log_sha"] is not None for e in exps),
