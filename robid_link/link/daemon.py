@@ -249,10 +249,12 @@ class Daemon:
         log.info("run=%s cancelled", run_id)
 
     async def _withdraw_out(self, run_id: str) -> None:
-        """Take back every program of the run that may still be out."""
+        """Take back every program of the run that may still be out (a failed attempt's
+        too: its withdraw is done before it is journaled, but a daemon of an older version
+        journaled first)."""
         assert self.store is not None
         for row in await self.store.experiments(run_id):
-            if row["state"] in ("giving", "given", "taken") and row["nonce"]:
+            if row["state"] in ("giving", "given", "taken", "attempt_failed") and row["nonce"]:
                 await self._withdraw_row(row)
 
     async def _withdraw_row(self, row: dict[str, Any]) -> None:
