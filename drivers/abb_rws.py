@@ -262,9 +262,10 @@ class AbbRwsDriver(Driver):
 
     async def _read(self, resp: aiohttp.ClientResponse, cap: int, what: str) -> bytes:
         """The body, refused as soon as it is over ``cap`` bytes (never held whole)."""
-        option = "max_log_bytes" if cap == self._log_cap else "max_answer_bytes"
+        limit = ("driver.max_answer_bytes" if cap == self._answer_cap else
+                 "driver.max_log_bytes" if cap == self._log_cap else "the size 'done' announced")
         too_big = DriverError(f"{self.name}: {what}: answer over {cap} bytes refused "
-                              f"(driver.{option})")
+                              f"({limit})")
         if resp.content_length is not None and resp.content_length > cap:
             raise too_big
         chunks, total = [], 0
@@ -465,7 +466,8 @@ class AbbRwsDriver(Driver):
         remote = log_file(done.exp_id, done.nonce)
         status, body, _ = await self._request("GET", self._file_uri(remote),
                                               what=f"download {remote}", missing_ok=True,
-                                              cap=self._log_cap,
+                                              cap=min(self._log_cap, done.size)
+                                              if done.size is not None else self._log_cap,
                                               timeout_s=self.config.transfer_timeout_s)
         if status == 404:
             raise DriverError(f"{self.name}: {remote}: log missing although 'done' was given")
