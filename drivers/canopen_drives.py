@@ -516,12 +516,22 @@ class CanopenDrivesDriver(Driver):
         path, sha, size = await self.bridge.wait(job.result)
         if job.error is not None:
             what = "quick stop on every drive" if job.quick_stop else "no quick stop needed"
-            raise DriverError(f"experiment {exp_id}: {job.error}; {what}; log captured so far "
-                              f"kept as {path} ({len(job.rows)} samples, incomplete)")
+            code = "" if job.drive_fault is None else await self._error_code(job.drive_fault)
+            raise DriverError(f"experiment {exp_id}: {job.error}{code}; {what}; log captured "
+                              f"so far kept as {path} ({len(job.rows)} samples, incomplete)")
         if job.missing_rows:
             log.warning("exp=%s %d SYNC periods without every drive's answer (gaps in the log)",
                         exp_id, job.missing_rows)
         return Done(exp_id, nonce, sha, size)
+
+    async def _error_code(self, axis: Axis) -> str:
+        """The drive's own error code after its fault: 0x603F read by SDO (an EMCY may be lost
+        or never sent), named in words."""
+        try:
+            code = await asyncio.to_thread(self._sdo, axis, 0x603F, 0, None, "<H")
+        except DriverError as err:
+            return f", error code 0x603F unreadable ({err})"
+        return f", error code 0x603F = {error_words(code)}"
 
     async def _fetch_logs(self, done: Done) -> bytes:
         path = self.record_dir / f"{done.exp_id}.{done.nonce}.log.csv"

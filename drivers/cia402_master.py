@@ -88,6 +88,7 @@ class Job:
     error: str | None = None
     missing_rows: int = 0
     quick_stop: bool = False  # ended by a fault (else finished, or ramped to rest on request)
+    drive_fault: Axis | None = None  # the drive whose own fault ended it (0x603F to be read)
     ended: threading.Event = field(default_factory=threading.Event)
     result: Future[Any] = field(default_factory=Future)
 
@@ -126,9 +127,9 @@ def _lost(axis: Axis, part: list[Any] | None, index: int) -> bool:
 
 
 class _Stop(Exception):
-    def __init__(self, axis: Axis | None, cause: str) -> None:
+    def __init__(self, axis: Axis | None, cause: str, drive_fault: bool = False) -> None:
         super().__init__(cause)
-        self.axis, self.cause = axis, cause
+        self.axis, self.cause, self.drive_fault = axis, cause, drive_fault
 
 
 class SyncMaster:
@@ -163,6 +164,11 @@ class SyncMaster:
         self.ramp: np.ndarray | None = None
         self.ramp_then = "hold"
         self.halt_reason: str | None = None
+        # something no drive of ours may send (another node on our COB-ID, two different
+        # answers to one SYNC, a TPDO mapped otherwise): seen on the notifier thread, the
+        # master stops at its next tick
+        self.protocol_fault: _Stop | None = None
+        self.duplicates = 0  # identical TPDOs repeated for one SYNC (ignored)
         self.sync_count = 0  # SYNCs sent; the next one has index sync_count
         self.next_row = 0  # the oldest SYNC index not yet recorded or given up
         # the SYNC indices every drive answered (status, pos, torque, vel per drive), None for
@@ -180,20 +186,33 @@ class SyncMaster:
 
     # -- inputs (notifier thread)
     def on_tpdo1(self, i: int, data: bytes) -> None:
-        if len(data) == TPDO1.size:  # else a drive mapped otherwise: it stays silent here
-            status, pos, counter = TPDO1.unpack(data)
-            self._answer(i, 0, counter, (status, pos))
+        if len(data) != TPDO1.size:
+            self._refuse(i, f"TPDO1 of {len(data)} bytes, {TPDO1.size} mapped")
+            return
+        status, pos, counter = TPDO1.unpack(data)
+        self._answer(i, 0, counter, (status, pos))
 
     def on_tpdo2(self, i: int, data: bytes) -> None:
-        if len(data) == TPDO2.size:
-            vel, torque, counter = TPDO2.unpack(data)
-            self._answer(i, 1, counter, (torque, vel))
+        if len(data) != TPDO2.size:
+            self._refuse(i, f"TPDO2 of {len(data)} bytes, {TPDO2.size} mapped")
+            return
+        vel, torque, counter = TPDO2.unpack(data)
+        self._answer(i, 1, counter, (torque, vel))
+
+    def _refuse(self, i: int, cause: str) -> None:
+        """A frame no drive of ours sends: the master stops every drive at its next tick."""
+        if self.protocol_fault is None:
+            self.protocol_fault = _Stop(self.axes[i], f"{cause}: not this drive's answer "
+                                                      "(another node on its COB-ID, or mapped "
+                                                      "otherwise); refused")
 
     def _answer(self, i: int, part: int, counter: int, values: tuple[int, int]) -> None:
         """A TPDO put at the SYNC it answers: the newest SYNC sent (or being sent) with its
         counter. ``max_missed`` < SYNC_OVERFLOW keeps that unambiguous: a drive whose answers
-        come later than that is stopped first."""
+        come later than that is stopped first. The same answer twice is ignored; a different
+        second answer to one SYNC is refused (two senders on one COB-ID)."""
         if not 1 <= counter <= SYNC_OVERFLOW:
+            self._refuse(i, f"TPDO{part + 1} with SYNC counter {counter} (1..{SYNC_OVERFLOW})")
             return
         with self.lock:
             newest = self.sync_count  # this SYNC may be out while its count is not yet up
@@ -201,7 +220,15 @@ class SyncMaster:
             if index < self.next_row:
                 return  # given up already (or before the master started)
             axis = self.axes[i]
-            axis.slots.setdefault(index, [None, None])[part] = values
+            slot = axis.slots.setdefault(index, [None, None])
+            if slot[part] is not None:
+                if slot[part] == values:
+                    self.duplicates += 1
+                    return
+                self._refuse(i, f"two different TPDO{part + 1} for SYNC {index} ({slot[part]} "
+                                f"and {values})")
+                return
+            slot[part] = values
             axis.heard[part] = max(axis.heard[part], index)
 
     def on_heartbeat(self, i: int, data: bytes) -> None:
@@ -267,7 +294,7 @@ class SyncMaster:
             try:
                 self._tick()
             except _Stop as stop:
-                self._halt(stop.axis, stop.cause)
+                self._halt(stop.axis, stop.cause, stop.drive_fault)
             except Exception as err:  # noqa: BLE001 - a bug must stop the drives, not the thread
                 log.exception("sync master: internal error")
                 self._halt(None, f"internal error in the motion master: {err}")
@@ -334,6 +361,8 @@ class SyncMaster:
     def _check(self, samples: list[tuple[int, int, int, int, int] | None]) -> None:
         if self.mode == "halted":
             return
+        if self.protocol_fault is not None:
+            raise self.protocol_fault
         now = time.monotonic()
         for a, s in zip(self.axes, samples, strict=True):
             if a.missed >= self.max_missed:
@@ -347,7 +376,9 @@ class SyncMaster:
             status, pos, _, _, err = s
             state = drive_state(status)
             if state in ("Fault", "Fault reaction active"):
-                raise _Stop(a, f"drive fault {error_words(err or a.emcy)}")
+                emcy = err or a.emcy  # the driver reads 0x603F after the stop and names it
+                raise _Stop(a, "drive fault" + (f" (EMCY {error_words(emcy)})" if emcy else
+                                                " (no EMCY received)"), drive_fault=True)
             if state != "Operation enabled" and self.mode != "ramp":
                 raise _Stop(a, f"drive left Operation enabled (now {state})")
             error = abs(pos - int(self.sent.get(a.newest, self.cmd)[a.joint - 1]))
@@ -459,7 +490,7 @@ class SyncMaster:
             t = job.t0 + (index - job.sync0) * job.period
             job.rows.append((t, tuple(p[1] for p in parts), tuple(p[2] for p in parts)))
 
-    def _halt(self, axis: Axis | None, cause: str) -> None:
+    def _halt(self, axis: Axis | None, cause: str, drive_fault: bool = False) -> None:
         """Quick stop on every drive (latched); the running job fails with one line."""
         where = axis.label() if axis is not None else "bus"
         line = f"{where}: {cause}"
@@ -469,6 +500,7 @@ class SyncMaster:
         log.error("quick stop on every drive: %s", line)
         if job is not None:
             job.quick_stop = True
+            job.drive_fault = axis if drive_fault else None
             self._end_job(job, line)
         self.idle.set()
         try:  # at once, not only at the next period

@@ -106,10 +106,10 @@ class _Drive:
         self.state = state
         self._status()
 
-    def fault(self, code: int) -> None:
+    def fault(self, code: int, emcy: bool = True) -> None:
         self.state, self.error = "Fault", code
         self._status()
-        if not self.silent:
+        if not self.silent and emcy:
             self.node.network.send_message(COB_EMCY + self.id, struct.pack(
                 "<HB5x", code, ERROR_REGISTER_GENERIC))
 
@@ -168,13 +168,18 @@ class Cia402Peer(Peer):
     and in order: a loaded socketcand host or network),
     ``fault_node`` (joint number the faults hit), ``fault_after_s`` (into the motion). A run
     starts with the first moving setpoint after a rest of ten SYNCs; the core's fault schedule
-    is consumed per run.
+    is consumed per run. Faults beyond the core's: ``drive_fault`` (EMCY and 0x603F),
+    ``drive_fault_quiet`` (its EMCY is lost: only 0x603F tells), ``no_boot``,
+    ``heartbeat_loss``, ``following_error``, ``dropped_frames``, and two a hostile bus plays:
+    ``foreign_tpdo`` (the fault node's TPDO1 goes out under the next node's COB-ID too) and
+    ``bad_length`` (its TPDO2 one byte short).
     """
 
     driver = "canopen_drives"
     #: the contract suite runs over the in-process virtual bus and over socketcand on loopback
     contract_variants = ({}, {"interface": "socketcand"})
-    faults = ("drive_fault", "no_boot", "heartbeat_loss", "following_error", "dropped_frames")
+    faults = ("drive_fault", "no_boot", "heartbeat_loss", "following_error", "dropped_frames",
+              "drive_fault_quiet", "foreign_tpdo", "bad_length")
     unsupported = {
         "never_answer": "the daemon streams every setpoint itself: a drive that does not "
                         "answer is a lost node, stopped within a few SYNCs (a DriverError, not "
@@ -227,6 +232,7 @@ class Cia402Peer(Peer):
         self.run_start = -1
         self.delay_buf: collections.deque[np.ndarray] = collections.deque(maxlen=1)
         self.rng = np.random.default_rng(core.seed)
+        self.hostile: str | None = None  # foreign_tpdo, bad_length: from the fault on
         self.answer_lag = int(answer_lag_periods)
         self.lag_rng = np.random.default_rng(core.seed + 1)  # apart: the noise stays the same
         self.outbox: collections.deque[tuple[int, int, bytes]] = collections.deque()
@@ -345,10 +351,21 @@ class Cia402Peer(Peer):
                    "<h")
             d._put(*SYNC_ECHO, counter, "<B")  # the SYNC these values were latched at
             if send:
-                self.outbox.extend((due, cob, data) for cob, data in d.tpdo_frames(self.k, twice))
+                self.outbox.extend((due, cob, data) for cob, data in self._frames(d, twice))
         while self.outbox and self.outbox[0][0] <= self.k and self.network is not None:
             _, cob, data = self.outbox.popleft()
             self.network.send_message(cob, data)
+
+    def _frames(self, d: _Drive, twice: bool) -> list[tuple[int, bytes]]:
+        """The drive's TPDOs of this SYNC, as a hostile bus delivers them after the fault."""
+        frames = d.tpdo_frames(self.k, twice)
+        if self.hostile is None or d.joint != self.fault_joint or not frames:
+            return frames
+        if self.hostile == "bad_length":
+            return [frames[0]] + [(cob, data[:-1]) for cob, data in frames[1:]]
+        other = self.drives[self.fault_joint % self.n]  # the next node's COB-ID
+        cob, data = frames[0]
+        return [*frames, (cob - d.id + other.id, data)]
 
     # -- the master lost: what a drive's SYNC supervision does
     def _watch_loop(self) -> None:
@@ -427,9 +444,11 @@ class Cia402Peer(Peer):
     def _inject(self, fault: str) -> None:
         d = self.drives[self.fault_joint - 1]
         log.info("fake drives: injecting %s on node %d", fault, d.id)
-        if fault in ("fail", "drive_fault"):
-            d.fault(_FAULT_CODE)
+        if fault in ("fail", "drive_fault", "drive_fault_quiet"):
+            d.fault(_FAULT_CODE, emcy=fault != "drive_fault_quiet")
             log.info("node %d: %s", d.id, error_text(_FAULT_CODE))
+        elif fault in ("foreign_tpdo", "bad_length"):
+            self.hostile = fault
         elif fault == "heartbeat_loss":
             d.node.nmt.stop_heartbeat()
         elif fault == "following_error":
