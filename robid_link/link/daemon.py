@@ -79,6 +79,10 @@ def _kill_hook(spec: str | None) -> Any:
     return hook
 
 
+#: runs waiting in the queue at most: a start (or resume) beyond it is refused in one line
+MAX_QUEUED = 64
+
+
 class Daemon:
     """The link daemon; ``async with Daemon(cfg) as d: await d.wait_stopped()``."""
 
@@ -376,12 +380,18 @@ class Daemon:
             raise StoreFullError(self._full)
         await self.store.require_space()
         trigger = req.get("trigger", "operator")
+        self._check_room()
         if str(req.get("campaign")) in self.cfg.campaigns:  # else create_run says so
             await cp.preflight(self.cfg, self.store, self.ctx, str(req.get("campaign")))
         run_id = await cp.create_run(self.cfg, self.store, str(req.get("campaign")), trigger)
         self._queue.put_nowait(run_id)
         log.info("run=%s queued campaign=%s trigger=%s", run_id, req.get("campaign"), trigger)
         return {"ok": True, "run_id": run_id}
+
+    def _check_room(self) -> None:
+        if self._queue.qsize() >= MAX_QUEUED:
+            raise ConfigError(f"{self._queue.qsize()} runs are queued already (at most "
+                              f"{MAX_QUEUED}); wait for them or cancel some")
 
     async def _status(self, req: dict[str, Any]) -> dict[str, Any]:
         assert self.store is not None
@@ -423,6 +433,7 @@ class Daemon:
             if state != "interrupted":
                 raise ConfigError(f"run {run_id} is {state}: only an interrupted run is "
                                   "resumed")
+            self._check_room()
             await self.store.note(run_id, None, "resumed", by=by)
             await self.store.set_run(run_id, "queued", step=f"resumed by {by}")
             self._queue.put_nowait(run_id)
