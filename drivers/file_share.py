@@ -44,6 +44,10 @@ _SEM = re.compile(r"^([A-Za-z0-9][A-Za-z0-9_\-]*)\.([A-Za-z0-9][A-Za-z0-9_\-]*)"
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
 #: a semaphore holds one short line; anything longer is not one
 MAX_SEM_BYTES = 4096
+#: stale or duplicate files looked at concurrently, and remembered (one warning each), at most:
+#: a share flooded with semaphores costs neither tasks nor memory without bound
+MAX_CHECKS = 32
+MAX_REMEMBERED = 1024
 MAX_LOG_BYTES = 256 * 1024 * 1024
 
 
@@ -365,7 +369,8 @@ class FileShareDriver(Driver):
         event = self._waiters.get((exp_id, nonce))
         if event is not None:
             event.set()
-        elif (exp_id, nonce) in self._taken or any(k[0] == exp_id for k in self._waiters):
+        elif ((exp_id, nonce) in self._taken or any(k[0] == exp_id for k in self._waiters)
+              ) and len(self._checks) < MAX_CHECKS:
             # one warning per file, none for the events of the answer just taken
             task = asyncio.get_running_loop().create_task(self._warn_once(name, (exp_id, nonce)))
             self._checks.add(task)
@@ -382,6 +387,8 @@ class FileShareDriver(Driver):
                         self.share, name)
         else:
             log.warning("share=%s stale_semaphore=%s (another nonce; ignored)", self.share, name)
+        if len(self._warned) >= MAX_REMEMBERED:
+            self._warned.clear()
         self._warned.add((name, ident))
 
     async def _liveness_loop(self) -> None:
@@ -422,8 +429,14 @@ class FileShareDriver(Driver):
         await asyncio.to_thread(self.transfer.folder, self.sem)
         await asyncio.to_thread(atomic_write, path, body + b"\n")
 
+    def _forget_old(self) -> None:
+        """Keep the newest MAX_REMEMBERED taken answers (dicts keep insertion order)."""
+        while len(self._taken) > MAX_REMEMBERED:
+            del self._taken[next(iter(self._taken))]
+
     async def _wait_done(self, exp_id: str, nonce: str) -> Done:
         key = (exp_id, nonce)
+        self._forget_old()
         event = asyncio.Event()
         self._waiters[key] = event
         try:
