@@ -323,16 +323,22 @@ class SerialLineDriver(Driver):
             pid = program.exp_id
             await self._request(["PROG", pid, name, len(data), sha],
                                 _starts("OK", "PROG", pid, name), what=f"PROG {name}")
-            offset = 0
+            offset, stalls = 0, 0
             while offset < len(data):
                 chunk = data[offset: offset + self.chunk]
                 got = await self._request(
                     ["PUT", pid, name, offset, base64.b64encode(chunk).decode()],
                     _starts("ACK", "PUT", pid, name, size=5), what=f"PUT {name} at {offset}")
-                offset = _int(got[4], f"PUT {name}")
-                if offset > len(data):
+                acked = _int(got[4], f"PUT {name}")
+                if acked > len(data):
                     raise DriverError(f"serial port {self.port}: controller acknowledged "
-                                      f"{offset} bytes of {name}, {len(data)} were sent")
+                                      f"{acked} bytes of {name}, {len(data)} were sent")
+                stalls = stalls + 1 if acked <= offset else 0
+                if stalls > self.retries:
+                    raise DriverError(f"serial port {self.port}: {name} makes no progress "
+                                      f"(the controller acknowledges {acked} of {len(data)} "
+                                      f"bytes, {stalls} times in a row)")
+                offset = acked
 
     async def _give_ready(self, exp_id: str, nonce: str) -> None:
         self._remember_given((exp_id, nonce))
@@ -397,7 +403,7 @@ class SerialLineDriver(Driver):
         key = (done.exp_id, done.nonce)
         data = self._partial.setdefault(key, bytearray())
         cap = self.config.max_log_bytes
-        total = done.size
+        total, stalls = done.size, 0
         while total is None or len(data) < total:
             if len(data) > cap:  # no announced size to stop at: the cap does
                 self._partial.pop(key, None)
@@ -413,10 +419,16 @@ class SerialLineDriver(Driver):
             if got[0] == "EOF" or len(got) < 5:
                 break  # the controller has no more: the base checks size and SHA-256
             try:
-                data += base64.b64decode(got[4], validate=True)
+                chunk = base64.b64decode(got[4], validate=True)
             except binascii.Error as err:
                 raise DriverError(f"serial port {self.port}: bad base64 in DATA at {off}"
                                   ) from err
+            stalls = 0 if chunk else stalls + 1
+            if stalls > self.retries:
+                raise DriverError(f"serial port {self.port}: log of experiment "
+                                  f"{done.exp_id} makes no progress (empty DATA at {off}, "
+                                  f"{stalls} times in a row)")
+            data += chunk
         self._partial.pop(key, None)
         return bytes(data)
 

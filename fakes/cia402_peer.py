@@ -76,6 +76,7 @@ class _Drive:
         self.drop_until = -1
         self.decel = 1.0  # rad/s², from 0x6085
         self.received: list[tuple[int, int, int]] = []  # per SYNC: k, target, torque offset
+        self.quick_stopped: list[float] = []  # wall-clock times of the master's quick stops
         self._put(0x1018, 4, joint, "<I")
         self._put(0x6076, 0, round(rated_nm * 1000 / 1), "<I")  # mN·m of 1000 per mille
         self._status()
@@ -99,6 +100,8 @@ class _Drive:
     def _controlword(self, cw: int) -> None:
         prev, self.cw = self.cw, cw
         state = next_state(self.state, cw, prev)
+        if state == "Quick stop active" and self.state != state:
+            self.quick_stopped.append(time.time())
         if state == "Operation enabled" and self._get(0x6060, 0, "<b") != MODE_CSP:
             state = self.state  # this drive runs only in cyclic synchronous position mode
         if self.state == "Fault" and state != "Fault":
@@ -461,6 +464,10 @@ class Cia402Peer(Peer):
                 other.node.nmt.stop_heartbeat()
             self.died.set()
             self.core.die()
+
+    def quick_stops(self) -> list[float]:
+        """When the master's quick stop reached each drive that obeyed one (tests)."""
+        return sorted(t for d in self.drives for t in d.quick_stopped)
 
     def states(self) -> dict[int, str]:
         """Each node's power state (tests)."""

@@ -393,7 +393,9 @@ class RwsPeer(Peer):
             return self._refuse(400, "cycle: expected once, forever, asis or oncedone")
         exp, nonce = self.vars["robid_exp"], self.vars["robid_nonce"]
         self._stopped.clear()
-        self._hostile = None
+        # a controller that answers garbage does so from the start of the faulted program
+        self._hostile = (self.core.fault if self.core.fault in self.hostile
+                         and self.core.faults_left > 0 else None)
         self._set_exec("running")
         t = threading.Thread(target=self._program, args=(exp, nonce, self._loaded),
                              name="rws-program", daemon=True)
@@ -598,11 +600,8 @@ class RwsPeer(Peer):
             return
         res = self.core.run(exp, nonce, csv, header)
         if res.fault in ("garbage_state", "wrong_shape", "redirect"):
-            self._hostile = res.fault
             self._until_stopped()
             return
-        if res.fault == "endless_log":
-            self._hostile = res.fault
         if res.fault in ("never_answer", "die"):
             if res.fault == "die":
                 self.core.die()
