@@ -43,21 +43,25 @@ class Axis:
     """One drive (= one joint) as the master sees it; the notifier thread fills the inputs.
 
     ``slots`` holds what the drive answered per SYNC index (its TPDOs carry the SYNC counter),
-    ``[(status, pos), (torque, vel)]`` until both came; ``heard`` the newest SYNC index each of
+    ``[(status, pos), (torque,)]`` until both came; ``heard`` the newest SYNC index each of
     its two TPDOs answered (each comes in order; the two may overtake each other on a bus),
-    ``newest`` the newest SYNC index it answered completely."""
+    ``newest`` the newest SYNC index it answered completely. The velocity (counts/s) is the
+    difference of successive answered positions (``_velocity``)."""
 
     node: int
     joint: int  # from 1
     name: str
     counts_per_rad: float
-    rated_torque_nm: float  # joint torque of 1000 per mille
+    rated_torque_nm: float  # joint torque of 1000 per mille (the torque offset's unit)
     window_counts: float  # following-error window
+    torque_unit_nm: float = 0.0  # N·m per unit of the torque object in TPDO2 (0: ‰ of rated)
     slots: dict[int, list[Any]] = field(default_factory=dict)
     heard: list[int] = field(default_factory=lambda: [-1, -1])
     newest: int = -1
     last: tuple[int, int, int, int, int] | None = None  # status, pos, torque, vel, error
     missed: int = 0
+    seen: tuple[int, int] | None = None  # (SYNC index, position) of ``last``
+    row_seen: tuple[int, int] | None = None  # (SYNC index, position) of the last recorded row
     heartbeat_at: float = 0.0
     nmt_state: int = -1
     emcy: int = 0
@@ -143,8 +147,9 @@ class SyncMaster:
                  heartbeat_timeout_s: float, max_missed: int, overrun_streak: int,
                  standstill_rad_s: float, decel_rad_s2: np.ndarray,
                  on_end: Callable[[Job], None], tap: Callable[[can.Message], None],
-                 send_lock: threading.Lock | None = None) -> None:
+                 send_lock: threading.Lock | None = None, tpdo2: Any = TPDO2) -> None:
         self.bus, self.axes, self.period = bus, list(axes), period
+        self.tpdo2 = tpdo2  # the torque object's width decides it (cia402.tpdo2_struct)
         # one frame at a time on the bus: SDO and NMT go out from other threads (a socketcand
         # client writes each frame to one TCP stream)
         self.send_lock = send_lock or threading.Lock()
@@ -193,11 +198,11 @@ class SyncMaster:
         self._answer(i, 0, counter, (status, pos))
 
     def on_tpdo2(self, i: int, data: bytes) -> None:
-        if len(data) != TPDO2.size:
-            self._refuse(i, f"TPDO2 of {len(data)} bytes, {TPDO2.size} mapped")
+        if len(data) != self.tpdo2.size:
+            self._refuse(i, f"TPDO2 of {len(data)} bytes, {self.tpdo2.size} mapped")
             return
-        vel, torque, counter = TPDO2.unpack(data)
-        self._answer(i, 1, counter, (torque, vel))
+        torque, counter = self.tpdo2.unpack(data)
+        self._answer(i, 1, counter, (torque,))
 
     def _refuse(self, i: int, cause: str) -> None:
         """A frame no drive of ours sends: the master stops every drive at its next tick."""
@@ -335,7 +340,10 @@ class SyncMaster:
                 fresh = None
                 for index, (p1, p2) in a.slots.items():
                     if p1 is not None and p2 is not None and index > a.newest:
-                        a.newest, fresh = index, (p1[0], p1[1], p2[0], p2[1], a.emcy)
+                        a.newest = index
+                        vel = self._velocity(a.seen, index, p1[1])
+                        a.seen = (index, p1[1])
+                        fresh = (p1[0], p1[1], p2[0], vel, a.emcy)
                 if fresh is not None:
                     a.last = fresh
                 out.append(fresh)
@@ -346,8 +354,12 @@ class SyncMaster:
                 done = [p for p in parts if p is not None and p[0] is not None
                         and p[1] is not None]
                 if len(done) == len(parts):
-                    self.answered.append((index, [(p[0][0], p[0][1], p[1][0], p[1][1])
-                                                  for p in done]))
+                    row = []
+                    for a, p in zip(self.axes, done, strict=True):
+                        row.append((p[0][0], p[0][1], p[1][0],
+                                    self._velocity(a.row_seen, index, p[0][1])))
+                        a.row_seen = (index, p[0][1])
+                    self.answered.append((index, row))
                 elif (all(_lost(a, p, index) for a, p in zip(self.axes, parts, strict=True))
                       or last - index >= self.max_missed):
                     self.answered.append((index, None))
@@ -357,6 +369,13 @@ class SyncMaster:
                     a.slots.pop(index, None)
                 self.next_row += 1
         return out
+
+    def _velocity(self, before: tuple[int, int] | None, index: int, pos: int) -> float:
+        """Counts/s from the position answered before (at most a few SYNCs back); an
+        unknown velocity counts as moving (never taken for standstill)."""
+        if before is None or not 0 < index - before[0] <= 4:
+            return math.inf
+        return (pos - before[1]) / ((index - before[0]) * self.period)
 
     def _check(self, samples: list[tuple[int, int, int, int, int] | None]) -> None:
         if self.mode == "halted":

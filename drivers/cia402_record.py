@@ -29,7 +29,7 @@ def log_bytes(job: Job, axes: Sequence[Axis]) -> bytes:
     head = ",".join(["t"] + [f"q{j}" for j in range(1, n + 1)]
                     + [f"tau{j}" for j in range(1, n + 1)])
     cpr = [a.counts_per_rad for a in axes]
-    scale = [a.rated_torque_nm / 1000.0 for a in axes]
+    scale = [a.torque_unit_nm or a.rated_torque_nm / 1000.0 for a in axes]
     lines = [head]
     for t, pos, tq in job.rows:
         cells = [f"{t:.6f}"] + [f"{p / c:.10g}" for p, c in zip(pos, cpr, strict=True)]

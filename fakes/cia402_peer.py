@@ -58,6 +58,8 @@ EDS = Path(str(resources.files("robid_link.fakes") / "cia402_drive.eds"))
 _SG_D1 = np.array([-3, -2, -1, 0, 1, 2, 3]) / 28.0
 _SG_D2 = np.array([5, 0, -3, -4, -3, 0, 5]) / 42.0
 _FAULT_CODE = EMCY_OVER_CURRENT
+#: the fake drives' manufacturer object with the torque actual value in mN·m (INTEGER32)
+TORQUE_FINE = (0x2101, 0)
 _MASTER_LOST = EMCY_HEARTBEAT  # here: no SYNC from the master
 
 
@@ -175,7 +177,9 @@ class Cia402Peer(Peer):
     ``drive_fault_quiet`` (its EMCY is lost: only 0x603F tells), ``no_boot``,
     ``heartbeat_loss``, ``following_error``, ``dropped_frames``, and two a hostile bus plays:
     ``foreign_tpdo`` (the fault node's TPDO1 goes out under the next node's COB-ID too) and
-    ``bad_length`` (its TPDO2 one byte short).
+    ``bad_length`` (its TPDO2 one byte short). ``counts_per_rad``: the encoders (2^27 per joint
+    turn); ``fine_torque``: the daemon maps the drives' 2101h, the torque in mN·m, instead of
+    6077h (per mille of the rated torque).
     """
 
     driver = "canopen_drives"
@@ -199,7 +203,9 @@ class Cia402Peer(Peer):
     def __init__(self, core: ControllerCore, workdir: Path, *, interface: str | None = None,
                  channel: str | None = None, port: int = 0, sync_period_s: float | None = None,
                  sync_timeout_s: float | None = None, fault_node: int | None = None,
-                 fault_after_s: float = 0.2, answer_lag_periods: int = 0) -> None:
+                 fault_after_s: float = 0.2, answer_lag_periods: int = 0,
+                 counts_per_rad: float = 2**27 / (2 * math.pi),
+                 fine_torque: bool = True) -> None:
         super().__init__(core, workdir)
         robot = core.robot
         self.n = robot.n
@@ -221,7 +227,10 @@ class Cia402Peer(Peer):
         self._quit = threading.Event()
         self._watch: threading.Thread | None = None
         self.master_lost = 0  # how many times the drives quick-stopped for a lost master
-        self.cpr = [2**20 / (2 * math.pi)] * self.n
+        # a 20-bit motor encoder behind a 128:1 gear (2^20 per joint turn, the former value,
+        # made the plant's accelerations from rounded setpoints noisy by N·m on heavy axes)
+        self.cpr = [float(counts_per_rad)] * self.n
+        self.fine_torque = fine_torque  # 2101h (INTEGER32, mN·m) mapped, not 6077h
         tau = [float(x) if math.isfinite(x) else 100.0 for x in robot.limits.tau_max]
         self.rated = [t / 3.0 for t in tau]  # peak ≈ 3 × rated, as servo drives are sized
         self.fault_joint = int(fault_node or min(2, self.n))
@@ -253,6 +262,8 @@ class Cia402Peer(Peer):
                 "nodes": [d.id for d in self.drives],
                 "sync_period_s": self.period, "counts_per_rad": self.cpr,
                 "rated_torque_nm": self.rated, "eds": str(EDS),
+                **({"torque_object": f"0x{TORQUE_FINE[0]:04X}:{TORQUE_FINE[1]}",
+                    "torque_unit_nm": [0.001] * self.n} if self.fine_torque else {}),
                 "record_dir": str(self.workdir / "records"),
                 # lenient supervision: the fake drives and the master share one Python
                 # process (GIL) on what may be a loaded test machine
@@ -352,6 +363,7 @@ class Cia402Peer(Peer):
             d._put(0x606C, 0, int(round(qd[j] * d.cpr)), "<i")
             d._put(0x6077, 0, int(np.clip(round(tau[j] / d.rated_nm * 1000), -32767, 32767)),
                    "<h")
+            d._put(*TORQUE_FINE, int(np.clip(round(tau[j] * 1000), -2**31, 2**31 - 1)), "<i")
             d._put(*SYNC_ECHO, counter, "<B")  # the SYNC these values were latched at
             if send:
                 self.outbox.extend((due, cob, data) for cob, data in self._frames(d, twice))
