@@ -161,8 +161,9 @@ class Daemon:
         return self
 
     async def __aexit__(self, *exc: Any) -> None:
-        """Cancel the loops (the current step is journaled: an unfinished run resumes at the
-        next start), then close the control socket, the driver and the store. The body's own
+        """Cancel the loops (the current step is journaled: an unfinished run gets its
+        bookkeeping at the next start, then waits for an operator's resume), then close the
+        control socket, the driver and the store. The body's own
         exception goes on unchanged (not wrapped into the TaskGroup's ExceptionGroup)."""
         log.info("stopping: the current step is journaled; an unfinished run waits for an "
                  "operator's resume after the next start")
