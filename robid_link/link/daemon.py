@@ -143,6 +143,7 @@ class Daemon:
             tg = await stack.enter_async_context(asyncio.TaskGroup())
             await self._withdraw_orphans()
             await self._interrupted_at_start()
+            ready_status = await self._status_line()  # READY is the first message systemd gets
             self._tasks = [tg.create_task(self._runner_loop(), name="robid-runner"),
                            tg.create_task(self._space_loop(), name="robid-space"),
                            tg.create_task(self._preflight_all(), name="robid-preflight")]
@@ -154,7 +155,7 @@ class Daemon:
             await stack.aclose()
             raise
         self._stack = stack
-        self.notifier.send(READY=1, STATUS=await self._status_line())
+        self.notifier.send(READY=1, STATUS=ready_status)
         self.ready.set()
         log.info("daemon ready robot=%s joints=%d driver=%s socket=%s pid=%d", self.robot.name,
                  self.robot.n, cfg.driver["name"], cfg.control_socket, os.getpid())
