@@ -29,7 +29,7 @@ class _Toy(Driver):
         super().__init__(**kw)
         self.ready: set[tuple[str, str]] = set()
         self.events: list[str] = []
-        self.give_delay_s = 0.0
+        self.give_delay_s = self.transfer_delay_s = 0.0
         self.wait_answer: Any = None
         self.alive = True
 
@@ -55,6 +55,7 @@ class _Toy(Driver):
         raise AssertionError
 
     async def _fetch_logs(self, done: Done) -> bytes:
+        await asyncio.sleep(self.transfer_delay_s)  # a controller that trickles its log
         return b"x" * 5000
 
     async def _withdraw(self, exp_id: str, nonce: str) -> None:
@@ -144,6 +145,17 @@ def test_calls_have_timeouts_and_logs_a_size_cap() -> None:
     with pytest.raises(DriverTimeoutError, match=r"give experiment exp1: no answer within "
                                                  r"0\.2 s"):
         asyncio.run(give())
+
+    toy = _Toy(transfer_timeout_s=0.2)
+    toy.transfer_delay_s = 5.0
+
+    async def trickle() -> None:
+        async with toy:
+            await toy.fetch_logs(Done("exp1", "n1", "0" * 64, None))
+
+    with pytest.raises(DriverTimeoutError, match=r"fetch log of experiment exp1: no answer "
+                                                 r"within 0\.2 s"):
+        asyncio.run(trickle())
 
     toy = _Toy(max_log_bytes=4096)
     toy.wait_answer = lambda: Done("exp1", "n1", "0" * 64, 1 << 40)
