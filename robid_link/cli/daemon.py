@@ -22,12 +22,20 @@ __all__ = ["COMMANDS"]
 
 
 def _daemon(args: argparse.Namespace) -> int:
+    """The daemon, with the operator's page as a service when the config has ``web.listen``
+    (the CLI hands it over: the link never imports the web room)."""
     import asyncio
 
     from robid_link.config import load_daemon_config
     from robid_link.link.daemon import run_daemon
 
-    return asyncio.run(run_daemon(load_daemon_config(args.config)))
+    cfg = load_daemon_config(args.config)
+    services = []
+    if cfg.web.listen:
+        from robid_link.web.command import daemon_service
+
+        services.append(daemon_service(cfg))
+    return asyncio.run(run_daemon(cfg, services))
 
 
 def _config_check(args: argparse.Namespace) -> int:
@@ -50,7 +58,7 @@ def _config_check(args: argparse.Namespace) -> int:
 def _fake_controller_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--driver", default="file_share",
                    help="the driver whose controller side to play (file_share, abb_rws, "
-                   "canopen_drives, modbus_plc, serial_line, or a plug-in's)")
+                   "canopen_drives, modbus_plc, serial_line, ur_rtde, or a plug-in's)")
     p.add_argument("--share", "--workdir", dest="workdir", required=True, metavar="DIR",
                    help="the peer's folder: the share (file_share, modbus_plc) or the "
                    "controller's file system")

@@ -23,18 +23,20 @@ PEER_ENTRY_POINT_GROUP = "robid_link.fake_peers"
 BUILTIN_DRIVERS: dict[str, tuple[str, str | None]] = {
     "file_share": ("robid_link.drivers.file_share:FileShareDriver", None),
     "abb_rws": ("robid_link.drivers.abb_rws:AbbRwsDriver", "rws"),
-    "canopen_drives": ("robid_link.drivers.canopen_drives:CanopenDrivesDriver", "can"),
+    "canopen_drives": ("robid_link.drivers.canopen.drives:CanopenDrivesDriver", "can"),
     "modbus_plc": ("robid_link.drivers.modbus_plc:ModbusPlcDriver", "modbus"),
     "serial_line": ("robid_link.drivers.serial_line:SerialLineDriver", "serial"),
+    "ur_rtde": ("robid_link.drivers.ur.rtde_driver:UrRtdeDriver", None),
 }
 
 #: the fake controller side of each built-in driver's protocol (tests, demo, fake-controller)
 BUILTIN_PEERS: dict[str, str] = {
     "file_share": "robid_link.fakes.file_share_peer:FileSharePeer",
-    "abb_rws": "robid_link.fakes.rws_peer:RwsPeer",
-    "canopen_drives": "robid_link.fakes.cia402_peer:Cia402Peer",
+    "abb_rws": "robid_link.fakes.rws.peer:RwsPeer",
+    "canopen_drives": "robid_link.fakes.canopen.peer:Cia402Peer",
     "modbus_plc": "robid_link.fakes.modbus_peer:ModbusPeer",
     "serial_line": "robid_link.fakes.serial_peer:SerialPeer",
+    "ur_rtde": "robid_link.fakes.ur.peer:UrRtdePeer",
 }
 
 #: fakes the product uses by name: the simulated robot and the protocol-neutral controller
@@ -42,10 +44,16 @@ FAKE_MODULES = {"plant": "robid_link.fakes.plant", "controller": "robid_link.fak
 
 
 def _installed(builtin: dict[str, str], group: str) -> dict[str, str]:
-    table = dict(builtin)
+    """The built-ins plus the group's entry points. A name claimed by two different targets
+    (a plug-in shadowing a built-in, or two plug-ins) maps to every claim, joined by ' | ':
+    choosing it is refused (``_load``), never silently one of them."""
+    claims: dict[str, list[str]] = {name: [target] for name, target in builtin.items()}
     for ep in entry_points(group=group):
-        table.setdefault(ep.name, ep.value)
-    return table
+        dist = getattr(ep.dist, "name", None)
+        target = ep.value if dist in (None, "robid_link", "robid-link") else f"{ep.value} ({dist})"
+        if ep.value not in [c.partition(" (")[0] for c in claims.get(ep.name, [])]:
+            claims.setdefault(ep.name, []).append(target)
+    return {name: " | ".join(targets) for name, targets in claims.items()}
 
 
 def _shipped(table: dict[str, str]) -> dict[str, str]:
@@ -69,6 +77,9 @@ def _load(kind: str, key: str, name: str, table: dict[str, str], extra: str | No
     if name not in table:
         raise ConfigError(f"{key}: unknown {kind} {name!r} "
                           f"(available: {', '.join(sorted(table))})")
+    if " | " in table[name]:
+        raise ConfigError(f"{key}: {kind} name {name!r} is claimed by {table[name]}: rename "
+                          "the plug-in's entry point")
     module_name, _, attr = table[name].partition(":")
     try:
         module = importlib.import_module(module_name)

@@ -191,3 +191,25 @@ def test_an_older_plug_in_with_a_set_of_names_still_works() -> None:
         async def _fetch_logs(self, done: Any) -> bytes: return b""
 
     assert Legacy(port=3).port == 3
+
+
+def test_a_plug_in_shadowing_a_built_in_name_is_refused(monkeypatch):
+    """A third-party entry point under a built-in's name was silently ignored: choosing the
+    name now names both claims (issue 18)."""
+    from importlib.metadata import EntryPoint
+
+    eps = [EntryPoint("file_share", "my_cell.share:ShareDriver", registry.ENTRY_POINT_GROUP),
+           EntryPoint("my_cell", "my_cell.drv:CellDriver", registry.ENTRY_POINT_GROUP),
+           EntryPoint("serial_line", "robid_link.drivers.serial_line:SerialLineDriver",
+                      registry.ENTRY_POINT_GROUP)]
+    monkeypatch.setattr(registry, "entry_points", lambda group: [
+        e for e in eps if e.group == group])
+    table = registry.available_drivers()
+    assert table["my_cell"] == "my_cell.drv:CellDriver"
+    assert table["serial_line"] == "robid_link.drivers.serial_line:SerialLineDriver"  # the same
+    with pytest.raises(ConfigError) as err:
+        registry.driver_class("file_share")
+    msg = str(err.value)
+    assert msg.startswith("driver.name: driver name 'file_share' is claimed by ")
+    assert "robid_link.drivers.file_share:FileShareDriver" in msg
+    assert "my_cell.share:ShareDriver" in msg and "\n" not in msg

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -22,17 +23,19 @@ from robid_link.ident.model.regressor import (
     structural_base_set,
 )
 from robid_link.ident.model.robot import Robot
+from robid_link.ident.model.threads import in_slots
 
 __all__ = [
     "Design",
-    "attach_predictions",
     "base_set_for",
     "block_columns",
     "design_chunks",
+    "design_rows",
     "make_design",
     "predict_torque",
     "random_states",
     "structural_mask",
+    "with_predictions",
 ]
 
 
@@ -98,10 +101,11 @@ class Design:
             plan.append((np.array(dst, dtype=int), np.array(src, dtype=int)))
         return plan
 
-    def compact(self, st: States) -> np.ndarray:
-        """(N, nnz) base-column entries of every joint row, joint after joint."""
+    def compact(self, st: States, buf: np.ndarray | None = None) -> np.ndarray:
+        """(N, nnz) base-column entries of every joint row, joint after joint (in the first
+        rows of ``buf`` when given: a pass reuses one buffer)."""
         n_samp = len(st)
-        out = np.empty((n_samp, self.nnz))
+        out = np.empty((n_samp, self.nnz)) if buf is None else buf[:n_samp]
         n = self.robot.n
         for blk, (dst, src) in zip(self.blocks, self._gathers, strict=True):
             if dst.size == 0:
@@ -200,9 +204,22 @@ def design_chunks(design: Design, piece: Piece, interval: int = 1, filtered: boo
             b = min(a + chunk, piece.hi)
             yield design.compact(prep.states(a, b)), prep.tau[a:b], np.arange(a, b)
         return
-    for a, b, ca, cb, at_edge in filter_windows(piece, interval, chunk):
-        c = prep.filt.apply(design.compact(prep.states(ca, cb)), edges=at_edge)
-        yield c[a - ca: b - ca: interval], prep.tau_f[a:b:interval], np.arange(a, b, interval)
+    for window in filter_windows(piece, interval, chunk):
+        yield design_rows(design, piece, window, interval)
+
+
+def design_rows(design: Design, piece: Piece, window: tuple[int, int, int, int, bool],
+                interval: int = 1, buf: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The training rows of one ``filter_windows`` window of a piece: parallel-filtered
+    compact columns (in ``buf`` when given), filtered torque and sample index, decimated by
+    ``interval``."""
+    a, b, ca, cb, at_edge = window
+    prep = piece.prep
+    c = design.compact(prep.states(ca, cb), buf)
+    prep.filt.apply_inplace(c, edges=at_edge)
+    return c[a - ca: b - ca: interval], prep.tau_f_rows(a, b)[::interval], \
+        np.arange(a, b, interval)
 
 
 def predict_torque(design: Design, prep: Prepared, theta: np.ndarray,
@@ -216,23 +233,29 @@ def predict_torque(design: Design, prep: Prepared, theta: np.ndarray,
     return out
 
 
-def attach_predictions(robot: Robot, preps: Sequence[Prepared], design: Design,
-                       theta: np.ndarray) -> None:
-    """The current model's rigid torque and torque rate on every sample (effects that depend
-    on the model's own torque — load friction, delay, the diagnosis' candidates — read them)."""
+def with_predictions(robot: Robot, preps: Sequence[Prepared], design: Design,
+                     theta: np.ndarray) -> list[Prepared]:
+    """The prepared logs with the current model's torque, rigid torque and torque rate on
+    every sample (effects that depend on the model's own torque — load friction, delay, the
+    diagnosis' candidates — read them); the given ones are left as they are."""
     blocks = design.blocks
     n_rigid = 10 * robot.n if blocks and blocks[0].effect.name == "rigid_body" else 0
     rigid_theta = theta.copy()
     rigid_theta[np.asarray(design.cols) >= n_rigid] = 0.0
+    out = []
     for prep in preps:
         n = len(prep.log)
         full = np.zeros((n, robot.n))
         rigid = np.zeros((n, robot.n))
-        for a in range(0, n, CHUNK):
-            b = min(a + CHUNK, n)
+
+        def work(a: int, slot: int, prep: Prepared = prep, full: np.ndarray = full,
+                 rigid: np.ndarray = rigid) -> None:
+            b = min(a + CHUNK, len(prep.log))
             c = design.compact(prep.states(a, b))
             full[a:b] = design.predict(c, theta)
             rigid[a:b] = design.predict(c, rigid_theta)
-        prep.tau_rigid = rigid
-        prep.tau_model = full
-        prep.tau_rate = np.gradient(full, 1.0 / prep.filt.fs, axis=0)
+
+        in_slots(range(0, n, CHUNK), work)
+        out.append(replace(prep, tau_rigid=rigid, tau_model=full,
+                           tau_rate=np.gradient(full, 1.0 / prep.filt.fs, axis=0)))
+    return out
