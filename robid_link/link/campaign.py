@@ -14,9 +14,15 @@ from typing import Any
 
 from robid_link import jobs as jb
 from robid_link.config import CampaignDef, DaemonConfig, ExperimentDef
-from robid_link.exceptions import ApprovalError, ConfigError, RobidError, StoreFullError
+from robid_link.exceptions import (
+    ApprovalError,
+    ConfigError,
+    RobidError,
+    StoreFullError,
+    StoreUnavailableError,
+)
 from robid_link.jobs import MotionProgram
-from robid_link.link.cycle import CyclePolicy, MotionWithheld, run_cycle
+from robid_link.link.cycle import CyclePolicy, MotionWithheld, Withdrawn, run_cycle
 from robid_link.link.driver import CAP_UPLOAD, Driver, FeedforwardSource, parameter_bytes
 from robid_link.link.store import AsyncStore, Store
 from robid_link.link.worker import run_here, run_in_worker
@@ -201,9 +207,12 @@ async def _generated(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: s
 
 async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: Any, run_id: str,
                       n_joints: int, kill_hook: Callable[[str], None] = lambda step: None,
-                      *, may_give: bool = True) -> None:
+                      *, may_give: bool = True,
+                      on_withdrawn: Withdrawn = lambda exp_id, nonce: None) -> None:
     """Run or resume ``run_id`` to completed/failed (logs are checked for ``n_joints``, the
-    robot's). Cancellation leaves it resumable. Without ``may_give`` (a daemon's first look at
+    robot's). Cancellation leaves it resumable, and so does a store that cannot be written
+    (full, unreachable: StoreFullError, StoreUnavailableError go on to the daemon, what was
+    given withdrawn first). Without ``may_give`` (a daemon's first look at
     a run it found unfinished) only its bookkeeping is done — what was given before is taken
     and stored, what needs no motion is computed — and it stops ``interrupted`` where a program
     or a parameter set would go to the controller."""
@@ -242,7 +251,8 @@ async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx:
             policy = CyclePolicy(camp.timeout_s or 2 * program.duration_s + 60.0, camp.retries,
                                  camp.backoff_s)
             shas[exp_id] = await run_cycle(store, driver, run_id, exp_id, program, policy,
-                                           check, kill_hook, may_give=may_give)
+                                           check, kill_hook, may_give=may_give,
+                                           on_withdrawn=on_withdrawn)
 
         for k, (exp_id, program) in enumerate(first, 1):
             await cycle(k, exp_id, program)
@@ -256,8 +266,8 @@ async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx:
                                                         if kinds.get(e) == "verify"])
         await _elasticity(cfg, store, ctx, run_id, [(e, p, shas[e]) for e, p in programs
                                                     if kinds.get(e) == "elasticity"])
-    except StoreFullError:
-        raise  # not the run's fault: it waits, journaled as it is, until space returns
+    except (StoreFullError, StoreUnavailableError):
+        raise  # not the run's fault: it waits, journaled as it is, until the store is back
     except MotionWithheld as held:
         await store.set_run(run_id, "interrupted", step=f"waiting for the operator before "
                             f"{held.exp_id}: robid campaign resume {run_id}")

@@ -17,7 +17,14 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
-from robid_link.exceptions import CycleError, DataError, DriverError, ProtocolError
+from robid_link.exceptions import (
+    CycleError,
+    DataError,
+    DriverError,
+    ProtocolError,
+    StoreFullError,
+    StoreUnavailableError,
+)
 from robid_link.jobs import MotionProgram
 from robid_link.link.driver import Done, Driver
 from robid_link.link.retry import Backoff
@@ -30,6 +37,9 @@ log = logging.getLogger("robid.cycle")
 #: test hook: ``ROBID_FAULT_KILL_AFTER=step[:n]`` SIGKILLs the daemon right after the n-th
 #: journal entry of that step (proves resumption at every point of the cycle)
 KillHook = Callable[[str], None]
+#: told ``(exp_id, nonce)`` of an attempt withdrawn while the store could not journal it
+#: (the daemon journals it when the store answers again)
+Withdrawn = Callable[[str, str], None]
 
 #: after a restart, the least time an attempt given before it is waited for (its own timeout
 #: may have run out while no daemon watched: its answer may be there all the same)
@@ -64,10 +74,14 @@ def new_nonce() -> str:
 async def run_cycle(store: AsyncStore, driver: Driver, run_id: str, exp_id: str,
                     program: MotionProgram, policy: CyclePolicy,
                     check_log: Callable[[str], Awaitable[Any]],
-                    kill_hook: KillHook = lambda step: None, *, may_give: bool = True) -> str:
+                    kill_hook: KillHook = lambda step: None, *, may_give: bool = True,
+                    on_withdrawn: Withdrawn = lambda exp_id, nonce: None) -> str:
     """Run (or resume) one experiment; returns the SHA-256 of its stored, checked log. With
     ``may_give`` false nothing is given: an attempt given before is taken (within what is left
-    of its timeout) and stored, and ``MotionWithheld`` is raised where a give would follow."""
+    of its timeout) and stored, and ``MotionWithheld`` is raised where a give would follow.
+    Anything else failing while a program is out (the store unreachable or full, a bug)
+    withdraws it before the error goes on (``on_withdrawn`` is told when the store could not
+    journal that)."""
     if program.exp_id != exp_id:  # a cached program shared by two experiments (same content)
         program = dataclasses.replace(program, exp_id=exp_id)
     row = await store.experiment(run_id, exp_id)
@@ -94,6 +108,7 @@ async def run_cycle(store: AsyncStore, driver: Driver, run_id: str, exp_id: str,
     if not may_give and state == "given":  # taken within what is left of its timeout
         take_s = max(BOOKKEEPING_TAKE_S, policy.timeout_s - (time.time() - row["updated"]))
     while True:
+        answered = False  # the controller announced this attempt's end: nothing to stop
         try:
             if nonce is None and not may_give:
                 raise MotionWithheld(exp_id)
@@ -117,6 +132,7 @@ async def run_cycle(store: AsyncStore, driver: Driver, run_id: str, exp_id: str,
                 state = "given"
             if state == "given":
                 done = await driver.take_done(exp_id, nonce, take_s)
+                answered = True
                 await store.step(run_id, exp_id, "taken", done_sha=done.sha256,
                                  done_size=done.size)
                 log.info("run=%s exp=%s step=taken sha256=%s", run_id, exp_id, done.sha256[:12])
@@ -145,11 +161,12 @@ async def run_cycle(store: AsyncStore, driver: Driver, run_id: str, exp_id: str,
         except (DriverError, DataError) as err:
             # the stop/abort goes out before the failure is stored: nothing the controller
             # could still run waits on a journal write
+            await _withdraw(driver, run_id, exp_id, nonce)
             try:
-                await driver.withdraw(exp_id, nonce)
-            except DriverError as werr:
-                log.warning("run=%s exp=%s withdraw failed: %s", run_id, exp_id, werr)
-            await store.step(run_id, exp_id, "attempt_failed", error=str(err))
+                await store.step(run_id, exp_id, "attempt_failed", error=str(err))
+            except (StoreFullError, StoreUnavailableError):
+                on_withdrawn(exp_id, nonce)
+                raise
             log.warning("run=%s exp=%s attempt=%d failed: %s", run_id, exp_id, attempt, err)
             if isinstance(err, ProtocolError):  # the robot may have moved: an operator decides
                 await store.step(run_id, exp_id, "failed", error=str(err))
@@ -166,3 +183,21 @@ async def run_cycle(store: AsyncStore, driver: Driver, run_id: str, exp_id: str,
                              delay_s=round(delay, 3))
             await asyncio.sleep(delay)
             nonce, state, take_s = None, "pending", policy.timeout_s
+        except Exception as err:
+            # the store (or a bug) failed while a program may be out: the robot is stopped
+            # before the error goes on (the run waits, or fails, with nothing running)
+            if nonce and state in ("giving", "given") and not answered:
+                log.warning("run=%s exp=%s withdrawing attempt %d: %s", run_id, exp_id,
+                            attempt, str(err).splitlines()[0] if str(err) else
+                            type(err).__name__)
+                await _withdraw(driver, run_id, exp_id, nonce)
+                if isinstance(err, (StoreFullError, StoreUnavailableError)):
+                    on_withdrawn(exp_id, nonce)
+            raise
+
+
+async def _withdraw(driver: Driver, run_id: str, exp_id: str, nonce: str) -> None:
+    try:
+        await driver.withdraw(exp_id, nonce)
+    except DriverError as err:
+        log.warning("run=%s exp=%s withdraw failed: %s", run_id, exp_id, err)

@@ -18,7 +18,13 @@ from contextlib import AbstractAsyncContextManager
 from typing import Any, TextIO
 
 from robid_link.config import DaemonConfig
-from robid_link.exceptions import ConfigError, DriverError, RobidError, StoreFullError
+from robid_link.exceptions import (
+    ConfigError,
+    DriverError,
+    RobidError,
+    StoreFullError,
+    StoreUnavailableError,
+)
 from robid_link.jobs import WORKER_PRELOAD, RobotInfo, RobotInfoJob
 from robid_link.link import campaign as cp
 from robid_link.link.control import ControlServer
@@ -111,7 +117,11 @@ class Daemon:
         self._paused: list[str] = []  # runs waiting for space in the state_dir, in order
         # runs found unfinished at start: their first execution gives nothing to the controller
         self._bookkeeping: set[str] = set()
-        self._full: str | None = None  # the one line while the state_dir is full
+        # the one line while the store cannot take a run (state_dir full, database unreachable)
+        self._full: str | None = None
+        self._unreachable = False  # the store's database did not answer: probe it
+        # attempts withdrawn while the store could not journal it: (run_id, exp_id, nonce)
+        self._withdrawn: list[tuple[str, str, str]] = []
         self._stop = asyncio.Event()
         self.ready = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
@@ -189,23 +199,39 @@ class Daemon:
         log.info("daemon stopped")
 
     async def _runner_loop(self) -> None:
-        assert self.store is not None
+        """Runs one after the other. A store that fails between a run's steps pauses the run
+        (resumed when it answers again): the loop, and the daemon, stay up."""
         while True:
             run_id = await self._queue.get()
-            async with self._handover:  # a cancel finds the run queued or started, never between
-                if (await self.store.run(run_id))["state"] not in ("queued", "running"):
-                    continue  # cancelled while it waited
-                self._current = run_id
-                self._run_ended.clear()
-                status = await self._status_line()
-                self._launch(run_id)
-            self.notifier.send(STATUS=status)
             try:
-                await self._execute(run_id)
-            finally:
-                self._current, self._run_task = None, None
-                self._run_ended.set()
-                self.notifier.send(STATUS=await self._status_line())
+                await self._run_one(run_id)
+                await self._withdraw_orphans()  # a run that ended leaves nothing given
+            except (StoreFullError, StoreUnavailableError) as err:
+                self._pause(run_id, err)
+            self.notifier.send(STATUS=await self._status_line())
+
+    async def _run_one(self, run_id: str) -> None:
+        assert self.store is not None
+        async with self._handover:  # a cancel finds the run queued or started, never between
+            if (await self.store.run(run_id))["state"] not in ("queued", "running"):
+                return  # cancelled while it waited
+            self._current = run_id
+            self._run_ended.clear()
+            status = await self._status_line()
+            self._launch(run_id)
+        self.notifier.send(STATUS=status)
+        try:
+            await self._execute(run_id)
+        finally:
+            self._current, self._run_task = None, None
+            self._run_ended.set()
+
+    def _pause(self, run_id: str, err: StoreFullError | StoreUnavailableError) -> None:
+        """The run waits, journaled as it is, until the store takes writes again."""
+        if run_id not in self._paused:
+            self._paused.append(run_id)
+        self._unreachable = self._unreachable or isinstance(err, StoreUnavailableError)
+        self._set_full(str(err))
 
     def _launch(self, run_id: str) -> None:
         """The run's own task (``cancel`` stops it); awaited by ``_execute`` with no await in
@@ -215,7 +241,9 @@ class Daemon:
         may_give = run_id not in self._bookkeeping
         self._run_task = asyncio.create_task(
             cp.execute_run(self.cfg, self.store, self.driver, self.ctx, run_id, self.robot.n,
-                           self._kill, may_give=may_give), name=f"robid-run-{run_id}")
+                           self._kill, may_give=may_give,
+                           on_withdrawn=lambda e, n: self._withdrawn.append((run_id, e, n))),
+            name=f"robid-run-{run_id}")
 
     async def _interrupted_at_start(self) -> None:
         """Unfinished runs at start: a cancel that was under way is finished; every other run
@@ -231,7 +259,8 @@ class Daemon:
             self._queue.put_nowait(run_id)
 
     async def _execute(self, run_id: str) -> None:
-        """Await the run's task; a cancel finishes it, a full state_dir pauses it."""
+        """Await the run's task; a cancel finishes it, a store that cannot be written (full,
+        unreachable) pauses it (what it gave was withdrawn first)."""
         assert self.store is not None and self._run_task is not None
         try:
             await self._run_task
@@ -240,13 +269,12 @@ class Daemon:
             if run_id not in self._cancelling or (current and current.cancelling()):
                 raise  # the daemon stops: the run resumes at the next start
             await self._finish_cancel(run_id)
-        except StoreFullError as err:
-            self._paused.append(run_id)
-            self._set_full(str(err))
+        except (StoreFullError, StoreUnavailableError) as err:
+            self._pause(run_id, err)
         except Exception as err:  # a bug must fail its run, not the daemon (or resume loop)
             cause = f"{type(err).__name__}: {err}"
             log.error("run=%s internal error: %s", run_id, cause, exc_info=err)
-            with contextlib.suppress(StoreFullError):
+            with contextlib.suppress(StoreFullError, StoreUnavailableError):
                 await self._withdraw_out(run_id)  # the stop first, then the failure
                 await self.store.set_run(run_id, "failed", error=f"internal error: {cause}")
         finally:
@@ -301,40 +329,63 @@ class Daemon:
         for name in self.cfg.campaigns:
             try:
                 await cp.preflight(self.cfg, self.store, self.ctx, name)
-            except StoreFullError as err:
+            except (StoreFullError, StoreUnavailableError) as err:
                 self._set_full(str(err))
+                self._unreachable = self._unreachable or isinstance(err, StoreUnavailableError)
                 return
             except RobidError as err:
                 log.error("%s: campaign %s: %s (start refused until fixed)", self.cfg.path,
                           name, err)
 
     def _set_full(self, line: str | None) -> None:
-        """One log line when the state_dir fills up, one when room returns."""
+        """One log line when the store stops taking runs (full, unreachable), one when it
+        takes them again."""
         if line and not self._full:
             log.error("%s; new runs refused, status still served", line)
         elif not line and self._full:
-            log.info("state_dir has room again: resuming %d paused run(s)", len(self._paused))
+            log.info("the store takes writes again: resuming %d paused run(s)",
+                     len(self._paused))
         self._full = line
 
     #: how often the free space of the state_dir is looked at
     space_poll_s = 5.0
 
     async def _space_loop(self) -> None:
-        """Check for room every few seconds (from the start: a daemon started on a full disk
-        serves status and waits); re-queue the paused runs when it returns."""
+        """Check for room (and, after a failure, that the database answers) every few seconds
+        (from the start: a daemon started on a full disk serves status and waits); when the
+        store is back, journal what was withdrawn meanwhile and re-queue the paused runs. A
+        lost robot lock (StoreLockLostError) never comes back: no motion until a restart."""
         assert self.store is not None
         while True:
             try:
                 await self.store.require_space()
-            except StoreFullError as err:
-                self._set_full(str(err))
-            else:
+                if self._unreachable:
+                    await self.store.unfinished_runs()  # a read: reconnects, takes the lock
                 if self._full:
-                    self._set_full(None)
-                    for run_id in self._paused:
-                        self._queue.put_nowait(run_id)
-                    self._paused.clear()
+                    await self._store_back()
+            except (StoreFullError, StoreUnavailableError) as err:
+                self._set_full(str(err))
             await asyncio.sleep(self.space_poll_s)
+
+    async def _store_back(self) -> None:
+        assert self.store is not None
+        while self._withdrawn:
+            run_id, exp_id, nonce = self._withdrawn[0]
+            row = await self.store.experiment(run_id, exp_id)
+            if row["nonce"] == nonce and row["state"] in ("giving", "given"):
+                await self.store.step(run_id, exp_id, "attempt_failed",
+                                      error=f"withdrawn: {self._full}")
+            self._withdrawn.pop(0)
+        await self._withdraw_orphans()
+        self._unreachable = False
+        self._set_full(None)
+        while self._paused:
+            run_id = self._paused[0]
+            if any(j["step"] == "cancel_requested" for j in await self.store.journal(run_id)):
+                await self._finish_cancel(run_id)  # a cancel the outage interrupted
+            else:
+                self._queue.put_nowait(run_id)
+            self._paused.pop(0)
 
     async def _watchdog_loop(self) -> None:
         assert self.notifier.watchdog_s is not None
@@ -345,6 +396,12 @@ class Daemon:
     async def _status_line(self) -> str:
         if self._full:
             return f"{self._full}; {len(self._paused)} run(s) paused"
+        try:
+            return await self._store_status()
+        except (StoreFullError, StoreUnavailableError) as err:
+            return f"{err}; {len(self._paused)} run(s) paused"
+
+    async def _store_status(self) -> str:
         assert self.store is not None
         held = [r for r in await self.store.runs(100) if r["state"] == "interrupted"]
         waiting = ""
@@ -387,7 +444,7 @@ class Daemon:
     async def _start(self, req: dict[str, Any]) -> dict[str, Any]:
         assert self.store is not None
         if self._full:
-            raise StoreFullError(self._full)
+            raise (StoreUnavailableError if self._unreachable else StoreFullError)(self._full)
         await self.store.require_space()
         trigger = req.get("trigger", "operator")
         self._check_room()
@@ -404,9 +461,15 @@ class Daemon:
                               f"{MAX_QUEUED}); wait for them or cancel some")
 
     async def _status(self, req: dict[str, Any]) -> dict[str, Any]:
+        """The runs and the status line; with the store unreachable, the line only (the
+        daemon's own state: what is paused, why)."""
         assert self.store is not None
-        runs = ([await self.store.run(req["run_id"])] if req.get("run_id")
-                else await self.store.runs(int(req.get("limit", 20))))
+        try:
+            runs = ([await self.store.run(req["run_id"])] if req.get("run_id")
+                    else await self.store.runs(int(req.get("limit", 20))))
+        except StoreUnavailableError as err:
+            self._unreachable = True
+            raise StoreUnavailableError(await self._status_line()) from err
         drift = [f.message for f in cp.drift_flags_of(await self.store.results(self.robot_name),
                                                        self.robot_name)] \
             if self.robot_name else []
