@@ -1,12 +1,16 @@
 """``robid demo --driver X`` over every link, from the plain install (issue 19, item 6): each
 tells the same story — the hidden effect (ripple on axis 1) found by the diagnosis, the
 validation error of axis 1 falling once it is added — and, where the link can upload, the
-calibration runs too. ``--quick`` (a 20 s excitation) keeps the five runs to a few minutes;
-``tests/test_cli.py`` runs the full-length demo of ``make demo``."""
+calibration runs too. ``--quick`` (a 20 s excitation). ``make test`` runs the one link whose
+story needed its own read-out (CANopen's torque object); the others run under ``make
+validate`` (each demo is a minute or more on two shared cores). ``tests/test_cli.py`` runs the
+full-length file-share demo of ``make demo`` in ``make test``, ``tests/drivers/test_ur_rtde.py``
+the UR one under ``make validate``."""
 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -15,7 +19,10 @@ import pytest
 
 from robid_link.demo import HIDDEN
 
-LINKS = ["file_share", "abb_rws", "canopen_drives", "modbus_plc", "serial_line"]
+VALIDATE = [pytest.mark.slow, pytest.mark.skipif(not os.environ.get("ROBID_VALIDATE"),
+                                                 reason="make validate")]
+LINKS = [pytest.param("abb_rws", marks=VALIDATE), "canopen_drives",
+         pytest.param("modbus_plc", marks=VALIDATE), pytest.param("serial_line", marks=VALIDATE)]
 
 
 @pytest.mark.demo
