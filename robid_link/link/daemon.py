@@ -363,6 +363,7 @@ class Daemon:
                     await self.store.unfinished_runs()  # a read: reconnects, takes the lock
                 if self._full:
                     await self._store_back()
+                self._unreachable = False
             except (StoreFullError, StoreUnavailableError) as err:
                 self._set_full(str(err))
             await asyncio.sleep(self.space_poll_s)

@@ -319,3 +319,48 @@ def test_a_lock_lost_with_the_connection_is_latched(tmp_path: Path, pg_url: str)
     finally:
         a.close()
         b.close()
+
+
+def test_a_daemon_on_postgres_rides_out_an_outage(
+        tmp_path: Path, postgres: Any, proxy: _Proxy, controller: Any,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The review's case end to end: a daemon whose store is a real PostgreSQL that goes away
+    as the attempt is given. The daemon stays up and answers, the attempt is withdrawn, and
+    the run completes once the server is reachable again."""
+    from tests.servers import PG_PASSWORD
+
+    monkeypatch.setenv("PGPASSWORD", PG_PASSWORD)
+    monkeypatch.setattr(Daemon, "space_poll_s", 0.2)
+    url = postgres.create_database().replace(f":{postgres.port}/", f":{proxy.port}/")
+    cfg = write_config(tmp_path, {"one": ONE}, store=url, robot_name="cell-1")
+    events = _Events(monkeypatch)
+    real = ThreadedStore.step
+
+    async def step(self: Any, run_id: str, exp_id: str, state: str, **kw: Any) -> None:
+        if state == "given" and not events.failed:
+            proxy.cut()
+            try:
+                await real(self, run_id, exp_id, state, **kw)
+            finally:
+                events.failed = True
+        await real(self, run_id, exp_id, state, **kw)
+
+    monkeypatch.setattr(ThreadedStore, "step", step)
+
+    async def body(d: Daemon) -> tuple[Any, ...]:
+        run_id = (await d.handle({"cmd": "start", "campaign": "one"}))["run_id"]
+        await until(lambda: run_id in d._paused, 30)
+        ping = await d.handle({"cmd": "ping"})
+        with pytest.raises(StoreUnavailableError) as status:
+            await d.handle({"cmd": "status"})
+        proxy.restore()
+        await until(lambda: state_is(d, run_id, "completed"), 60)
+        assert d.store is not None
+        return ping, str(status.value), await d.store.run(run_id)
+
+    with controller():
+        ping, status, run = with_daemon(cfg, body)
+    assert ping["ok"] and events.seen[:1] == ["withdraw"], events.seen
+    assert status.startswith(f"store postgresql://robid@127.0.0.1:{proxy.port}/")
+    assert "1 run(s) paused" in status and PG_PASSWORD not in status
+    assert run["experiments"][0]["attempt"] == 2 and run["state"] == "completed"
