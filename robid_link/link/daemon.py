@@ -88,6 +88,9 @@ def _kill_hook(spec: str | None) -> Any:
 
 #: runs waiting in the queue at most: a start (or resume) beyond it is refused in one line
 MAX_QUEUED = 64
+#: times a run's attempt may be withdrawn for a store failure before the run fails (a store
+#: that fails on the same write again and again must not make the robot start over forever)
+MAX_OUTAGES = 3
 
 
 class Daemon:
@@ -122,6 +125,7 @@ class Daemon:
         self._unreachable = False  # the store's database did not answer: probe it
         # attempts withdrawn while the store could not journal it: (run_id, exp_id, nonce)
         self._withdrawn: list[tuple[str, str, str]] = []
+        self._outages: dict[str, int] = {}  # run_id → attempts withdrawn for the store
         self._stop = asyncio.Event()
         self.ready = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
@@ -370,12 +374,14 @@ class Daemon:
 
     async def _store_back(self) -> None:
         assert self.store is not None
+        line = self._full
         while self._withdrawn:
             run_id, exp_id, nonce = self._withdrawn[0]
             row = await self.store.experiment(run_id, exp_id)
             if row["nonce"] == nonce and row["state"] in ("giving", "given"):
                 await self.store.step(run_id, exp_id, "attempt_failed",
-                                      error=f"withdrawn: {self._full}")
+                                      error=f"withdrawn: {line}")
+                self._outages[run_id] = self._outages.get(run_id, 0) + 1
             self._withdrawn.pop(0)
         await self._withdraw_orphans()
         self._unreachable = False
@@ -384,6 +390,10 @@ class Daemon:
             run_id = self._paused[0]
             if any(j["step"] == "cancel_requested" for j in await self.store.journal(run_id)):
                 await self._finish_cancel(run_id)  # a cancel the outage interrupted
+            elif self._outages.get(run_id, 0) > MAX_OUTAGES:
+                await self.store.set_run(run_id, "failed", error=(
+                    f"the store failed while an attempt was out {self._outages[run_id]} "
+                    f"times (each withdrawn); last: {line}"))
             else:
                 self._queue.put_nowait(run_id)
             self._paused.pop(0)

@@ -161,6 +161,45 @@ def test_an_unreachable_store_pauses_the_run_and_it_goes_on_when_back(
     assert exp["state"] == "stored" and exp["attempt"] == 2  # the withdrawn one, then a new one
 
 
+def test_a_store_failing_on_every_give_fails_the_run_after_a_few(
+        tmp_path: Path, controller: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A store that fails on the same write each time must not make the robot start over
+    forever: past MAX_OUTAGES withdrawn attempts the run fails in one line."""
+    from robid_link.link import daemon as dm
+
+    monkeypatch.setattr(dm, "MAX_OUTAGES", 1)
+    cfg = write_config(tmp_path, {"one": ONE})
+    outage = _Outage(monkeypatch)
+    real = ThreadedStore.step
+
+    async def step(self: Any, run_id: str, exp_id: str, state: str, **kw: Any) -> None:
+        if state == "given":
+            outage.down = True
+        await real(self, run_id, exp_id, state, **kw)
+
+    monkeypatch.setattr(ThreadedStore, "step", step)
+
+    async def body(d: Daemon) -> dict:
+        assert d.store is not None
+        run_id = (await d.handle({"cmd": "start", "campaign": "one"}))["run_id"]
+        async with asyncio.timeout(60):
+            while True:
+                await asyncio.sleep(0.05)
+                if run_id in d._paused:
+                    outage.down = False  # back, until the next give
+                with contextlib.suppress(StoreUnavailableError):
+                    run = await d.store.run(run_id)
+                    if run["state"] == "failed":
+                        return run
+
+    with controller():
+        run = with_daemon(cfg, body)
+    assert run["error"].startswith("the store failed while an attempt was out 2 times "
+                                   f"(each withdrawn); last: {LINE}")
+    assert [e["attempt"] for e in run["experiments"]] == [2]
+    assert _ready(tmp_path) == []
+
+
 def test_a_lost_robot_lock_stops_all_motion(tmp_path: Path, controller: Any,
                                             monkeypatch: pytest.MonkeyPatch) -> None:
     """The lock could not be taken again after a reconnect: the run waits and never moves

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from sqlalchemy import Connection, and_, case, delete, func, insert, or_, select, true, update
-from sqlalchemy.exc import DBAPIError, InterfaceError, OperationalError
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.sql import ColumnElement
 
 from robid_link.exceptions import (
@@ -196,7 +196,7 @@ class Store:
     def _unavailable(self, err: DBAPIError) -> None:
         """A lost connection or a server that does not answer: StoreUnavailableError, one
         line naming the store (a password is never in it)."""
-        if err.connection_invalidated or isinstance(err, (OperationalError, InterfaceError)):
+        if self.backend.lost(err):
             raise StoreUnavailableError(f"{self.where}: connection lost "
                                         f"({_first_line(err)})") from err
 
