@@ -212,6 +212,9 @@ class Daemon:
                 await self._withdraw_orphans()  # a run that ended leaves nothing given
             except (StoreFullError, StoreUnavailableError) as err:
                 self._pause(run_id, err)
+            except Exception as err:  # noqa: BLE001 - e.g. the failure's own write refused
+                log.error("run=%s left as the store has it after an error: %s: %s", run_id,
+                          type(err).__name__, err, exc_info=err)
             self.notifier.send(STATUS=await self._status_line())
 
     async def _run_one(self, run_id: str) -> None:
@@ -409,7 +412,7 @@ class Daemon:
             return f"{self._full}; {len(self._paused)} run(s) paused"
         try:
             return await self._store_status()
-        except (StoreFullError, StoreUnavailableError) as err:
+        except Exception as err:  # noqa: BLE001 - the line says what the store answered
             return f"{err}; {len(self._paused)} run(s) paused"
 
     async def _store_status(self) -> str:

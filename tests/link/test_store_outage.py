@@ -97,6 +97,39 @@ def test_a_store_error_after_the_give_withdraws_before_the_run_fails(
     assert "withdrawn" in [j["step"] for j in journal if j["exp_id"]]  # the sweep journals it
 
 
+def test_a_failure_that_cannot_be_stored_leaves_the_daemon_up(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Review: the store refusing the step and then the run's failure (an error of no known
+    kind) crashed the daemon out of its runner loop. It stays up: nothing is left given, the
+    next request is answered."""
+    cfg = write_config(tmp_path, {"one": ONE})
+    broken = {"on": False}
+    step, set_run = ThreadedStore.step, ThreadedStore.set_run
+
+    async def bad_step(self: Any, run_id: str, exp_id: str, state: str, **kw: Any) -> None:
+        if state == "given":
+            broken["on"] = True
+        if broken["on"]:
+            raise RobidError("the journal refused the step")
+        await step(self, run_id, exp_id, state, **kw)
+
+    async def bad_set_run(self: Any, run_id: str, state: str, **kw: Any) -> None:
+        if broken["on"] and state == "failed":
+            raise RobidError("the journal refused the failure")
+        await set_run(self, run_id, state, **kw)
+
+    monkeypatch.setattr(ThreadedStore, "step", bad_step)
+    monkeypatch.setattr(ThreadedStore, "set_run", bad_set_run)
+
+    async def body(d: Daemon) -> dict:
+        await d.handle({"cmd": "start", "campaign": "one"})
+        await until(lambda: broken["on"] and d._current is None, 30)
+        return await d.handle({"cmd": "ping"})
+
+    assert with_daemon(cfg, body)["ok"]
+    assert _ready(tmp_path) == []
+
+
 class _Outage:
     """The blocking store's connection under the test's control: while ``down``, every query
     (reads too) raises StoreUnavailableError as a lost PostgreSQL connection does."""
