@@ -222,7 +222,9 @@ def request(path: str | Path, req: dict[str, Any], timeout_s: float = 30.0) -> d
         except PermissionError as err:
             raise DaemonUnreachable(f"control_socket: {path}: permission denied (join the "
                                     "socket's group)") from err
-        s.sendall(json.dumps(req).encode() + b"\n")
+        with contextlib.suppress(BrokenPipeError, ConnectionResetError):
+            # a full socket answers and closes before reading: its answer is read below
+            s.sendall(json.dumps(req).encode() + b"\n")
         buf = b""
         try:
             while not buf.endswith(b"\n"):
@@ -233,6 +235,8 @@ def request(path: str | Path, req: dict[str, Any], timeout_s: float = 30.0) -> d
         except TimeoutError as err:
             raise DaemonUnreachable(f"control_socket: {path}: no answer within "
                                     f"{timeout_s:g} s") from err
+        except ConnectionResetError:
+            pass  # what arrived is the answer; nothing is "closed the connection"
     if not buf:
         raise DaemonUnreachable(f"control_socket: {path}: the daemon closed the connection")
     answer = json.loads(buf)
