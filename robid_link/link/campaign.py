@@ -14,9 +14,15 @@ from typing import Any
 
 from robid_link import jobs as jb
 from robid_link.config import CampaignDef, DaemonConfig, ExperimentDef, robot_name
-from robid_link.exceptions import ApprovalError, ConfigError, RobidError, StoreFullError
+from robid_link.exceptions import (
+    ApprovalError,
+    ConfigError,
+    RobidError,
+    StoreFullError,
+    StoreUnavailableError,
+)
 from robid_link.jobs import MotionProgram
-from robid_link.link.cycle import CyclePolicy, run_cycle
+from robid_link.link.cycle import CyclePolicy, MotionWithheld, Withdrawn, run_cycle
 from robid_link.link.driver import CAP_UPLOAD, Driver, FeedforwardSource, parameter_bytes
 from robid_link.link.store import AsyncStore, Store
 from robid_link.link.worker import run_here, run_in_worker
@@ -214,17 +220,24 @@ async def _generated(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: s
 
 
 async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: Any, run_id: str,
-                      n_joints: int, kill_hook: Callable[[str], None] = lambda step: None
-                      ) -> None:
+                      n_joints: int, kill_hook: Callable[[str], None] = lambda step: None,
+                      *, may_give: bool = True,
+                      on_withdrawn: Withdrawn = lambda exp_id, nonce: None) -> None:
     """Run or resume ``run_id`` to completed/failed (logs are checked for ``n_joints``, the
-    robot's). Cancellation leaves it resumable."""
+    robot's). Cancellation leaves it resumable, and so does a store that cannot be written
+    (full, unreachable: StoreFullError, StoreUnavailableError go on to the daemon, what was
+    given withdrawn first). Without ``may_give`` (a daemon's first look at
+    a run it found unfinished) only its bookkeeping is done — what was given before is taken
+    and stored, what needs no motion is computed — and it stops ``interrupted`` where a program
+    or a parameter set would go to the controller."""
     run = await store.run(run_id)
     camp = cfg.campaigns.get(run["campaign"])
     if camp is None:
         await store.set_run(run_id, "failed", error=f"campaign {run['campaign']!r} is no "
                             f"longer in {cfg.path}")
         return
-    await store.set_run(run_id, "running", step="generating programs")
+    await store.set_run(run_id, "running", step="generating programs" if may_give else
+                        "bookkeeping after a restart (no motion)")
     try:
         programs = await _pinned_programs(cfg, store, ctx, run_id, run["campaign"])
         if run["trigger"] in UNATTENDED:
@@ -247,21 +260,29 @@ async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx:
             policy = CyclePolicy(camp.timeout_s or 2 * program.duration_s + 60.0, camp.retries,
                                  camp.backoff_s)
             shas[exp_id] = await run_cycle(store, driver, run_id, exp_id, program, policy,
-                                           check, kill_hook)
+                                           check, kill_hook, may_give=may_give,
+                                           on_withdrawn=on_withdrawn)
 
         for k, (exp_id, program) in enumerate(first, 1):
             await cycle(k, exp_id, program)
         if camp.identify:
             data = [s for e, s in shas.items() if kinds.get(e) not in ("verify", "elasticity")]
-            await _identify(cfg, store, driver, ctx, run_id, camp, data, n_joints, kill_hook)
+            await _identify(cfg, store, driver, ctx, run_id, camp, data, n_joints, kill_hook,
+                            may_give)
         for k, (exp_id, program) in enumerate(then, len(first) + 1):
             await cycle(k, exp_id, program)
         await _tracking(cfg, store, ctx, run_id, camp, [(e, p, shas[e]) for e, p in programs
                                                         if kinds.get(e) == "verify"])
         await _elasticity(cfg, store, ctx, run_id, camp, [(e, p, shas[e]) for e, p in programs
                                                           if kinds.get(e) == "elasticity"])
-    except StoreFullError:
-        raise  # not the run's fault: it waits, journaled as it is, until space returns
+    except (StoreFullError, StoreUnavailableError):
+        raise  # not the run's fault: it waits, journaled as it is, until the store is back
+    except MotionWithheld as held:
+        await store.set_run(run_id, "interrupted", step=f"waiting for the operator before "
+                            f"{held.exp_id}: robid campaign resume {run_id}")
+        log.warning("run=%s interrupted by a restart; bookkeeping done, no motion until an "
+                    "operator resumes it (robid campaign resume %s)", run_id, run_id)
+        return
     except RobidError as err:
         await store.set_run(run_id, "failed", error=str(err))
         log.error("run=%s failed: %s", run_id, err)
@@ -325,7 +346,35 @@ def resonance_hints(cfg: DaemonConfig, campaign: str, n_joints: int
 
 async def _identify(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: Any, run_id: str,
                     camp: CampaignDef, shas: list[str], n_joints: int,
-                    kill_hook: Callable[[str], None]) -> None:
+                    kill_hook: Callable[[str], None], may_give: bool = True) -> None:
+    """Identify (once per run: a run identified before a restart keeps its result and
+    parameter set), then upload the set if the campaign says so — a controller command,
+    withheld like motion until an operator resumes an interrupted run."""
+    robot, sha = await _identified(store, run_id)
+    if sha is None:
+        robot, sha = await _identify_now(cfg, store, ctx, run_id, camp, shas, n_joints,
+                                         kill_hook)
+    if not camp.upload or any(u["run_id"] == run_id and u["state"] == "acknowledged"
+                              for u in await store.uploads(robot)):
+        return
+    if not may_give:
+        raise MotionWithheld("upload")
+    trigger = (await store.run(run_id))["trigger"]
+    await upload_set(store, driver, robot, sha, run_id, unattended=trigger in UNATTENDED)
+
+
+async def _identified(store: AsyncStore, run_id: str) -> tuple[str, str | None]:
+    """The robot and parameter set of the run's identification, if it ended before."""
+    for res in await store.results(run_id=run_id):
+        if res["kind"] == "identify":
+            sets = [s for s in await store.param_sets(res["robot"]) if s["run_id"] == run_id]
+            return res["robot"], (sets[-1]["sha256"] if sets else None)
+    return "", None
+
+
+async def _identify_now(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
+                        camp: CampaignDef, shas: list[str], n_joints: int,
+                        kill_hook: Callable[[str], None]) -> tuple[str, str]:
     await store.set_run(run_id, "running", step="identifying" + (" and diagnosing"
                                                                  if camp.diagnose else ""))
     job = jb.IdentifyJob(
@@ -346,17 +395,14 @@ async def _identify(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: A
              " ".join(f"{x:.3g}" for x in out.records["identify"]["rmse"] or []))
     for flag in drift_flags_of(await store.results(robot), robot, run_id):
         await store.note(run_id, None, "drift", parameter=flag.parameter, kind=flag.kind,
-                   change=round(flag.change, 4), sigmas=round(flag.sigmas, 1))
+                         change=round(flag.change, 4), sigmas=round(flag.sigmas, 1))
         log.warning("run=%s drift: %s", run_id, flag.message)
     pset = dict(out.parameter_set.doc)
     body = parameter_bytes(pset)
     version = await store.add_param_set(pset, body)
     log.info("run=%s parameter set %d of %s: %s", run_id, version, robot,
              pset["sha256"][:12])
-    if camp.upload:
-        trigger = (await store.run(run_id))["trigger"]
-        await upload_set(store, driver, robot, pset["sha256"], run_id,
-                         unattended=trigger in UNATTENDED)
+    return robot, str(pset["sha256"])
 
 
 async def _tracking(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,

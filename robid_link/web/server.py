@@ -37,7 +37,8 @@ CSRF_COOKIE = "robid_csrf"
 _CSRF: ContextVar[str] = ContextVar("robid_csrf", default="")
 Actions = Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]
 #: the action routes and the control request each one makes
-_ACTIONS = {"start": ("campaign",), "cancel": ("run_id",), "approve": ("robot", "set")}
+_ACTIONS = {"start": ("campaign",), "cancel": ("run_id",), "resume": ("run_id",),
+            "approve": ("robot", "set")}
 _HEADERS = {"Content-Security-Policy": "default-src 'none'; script-src 'unsafe-inline'; "
             "style-src 'unsafe-inline'; img-src data:; connect-src 'self'; form-action 'self'; "
             "frame-ancestors 'none'; base-uri 'none'",
@@ -227,7 +228,8 @@ class _App:
             return _refuse(request, "token missing or wrong")
         if not bearer and not self._csrf_ok(request, form):
             return _refuse(request, "CSRF check failed (reload the page and submit again)")
-        req = {"cmd": {"start": "start", "cancel": "cancel", "approve": "params_approve"}[name],
+        req = {"cmd": {"start": "start", "cancel": "cancel", "resume": "resume",
+                       "approve": "params_approve"}[name],
                **{k: str(form[k]) for k in _ACTIONS[name] if form.get(k)}, "by": "web"}
         if name == "start":  # unattended: the page may be far from the cell
             req["trigger"] = "web"

@@ -60,11 +60,13 @@ def test_a_store_of_the_sqlite_days_migrates_in_place(tmp_path: Path) -> None:
     db = sqlite3.connect(state / "robid.sqlite")
     db.executescript(V1)
     db.close()
-    with pytest.raises(ConfigError, match="store schema version 1, this robid reads 2; start "
-                                          "its daemon once to migrate it"):
+    with pytest.raises(ConfigError, match=f"store schema version 1, this robid reads "
+                                          f"{SCHEMA_VERSION}; start its daemon once to migrate "
+                                          "it"):
         Store(state, readonly=True)
     with Store(state, robot="arm3") as st:  # the daemon: migrates, adopts the rows
         assert st.unfinished_runs() == ["r1"] and st.run("r1")["progress"]["stored"] == 1
+        assert st.run("r1")["state_since"] == 1.0  # (v3) a run of before: since its creation
         assert st.log_count() == 1 and st.approved("PROG")
         assert st.results("arm3")[0]["record"] == {"rmse": [1.0]}
         assert st.param_set("arm3", "1")["body"] == b"{}"
@@ -84,8 +86,9 @@ def test_a_newer_store_is_refused(tmp_path: Path) -> None:
     db.execute("UPDATE robid_schema SET version = ?", (SCHEMA_VERSION + 1,))
     db.commit()
     db.close()
-    with pytest.raises(ConfigError, match=r"schema version 3 is newer than this robid reads "
-                                          r"\(2\); upgrade robid_link"):
+    with pytest.raises(ConfigError, match=fr"schema version {SCHEMA_VERSION + 1} is newer than "
+                                          fr"this robid reads \({SCHEMA_VERSION}\); upgrade "
+                                          r"robid_link"):
         Store(tmp_path / "s")
 
 
@@ -204,3 +207,22 @@ def test_logs_in_a_central_log_store(tmp_path: Path) -> None:
         (inputs,) = st.identify_inputs("r")
         assert inputs["logs"] == [{"sha256": sha, "url":
                                    f"memory://plant-logs/logs/{sha[:2]}/{sha}.csv"}]
+
+
+def test_a_version_2_store_gains_state_since(tmp_path: Path) -> None:
+    """Version 3: the time a run entered its state; the runs before read as their creation,
+    an update that keeps the state keeps it, a change of state moves it."""
+    with Store(tmp_path / "s") as st:
+        run = st.create_run("quick", "operator", {}, [("a", "rigid_body")])
+    db = sqlite3.connect(tmp_path / "s" / "robid.sqlite")
+    db.execute("ALTER TABLE runs DROP COLUMN state_since")
+    db.execute("UPDATE robid_schema SET version = 2")
+    db.commit()
+    db.close()
+    with Store(tmp_path / "s") as st:
+        created = st.run(run)["created"]
+        assert st.run(run)["state_since"] == created
+        st.set_run(run, "queued", step="still queued")
+        assert st.run(run)["state_since"] == created
+        st.set_run(run, "interrupted")
+        assert st.run(run)["state_since"] > created

@@ -147,9 +147,13 @@ def test_actions_need_the_token_and_the_csrf_cookie(cell):
         status, text = post(url + "actions/cancel", {"run_id": "r1"},
                             {"Authorization": f"Bearer {TOKEN}"})
         assert status == 200 and json.loads(text)["ok"]
+        status, text = post(url + "actions/resume", {"run_id": "r2"},
+                            {"Authorization": f"Bearer {TOKEN}"})
+        assert status == 200 and json.loads(text)["ok"]
         assert rec.calls == [{"cmd": "start", "campaign": "nightly", "by": "web",
                               "trigger": "web"},
-                             {"cmd": "cancel", "run_id": "r1", "by": "web"}]
+                             {"cmd": "cancel", "run_id": "r1", "by": "web"},
+                             {"cmd": "resume", "run_id": "r2", "by": "web"}]
         assert post(url + "actions/reboot", form, {"Cookie": cookie})[0] == 404
     assert _runs(cell.state) == before
 

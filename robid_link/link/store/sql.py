@@ -18,11 +18,17 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import Connection, and_, delete, func, insert, or_, select, true, update
+from sqlalchemy import Connection, and_, case, delete, func, insert, or_, select, true, update
 from sqlalchemy.exc import DBAPIError
 from sqlalchemy.sql import ColumnElement
 
-from robid_link.exceptions import ConfigError, RobidError, StoreFullError
+from robid_link.exceptions import (
+    ConfigError,
+    StoreFullError,
+    StoreLockedError,
+    StoreLockLostError,
+    StoreUnavailableError,
+)
 from robid_link.jobs import MotionProgram
 from robid_link.link.store import schema as sc
 from robid_link.link.store.base import (
@@ -67,6 +73,8 @@ class Store:
         self.conn: Connection | None = None
         self._lock_fd: int | None = None
         self._create = create
+        #: the one line once a lost connection's robot lock could not be taken again
+        self.lock_lost: str | None = None
         if url is None and self.dir is None:
             raise ValueError("a store needs a state dir or a URL")
         self.backend: SqliteBackend | PostgresBackend = (
@@ -88,7 +96,8 @@ class Store:
         try:
             self.conn = self.engine.connect()
         except DBAPIError as err:
-            raise RobidError(f"{self.where}: cannot connect ({_first_line(err)})") from err
+            raise StoreUnavailableError(f"{self.where}: cannot connect "
+                                        f"({_first_line(err)})") from err
         if self.exclusive:
             self.backend.lock(self.conn, self.robot)
         if self.readonly:
@@ -140,9 +149,21 @@ class Store:
     def _connection(self) -> Connection:
         if self.conn is None:
             raise RuntimeError(f"{self.where}: the store is closed")
+        if self.lock_lost:
+            raise StoreLockLostError(self.lock_lost)
         if self.conn.invalidated and self.exclusive:
             # the session was lost (server restart): a new one must take the robot again
-            self.backend.lock(self.conn, self.robot)
+            try:
+                self.backend.lock(self.conn, self.robot)
+            except StoreLockedError as err:  # another daemon took the robot meanwhile
+                self.lock_lost = (f"{self.where}: lock on robot {self.robot} lost with the "
+                                  f"connection, another daemon holds it now: no further "
+                                  f"motion from this daemon; stop it")
+                self.conn.invalidate()  # this session holds nothing: never write through it
+                raise StoreLockLostError(self.lock_lost) from err
+            except DBAPIError as err:
+                raise StoreUnavailableError(f"{self.where}: cannot reconnect "
+                                            f"({_first_line(err)})") from err
         return self.conn
 
     @contextmanager
@@ -158,8 +179,7 @@ class Store:
             full = self.backend.full(err)
             if full is not None:
                 raise full from err
-            if err.connection_invalidated:
-                raise RobidError(f"{self.where}: connection lost ({_first_line(err)})") from err
+            self._unavailable(err)
             raise
 
     @contextmanager
@@ -170,9 +190,15 @@ class Store:
             with conn.begin():
                 yield conn
         except DBAPIError as err:
-            if err.connection_invalidated:
-                raise RobidError(f"{self.where}: connection lost ({_first_line(err)})") from err
+            self._unavailable(err)
             raise
+
+    def _unavailable(self, err: DBAPIError) -> None:
+        """A lost connection or a server that does not answer: StoreUnavailableError, one
+        line naming the store (a password is never in it)."""
+        if self.backend.lost(err):
+            raise StoreUnavailableError(f"{self.where}: connection lost "
+                                        f"({_first_line(err)})") from err
 
     def _mine(self, column: Any) -> ColumnElement[bool]:
         """Rows of this store's robot (all rows for a store opened for no robot)."""
@@ -249,7 +275,7 @@ class Store:
         with self._tx() as c:
             c.execute(insert(sc.runs).values(run_id=run_id, robot=self.robot, campaign=campaign,
                                              trigger=trigger, state="queued", created=now,
-                                             spec=json.dumps(spec)))
+                                             spec=json.dumps(spec), state_since=now))
             if experiments:
                 c.execute(insert(sc.experiments), [
                     {"run_id": run_id, "exp_id": exp_id, "position": pos, "kind": kind,
@@ -271,6 +297,9 @@ class Store:
             values["error"] = error
         if state == "running":
             values["started"] = func.coalesce(r.c.started, now)
+        # since when the run is in its state: kept by an update that does not change it
+        values["state_since"] = case((r.c.state == state,
+                                      func.coalesce(r.c.state_since, r.c.created)), else_=now)
         with self._tx() as c:
             c.execute(update(r).where(r.c.run_id == run_id).values(**values))
             self._journal(c, run_id, None, state, {"error": error} if error else {})
@@ -310,6 +339,8 @@ class Store:
     def _run_dict(self, c: Connection, row: Any) -> dict[str, Any]:
         d = _row(row)
         d["spec"] = json.loads(d["spec"])
+        if d.get("state_since") is None:  # a run of an older store, untouched since
+            d["state_since"] = d["created"]
         exps = self._experiments(c, d["run_id"])
         d["experiments"] = exps
         d["progress"] = {"stored": sum(e["log_sha"] is not None for e in exps),
