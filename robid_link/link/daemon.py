@@ -16,7 +16,7 @@ from collections.abc import Awaitable, Callable, Mapping, Sequence
 from contextlib import AbstractAsyncContextManager
 from typing import Any, TextIO
 
-from robid_link.config import DaemonConfig
+from robid_link.config import DaemonConfig, with_joint_count
 from robid_link.exceptions import ConfigError, DriverError, RobidError, StoreFullError
 from robid_link.jobs import WORKER_PRELOAD, RobotInfo, RobotInfoJob
 from robid_link.link import campaign as cp
@@ -125,6 +125,8 @@ class Daemon:
         stack = contextlib.AsyncExitStack()
         try:
             self.robot = await run_in_worker(self.ctx, RobotInfoJob(str(cfg.robot), cfg.lock))
+            # campaigns with a channels budget split their experiments by the joint count
+            self.cfg = cfg = with_joint_count(cfg, self.robot.n)
             self.robot_name = cfg.robot_name or self.robot.name
             self.store = open_store(cfg.state_dir, url=cfg.store, robot=self.robot_name,
                                     log_store=cfg.log_store)
