@@ -76,7 +76,8 @@ class CampaignDef:
 
     def split_experiments(self) -> tuple[ExperimentDef, ...]:
         """The experiments with ``channels`` applied: each identification experiment
-        (``SPLIT_KINDS``) once per torque group, the same motion, ids ``<id>-j1-3``."""
+        (``SPLIT_KINDS``) once per torque group, the same motion, ids ``<id>-j1-3``; a friction
+        sweep of some joints only in the groups that hold one of them."""
         groups = self.torque_groups()
         if groups is None:
             return self.experiments
@@ -85,7 +86,10 @@ class CampaignDef:
             if e.kind not in SPLIT_KINDS:
                 out.append(e)
                 continue
+            swept = e.options.get("joints") if e.kind == "friction" else None
             for g in groups:
+                if swept and not set(g) & set(swept):  # sweeps of other joints only
+                    continue
                 span = f"j{g[0]}" if len(g) == 1 else f"j{g[0]}-{g[-1]}"
                 out.append(ExperimentDef(f"{e.exp_id}-{span}", e.kind, e.options, g))
         return tuple(out)

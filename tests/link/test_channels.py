@@ -44,8 +44,8 @@ def test_experiments_split_into_torque_groups(tmp_path: Path, channels: int,
     camp = with_joint_count(cfg, 6).campaigns["budget"]
     steps = plan(camp)
     ids = [e for e, _, _ in steps]
-    assert ids == [f"rigid_body-{g}" for g in groups] + [f"friction-{g}" for g in groups] + [
-        "verify"]
+    # the friction sweep of joint 1 runs only where joint 1's torque is logged
+    assert ids == [f"rigid_body-{g}" for g in groups] + [f"friction-{groups[0]}", "verify"]
     assert all(check_name(e, "id") for e in ids)
     torques = [d.torques for _, d, _ in steps if d.kind == "rigid_body"]
     assert sorted(j for g in torques for j in g) == [1, 2, 3, 4, 5, 6]  # every joint once
