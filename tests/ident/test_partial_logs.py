@@ -175,3 +175,26 @@ def test_joined_runs_match_the_full_log_on_another_plant(tmp_path):
           f"{z.max():.2f}, χ² {stat:.1f}")
     assert stat < chi2.ppf(0.99, d.size), f"χ² {stat:.1f} with {d.size} dof"
     assert z.max() < 4.0
+
+
+def test_report_and_json_of_a_partial_validation_log(industrial6, tmp_path):
+    """Validation on a log holding joints 4 and 5 only: their figures, the other joints' none
+    (None in JSON, '—' in the summary), no torque figure without a measurement; the
+    diagnosis refuses partial logs in one line."""
+    from robid_link.ident.diagnosis.diagnose import diagnose
+    from robid_link.ident.runner import run_job
+
+    paths = _runs(industrial6, tmp_path, [(1, 2, 3), (4, 5, 6), (4, 5)], duration=10.0)
+    logs = load_logs(industrial6, paths)
+    out = run_job(industrial6, logs[:2], DEFAULT_MODEL, validate=logs[2:],
+                  report_dir=tmp_path / "rep")
+    doc = out.docs["identify"]
+    assert [x is None for x in doc["rmse"]] == [True, True, True, False, False, True]
+    assert doc["noise_floor"][3] is not None and doc["noise_floor"][0] is None
+    row1 = next(ln for ln in out.result.summary().splitlines() if ln.startswith("   1 a1"))
+    assert row1.split()[2:5] == ["—", "—", "—"]
+    figs = sorted(p.name for p in (tmp_path / "rep").glob("torque_joint*.png"))
+    assert figs == ["torque_joint4.png", "torque_joint5.png"]
+    assert "partial logs" in (tmp_path / "rep" / "report.html").read_text()
+    with pytest.raises(DataError, match=r"^run0.csv: the diagnosis needs every joint's torque"):
+        diagnose(industrial6, logs[:2], DEFAULT_MODEL, result=out.result)

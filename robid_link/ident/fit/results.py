@@ -382,7 +382,7 @@ class IdentResult:
 
 
 def _f(x: float) -> str:
-    return f"{x:.4g}"
+    return f"{x:.4g}" if math.isfinite(x) else "—"  # no rows hold the joint's torque
 
 
 def _num(x: float | None) -> float | None:

@@ -79,6 +79,8 @@ def _torque_figures(res: IdentResult, out: Path) -> list[Path]:
     plt = _pyplot()
     paths = []
     for j, jt in enumerate(res.joints):
+        if all(np.isnan(tr["tau"][:, j]).all() for tr in res.traces):
+            continue  # partial logs: no held-out log holds this joint's torque
         fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(10, 5.5),
                                        gridspec_kw={"height_ratios": [2, 1]})
         for tr in res.traces:

@@ -175,6 +175,10 @@ def residual_stats(res: IdentResult, resid: dict[int, tuple[np.ndarray, np.ndarr
     joints = []
     for j in range(pb.robot.n):
         mine = [k for k, h in enumerate(held) if h[j]]
+        if not mine:  # partial logs: none of these rows holds the joint's torque
+            joints.append({"joint": j + 1, "mean": None, "std": None, "n": 0, "outside": 0,
+                           "hist": {"edges": [], "counts": []}, "acf": [], "ccf": []})
+            continue
         rj = np.concatenate([raw[k][:, j] for k in mine])
         mean, std = float(rj.mean()), float(rj.std())
         half = 4.0 * std if std > 0 else 1.0
