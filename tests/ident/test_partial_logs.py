@@ -198,3 +198,15 @@ def test_report_and_json_of_a_partial_validation_log(industrial6, tmp_path):
     assert "partial logs" in (tmp_path / "rep" / "report.html").read_text()
     with pytest.raises(DataError, match=r"^run0.csv: the diagnosis needs every joint's torque"):
         diagnose(industrial6, logs[:2], DEFAULT_MODEL, result=out.result)
+
+
+@pytest.mark.parametrize("method", ["wls", "irls", "consistent"])
+def test_every_estimator_joins_partial_logs(industrial6, tmp_path, method):
+    """WLS, IRLS and the consistent fit on joined logs (per-joint weights, robust scales and
+    cross-validation folds from the rows that hold each joint's torque) validate as OLS."""
+    paths = _runs(industrial6, tmp_path, [(1, 2, 3), (4, 5, 6)], duration=10.0)
+    logs = load_logs(industrial6, paths)
+    ols = identify(industrial6, logs, DEFAULT_MODEL)
+    res = identify(industrial6, logs, DEFAULT_MODEL, method=method)
+    np.testing.assert_allclose(res.validation.rmse, ols.validation.rmse, rtol=0.02)
+    assert np.isfinite(res.theta).all() and np.isfinite(np.diag(res.cov)).all()
