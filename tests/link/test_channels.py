@@ -92,6 +92,10 @@ def test_program_header_names_the_torques_and_the_controller_logs_only_them() ->
                               None, (4, 5, 6)))
     head = yaml.safe_load(prog.files["traj.yaml"])
     assert head["log_torques"] == [4, 5, 6] and prog.meta["log_torques"] == [4, 5, 6]
+    main = program(ProgramJob(str(SIX), (), "rigid_body-j1-3", "rigid_body", opts, str(ROOT),
+                              None, (1, 2, 3)))
+    assert main.files["traj.csv"] == prog.files["traj.csv"]  # every group: the same motion
+    assert main.sha256 != prog.sha256  # … but a program (an approval) of its own
     robot = load_robot(SIX)
     core = ControllerCore(robot, default_truth(robot, rate_hz=100.0))
     res = core.run("rigid_body-j4-6", "n1", prog.files["traj.csv"], prog.files["traj.yaml"])
