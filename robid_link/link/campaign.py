@@ -103,10 +103,7 @@ def check_config(cfg: DaemonConfig, driver: Driver) -> dict[str, str | None]:
     """``robid config check``: the pre-flight of every campaign without a daemon, in this
     process; campaign name → None (ok) or the reason a run would be refused."""
     verdict: dict[str, str | None] = {}
-    if any(c.channels is not None for c in cfg.campaigns.values()):
-        info = run_here(jb.RobotInfoJob(str(cfg.robot), cfg.lock))  # channels split with n
-        assert isinstance(info, jb.RobotInfo)
-        cfg = with_joint_count(cfg, info.n)
+    cfg = _joints_known(cfg)
     for name in cfg.campaigns:
         try:
             _check_driver_caps(cfg, name, frozenset(driver.capabilities), driver.name)
@@ -119,8 +116,19 @@ def check_config(cfg: DaemonConfig, driver: Driver) -> dict[str, str | None]:
     return verdict
 
 
+def _joints_known(cfg: DaemonConfig) -> DaemonConfig:
+    """A config read without a daemon, with the robot's joint count where a campaign's
+    ``channels`` needs it to split its experiments (the robot read in this process)."""
+    if all(c.channels is None or c.n_joints is not None for c in cfg.campaigns.values()):
+        return cfg
+    info = run_here(jb.RobotInfoJob(str(cfg.robot), cfg.lock))
+    assert isinstance(info, jb.RobotInfo)
+    return with_joint_count(cfg, info.n)
+
+
 def describe_campaigns(cfg: DaemonConfig) -> list[dict[str, Any]]:
-    """The campaigns as ``campaign list`` shows them (from the config alone)."""
+    """The campaigns as ``campaign list`` shows them (from the config and the robot)."""
+    cfg = _joints_known(cfg)
     return [{"name": name,
              "experiments": [{"id": e, "kind": d.kind, "reduced_speed": s}
                              for e, d, s in plan(camp)],

@@ -118,3 +118,12 @@ def test_bad_torque_lists_are_refused() -> None:
     bad = prog.files["traj.yaml"] + b"log_torques: [3, 1]\n"
     res = core.run("e", "n1", prog.files["traj.csv"], bad)
     assert res.error is not None and "log_torques: expected ascending joint numbers" in res.error
+
+
+def test_campaign_list_without_a_daemon_splits_too(tmp_path: Path) -> None:
+    from robid_link.link.campaign import describe_campaigns
+
+    cfg = load_daemon_config(_config(tmp_path, channels=3))
+    (camp,) = describe_campaigns(cfg)
+    assert [e["id"] for e in camp["experiments"]] == ["rigid_body-j1-3", "rigid_body-j4-6",
+                                                      "friction-j1-3", "verify"]
