@@ -204,7 +204,7 @@ def test_report_and_json_of_a_partial_validation_log(industrial6, tmp_path):
 def test_every_estimator_joins_partial_logs(industrial6, tmp_path, method):
     """WLS, IRLS and the consistent fit on joined logs (per-joint weights, robust scales and
     cross-validation folds from the rows that hold each joint's torque) validate as OLS."""
-    paths = _runs(industrial6, tmp_path, [(1, 2, 3), (4, 5, 6)], duration=10.0)
+    paths = _runs(industrial6, tmp_path, [(1, 2, 3), (4, 5, 6)], duration=15.0)
     logs = load_logs(industrial6, paths)
     ols = identify(industrial6, logs, DEFAULT_MODEL)
     res = identify(industrial6, logs, DEFAULT_MODEL, method=method)
