@@ -265,6 +265,9 @@ class ProgramJob(Job):
     options: Mapping[str, Any]
     base_dir: str
     reduced_speed: float | None
+    #: joints (from 1) whose torque the controller is to log (a campaign's ``channels``
+    #: budget): written into the program's ``traj.yaml`` as ``log_torques``; None: every joint
+    log_torques: tuple[int, ...] | None = None
 
 
 @dataclass(frozen=True)

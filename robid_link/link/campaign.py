@@ -13,7 +13,13 @@ from pathlib import Path
 from typing import Any
 
 from robid_link import jobs as jb
-from robid_link.config import CampaignDef, DaemonConfig, ExperimentDef, robot_name
+from robid_link.config import (
+    CampaignDef,
+    DaemonConfig,
+    ExperimentDef,
+    robot_name,
+    with_joint_count,
+)
 from robid_link.exceptions import (
     ApprovalError,
     ConfigError,
@@ -47,9 +53,10 @@ def plan(camp: CampaignDef) -> list[tuple[str, ExperimentDef, float | None]]:
     an upload, each ``verify`` runs first as ``<id>-before`` (the controller's old model) and
     again after the upload under its own id."""
     out: list[tuple[str, ExperimentDef, float | None]] = []
-    before = [e for e in camp.experiments if camp.upload and e.kind == "verify"]
+    experiments = camp.split_experiments()  # the channels budget, once the robot is known
+    before = [e for e in experiments if camp.upload and e.kind == "verify"]
     for exp_id, exp in [(e.exp_id + BEFORE_SUFFIX, e) for e in before] + [
-            (e.exp_id, e) for e in camp.experiments]:
+            (e.exp_id, e) for e in experiments]:
         if camp.reduced_speed_first:
             out.append((exp_id + SLOW_SUFFIX, exp, camp.reduced_speed_first))
         out.append((exp_id, exp, None))
@@ -92,7 +99,7 @@ def _model_job(cfg: DaemonConfig, name: str) -> jb.ModelCheckJob:
 def _program_job(cfg: DaemonConfig, exp_id: str, exp: ExperimentDef, slow: float | None
                  ) -> jb.ProgramJob:
     return jb.ProgramJob(str(cfg.robot), cfg.lock, exp_id, exp.kind, exp.options,
-                         str(cfg.base_dir), slow)
+                         str(cfg.base_dir), slow, exp.torques)
 
 
 async def preflight(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: str,
@@ -122,6 +129,7 @@ def check_config(cfg: DaemonConfig, driver: Driver) -> dict[str, str | None]:
     """``robid config check``: the pre-flight of every campaign without a daemon, in this
     process; campaign name → None (ok) or the reason a run would be refused."""
     verdict: dict[str, str | None] = {}
+    cfg = _joints_known(cfg)
     for name in cfg.campaigns:
         try:
             _check_driver_caps(cfg, name, frozenset(driver.capabilities), driver.name)
@@ -134,8 +142,19 @@ def check_config(cfg: DaemonConfig, driver: Driver) -> dict[str, str | None]:
     return verdict
 
 
+def _joints_known(cfg: DaemonConfig) -> DaemonConfig:
+    """A config read without a daemon, with the robot's joint count where a campaign's
+    ``channels`` needs it to split its experiments (the robot read in this process)."""
+    if all(c.channels is None or c.n_joints is not None for c in cfg.campaigns.values()):
+        return cfg
+    info = run_here(jb.RobotInfoJob(str(cfg.robot), cfg.lock))
+    assert isinstance(info, jb.RobotInfo)
+    return with_joint_count(cfg, info.n)
+
+
 def describe_campaigns(cfg: DaemonConfig) -> list[dict[str, Any]]:
-    """The campaigns as ``campaign list`` shows them (from the config alone)."""
+    """The campaigns as ``campaign list`` shows them (from the config and the robot)."""
+    cfg = _joints_known(cfg)
     return [{"name": name,
              "experiments": [{"id": e, "kind": d.kind, "reduced_speed": s}
                              for e, d, s in plan(camp)],
@@ -173,7 +192,8 @@ def _program_key(cfg: DaemonConfig, exp: ExperimentDef, slow: float | None, exp_
             except OSError as err:
                 raise ConfigError(f"{p}: custom trajectory unreadable ({err.strerror})") from err
     h.update(extra)
-    h.update(json.dumps([exp_id, exp.kind, exp.options, slow, list(cfg.lock)],
+    h.update(json.dumps([exp_id, exp.kind, exp.options, slow, list(cfg.lock),
+                         None if exp.torques is None else list(exp.torques)],
                         sort_keys=True, default=str).encode())
     return h.hexdigest()
 

@@ -17,7 +17,7 @@ from collections.abc import Awaitable, Callable, Mapping, Sequence
 from contextlib import AbstractAsyncContextManager
 from typing import Any, TextIO
 
-from robid_link.config import DaemonConfig, robot_name
+from robid_link.config import DaemonConfig, robot_name, with_joint_count
 from robid_link.exceptions import (
     ConfigError,
     DriverError,
@@ -146,6 +146,8 @@ class Daemon:
         stack = contextlib.AsyncExitStack()
         try:
             self.robot = await run_in_worker(self.ctx, RobotInfoJob(str(cfg.robot), cfg.lock))
+            # campaigns with a channels budget split their experiments by the joint count
+            self.cfg = cfg = with_joint_count(cfg, self.robot.n)
             self.robot_name = robot_name(cfg, self.robot.name)
             self.store = open_store(cfg.state_dir, url=cfg.store, robot=self.robot_name,
                                     log_store=cfg.log_store)

@@ -70,7 +70,8 @@ def sanity_checks(pb: Problem, nominal: bool) -> list[str]:
             out += _position_checks(robot, prep.log.q, name)
         peak = np.maximum(tau.max(axis=0), -tau.min(axis=0))  # |τ|'s peak, no copy of τ
         flat = max(5, int(0.05 * prep.filt.fs))  # a clipped signal sits flat at its peak
-        for j in range(robot.n):
+        held = prep.log.held  # a partial log: no checks of torques it does not hold
+        for j in np.flatnonzero(held):
             at_peak = np.abs(tau[:, j]) >= peak[j] - 1e-9 * max(peak[j], 1.0)
             limit = robot.limits.tau_max[j]
             if peak[j] > 0 and _longest_run(at_peak) >= flat:
@@ -85,7 +86,7 @@ def sanity_checks(pb: Problem, nominal: bool) -> list[str]:
             sl = slice(trim, len(prep.log) - trim, step)
             q, qd, qdd, meas = prep.rows(sl)
             pred = rigid_regressor(robot, q, qd, qdd) @ robot.nominal
-            for j in range(robot.n):
+            for j in np.flatnonzero(held):
                 sp, sm = pred[:, j].std(), meas[:, j].std()
                 if sp < 1e-9 or sm < 1e-9:
                     continue

@@ -57,6 +57,21 @@ class Log:
     source: dict[str, Any] = field(default_factory=dict)
     #: commanded positions at the same time stamps (a controller state's reference), if logged
     q_ref: np.ndarray | None = None
+    #: (n,) joints whose torque the log holds (a controller's signal budget: positions of every
+    #: axis, the torques of some); None: every joint's. A joint not held has NaN in ``tau``.
+    tau_held: np.ndarray | None = None
+
+    @property
+    def held(self) -> np.ndarray:
+        """(n,) bool: the joints whose torque this log holds."""
+        if self.tau_held is None:
+            return np.ones(self.q.shape[1], dtype=bool)
+        return self.tau_held
+
+    @property
+    def partial(self) -> bool:
+        """The log holds only some joints' torque."""
+        return self.tau_held is not None and not bool(self.tau_held.all())
 
     @property
     def fs(self) -> float:
@@ -314,16 +329,18 @@ def _csv_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.n
         if f"q{j}" not in idx:
             raise DataError(f"{p}: column q{j} missing")
     out["q"] = arr[:, [idx[f"q{j}"] for j in range(1, n + 1)]]
-    torque_cols: list[str] = []
+    torque_cols: list[str | None] = []
     for j in range(1, n + 1):
         given = [c for c in (f"tau{j}", f"i{j}") if c in idx]
-        if not given:
-            raise DataError(f"{p}: column tau{j} missing (or i{j}: the drive's current)")
         if len(given) == 2:
             raise DataError(f"{p}: columns tau{j} and i{j} both given; keep one per joint")
-        torque_cols.append(given[0])
-    out["tau"] = arr[:, [idx[c] for c in torque_cols]]
-    out["__current__"] = np.array([c.startswith("i") for c in torque_cols])
+        torque_cols.append(given[0] if given else None)
+    held = [c is not None for c in torque_cols]
+    if not any(held):  # a partial log holds some joint's torque; this one none
+        raise DataError(f"{p}: column tau1 missing (or i1: the drive's current)")
+    out["tau"] = arr[:, [idx[c] for c in torque_cols if c is not None]]
+    out["__current__"] = np.array([c is not None and c.startswith("i") for c in torque_cols])
+    out["__held__"] = np.array(held)
     for key in ("qd", "qdd"):
         have = [f"{key}{j}" in idx for j in range(1, n + 1)]
         if any(have) and not all(have):
@@ -339,6 +356,21 @@ def _csv_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.n
                         f"tau1..tau{n} or currents i1..i{n}, optional qd1..qd{n}, "
                         f"qdd1..qdd{n})")
     return out
+
+
+def _npz_torque_joints(p: Path, cols: dict[str, np.ndarray], n: int) -> np.ndarray | None:
+    """A partial .npz log's ``torque_joints`` (joint numbers from 1, ascending: which joints'
+    torques the columns of ``tau`` are) as a held mask; None when the array is absent."""
+    if "torque_joints" not in cols:
+        return None
+    tj = np.asarray(cols["torque_joints"]).reshape(-1)
+    if tj.dtype.kind not in "iu" or tj.size == 0 or np.any(np.diff(tj) <= 0) or \
+            tj[0] < 1 or tj[-1] > n:
+        raise DataError(f"{p}: array 'torque_joints' must list joint numbers 1..{n}, "
+                        f"ascending, got {tj.tolist()[:8]}")
+    held = np.zeros(n, dtype=bool)
+    held[tj - 1] = True
+    return held
 
 
 _NPZ_KEYS = {"times": "t", "positions": "q", "velocities": "qd", "accelerations": "qdd",
@@ -361,15 +393,20 @@ def _npz_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.n
         if key in ("t", "q", "qd", "qdd", "tau") and np.asarray(a).dtype.kind not in "iuf":
             raise DataError(f"{p}: array '{key}' holds {np.asarray(a).dtype}, expected numbers")
     out = {"t": np.asarray(cols["t"], dtype=float).reshape(-1)}
+    held = _npz_torque_joints(p, cols, n)
     for key in ("q", "qd", "qdd", "tau", "q_ref"):
         if key not in cols:
             continue
         a = np.asarray(cols[key], dtype=float)
         if a.ndim != 2:
             raise DataError(f"{p}: array '{key}' must be samples × joints, got shape {a.shape}")
-        if a.shape[1] != n:
-            raise DataError(f"{p}: array '{key}' has {a.shape[1]} joints, the robot has {n}")
+        width = n if key != "tau" or held is None else int(held.sum())
+        if a.shape[1] != width:
+            what = "the robot has" if width == n else "torque_joints names"
+            raise DataError(f"{p}: array '{key}' has {a.shape[1]} joints, {what} {width}")
         out[key] = a
+    if held is not None:
+        out["__held__"] = held
     if current:
         out["__current__"] = np.ones(n, dtype=bool)
     return out
@@ -381,6 +418,7 @@ def _npz_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.n
 def _check_and_grid(p: Path, cols: dict[str, np.ndarray], n: int, fs: float | None) -> Log:
     cols = _csv_columns(p, cols, n) if "__csv__" in cols else _npz_columns(p, cols, n)
     current = cols.pop("__current__", None)
+    held = cols.pop("__held__", None)
     t = cols["t"]
     nsamp = t.shape[0]
     for key, a in cols.items():
@@ -415,6 +453,12 @@ def _check_and_grid(p: Path, cols: dict[str, np.ndarray], n: int, fs: float | No
         warnings.warn(notes[-1], DataWarning, stacklevel=3)
     jitter = float(np.max(np.abs(dt[dt <= GAP_FACTOR * h] - h)) / h)
     keys = [k for k in ("q", "qd", "qdd", "tau", "q_ref") if k in cols]
+    if held is not None and not held.all():  # joints not logged: NaN, never a number
+        tau = np.full((nsamp, n), np.nan)
+        tau[:, held] = cols["tau"]
+        cols["tau"] = tau
+    else:
+        held = None
     if jitter > JITTER_TOL:
         notes.append(f"{p.name}: time step varies by up to {100 * jitter:.0f} % around "
                      f"{1e3 * h:.3g} ms; resampled onto a uniform grid")
@@ -437,7 +481,7 @@ def _check_and_grid(p: Path, cols: dict[str, np.ndarray], n: int, fs: float | No
     return Log(path=str(p), t=arrays["t"], q=arrays["q"], tau=arrays["tau"],
                qd=arrays.get("qd"), qdd=arrays.get("qdd"), segments=segs, notes=notes,
                current=current if current is not None and current.any() else None,
-               q_ref=arrays.get("q_ref"))
+               q_ref=arrays.get("q_ref"), tau_held=held)
 
 
 def _interp(grid: np.ndarray, t: np.ndarray, y: np.ndarray, cubic: bool) -> np.ndarray:
@@ -450,18 +494,20 @@ def _interp(grid: np.ndarray, t: np.ndarray, y: np.ndarray, cubic: bool) -> np.n
 
 def write_log_csv(path: str | Path, t: np.ndarray, q: np.ndarray, tau: np.ndarray,
                   qd: np.ndarray | None = None, qdd: np.ndarray | None = None, *,
-                  current: bool = False) -> None:
+                  current: bool = False, torque_joints: Sequence[int] | None = None) -> None:
     """Write a log in the CSV layout of DESIGN.md (t, q…, [qd…, qdd…,] tau…); with
-    ``current`` the last columns are drive currents i1..in."""
+    ``current`` the last columns are drive currents i1..in; ``torque_joints`` (from 1): only
+    those joints' torques (a partial log)."""
     n = q.shape[1]
+    keep = list(range(1, n + 1)) if torque_joints is None else sorted(torque_joints)
     names = ["t"] + [f"q{j}" for j in range(1, n + 1)]
     blocks = [t[:, None], q]
     for key, a in (("qd", qd), ("qdd", qdd)):
         if a is not None:
             names += [f"{key}{j}" for j in range(1, n + 1)]
             blocks.append(a)
-    names += [f"{'i' if current else 'tau'}{j}" for j in range(1, n + 1)]
-    blocks.append(tau)
+    names += [f"{'i' if current else 'tau'}{j}" for j in keep]
+    blocks.append(tau[:, [j - 1 for j in keep]])
     write_numeric_csv(path, names, np.hstack(blocks))
 
 

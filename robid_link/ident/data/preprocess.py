@@ -43,6 +43,7 @@ __all__ = [
     "build_problem",
     "shift_torque",
     "check_counts",
+    "check_torque_coverage",
     "butter_lowpass_sos",
     "sos_steady_state",
     "FILTER_ORDER",
@@ -354,17 +355,20 @@ def noise_floor(pieces: Sequence[Piece]) -> np.ndarray | None:
     on raw torque cannot fall below it. None when the filter is off (nothing to compare)."""
     if not pieces or not pieces[0].prep.filt.active:
         return None
-    acc, rows = 0.0, 0
+    n = pieces[0].prep.log.q.shape[1]
+    acc, rows = np.zeros(n), np.zeros(n)
     for pc in pieces:
+        held = pc.prep.log.held  # a partial log: the joints whose torque it holds
         for lo in range(pc.lo, pc.hi, CHUNK):
             hi = min(pc.hi, lo + CHUNK)
-            d = pc.prep.tau[lo:hi] - pc.prep.tau_f_rows(lo, hi)
-            acc = acc + np.sum(d * d, axis=0)
-            rows += d.shape[0]
-    if rows == 0:
+            d = pc.prep.tau[lo:hi, held] - pc.prep.tau_f_rows(lo, hi)[:, held]
+            acc[held] += np.sum(d * d, axis=0)
+            rows[held] += d.shape[0]
+    if not rows.any():
         return None
     share = _rejected_share(pieces[0].prep.filt)
-    return np.asarray(np.sqrt(acc / rows / max(share, 1e-12)))
+    with np.errstate(invalid="ignore", divide="ignore"):  # a joint no piece holds: NaN
+        return np.asarray(np.sqrt(acc / rows / max(share, 1e-12)))
 
 
 def filter_windows(piece: Piece, interval: int = 1, chunk: int = CHUNK
@@ -427,6 +431,7 @@ def build_problem(robot: Robot, data: Sequence[Log], model: Model, *,
     """Prepare the logs (filter, differentiate, split) for a model's identification."""
     if interval < 1:
         raise DataError(f"--interval must be at least 1, got {interval}")
+    check_torque_coverage(robot, data)
     transmission = robot.transmission if motor_side else None
     shift = sum(float(s.opts.get("seconds", 0.0)) for s in model.specs if s.name == "delay")
     if shift:
@@ -452,11 +457,38 @@ def build_problem(robot: Robot, data: Sequence[Log], model: Model, *,
         if rest:
             notes.append("the robot stands still at the end of " + ", ".join(rest) + ": that "
                          "rest is not held out (it would test gravity alone) but trains")
+    joined = joined_logs_note([*data, *(validate or ())])
+    if joined:
+        notes.append(joined)
     if len(data) > 1 and not validate:
         notes.append("validation holds out the end of each file; use --validate with a "
                      "different motion for an honest check of generalisation")
     return Problem(robot, model, model.blocks(robot), train, valid, preps, vpreps, interval,
                    block_len, source, notes, transmission)
+
+
+def check_torque_coverage(robot: Robot, data: Sequence[Log]) -> None:
+    """Partial logs (each holding some joints' torque) are joined: joint j's equation takes its
+    rows from the logs that hold its torque. A joint that no data log holds is refused."""
+    held = np.zeros(robot.n, dtype=bool)
+    for lg in data:
+        held |= lg.held
+    if held.all():
+        return
+    j = int(np.flatnonzero(~held)[0])
+    files = ", ".join(Path(lg.path).name for lg in data)
+    raise DataError(f"joint {j + 1} ({robot.joint_names[j]}): no log holds its torque "
+                    f"(tau{j + 1} in none of {files})")
+
+
+def joined_logs_note(data: Sequence[Log]) -> str | None:
+    """What a joined identification says of its partial logs (None: every log is full)."""
+    parts = [f"{Path(lg.path).name} τ{','.join(str(j + 1) for j in np.flatnonzero(lg.held))}"
+             for lg in data if lg.partial]
+    if not parts:
+        return None
+    return ("partial logs joined (each joint's equation from the logs that hold its "
+            "torque): " + "; ".join(parts))
 
 
 def shift_torque(log: Log, seconds: float) -> Log:

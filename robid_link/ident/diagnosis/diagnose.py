@@ -13,10 +13,12 @@ ranking (verdict.py); the sentence of evidence under each suggestion (evidence.p
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from robid_link.exceptions import DataError
 from robid_link.ident.data.logs import Log
 from robid_link.ident.data.preprocess import Prepared
 from robid_link.ident.diagnosis.candidates import (
@@ -78,6 +80,11 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     Candidates are scored on OLS/WLS residuals, so an IRLS result (or one of another method
     than ``method``) is not reused.
     """
+    partial = next((lg for lg in (*data, *(validate or ())) if lg.partial), None)
+    if partial is not None:  # its residual pool and scores are joint × row matrices
+        raise DataError(f"{Path(partial.path).name}: the diagnosis needs every joint's torque "
+                        "in each log, this log holds only some (a campaign's channels: N); "
+                        "identify joins such logs, diagnose does not")
     result = fit_or_reuse(robot, data, model, result, validate=validate, cutoff_hz=cutoff_hz,
                           interval=interval, method=method, motor_side=motor_side)
     pool = residual_pool(robot, result)

@@ -200,7 +200,7 @@ def _quad(g: np.ndarray) -> _Quad:
     """From augmented Grams summed over joints and the blocks wanted: (p+2, p+2) per joint."""
     p = g.shape[-1] - 2
     tot = g.sum(axis=0)
-    n = float(g[0, p + 1, p + 1])
+    n = float(g[:, p + 1, p + 1].max())  # samples (a partial log's: of the joints it holds)
     if n <= 0:
         raise EstimationError("a cross-validation fold has no samples")
     return _Quad(tot[:p, :p] / n, tot[:p, p] / n, float(tot[p, p]) / n, n)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from robid_link.exceptions import ConditioningWarning
+from robid_link.exceptions import ConditioningWarning, DataError
 from robid_link.ident.data.checks import data_checks
 from robid_link.ident.data.currents import (
     identify_current_gains,
@@ -101,7 +101,14 @@ def load_logs(robot: Robot, paths: Sequence[str | Path], fs: float | None = None
                                                    topic=topic,
                                                    effort_current=robot.effort_current))
         if motor_side:
-            log.q, log.qd, log.qdd, log.tau = robot.to_joint_side(log.q, log.qd, log.qdd, log.tau)
+            held = log.held
+            tau_m = np.where(held, log.tau, 0.0)
+            log.q, log.qd, log.qdd, log.tau = robot.to_joint_side(log.q, log.qd, log.qdd, tau_m)
+            if log.tau_held is not None:  # τ_j = Σ_m T[m, j] τ_m: every motor of j logged
+                assert robot.transmission is not None
+                coupled = robot.transmission != 0
+                log.tau_held = ~np.any(coupled & ~held[:, None], axis=0)
+                log.tau[:, ~log.tau_held] = np.nan
         else:
             log.q = robot.remove_offsets(log.q)
         logs.append(log)
@@ -113,6 +120,11 @@ def with_current_gains(pb: Problem, known: Sequence[KnownTorque]) -> Problem:
     parameters, every log's torque completed with them, a note per gain."""
     if not any(p.log.currents is not None for p in (*pb.preps, *pb.vpreps)):
         return pb
+    partial = next((p.log for p in (*pb.preps, *pb.vpreps) if p.log.partial), None)
+    if partial is not None:  # a motor's gain reads every joint its torque reaches
+        raise DataError(f"{Path(partial.path).name}: drive current gains are identified from "
+                        "logs that hold every joint's torque, this log holds only some; give "
+                        "the gains (transmission.current_gain) or log every joint")
     design, _, _ = make_design(pb.robot, pb.blocks, pb.transmission)
     found = identify_current_gains(pb, design, known)
     if found is None:
@@ -258,8 +270,9 @@ def estimate(pb: Problem, asm: Assembly, method: str, weight: str = "bisquare") 
     n_rows = grams.n_rows
     ms = f.rss / np.maximum(n_rows, 1)
     var = np.maximum(ms - f.mean_res**2, 0.0)
-    fit_err = ErrorStats(np.sqrt(ms), np.sqrt(var), var, int(n_rows[0]))
-    return Estimate(f.theta, f.cov, params, fit_err, f.cond, least, int(n_rows[0]),
+    # partial logs: joints have rows from different logs; the count is the largest
+    fit_err = ErrorStats(np.sqrt(ms), np.sqrt(var), var, int(n_rows.max()))
+    return Estimate(f.theta, f.cov, params, fit_err, f.cond, least, int(n_rows.max()),
                     asm.design, notes)
 
 

@@ -49,11 +49,13 @@ class ErrorStats:
 
 
 class StatsAccumulator:
-    """Streams residuals e and measured τ (m, n) into ErrorStats."""
+    """Streams residuals e and measured τ (m, n) into ErrorStats; with ``held`` (a partial
+    log) only those joints' columns count (each joint's figures from the rows that hold it)."""
 
     def __init__(self, n: int) -> None:
         self.s1 = np.zeros(n)
         self.s2 = np.zeros(n)
+        self.counts = np.zeros(n, dtype=np.int64)
         self.count = 0
         self.norm_e = 0.0
         self.norm_tau = 0.0
@@ -62,13 +64,17 @@ class StatsAccumulator:
         """Add another accumulator's sums (chunks summed apart, then in order)."""
         self.s1 += other.s1
         self.s2 += other.s2
+        self.counts += other.counts
         self.count += other.count
         self.norm_e += other.norm_e
         self.norm_tau += other.norm_tau
 
-    def add(self, e: np.ndarray, tau: np.ndarray) -> None:
+    def add(self, e: np.ndarray, tau: np.ndarray, held: np.ndarray | None = None) -> None:
+        if held is not None and not held.all():
+            e, tau = np.where(held, e, 0.0), np.where(held, tau, 0.0)
         self.s1 += e.sum(axis=0)
         self.s2 += (e * e).sum(axis=0)
+        self.counts += e.shape[0] if held is None else e.shape[0] * held.astype(np.int64)
         self.count += e.shape[0]
         self.norm_e += float(np.linalg.norm(e, axis=1).sum())
         self.norm_tau += float(np.linalg.norm(tau, axis=1).sum())
@@ -76,8 +82,9 @@ class StatsAccumulator:
     def stats(self) -> ErrorStats | None:
         if self.count == 0:
             return None
-        mean = self.s1 / self.count
-        ms = self.s2 / self.count
+        with np.errstate(invalid="ignore", divide="ignore"):  # a joint with no rows: NaN
+            mean = self.s1 / self.counts
+            ms = self.s2 / self.counts
         var = np.maximum(ms - mean * mean, 0.0)
         rel = self.norm_e / self.norm_tau if self.norm_tau > 0 else None
         return ErrorStats(np.sqrt(ms), np.sqrt(var), var, self.count, rel,
@@ -171,15 +178,16 @@ def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> He
         known = pc.prep.tau_known
         if known is not None:  # known torques: subtracted from τ, added back to both
             tau, pred = tau + known[a:b], pred + known[a:b]
+        held = pc.prep.log.held
         acc = StatsAccumulator(robot.n)
-        acc.add(tau - pred, tau)
+        acc.add(tau - pred, tau, held)
         nom = None
         if robot.nominal is not None:
             pred_nom = rigid_torque(robot, st.q, st.qd, st.qdd, robot.nominal)
             if known is not None:
                 pred_nom = pred_nom + known[a:b]
             nom = StatsAccumulator(robot.n)
-            nom.add(tau - pred_nom, tau)
+            nom.add(tau - pred_nom, tau, held)
         step = max(1, total[pc.prep.log.path] // TRACE_SAMPLES)
         keep = (-firsts[k]) % step
         out[k] = (acc, nom, {"t": pc.prep.log.t[a + keep:b:step], "tau": tau[keep::step],
@@ -374,7 +382,7 @@ class IdentResult:
 
 
 def _f(x: float) -> str:
-    return f"{x:.4g}"
+    return f"{x:.4g}" if math.isfinite(x) else "—"  # no rows hold the joint's torque
 
 
 def _num(x: float | None) -> float | None:
@@ -384,5 +392,6 @@ def _num(x: float | None) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _list(a: np.ndarray) -> list[float]:
-    return [float(v) for v in np.asarray(a)]
+def _list(a: np.ndarray) -> list[float | None]:
+    """Numbers for JSON; a joint without figures (no held-out rows hold its torque): None."""
+    return [float(v) if math.isfinite(v) else None for v in np.asarray(a, dtype=float)]
