@@ -313,14 +313,19 @@ class Daemon:
         stored first (a captured log is never lost)."""
         assert self.store is not None
         run_id, exp_id, nonce = row["run_id"], row["exp_id"], row["nonce"]
-        try:
-            async with asyncio.timeout(30):
-                if row["state"] == "taken" and not row["log_sha"]:
+        if row["state"] == "taken" and not row["log_sha"]:
+            try:
+                async with asyncio.timeout(30):
                     data = await self.driver.fetch_logs(Done(exp_id, nonce, row["done_sha"],
                                                              row["done_size"]))
                     await self.store.put_log(data, run_id=run_id, exp_id=exp_id)
+            except (DriverError, OSError, TimeoutError) as err:  # OSError: the store is full
+                # a log that cannot be fetched (corrupt, gone) never keeps a program out
+                log.warning("run=%s exp=%s announced log not stored: %s", run_id, exp_id, err)
+        try:
+            async with asyncio.timeout(30):
                 await self.driver.withdraw(exp_id, nonce)
-        except (DriverError, OSError, TimeoutError) as err:  # OSError: the store is full
+        except (DriverError, OSError, TimeoutError) as err:
             log.warning("run=%s exp=%s withdraw failed: %s", run_id, exp_id, err)
             return
         await self.store.step(run_id, exp_id, "withdrawn")
