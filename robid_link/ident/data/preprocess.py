@@ -31,7 +31,6 @@ __all__ = [
     "split",
     "motion_span",
     "held_out_ranges",
-    "noise_floor",
     "Problem",
     "build_problem",
     "shift_torque",
@@ -329,35 +328,6 @@ def held_out_ranges(valid: Sequence[Piece]) -> str:
         by_file.setdefault(Path(pc.prep.log.path).name, []).append(
             f"{t[pc.lo]:.4g}–{t[pc.hi - 1]:.4g} s")
     return "; ".join(f"{name} {', '.join(r)}" for name, r in by_file.items())
-
-
-def _rejected_share(filt: ZeroPhaseFilter, points: int = 4096) -> float:
-    """Share of white noise's variance in ``raw − filtered`` for the zero-phase filter:
-    the mean over the band of (1 − |H|²)² (|H|² because the filter runs twice)."""
-    w = np.linspace(0.0, math.pi, points)
-    z1 = np.exp(-1j * w)
-    h = np.ones_like(z1)
-    for b0, b1, b2, _, a1, a2 in filt.sos:
-        h = h * (b0 + b1 * z1 + b2 * z1**2) / (1.0 + a1 * z1 + a2 * z1**2)
-    return float(np.mean((1.0 - np.abs(h) ** 2) ** 2))
-
-
-def noise_floor(pieces: Sequence[Piece]) -> np.ndarray | None:
-    """Per joint, the torque measurement noise (N·m, standard deviation) that no model of
-    the motion can explain: the raw torque's content above the filter's cutoff, where an
-    excitation (a few Hz) has none, scaled to the whole band as white noise. Validation RMSE
-    on raw torque cannot fall below it. None when the filter is off (nothing to compare)."""
-    if not pieces or not pieces[0].prep.filt.active:
-        return None
-    acc, rows = 0.0, 0
-    for pc in pieces:
-        d = pc.prep.tau[pc.lo:pc.hi] - pc.prep.tau_f[pc.lo:pc.hi]
-        acc = acc + np.sum(d * d, axis=0)
-        rows += d.shape[0]
-    if rows == 0:
-        return None
-    share = _rejected_share(pieces[0].prep.filt)
-    return np.asarray(np.sqrt(acc / rows / max(share, 1e-12)))
 
 
 def filter_windows(piece: Piece, interval: int = 1, chunk: int = CHUNK

@@ -47,6 +47,7 @@ from robid_link.ident.diagnosis.verdict import (
     P_MAX,
     Diagnosis,
     Suggestion,
+    floor_doubts,
     judge,
     not_transferring_note,
     rank,
@@ -83,7 +84,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     pool = residual_pool(robot, result)
     odd = _unexplained(pool.preps[0], pool.design, pool.theta, resonance_hints)
     notes = one_motion_note([*data, *(validate or ())])
-    doubts = result_doubts(result)
+    doubts = result_doubts(result) + floor_doubts(result)
     # the candidates: profiled, then screened (structure, then in-sample) on a few rows
     rows = profile_rows(robot, pool)
     candidates, profiled = profile_candidates(

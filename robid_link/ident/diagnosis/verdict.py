@@ -13,8 +13,8 @@ from robid_link.ident.fit.results import IdentResult
 from robid_link.ident.model.effects import effect_label
 
 __all__ = ["Suggestion", "Diagnosis", "Verdicts", "GAIN_MIN", "P_MAX", "TRANSFER_MIN",
-           "judge", "rank", "result_doubts", "not_transferring_note", "physics_order",
-           "prefer_simpler"]
+           "judge", "rank", "result_doubts", "floor_doubts", "not_transferring_note",
+           "physics_order", "prefer_simpler"]
 
 #: a suggestion must cut its joint's held-out RMSE by at least this fraction …
 GAIN_MIN = 0.05
@@ -181,6 +181,30 @@ def result_doubts(result: IdentResult) -> list[str]:
             and nom.relative_error is not None and val.relative_error > nom.relative_error):
         out.append(f"held-out relative error {100 * val.relative_error:.3g} % is above the "
                    f"a-priori (CAD) model's {100 * nom.relative_error:.3g} %")
+    return out
+
+
+def floor_doubts(result: IdentResult) -> list[str]:
+    """A joint whose held-out residual is not measurement noise — above the noise estimate
+    (AT_FLOOR×), or near it in size but not white — is not modelled adequately, whether or
+    not a catalog effect is suggested for it."""
+    try:
+        at, val = result.at_noise_floor, result.validation
+    except (AttributeError, ValueError):  # no held-out rows
+        return []
+    floor, white = result.noise_floor, result.whiteness
+    if at is None or val is None or floor is None or white is None:
+        return []
+    out = []
+    for j, ok in enumerate(at):
+        if ok:
+            continue
+        ratio = float(val.rmse[j] / max(floor[j], 1e-300))
+        size = (f"held-out error {val.rmse[j]:.3g} N·m is {ratio:.2g}× the noise estimate "
+                f"{floor[j]:.3g} N·m")
+        why = white.sentence(j) if not white.white[j] else "its residual is white"
+        out.append(f"joint {result.joints[j]['joint']}: {size} and {why}: the model leaves "
+                   "more than measurement noise")
     return out
 
 

@@ -14,7 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from robid_link.ident.data.preprocess import Prepared, Problem, noise_floor
+from robid_link.ident.data.noise import AT_FLOOR, LagSums, Whiteness, noise_floor
+from robid_link.ident.data.preprocess import Prepared, Problem
 from robid_link.ident.fit.design import Design, design_chunks, predict_torque
 from robid_link.ident.model.regressor import rigid_regressor
 
@@ -129,6 +130,8 @@ class HeldOut:
     validation: ErrorStats | None
     nominal: ErrorStats | None
     traces: list[dict[str, Any]]
+    #: the raw residual's autocorrelation on the held-out rows, against white noise
+    whiteness: Whiteness | None = None
 
 
 def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> HeldOut:
@@ -138,6 +141,7 @@ def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> He
     if not problem.valid:
         return HeldOut(None, None, [])
     acc = StatsAccumulator(robot.n)
+    lags = LagSums(robot.n)
     nom = StatsAccumulator(robot.n) if robot.nominal is not None else None
     parts: dict[str, dict[str, list[np.ndarray]]] = {}
     for pc in problem.valid:
@@ -147,6 +151,7 @@ def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> He
             if known is not None:  # known torques: subtracted from τ, added back to both
                 tau, pred = tau + known[idx], pred + known[idx]
             acc.add(tau - pred, tau)
+            lags.add(tau - pred)
             tr = parts.setdefault(pc.prep.log.path, {"t": [], "tau": [], "pred": []})
             tr["t"].append(pc.prep.log.t[idx])
             tr["tau"].append(tau)
@@ -163,7 +168,7 @@ def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> He
         step = max(1, t.size // TRACE_SAMPLES)
         traces.append({"file": path, "t": t[::step], "tau": np.concatenate(tr["tau"])[::step],
                        "pred": np.concatenate(tr["pred"])[::step]})
-    return HeldOut(acc.stats(), None if nom is None else nom.stats(), traces)
+    return HeldOut(acc.stats(), None if nom is None else nom.stats(), traces, lags.result())
 
 
 @dataclass
@@ -206,12 +211,28 @@ class IdentResult:
 
     @cached_property
     def noise_floor(self) -> np.ndarray | None:
-        """Per joint, the raw torque's measurement noise (N·m; ``preprocess.noise_floor``) on
-        the held-out rows (else the training rows): the validation RMSE, taken on raw torque,
-        cannot fall below it; the fit RMSE, on filtered torque, holds almost none of it."""
+        """Per joint, the raw torque's measurement noise (N·m; ``noise.noise_floor``: from its
+        third differences, which no smooth torque inflates): the validation RMSE, taken on raw
+        torque, cannot fall below it; the fit RMSE, on filtered torque, holds almost none of
+        it. Read on every row the problem keeps (training and held out): one sensor."""
         if self.problem is None:
             return None
-        return noise_floor(self.problem.valid or self.problem.train)
+        return noise_floor([*self.problem.train, *self.problem.valid])
+
+    @property
+    def whiteness(self) -> Whiteness | None:
+        """The held-out raw residual's autocorrelation against white noise (None: no rows)."""
+        return self.held_out.whiteness
+
+    @property
+    def at_noise_floor(self) -> list[bool] | None:
+        """Per joint: the validation error at the noise estimate (≤ AT_FLOOR×) **and** its
+        residual white — what is left is measurement noise. None without held-out rows."""
+        val, floor, white = self.validation, self.noise_floor, self.whiteness
+        if val is None or floor is None or white is None:
+            return None
+        return [bool(val.rmse[j] <= AT_FLOOR * floor[j] and white.white[j])
+                for j in range(len(self.joints))]
 
     @property
     def validation(self) -> ErrorStats | None:
@@ -266,9 +287,12 @@ class IdentResult:
             "rmse": _list(self.rmse),
             "rmse_fit": _list(self.fit.rmse),
             "noise_floor": None if self.noise_floor is None else _list(self.noise_floor),
+            "at_noise_floor": self.at_noise_floor,
+            "residual_whiteness": None if self.whiteness is None else [
+                self.whiteness.joint(j) for j in range(len(self.joints))],
             "errors_on": {"rmse": "raw torque, held-out rows", "rmse_fit": "low-pass filtered "
-                          "torque, training rows", "noise_floor": "raw torque content above "
-                          "the cutoff, scaled to the band (white noise)"},
+                          "torque, training rows", "noise_floor": "robust scale of the raw "
+                          "torque's third differences (white noise)"},
             "rmse_nominal": None if self.nominal is None else _list(self.nominal.rmse),
             "relative_error": None if val is None else _num(val.relative_error),
             "relative_error_nominal": None if self.nominal is None
@@ -316,15 +340,10 @@ class IdentResult:
             if self.nominal is not None and self.nominal.relative_error is not None:
                 rel += f"; CAD model {100 * self.nominal.relative_error:.2f} %"
             lines.append(rel)
-        lines.append("  RMSE val: raw torque on held-out rows; noise: its measurement noise (raw "
-                     "content above the cutoff), which no model explains; RMSE fit: filtered "
-                     "torque on training rows")
-        if val is not None and floor is not None:
-            at = [str(jt["joint"]) for j, jt in enumerate(self.joints)
-                  if val.rmse[j] <= 1.2 * floor[j]]
-            if at:
-                lines.append(f"  joint(s) {', '.join(at)}: validation error at the noise floor "
-                             "(what is left is measurement noise)")
+        lines.append("  RMSE val: raw torque on held-out rows; noise: its measurement noise (from "
+                     "the raw torque's third differences), which no model explains; RMSE fit: "
+                     "filtered torque on training rows")
+        lines += self._floor_lines()
         lines += ["", f"  {'parameter':<12}{'value':>12}{'std':>11}{'std %':>8}  stands for"]
         for p in self.parameters:
             pct = p.rel_std_pct
@@ -335,6 +354,27 @@ class IdentResult:
             lines.append("")
             lines += [f"  [{i}] {n}" for i, n in enumerate(self.notes, 1)]
         return "\n".join(lines)
+
+
+    def _floor_lines(self) -> list[str]:
+        """Which joints sit at the noise floor (at the estimate and white), and which have a
+        residual that is not white (more than measurement noise, whatever its size)."""
+        at, white = self.at_noise_floor, self.whiteness
+        if at is None or white is None:
+            return []
+        names = [str(jt["joint"]) for jt in self.joints]
+        on = [names[j] for j, ok in enumerate(at) if ok]
+        out = []
+        if on:
+            out.append(f"  joint(s) {', '.join(on)}: validation error at the noise floor, residual "
+                       "white (what is left is measurement noise)")
+        coloured = [j for j in range(len(names)) if not white.white[j]]
+        if coloured:
+            worst = max(coloured, key=lambda j: float(np.abs(white.acf[:, j]).max()))
+            out.append(f"  joint(s) {', '.join(names[j] for j in coloured)}: residual not white "
+                       f"(joint {names[worst]}: {white.sentence(worst).split('(', 1)[1]}: more "
+                       "than measurement noise")
+        return out
 
 
 def _f(x: float) -> str:
