@@ -57,6 +57,9 @@ class Log:
     source: dict[str, Any] = field(default_factory=dict)
     #: commanded positions at the same time stamps (a controller state's reference), if logged
     q_ref: np.ndarray | None = None
+    #: (n,) joints whose torque the log holds, when it holds only some (a partial log: the
+    #: others' ``tau`` columns are zeros and enter no equation); None: all
+    tau_joints: np.ndarray | None = None
 
     @property
     def fs(self) -> float:

@@ -43,24 +43,36 @@ def noise_floor(pieces: Sequence[Piece]) -> np.ndarray | None:
     """Per joint, the torque measurement noise (N·m, standard deviation) from the raw torque's
     third differences on the pieces' rows: white noise of σ gives differences of σ·√20, while
     the motion's torque and any effect a model could name are smooth at the sampling rate and
-    vanish from them. A robust scale (1.4826 × the median absolute deviation) ignores the few
-    samples where a friction step or a stick-slip makes a difference large. None without rows.
+    vanish from them. A robust scale (1.4826 × the median absolute deviation, then the standard
+    deviation within TRIM of it) ignores the few samples where a friction step or a stick-slip
+    makes a difference large. Rows without a joint's torque (``tau_mask``) are left out. None
+    without rows.
 
     It estimates white noise; coloured noise (fewer high frequencies) reads lower, and the
-    residual's whiteness test says so."""
+    residual's whiteness test says so. A torque smoothed before logging reads its own, small,
+    remaining noise."""
+    order = DIFF_ORDER
     diffs: list[np.ndarray] = []
+    valid: list[np.ndarray] = []
     for pc in pieces:
         tau = pc.prep.tau[pc.lo:pc.hi]
-        if tau.shape[0] > DIFF_ORDER + 1:
-            diffs.append(np.diff(tau, DIFF_ORDER, axis=0))
+        if tau.shape[0] > order + 1:
+            diffs.append(np.diff(tau, order, axis=0))
+            mask = pc.prep.tau_mask
+            ok = np.ones(diffs[-1].shape, bool) if mask is None else np.all(
+                [mask[pc.lo + k: pc.hi - order + k] for k in range(order + 1)], axis=0)
+            valid.append(ok)
     if not diffs:
         return None
-    d = np.concatenate(diffs)
-    share = math.comb(2 * DIFF_ORDER, DIFF_ORDER)
-    first = _MAD * np.median(np.abs(d - np.median(d, axis=0)), axis=0)
+    d, ok = np.concatenate(diffs), np.concatenate(valid)
+    if not ok.any(axis=0).all():
+        return None  # a joint without a torque on these rows
+    share = math.comb(2 * order, order)
+    first = np.array([_MAD * np.median(np.abs(d[ok[:, j], j] - np.median(d[ok[:, j], j])))
+                      for j in range(d.shape[1])])
     # then the standard deviation of the differences within TRIM robust scales (nearly as
     # efficient as the standard deviation), corrected for the normal tails left out
-    inside = np.abs(d) <= TRIM * np.maximum(first, 1e-300)
+    inside = ok & (np.abs(d) <= TRIM * np.maximum(first, 1e-300))
     var = np.sum(np.where(inside, d * d, 0.0), axis=0) / np.maximum(inside.sum(axis=0), 1)
     return np.asarray(np.sqrt(var / _TRIMMED_VAR / share))
 
@@ -74,29 +86,33 @@ class LagSums:
         self.prod = np.zeros((lags + 1, n))
         self.head = np.zeros((lags + 1, n))  # Σ e_k over the first index of each lag's pairs
         self.tail = np.zeros((lags + 1, n))  # … and over the second
-        self.pairs = np.zeros(lags + 1)
+        self.pairs = np.zeros((lags + 1, n))
         self.total = np.zeros(n)
-        self.count = 0
+        self.count = np.zeros(n)
 
-    def add(self, e: np.ndarray) -> None:
+    def add(self, e: np.ndarray, mask: np.ndarray | None = None) -> None:
+        """``mask`` (m, n): which joints' rows count (None: all); a pair counts when both do."""
         m = e.shape[0]
+        w = np.ones(e.shape) if mask is None else mask.astype(float)
+        e = e * w
         self.total += e.sum(axis=0)
-        self.count += m
+        self.count += w.sum(axis=0)
         for k in range(min(self.lags, m - 1) + 1):
-            a, b = e[: m - k], e[k:]
+            both = w[: m - k] * w[k:]
+            a, b = e[: m - k] * both, e[k:] * both
             self.prod[k] += np.einsum("ij,ij->j", a, b)
             self.head[k] += a.sum(axis=0)
             self.tail[k] += b.sum(axis=0)
-            self.pairs[k] += m - k
+            self.pairs[k] += both.sum(axis=0)
 
     def result(self) -> Whiteness | None:
-        if self.count <= self.lags + 1:
+        if self.count.min() <= self.lags + 1:
             return None
         mu = self.total / self.count
-        cov = (self.prod - mu * (self.head + self.tail) + self.pairs[:, None] * mu * mu) / \
-            np.maximum(self.pairs[:, None], 1.0)
+        pairs = np.maximum(self.pairs, 1.0)
+        cov = (self.prod - mu * (self.head + self.tail) + self.pairs * mu * mu) / pairs
         var = np.maximum(cov[0], 1e-300)
-        return Whiteness(cov[1:] / var, self.count)
+        return Whiteness(cov[1:] / var, int(self.count.min()))
 
 
 @dataclass(frozen=True)

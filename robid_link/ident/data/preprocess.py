@@ -193,6 +193,9 @@ class Prepared:
     tau_model: np.ndarray | None = None  # the current model's torque on every raw sample
     #: known torques (model file), already subtracted from ``tau`` and ``tau_f``
     tau_known: np.ndarray | None = None
+    #: (N, n) rows × joints whose torque enters the joint's equation (None: all): False for a
+    #: partial log's missing torques and where a joint sticks (friction at rest is static)
+    tau_mask: np.ndarray | None = None
 
     @property
     def tau(self) -> np.ndarray:
@@ -253,7 +256,8 @@ def prepare(log: Log, cutoff_hz: float | None, interval: int = 1,
         qd[seg] = filt.apply(log.qd[seg]) if log.qd is not None else np.gradient(q[seg], dt, axis=0)
         qdd[seg] = np.gradient(qd[seg], dt, axis=0)
         tau_f[seg] = filt.apply(log.tau[seg])
-    return Prepared(log, q, qd, qdd, tau_f, filt, transmission)
+    mask = None if log.tau_joints is None else np.repeat(log.tau_joints[None, :], len(log), 0)
+    return Prepared(log, q, qd, qdd, tau_f, filt, transmission, tau_mask=mask)
 
 
 #: a sample moves when some joint's filtered speed exceeds this fraction of its typical speed

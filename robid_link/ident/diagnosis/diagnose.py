@@ -29,6 +29,12 @@ from robid_link.ident.diagnosis.candidates import (
     structural_screen,
 )
 from robid_link.ident.diagnosis.evidence import Signatures
+from robid_link.ident.diagnosis.limits import (
+    limited_candidates,
+    limits_note,
+    log_limits,
+    within_limits,
+)
 from robid_link.ident.diagnosis.residuals import profile_rows, residual_dict, residual_pool
 from robid_link.ident.diagnosis.scoring import (
     cross_validation,
@@ -94,10 +100,13 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                                    pool.problem.transmission, candidates)
     insample = insample_screen(rows, structural.new)
     kept = refine_survivors(rows, insample.kept, profiled)
+    limits = log_limits(pool.preps[: len(pool.problem.preps)])
+    limited = limited_candidates(kept, limits)
     del rows  # the profiling rows' dense regressor: not needed by the union pass
     notes += screen_notes(structural, insample)
     absorbed, residuals = structural.absorbed, residual_dict(pool)
     if not kept and not pool.vpieces:  # nothing can show a gain: no union pass
+        notes += limits_note(limits, {})
         return Diagnosis(result, model.labels(), None, [], [], absorbed, odd, notes,
                          residuals, doubts=doubts)
     union = union_design(robot, pool, kept)
@@ -105,6 +114,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     if transfer is not None:
         doubts += model_transfer_doubts(robot, pool.problem, transfer, pool.base.independent)
     if not kept:  # nothing can show a gain: no candidate pass
+        notes += limits_note(limits, {})
         return Diagnosis(result, model.labels(), None, [], [], absorbed, odd, notes,
                          residuals, doubts=doubts)
     cv = cross_validation(union, pool)
@@ -115,11 +125,17 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         sug = suggestion(blk, score, signatures)
         scored.append(sug if transfer is None else
                       with_transfer(sug, score, transfer, union.positions[k]))
-    ranked = rank(judge(scored))
+    verdicts, held_back = within_limits(judge(scored), limited, limits.fs)
+    ranked = rank(verdicts)
     notes += not_transferring_note(ranked.not_transferring)
+    notes += limits_note(limits, held_back)
+    if held_back:
+        doubts.append(f"the rate limits the diagnosis: {', '.join(held_back)} cut the error "
+                      "but the log cannot separate them (see the notes)")
     return Diagnosis(result, model.labels(), [float(x) for x in cv.base], ranked.suggested,
                      ranked.rejected[:10], absorbed, odd, notes, residuals,
-                     not_transferring=ranked.not_transferring, doubts=doubts)
+                     not_transferring=ranked.not_transferring, doubts=doubts,
+                     limited=[sug for sug, _ in held_back.values()])
 
 
 def fit_or_reuse(robot: Robot, data: Sequence[Log], model: Model, result: IdentResult | None,

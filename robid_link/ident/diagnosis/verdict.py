@@ -72,6 +72,8 @@ class Diagnosis:
     not_transferring: list[Suggestion] = field(default_factory=list)
     #: why the model cannot be called adequate though nothing is missing
     doubts: list[str] = field(default_factory=list)
+    #: suggestions that cut the error but that the log cannot separate (limits.py)
+    limited: list[Suggestion] = field(default_factory=list)
 
     @property
     def verdict(self) -> str:
@@ -87,6 +89,7 @@ class Diagnosis:
                 "suggestions": [s.as_dict() for s in self.suggestions],
                 "not_useful": [s.as_dict() for s in self.rejected],
                 "not_transferring": [s.as_dict() for s in self.not_transferring],
+                "limited_by_the_log": [s.as_dict() for s in self.limited],
                 "doubts": self.doubts,
                 "absorbed": self.absorbed, "unexplained": self.unexplained,
                 "notes": self.notes}
@@ -111,6 +114,10 @@ class Diagnosis:
             lines.append(f"  does not transfer: {s.label()} (cross-validated gain "
                          f"{100 * s.gain:.1f} %, on the validation logs "
                          f"{100 * (s.transfer or 0.0):+.1f} %)")
+        if self.limited:
+            lines.append("  the log cannot separate: " + ", ".join(
+                f"{s.label()} (gain {100 * s.gain:.1f} %)" for s in self.limited[:SUMMARY_MAX])
+                + " — not suggested (see the notes)")
         for d in self.doubts:
             lines.append(f"  doubt: {d}")
         for u in self.unexplained:

@@ -83,12 +83,17 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
     g = np.zeros((n, k_blocks, p + 2, p + 2))
     support = [np.concatenate((design.support[j], [p, p + 1])) for j in range(n)]
     seen = 0
+    left_out = np.zeros(n)
     for pc in pieces:
         for c, y, idx in design_chunks(design, pc, interval=interval, filtered=True):
             m = c.shape[0]
             bid = (np.arange(seen, seen + m) * k_blocks) // total
             seen += m
             sw = np.sqrt(row_weight(c, y, idx)) if row_weight is not None else None
+            if pc.prep.tau_mask is not None:  # rows without a joint's torque: not its equation
+                mw = pc.prep.tau_mask[idx].astype(float)
+                left_out += m - mw.sum(axis=0)
+                sw = mw if sw is None else sw * mw
             edges = np.flatnonzero(np.diff(bid)) + 1
             for j in range(n):
                 sup = support[j]
@@ -105,7 +110,7 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
                     gb[-2, -2], gb[-2, -1] = yb @ yb, yb @ ob
                     gb[-1, -2], gb[-1, -1] = gb[-2, -1], ob @ ob
                     g[j, bid[lo]][np.ix_(sup, sup)] += gb
-    return Grams(g, np.full(n, total))
+    return Grams(g, np.full(n, total) - left_out)
 
 
 #: relative eigenvalue floor of a column-scaled Gram (cond(X) up to 1e6 is kept)

@@ -26,6 +26,7 @@ from robid_link.ident.data.currents import (
 )
 from robid_link.ident.data.logs import Log, file_sha256, load_log
 from robid_link.ident.data.preprocess import Problem, build_problem, check_counts
+from robid_link.ident.data.sticks import without_sticks
 from robid_link.ident.fit.consistent import ConsistentFit, fit_consistent
 from robid_link.ident.fit.design import Design, make_design, structural_mask, with_predictions
 from robid_link.ident.fit.estimate import Fit, Grams, accumulate, fit
@@ -73,6 +74,7 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
     """
     pb = build_problem(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
                        interval=interval, motor_side=motor_side)
+    pb, _ = without_sticks(pb)
     pb = without_known_torques(pb, model.known)
     pb = with_current_gains(pb, model.known)
     pb = with_model_torque(pb)
@@ -228,8 +230,8 @@ def estimate(pb: Problem, asm: Assembly, method: str, weight: str = "bisquare") 
     n_rows = grams.n_rows
     ms = f.rss / np.maximum(n_rows, 1)
     var = np.maximum(ms - f.mean_res**2, 0.0)
-    fit_err = ErrorStats(np.sqrt(ms), np.sqrt(var), var, int(n_rows[0]))
-    return Estimate(f.theta, f.cov, params, fit_err, f.cond, least, int(n_rows[0]),
+    fit_err = ErrorStats(np.sqrt(ms), np.sqrt(var), var, int(n_rows.max()))
+    return Estimate(f.theta, f.cov, params, fit_err, f.cond, least, int(n_rows.max()),
                     asm.design, notes)
 
 

@@ -54,13 +54,18 @@ class StatsAccumulator:
     def __init__(self, n: int) -> None:
         self.s1 = np.zeros(n)
         self.s2 = np.zeros(n)
+        self.counts = np.zeros(n)
         self.count = 0
         self.norm_e = 0.0
         self.norm_tau = 0.0
 
-    def add(self, e: np.ndarray, tau: np.ndarray) -> None:
+    def add(self, e: np.ndarray, tau: np.ndarray, mask: np.ndarray | None = None) -> None:
+        """``mask`` (m, n): which joints' torques count on each row (None: all)."""
+        if mask is not None:
+            e, tau = e * mask, tau * mask
         self.s1 += e.sum(axis=0)
         self.s2 += (e * e).sum(axis=0)
+        self.counts += e.shape[0] if mask is None else mask.sum(axis=0)
         self.count += e.shape[0]
         self.norm_e += float(np.linalg.norm(e, axis=1).sum())
         self.norm_tau += float(np.linalg.norm(tau, axis=1).sum())
@@ -68,8 +73,9 @@ class StatsAccumulator:
     def stats(self) -> ErrorStats | None:
         if self.count == 0:
             return None
-        mean = self.s1 / self.count
-        ms = self.s2 / self.count
+        counts = np.maximum(self.counts, 1.0)
+        mean = self.s1 / counts
+        ms = self.s2 / counts
         var = np.maximum(ms - mean * mean, 0.0)
         rel = self.norm_e / self.norm_tau if self.norm_tau > 0 else None
         return ErrorStats(np.sqrt(ms), np.sqrt(var), var, self.count, rel,
@@ -146,12 +152,14 @@ def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> He
     parts: dict[str, dict[str, list[np.ndarray]]] = {}
     for pc in problem.valid:
         known = pc.prep.tau_known
+        mask = pc.prep.tau_mask
         for c, tau, idx in design_chunks(design, pc, filtered=False):
             pred = design.predict(c, theta)
             if known is not None:  # known torques: subtracted from τ, added back to both
                 tau, pred = tau + known[idx], pred + known[idx]
-            acc.add(tau - pred, tau)
-            lags.add(tau - pred)
+            m = None if mask is None else mask[idx]
+            acc.add(tau - pred, tau, m)
+            lags.add(tau - pred, m)
             tr = parts.setdefault(pc.prep.log.path, {"t": [], "tau": [], "pred": []})
             tr["t"].append(pc.prep.log.t[idx])
             tr["tau"].append(tau)
@@ -161,7 +169,7 @@ def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> He
                 pred_nom = rigid_regressor(robot, st.q, st.qd, st.qdd) @ robot.nominal
                 if known is not None:
                     pred_nom = pred_nom + known[idx]
-                nom.add(tau - pred_nom, tau)
+                nom.add(tau - pred_nom, tau, m)
     traces = []
     for path, tr in parts.items():
         t = np.concatenate(tr["t"])
