@@ -68,6 +68,7 @@ def sanity_checks(pb: Problem, nominal: bool) -> list[str]:
         name = Path(prep.log.path).name
         if pb.transmission is None:
             out += _position_checks(robot, prep.log.q, name)
+        out += _speed_check(robot, prep, name)
         peak = np.abs(tau).max(axis=0)
         flat = max(5, int(0.05 * prep.filt.fs))  # a clipped signal sits flat at its peak
         for j in range(robot.n):
@@ -130,6 +131,23 @@ def _position_checks(robot: Robot, q: np.ndarray, name: str) -> list[str]:
         else:
             out.append(f"{where}: wrong units or gear ratio?")
     return out
+
+
+#: a motion whose every joint stays under this fraction of its speed limit crawls
+CRAWL = 1e-3
+
+
+def _speed_check(robot: Robot, prep: Prepared, name: str) -> list[str]:
+    """A motion that spans its joints' ranges at a crawl no robot excites dynamics with: the
+    time stamps are likely not in seconds (milliseconds at a rate the rate check allows)."""
+    limit = robot.limits.qd_max
+    fast = np.percentile(np.abs(prep.qd), 95, axis=0)
+    span = np.ptp(prep.log.q, axis=0)
+    ok = np.isfinite(limit) & (limit > 0)
+    if not ok.any() or np.any(fast[ok] >= CRAWL * limit[ok]) or span.max() < 0.05:
+        return []
+    return [f"{name}: the motion crawls (every joint under {CRAWL:g} of its speed limit over "
+            f"{prep.log.t[-1] - prep.log.t[0]:.4g} s): is the time column in seconds?"]
 
 
 def _scale_cause(robot: Robot, prep: Prepared, sl: slice, pred: np.ndarray, j: int,
