@@ -135,9 +135,8 @@ def without_sticks(pb: Problem) -> tuple[Problem, list[Sticks]]:
         return pb, []
     def masked(prep: Prepared, stuck: np.ndarray) -> Prepared:
         keep = np.ones(prep.q.shape, bool) if prep.tau_mask is None else prep.tau_mask.copy()
-        for st in sticks:  # the sticks, and every row as slow as their smear: a stick or a
-            j = st.joint   # reversal there looks the same in the filtered velocity
-            keep[:, j] &= ~stuck[:, j] & (np.abs(prep.qd[:, j]) >= st.speed)
+        for st in sticks:
+            keep[:, st.joint] &= ~stuck[:, st.joint]
         return replace(prep, tau_mask=keep)
 
     preps = [masked(p, m) for p, m, _ in found]
@@ -146,10 +145,9 @@ def without_sticks(pb: Problem) -> tuple[Problem, list[Sticks]]:
 
 
 def sticks_note(sticks: Sequence[Sticks], prep: Prepared) -> str:
-    parts = [f"joint {s.joint + 1} ({s.count} sticks up to {s.longest_s:.3g} s; "
+    parts = [f"joint {s.joint + 1} ({s.count} rests up to {s.longest_s:.3g} s; "
              f"{100 * s.share:.3g} % of the samples left out, speeds under {s.speed:.3g})"
              for s in sticks]
-    return ("sticks at velocity reversals: " + ", ".join(parts) + ": friction at rest is "
-            "static, so the sticks, their smear by one period of the "
-            f"{prep.filt.cutoff_hz:.3g} Hz cutoff and every row as slow are left out of the "
-            "joint's equation")
+    return ("rests within the motion (sticks at reversals, pauses): " + ", ".join(parts)
+            + ": friction at rest is static, so the rests and their smear by one period of the "
+            f"{prep.filt.cutoff_hz:.3g} Hz cutoff are left out of the joint's equation")

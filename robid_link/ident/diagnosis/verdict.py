@@ -174,21 +174,14 @@ def not_transferring_note(lost: list[Suggestion]) -> list[str]:
 
 
 def result_doubts(result: IdentResult) -> list[str]:
-    """Why a model with nothing missing still cannot be called adequate."""
+    """Why a model with nothing missing still cannot be called adequate: piled-up
+    extrapolation, and what makes the fit unfit (physically impossible, worse than CAD)."""
     out = []
     extrap = [n for n in result.notes if "the model extrapolates" in n]
     if len(extrap) >= EXTRAPOLATION_MAX:
         out.append(f"{len(extrap)} extrapolation warnings: the validation motion leaves the "
                    "training ranges, so its error says little about the model")
-    try:
-        val, nom = result.validation, result.nominal
-    except (AttributeError, ValueError):  # no held-out rows
-        return out
-    if (val is not None and nom is not None and val.relative_error is not None
-            and nom.relative_error is not None and val.relative_error > nom.relative_error):
-        out.append(f"held-out relative error {100 * val.relative_error:.3g} % is above the "
-                   f"a-priori (CAD) model's {100 * nom.relative_error:.3g} %")
-    return out
+    return out + result.doubts
 
 
 def floor_doubts(result: IdentResult) -> list[str]:

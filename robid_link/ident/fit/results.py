@@ -228,6 +228,15 @@ class IdentResult:
         return noise_floor([*self.problem.train, *self.problem.valid])
 
     @property
+    def doubts(self) -> list[str]:
+        """What makes this fit unfit to hand a controller (``physics.fit_doubts``): physically
+        impossible base parameters, held-out errors above the CAD model's; each with the
+        remedy."""
+        from robid_link.ident.fit.physics import fit_doubts
+
+        return fit_doubts(self)
+
+    @property
     def whiteness(self) -> Whiteness | None:
         """The held-out raw residual's autocorrelation against white noise (None: no rows)."""
         return self.held_out.whiteness
@@ -316,6 +325,7 @@ class IdentResult:
                               "interval": self.interval},
             "data_files": self.data_files,
             "notes": self.notes,
+            "doubts": self.doubts,
             "consistent": None if self.consistent is None else self.consistent.as_dict(),
         }
 
@@ -361,6 +371,10 @@ class IdentResult:
         if self.notes:
             lines.append("")
             lines += [f"  [{i}] {n}" for i, n in enumerate(self.notes, 1)]
+        doubts = self.doubts
+        if doubts:
+            lines.append("")
+            lines += [f"  doubt: {d}" for d in doubts]
         return "\n".join(lines)
 
 
