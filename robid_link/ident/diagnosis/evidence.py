@@ -99,7 +99,7 @@ def evidence_sentence(blk: Block, before: float, after: float,
             text += (f"; it follows {r2[best][0]} more closely, and the effect still cuts "
                      "the held-out error")
     text += f"; {drop}"
-    for key in ("vs", "vp", "period", "tau_s", "alpha"):
+    for key in ("vs", "shape", "vp", "period", "tau_s", "alpha"):
         if key in blk.opts:
             fields[key] = round(float(blk.opts[key]), 5)
             text += f"; {key} {fields[key]:.4g}"

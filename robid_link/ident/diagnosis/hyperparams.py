@@ -94,15 +94,24 @@ def bounds(rows: ProfileRows, blk: Block, hyper: str) -> tuple[float, float]:
 
 
 def profile_effect(rows: ProfileRows, blocks: list[Block], refine: bool = True) -> list[Block]:
-    """Choose the free hyper-parameter of one effect on all its candidate joints.
+    """Choose the free hyper-parameters of one effect on all its candidate joints.
 
     For each grid value the candidate's columns are evaluated on the profiling rows beyond the
     joint's own friction and model row; the value that explains most of each joint's raw
-    residual wins. ``refine=False`` stops at the grid (``refine_effect`` finishes later, for
-    the candidates that survive the screen).
+    residual wins. Several hyper-parameters (Stribeck's velocity and shape) are chosen in
+    turn, twice round, each with the others at their last choice. ``refine=False`` stops at
+    the grid (``refine_effect`` finishes later, for the candidates that survive the screen).
     """
+    free = blocks[0].free_hypers()
+    for _ in range(1 if len(free) == 1 else 2):
+        for hyper in free:
+            blocks = _profile_one(rows, blocks, hyper)
+    return refine_effect(rows, blocks) if refine else blocks
+
+
+def _profile_one(rows: ProfileRows, blocks: list[Block], hyper: str) -> list[Block]:
+    """One hyper-parameter of ``blocks`` on its grid (a ripple's period: from the spectrum)."""
     eff = blocks[0].effect
-    hyper = blocks[0].free_hypers()[0]
     grids = [np.array(b.grid(hyper, rows.robot, rows.states.transmission)) for b in blocks]
     if eff.name == "ripple":  # the period from the residual's spectrum in q
         chosen = [b.with_opts(**{hyper: _period_from_residual(
@@ -119,14 +128,21 @@ def profile_effect(rows: ProfileRows, blocks: list[Block], refine: bool = True) 
         chosen = _profile_effect_grid(rows, blocks, hyper, values)
     else:
         chosen = _profile_effect_grid(rows, blocks, hyper, np.stack(grids, axis=1))
-    return refine_effect(rows, chosen) if refine else chosen
+    return chosen
 
 
 def refine_effect(rows: ProfileRows, chosen: list[Block]) -> list[Block]:
     """Continuous refinement of each joint's grid choice: a bounded scalar minimisation
-    (Brent, in the logarithm) between the choice's grid neighbours, within the bounds."""
+    (Brent, in the logarithm) between the choice's grid neighbours, within the bounds; with
+    several hyper-parameters each in turn, the first once more at the end."""
+    hypers = [h for h in chosen[0].effect.hypers if h in chosen[0].opts]
+    for hyper in hypers + hypers[:1] if len(hypers) > 1 else hypers:
+        chosen = _refine_one(rows, chosen, hyper)
+    return chosen
+
+
+def _refine_one(rows: ProfileRows, chosen: list[Block], hyper: str) -> list[Block]:
     eff = chosen[0].effect
-    hyper = next(h for h in eff.hypers if h in chosen[0].opts)
     out = []
     for b in chosen:
         lo, hi = bounds(rows, b, hyper)

@@ -145,8 +145,12 @@ def with_profiled_hypers(pb: Problem) -> tuple[Problem, dict[str, dict[str, floa
     if not free:
         return pb, chosen
     blocks = list(pb.blocks)
-    for eff_name, hyper in sorted({(b.effect.name, h) for _, b, h in free}):
-        targets = [(k, b) for k, b, h in free if b.effect.name == eff_name and h == hyper]
+    order = sorted({(b.effect.name, list(b.effect.hypers).index(h), h) for _, b, h in free})
+    several = {e for e, i, _ in order if i > 0}  # twice round for Stribeck's (vs, shape)
+    order += [o for o in order if o[0] in several]
+    for eff_name, _, hyper in order:  # an effect's hyper-parameters in its own order
+        targets = [(k, blocks[k]) for k, b, h in free  # with the choices made so far
+                   if b.effect.name == eff_name and h == hyper]
         best = _grid_choice(pb, blocks, targets, hyper)
         for k, b in targets:
             blocks[k] = b.with_opts(**{hyper: best[k]})
