@@ -28,6 +28,7 @@ from robid_link.ident.diagnosis.candidates import (
     screen_notes,
     structural_screen,
 )
+from robid_link.ident.diagnosis.counterbalance import Counterbalance, counterbalances
 from robid_link.ident.diagnosis.evidence import Signatures
 from robid_link.ident.diagnosis.limits import (
     limited_candidates,
@@ -102,6 +103,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     kept = refine_survivors(rows, insample.kept, profiled)
     limits = log_limits(pool.preps[: len(pool.problem.preps)])
     limited = limited_candidates(kept, limits)
+    laws = {c.joint: c for c in counterbalances(rows, [k.block for k in kept]) if c.fits}
     del rows  # the profiling rows' dense regressor: not needed by the union pass
     notes += screen_notes(structural, insample)
     absorbed, residuals = structural.absorbed, residual_dict(pool)
@@ -127,6 +129,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                       with_transfer(sug, score, transfer, union.positions[k]))
     verdicts, held_back = within_limits(judge(scored), limited, limits.fs)
     ranked = rank(verdicts)
+    notes += _known_torque_pointers(ranked.suggested, laws)
     notes += not_transferring_note(ranked.not_transferring)
     notes += limits_note(limits, held_back)
     if held_back:
@@ -136,6 +139,20 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                      ranked.rejected[:10], absorbed, odd, notes, residuals,
                      not_transferring=ranked.not_transferring, doubts=doubts,
                      limited=[sug for sug, _ in held_back.values()])
+
+
+def _known_torque_pointers(suggested: Sequence[Suggestion], laws: Mapping[int, Counterbalance]
+                           ) -> list[str]:
+    """A spring suggestion whose joint a counterbalance law fits points to ``known_torque``:
+    the entry on the suggestion, the filled-in example in a note."""
+    out = []
+    for sug in suggested:
+        law = laws.get(sug.joint or 0) if sug.effect == "spring" else None
+        if law is not None:
+            sug.known_torque = law.entry()
+            sug.evidence += "; a counterbalance law fits it: known_torque (see the notes)"
+            out.append(law.note())
+    return out
 
 
 def fit_or_reuse(robot: Robot, data: Sequence[Log], model: Model, result: IdentResult | None,

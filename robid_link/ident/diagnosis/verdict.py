@@ -46,6 +46,8 @@ class Suggestion:
     side: str | None = None  # "joint" / "motor" when the effect names its side
     #: relative cut of the validation logs' RMSE on the effect's rows (None: no such logs)
     transfer: float | None = None
+    #: a spring whose law a counterbalance fits: the model file's ``known_torque`` entry
+    known_torque: dict[str, Any] | None = None
 
     def label(self) -> str:
         return effect_label(self.effect, self.joint, self.side)
@@ -54,7 +56,8 @@ class Suggestion:
         return {"effect": self.effect, "joint": self.joint, "side": self.side,
                 "label": self.label(), "rmse": self.rmse, "gain": self.gain,
                 "transfer_gain": self.transfer, "p_value": self.p_value,
-                "evidence": self.evidence, **self.fields, "hyper_parameters": self.hypers}
+                "evidence": self.evidence, **self.fields, "hyper_parameters": self.hypers,
+                **({"known_torque": self.known_torque} if self.known_torque else {})}
 
 
 @dataclass
