@@ -1,10 +1,11 @@
 """A counterbalance behind a ``spring`` suggestion: when a joint's residual follows its angle
-the way a spring between a base point and a link point pulls (τ = −(k·l − k·l0)·a·b·sin ψ / l,
-l² = a² + b² − 2ab·cos ψ, ψ = q + φ), the suggestion points to ``known_torque`` with that law
-filled in for the joint: a/b and φ fitted to the residual's shape, k and k·l0 left for
-identification (both enter linearly). A gas strut's force is nearly affine in its length over
-its stroke, so the same law fits it. The law is offered only when its two shape constants
-explain nearly what the spring's angle series does, and more than a ripple on that joint."""
+the way a strut between a base point and a link point pushes or pulls (τ = F(l)·a·b·sin ψ / l,
+l² = a² + b² − 2ab·cos ψ, ψ = q + φ, the force a quadratic in the length: F = f0 + f1·l +
+f2·l², a linear spring f2 = 0, a gas strut's polytropic force close to it over its stroke), the
+suggestion points to ``known_torque`` with that law filled in for the joint: a/b and φ fitted
+to the residual's shape, f0, f1, f2 left for identification (they enter linearly). The law is
+offered only when it explains nearly what the spring's angle series does, and more than a
+ripple on that joint."""
 
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ from robid_link.ident.model.effects import REGISTRY, Block
 __all__ = ["Counterbalance", "counterbalances", "LAW_SHARE_MIN", "known_torque_entry"]
 
 #: the law must explain this fraction of what the spring's angle series explains
-LAW_SHARE_MIN = 0.9
+LAW_SHARE_MIN = 0.8
 _RATIOS = np.geomspace(0.05, 0.95, 14)
 _PHASES = np.linspace(-math.pi, math.pi, 48, endpoint=False)
 
@@ -52,16 +53,16 @@ class Counterbalance:
         e = self.entry()
         flow = (f"{{name: {e['name']}, joint: {e['joint']}, expression: \"{e['expression']}\", "
                 f"constants: {{a: {e['constants']['a']}, b: 1.0, phi: {e['constants']['phi']}}}"
-                ", identify: [k, kl0]}")
+                ", identify: [f0, f1, f2]}")
         series = max(self.series_share, 1e-300)
         return (f"spring@{self.joint}: joint {self.joint}'s residual follows its angle like a "
-                f"counterbalance (in-sample, a spring law with a/b {self.ratio:.3g} and φ "
+                f"counterbalance (in-sample, a strut law with a/b {self.ratio:.3g} and φ "
                 f"{self.phi:.3g} rad explains {100 * self.law_share / series:.3g} % of what "
                 "the angle series does, a ripple "
                 f"{100 * self.ripple_share / series:.3g} %): "
                 "if the arm has a spring or gas strut there, give its law in the model file — "
                 f"known_torque: [{flow}] — with its measured a, b (only their ratio is fitted "
-                "here) and k, kl0 identified")
+                "here) and the force's f0, f1, f2 identified")
 
 
 def known_torque_entry(joint: int, ratio: float, phi: float) -> dict[str, Any]:
@@ -69,16 +70,16 @@ def known_torque_entry(joint: int, ratio: float, phi: float) -> dict[str, Any]:
     psi = f"q{joint} + phi"
     length = f"sqrt(a**2 + b**2 - 2*a*b*cos({psi}))"
     return {"name": f"counterbalance{joint}", "joint": joint,
-            "expression": f"-(k*{length} - kl0)*a*b*sin({psi})/{length}",
+            "expression": f"(f0 + f1*{length} + f2*{length}**2)*a*b*sin({psi})/{length}",
             "constants": {"a": round(float(ratio), 4), "b": 1.0, "phi": round(float(phi), 4)},
-            "identify": ["k", "kl0"]}
+            "identify": ["f0", "f1", "f2"]}
 
 
 def _law_columns(q: np.ndarray, ratio: float, phi: float) -> np.ndarray:
     psi = q + phi
     s = np.sin(psi)
     length = np.sqrt(1.0 + ratio**2 - 2.0 * ratio * np.cos(psi))
-    return np.column_stack([ratio * s, ratio * s / length])
+    return np.column_stack([ratio * s / length, ratio * s, ratio * s * length])
 
 
 def _fit(beyond: Beyond, q: np.ndarray) -> tuple[float, float, float]:
