@@ -27,6 +27,33 @@ ROBOTS = ROOT / "examples" / "robots"
 KUKA = ROOT.parent / "shared" / "data" / "kuka_lwr4"
 
 
+# ----------------------------------------------------------------------------- test kinds
+
+#: every test is a unit test (one part, in-process fakes) unless its file is listed here:
+#: contract tests run one interface against every implementation (each driver with its peer,
+#: the golden transcripts); end-to-end tests run the daemon, a peer in another process, a
+#: browser or a real server. `pytest -m unit` is the quick loop; `make test` runs them all.
+TEST_KINDS = {
+    "contract": ("drivers/test_contract.py", "drivers/test_golden_*.py"),
+    "e2e": ("link/test_end_to_end*.py", "drivers/test_*_end_to_end.py",
+            "link/test_harden_process.py", "link/test_verify_campaign.py",
+            "link/test_daemon_properties.py", "browser/test_*.py", "test_examples.py"),
+}
+
+
+def kind_of(path: Path) -> str:
+    """The kind of a test file (``unit``, ``contract`` or ``e2e``) by ``TEST_KINDS``."""
+    rel = path.resolve().relative_to(ROOT / "tests")
+    kinds = [k for k, globs in TEST_KINDS.items() if any(rel.match(g) for g in globs)]
+    assert len(kinds) <= 1, f"{rel}: listed as {kinds}"
+    return kinds[0] if kinds else "unit"
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        item.add_marker(getattr(pytest.mark, kind_of(item.path)))
+
+
 @pytest.fixture(scope="session")
 def arm3() -> Robot:
     return load_robot(ROBOTS / "arm3.yaml")
@@ -163,3 +190,30 @@ def mdh_to_urdf(robot: Robot) -> str:
         parent = link
     parts.append("</robot>")
     return "\n".join(parts)
+
+
+# ----------------------------------------------------------------------------- servers
+
+
+@pytest.fixture(scope="session")
+def postgres() -> Iterator[Any]:
+    """A real PostgreSQL cluster on loopback for the session (tests/servers.py)."""
+    from tests.servers import postgres_server
+
+    with postgres_server() as pg:
+        yield pg
+
+
+@pytest.fixture
+def pg_url(postgres: Any) -> str:
+    """A fresh, empty database of the session's cluster: its URL (no password in it)."""
+    return str(postgres.create_database())
+
+
+@pytest.fixture(scope="session")
+def dask_scheduler() -> Iterator[Any]:
+    """A real ``dask scheduler`` with one ``dask worker`` on loopback for the session."""
+    from tests.servers import dask_cluster
+
+    with dask_cluster() as cluster:
+        yield cluster

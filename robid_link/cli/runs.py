@@ -1,6 +1,7 @@
 """``robid status``, ``results``: runs and their results, from the daemon over its control
-socket or, when no daemon answers, from the store; the run tables and the progress display
-that ``campaign start --wait`` and the demo print too."""
+socket or, when no daemon answers, from the store — or, with ``--store URL``, from a plant's
+store (every robot); the run tables and the progress display that ``campaign start --wait``
+and the demo print too."""
 
 from __future__ import annotations
 
@@ -10,11 +11,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-from robid_link.cli.types import Command, config_option, output_path, positive_float
+from robid_link.cli.types import Command, bounded_int, output_path, positive_float
 from robid_link.exceptions import DaemonUnreachable, RobidError
 from robid_link.link.control import request
 
-__all__ = ["COMMANDS", "wait_for_run", "format_runs", "format_results", "report_lines"]
+__all__ = ["COMMANDS", "wait_for_run", "format_runs", "format_results", "report_lines",
+           "store_reader", "store_option", "open_store_option"]
 
 
 def _unreachable(err: DaemonUnreachable) -> str:
@@ -58,14 +60,17 @@ def wait_for_run(socket_path: Path, run_id: str, poll_s: float = 0.5,
         time.sleep(poll_s)
 
 
-def format_runs(runs: list[dict[str, Any]]) -> str:
+def format_runs(runs: list[dict[str, Any]], robots: bool = False) -> str:
+    """The run table; ``robots``: with the robot of each run (a plant's store)."""
     if not runs:
         return "no runs yet"
-    lines = [f"{'run_id':<24} {'campaign':<12} {'trigger':<8} {'state':<10} progress"]
+    who = f"{'robot':<14} " if robots else ""
+    lines = [f"{'run_id':<24} {who}{'campaign':<12} {'trigger':<8} {'state':<10} progress"]
     for r in runs:
         p = r["progress"]
         tail = r.get("error") if r["state"] == "failed" else (r.get("step") or "")
-        lines.append(f"{r['run_id']:<24} {r['campaign']:<12} {r['trigger']:<8} "
+        who = f"{r.get('robot') or '?':<14} " if robots else ""
+        lines.append(f"{r['run_id']:<24} {who}{r['campaign']:<12} {r['trigger']:<8} "
                      f"{r['state']:<10} {p['stored']}/{p['total']} logs  {tail or ''}")
     return "\n".join(lines)
 
@@ -144,7 +149,10 @@ def report_lines(state_dir: Path, run_ids: list[str], most: int = 5) -> list[str
 
 
 def _robot_name(cfg: Any) -> str:
-    """The robot's name as the store records it (the description's name, else the stem)."""
+    """The robot's name as the store records it: ``robot_name``, else the description's name
+    (else the file's stem)."""
+    if cfg.robot_name:
+        return str(cfg.robot_name)
     from robid_link.ident.model.robot import load_robot
 
     try:
@@ -153,36 +161,86 @@ def _robot_name(cfg: Any) -> str:
         return Path(cfg.robot).stem
 
 
+def store_reader(cfg: Any) -> Any:
+    """The store of a daemon config, opened read-only while no daemon answers: its SQLite
+    file, or its robot's view of the plant's store."""
+    from robid_link.link.store import open_reader
+
+    return open_reader(cfg, _robot_name(cfg))
+
+
+def open_store_option(text: str) -> Any:
+    """``--store URL``: a plant's PostgreSQL store (or a state dir's SQLite), read-only."""
+    from robid_link.link.store import Store
+    from robid_link.link.store.postgres import is_store_url
+
+    if is_store_url(text):
+        return Store(None, url=text, readonly=True)
+    return Store(text, readonly=True)
+
+
+def store_option(p: argparse.ArgumentParser, *, required: bool = False) -> None:
+    p.add_argument("--store", metavar="URL", required=required,
+                   help="a plant's store: postgresql://USER@HOST:PORT/DB (the password from "
+                   "PGPASSWORD or a PGPASSFILE), or a state dir")
+
+
+def _config_or_store(p: argparse.ArgumentParser) -> None:
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--config", metavar="C", help="daemon config (YAML)")
+    g.add_argument("--store", metavar="URL",
+                   help="a plant's store instead: postgresql://USER@HOST:PORT/DB (the password "
+                   "from PGPASSWORD or a PGPASSFILE), or a state dir; every robot's runs")
+
+
 def _status_options(p: argparse.ArgumentParser) -> None:
-    config_option(p)
+    _config_or_store(p)
+    p.add_argument("--limit", type=bounded_int(1, 100_000),
+                   help="newest runs shown (default: 20 from a daemon, 50 from a store)")
     p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
                    help="write the runs as JSON")
+
+
+def _plant_status(args: argparse.Namespace) -> dict[str, Any]:
+    """Every robot's runs and drift flags, from a plant's store."""
+    from robid_link.link.campaign import drift_flags
+
+    with open_store_option(args.store) as store:
+        runs = store.runs(args.limit or 50)
+        drift = [f"{r['robot']}: {f.message}" for r in store.robots()
+                 for f in drift_flags(store, r["robot"])]
+        return {"runs": runs, "status": f"plant store {store.where.removeprefix('store ')}: "
+                f"{len(store.robots())} robot(s)", "drift": drift}
 
 
 def _status(args: argparse.Namespace) -> int:
     from robid_link.config import load_daemon_config
 
-    cfg = load_daemon_config(args.config)
-    try:
-        ans = request(cfg.control_socket, {"cmd": "status"})
-    except DaemonUnreachable as err:
-        print(f"robid: {err}; reading the store", file=sys.stderr)
-        from robid_link.link.campaign import drift_flags
-        from robid_link.link.store import Store
+    if args.store:
+        ans = _plant_status(args)
+    else:
+        cfg = load_daemon_config(args.config)
+        try:
+            ask = {"cmd": "status", **({"limit": args.limit} if args.limit else {})}
+            ans = request(cfg.control_socket, ask)
+        except DaemonUnreachable as err:
+            print(f"robid: {err}; reading the store", file=sys.stderr)
+            from robid_link.link.campaign import drift_flags
 
-        with Store(cfg.state_dir, readonly=True) as store:
-            ans = {"runs": store.runs(), "status": _unreachable(err),
-                   "drift": [f.message for f in drift_flags(store, _robot_name(cfg))]}
+            with store_reader(cfg) as store:
+                ans = {"runs": store.runs(args.limit or 50), "status": _unreachable(err),
+                       "drift": [f.message for f in drift_flags(store, _robot_name(cfg))]}
     if args.json:
         from robid_link.ident.report.figures import write_json
 
         write_json(args.json, {"runs": ans["runs"], "status": ans["status"],
                                "drift": ans.get("drift", [])})
-    print(f"daemon: {ans['status']}")
-    print(format_runs(ans["runs"]))
-    for line in report_lines(cfg.state_dir, [r["run_id"] for r in ans["runs"]
-                                             if r["state"] == "completed"]):
-        print(line)
+    print(f"{'store' if args.store else 'daemon'}: {ans['status']}")
+    print(format_runs(ans["runs"], robots=bool(args.store)))
+    if not args.store:
+        for line in report_lines(cfg.state_dir, [r["run_id"] for r in ans["runs"]
+                                                 if r["state"] == "completed"]):
+            print(line)
     for line in ans.get("drift", []):
         print(f"drift: {line}")
     return 0
@@ -191,7 +249,7 @@ def _status(args: argparse.Namespace) -> int:
 # -------------------------------------------------------------------------------- results
 
 def _results_options(p: argparse.ArgumentParser) -> None:
-    config_option(p)
+    _config_or_store(p)
     p.add_argument("--robot", metavar="NAME", help="only this robot's results")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--trend", action="store_true",
@@ -217,20 +275,23 @@ def _results_check(args: argparse.Namespace) -> None:
 def _results(args: argparse.Namespace) -> int:
     from robid_link.config import load_daemon_config
 
-    cfg = load_daemon_config(args.config)
     robot = None if args.compare else args.robot
-    try:
-        res = request(cfg.control_socket, {"cmd": "results", "robot": robot})["results"]
-    except DaemonUnreachable:
-        from robid_link.link.store import Store
-
-        with Store(cfg.state_dir, readonly=True) as store:
+    if args.store:
+        with open_store_option(args.store) as store:
             res = store.results(robot)
+    else:
+        cfg = load_daemon_config(args.config)
+        try:
+            res = request(cfg.control_socket, {"cmd": "results", "robot": robot})["results"]
+        except DaemonUnreachable:
+            with store_reader(cfg) as store:
+                res = store.results(robot)
     if args.trend or args.compare:
         return _drift(args, res)
     print(format_results(res))
-    for line in report_lines(cfg.state_dir, [r["run_id"] for r in reversed(res)]):
-        print(line)
+    if not args.store:  # reports live on the cell's disk
+        for line in report_lines(cfg.state_dir, [r["run_id"] for r in reversed(res)]):
+            print(line)
     return 0
 
 

@@ -21,15 +21,21 @@ from robid_link.link.driver import CAP_UPLOAD, Driver, FeedforwardSource, parame
 from robid_link.link.store import AsyncStore, Store
 from robid_link.link.worker import run_here, run_in_worker
 
-__all__ = ["TRIGGERS", "plan", "check_capabilities", "create_run", "prepare_programs",
-           "preflight", "check_config", "describe_campaigns", "execute_run", "resonance_hints",
-           "feedforward_source", "drift_flags", "drift_flags_of"]
+__all__ = ["TRIGGERS", "plan", "stored_name", "check_capabilities", "create_run",
+           "prepare_programs", "preflight", "check_config", "describe_campaigns", "execute_run",
+           "resonance_hints", "feedforward_source", "drift_flags", "drift_flags_of"]
 
 log = logging.getLogger("robid.campaign")
 
 TRIGGERS = ("operator", "timer")
 BEFORE_SUFFIX = "-before"
 SLOW_SUFFIX = "-slow"
+
+
+def stored_name(cfg: DaemonConfig, description_name: str) -> str:
+    """The robot's name in the store: ``robot_name`` of the config, else its description's
+    (robots of one type share a description; a plant's store tells them apart by this)."""
+    return cfg.robot_name or description_name
 
 
 def plan(camp: CampaignDef) -> list[tuple[str, ExperimentDef, float | None]]:
@@ -125,8 +131,13 @@ async def create_run(cfg: DaemonConfig, store: AsyncStore, campaign: str, trigge
                           f"(known: {', '.join(sorted(cfg.campaigns))})")
     if trigger not in TRIGGERS:
         raise ConfigError(f"trigger: expected operator or timer, got {trigger!r}")
-    exps = [(exp_id, exp.kind) for exp_id, exp, _ in plan(cfg.campaigns[campaign])]
-    spec = {"campaign": campaign, **({"force": True} if force else {})}
+    camp = cfg.campaigns[campaign]
+    exps = [(exp_id, exp.kind) for exp_id, exp, _ in plan(camp)]
+    # how the run identifies: what a fleet re-identification repeats with another model
+    spec = {"campaign": campaign, "identify": {"method": camp.method,
+                                               "cutoff_hz": camp.cutoff_hz,
+                                               "motor_side": camp.motor_side},
+            **({"force": True} if force else {})}
     return await store.create_run(campaign, trigger, spec, exps)
 
 
@@ -240,8 +251,8 @@ async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx:
             await cycle(k, exp_id, program)
         await _tracking(cfg, store, ctx, run_id, camp, [(e, p, shas[e]) for e, p in programs
                                                         if kinds.get(e) == "verify"])
-        await _elasticity(cfg, store, ctx, run_id, [(e, p, shas[e]) for e, p in programs
-                                                    if kinds.get(e) == "elasticity"])
+        await _elasticity(cfg, store, ctx, run_id, camp, [(e, p, shas[e]) for e, p in programs
+                                                          if kinds.get(e) == "elasticity"])
     except StoreFullError:
         raise  # not the run's fault: it waits, journaled as it is, until space returns
     except RobidError as err:
@@ -321,22 +332,23 @@ async def _identify(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: A
     kill_hook("identifying")
     out: jb.IdentifyOutcome = await run_in_worker(
         ctx, job, on_start=lambda: kill_hook("identify_started"))
+    robot = stored_name(cfg, out.robot)
     for kind, rec in out.records.items():
-        await store.add_result(run_id, out.robot, kind, rec)
+        await store.add_result(run_id, robot, kind, rec)
     log.info("run=%s identified: rmse %s", run_id,
              " ".join(f"{x:.3g}" for x in out.records["identify"]["rmse"] or []))
-    for flag in drift_flags_of(await store.results(out.robot), out.robot, run_id):
+    for flag in drift_flags_of(await store.results(robot), robot, run_id):
         await store.note(run_id, None, "drift", parameter=flag.parameter, kind=flag.kind,
                    change=round(flag.change, 4), sigmas=round(flag.sigmas, 1))
         log.warning("run=%s drift: %s", run_id, flag.message)
     pset = dict(out.parameter_set.doc)
     body = parameter_bytes(pset)
     version = await store.add_param_set(pset, body)
-    log.info("run=%s parameter set %d of %s: %s", run_id, version, out.robot,
+    log.info("run=%s parameter set %d of %s: %s", run_id, version, robot,
              pset["sha256"][:12])
     if camp.upload:
         run = await store.run(run_id)
-        await upload_set(store, driver, out.robot, pset["sha256"], run_id,
+        await upload_set(store, driver, robot, pset["sha256"], run_id,
                          unattended=run["trigger"] == "timer",
                          force=camp.force or run["spec"].get("force") is True)
 
@@ -353,11 +365,13 @@ async def _tracking(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
         return "after" if camp.upload else "check"
 
     job = jb.VerifyJob(str(cfg.robot), cfg.lock, tuple([
-        jb.VerifyRun(e, phase(e), str(await store.check_log(sha)), p) for e, p, sha in runs]))
+        jb.VerifyRun(e, phase(e), str(await store.check_log(sha)), p) for e, p, sha in runs]),
+        report_dir=str(store.dir / "reports" / run_id), run_id=run_id, campaign=camp.name)
     out: jb.VerifyOutcome = await run_in_worker(ctx, job)
     for rec in map(dict, out.records):
         rec["run_id"] = run_id
-        await store.add_result(run_id, out.robot, f"verify_{rec['phase']}", rec)
+        await store.add_result(run_id, stored_name(cfg, out.robot), f"verify_{rec['phase']}",
+                               rec)
         log.info("run=%s %s: tool RMS %.3f mm, max %.3f mm", run_id, rec["experiment"],
                  rec["tracking"]["tool_rms_mm"], rec["tracking"]["tool_max_mm"])
 
@@ -391,17 +405,18 @@ def feedforward_source(cfg: DaemonConfig, ctx: Any) -> FeedforwardSource:
 
 
 async def _elasticity(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
-                      runs: list[tuple[str, MotionProgram, str]]) -> None:
+                      camp: CampaignDef, runs: list[tuple[str, MotionProgram, str]]) -> None:
     """Two-mass fits of each elasticity experiment (its schedule from the program header)."""
     if not runs:
         return
     await store.set_run(run_id, "running", step="elasticity")
     job = jb.ElasticityJob(str(cfg.robot), cfg.lock, tuple([
-        jb.ElasticityRun(e, str(await store.check_log(sha)), p) for e, p, sha in runs]))
+        jb.ElasticityRun(e, str(await store.check_log(sha)), p) for e, p, sha in runs]),
+        report_dir=str(store.dir / "reports" / run_id), run_id=run_id, campaign=camp.name)
     out: jb.ElasticityOutcome = await run_in_worker(ctx, job)
     rec = {"kind": "elasticity", "run_id": run_id, "robot": out.robot,
            "experiments": [dict(r) for r in out.results]}
-    await store.add_result(run_id, out.robot, "elasticity", rec)
+    await store.add_result(run_id, stored_name(cfg, out.robot), "elasticity", rec)
     for res in out.results:
         for j in res["result"].get("joints", []):
             log.info("run=%s %s joint %d: K %.4g, D %.4g, f_res %.3g Hz", run_id,

@@ -22,7 +22,7 @@ from aiohttp import web
 
 from robid_link.config import DaemonConfig, WebConfig
 from robid_link.exceptions import ConfigError, RobidError
-from robid_link.link.store import Store
+from robid_link.link.store import open_reader
 from robid_link.web import pages, views
 
 __all__ = ["WebServer", "make_app", "parse_listen", "load_token", "DEFAULT_LISTEN",
@@ -119,7 +119,7 @@ class _App:
 
     async def read(self, fn: Callable[..., Any], *args: Any) -> Any:
         def work() -> Any:
-            with Store(self.cfg.state_dir, readonly=True) as store:
+            with open_reader(self.cfg, self.robot) as store:
                 return fn(store, *args)
         return await asyncio.to_thread(work)
 
@@ -165,6 +165,12 @@ class _App:
         if request.path.startswith("/api/"):
             return web.json_response(view)
         return _html(pages.params_page(view, self._context(request)))
+
+    async def fleet(self, request: web.Request) -> web.StreamResponse:
+        view = await self.read(views.fleet_page_view)
+        if request.path.startswith("/api/"):
+            return web.json_response(view)
+        return _html(pages.fleet_page(view, self._context(request)))
 
     # ----------------------------------------------------------------- actions
     async def act(self, request: web.Request) -> web.StreamResponse:
@@ -267,6 +273,7 @@ def make_app(cfg: DaemonConfig, robot: str, *, actions: Actions | None = None,
                     web.get("/compare", h.compare), web.get("/api/compare", h.compare),
                     web.get("/trend", h.trend), web.get("/api/trend", h.trend),
                     web.get("/params", h.params), web.get("/api/params", h.params),
+                    web.get("/fleet", h.fleet), web.get("/api/fleet", h.fleet),
                     web.post("/actions/{action}", h.act)])
     return app
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import hashlib
 import importlib.metadata as md
 import io
@@ -20,14 +21,40 @@ import pytest
 
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.fakes.controller import default_truth, make_peer
-from robid_link.ident.model.robot import Robot
+from robid_link.ident.model.robot import Robot, load_robot
 from robid_link.jobs import MotionProgram, RobotInfo
 from robid_link.link import registry
 from robid_link.link.driver import Done, Driver
 
-ARM3 = Path(__file__).resolve().parents[2] / "examples" / "robots" / "arm3.yaml"
+from .conftest import bump_program
+
+ROBOTS = Path(__file__).resolve().parents[2] / "examples" / "robots"
 NAMES = sorted(set(registry.available_drivers()) & set(registry.available_peers()))
 RATE_HZ = 200.0
+
+
+@functools.cache
+def _robot_of(name: str | None) -> Robot:
+    """The contract's robot: arm3, or the one a peer's protocol needs (``contract_robot``:
+    a UR controller moves six joints)."""
+    cls = registry.peer_class(name) if name else None
+    return load_robot(ROBOTS / getattr(cls, "contract_robot", "arm3.yaml"))
+
+
+def _param(request: pytest.FixtureRequest) -> str | None:
+    callspec = getattr(request.node, "callspec", None)
+    return callspec.params.get("name") if callspec else None
+
+
+@pytest.fixture
+def robot(request: pytest.FixtureRequest) -> Robot:
+    return _robot_of(_param(request))
+
+
+@pytest.fixture
+def program(robot: Robot) -> MotionProgram:
+    """The contract suite's program (0.6 s, 5 cm peaks) for the driver's robot."""
+    return bump_program(robot, 0.6, 0.05)
 
 
 def _variants() -> list[Any]:
@@ -77,9 +104,13 @@ def _cycle(driver: Driver, program: MotionProgram, timeout_s: float = 30.0) -> b
 
 
 def _parse(data: bytes) -> np.ndarray:
-    head = data.split(b"\n", 1)[0].decode()
-    assert head == "t,q1,q2,q3,tau1,tau2,tau3"
-    return np.loadtxt(io.BytesIO(data), delimiter=",", skiprows=1, ndmin=2)
+    """t, q…, τ… of a log in the house layout (speeds, when a link logs them, dropped)."""
+    head = data.split(b"\n", 1)[0].decode().split(",")
+    n = sum(1 for h in head if h.startswith("tau"))
+    q, qd, tau = ([f"{k}{j}" for j in range(1, n + 1)] for k in ("q", "qd", "tau"))
+    assert head in (["t", *q, *tau], ["t", *q, *qd, *tau]), head
+    arr = np.loadtxt(io.BytesIO(data), delimiter=",", skiprows=1, ndmin=2)
+    return np.hstack([arr[:, : 1 + n], arr[:, -n:]])
 
 
 @pytest.mark.parametrize("name, variant", _variants())
@@ -135,9 +166,28 @@ class TestContract:
                                                      tmp_path: Path,
                                                      robot: Robot, program: MotionProgram,
                                                      fault: str) -> None:
-        with cell(name, tmp_path, robot, variant, fault=fault) as (driver, _):
-            arr = _parse(_cycle(driver, program))
-        assert np.all(np.isfinite(arr))
+        """A stale answer (another nonce) shows first, or the answer comes twice: the take
+        returns this attempt's own answer, and a duplicate is never taken as the answer of
+        the next attempt (a retry under a new nonce runs the program again)."""
+        with cell(name, tmp_path, robot, variant, fault=fault) as (driver, peer):
+            async def go() -> tuple[Done, bytes, Done, bytes]:
+                async with driver:
+                    await driver.put_program(program)
+                    out: list[Any] = []
+                    for nonce in ("n1", "n2"):
+                        await driver.give_ready("exp1", nonce)
+                        done = await driver.take_done("exp1", nonce, timeout_s=30)
+                        out += [done, await driver.fetch_logs(done)]
+                        await driver.acknowledge(done)
+                    return out[0], out[1], out[2], out[3]
+
+            first, log1, second, log2 = asyncio.run(go())
+        assert (first.exp_id, first.nonce, second.nonce) == ("exp1", "n1", "n2")
+        for data in (log1, log2):
+            arr = _parse(data)
+            assert np.all(np.isfinite(arr))
+            assert np.abs(arr[:, 1:4]).max() == pytest.approx(0.05, abs=0.01)
+        assert len(peer.core.handled) == 2  # the second take waited for the second run
 
     @pytest.mark.parametrize("fault", ["truncated_log", "corrupt_log"])
     def test_checksum_catches_a_damaged_log(self, name: str, variant: dict[str, Any],

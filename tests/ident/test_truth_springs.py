@@ -93,7 +93,7 @@ def test_cogging_gets_no_counterbalance_pointer(arm3, tmp_path):
 
 @pytest.mark.parametrize("ratio,phi", [(0.4, 0.6), (0.2, -1.0)])
 def test_entry_is_a_valid_known_torque(ratio, phi):
-    from robid_link.ident.diagnosis.counterbalance import known_torque_entry
+    from robid_link.ident.diagnosis.evidence import known_torque_entry
 
     (kt,) = parse_known_torques([known_torque_entry(3, ratio, phi)], "known_torque")
     assert kt.joint == 3 and kt.identify == ("f0", "f1", "f2")

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from robid_link.exceptions import DataWarning, ExcitationWarning
-from robid_link.ident.data.preprocess import Piece, Prepared, Problem
+from robid_link.ident.data.preprocess import CHUNK, Piece, Prepared, Problem
 from robid_link.ident.model.regressor import rigid_regressor
 from robid_link.ident.model.robot import Robot
 
@@ -36,13 +36,13 @@ def data_checks(pb: Problem, stacklevel: int = 3) -> list[str]:
 
 
 def _ranges(pieces: Sequence[Piece]) -> np.ndarray:
-    lo = np.full((3, pieces[0].prep.q.shape[1]), np.inf)
+    lo = np.full((3, pieces[0].prep.log.q.shape[1]), np.inf)
     hi = -lo
     for pc in pieces:
-        for k, arr in enumerate((pc.prep.q, pc.prep.qd, pc.prep.qdd)):
-            a = arr[pc.lo: pc.hi]
-            lo[k] = np.minimum(lo[k], a.min(axis=0))
-            hi[k] = np.maximum(hi[k], a.max(axis=0))
+        for a in range(pc.lo, pc.hi, CHUNK):
+            for k, arr in enumerate(pc.prep.kinematics(a, min(pc.hi, a + CHUNK))):
+                lo[k] = np.minimum(lo[k], arr.min(axis=0))
+                hi[k] = np.maximum(hi[k], arr.max(axis=0))
     return np.stack((lo, hi))
 
 
@@ -69,7 +69,7 @@ def sanity_checks(pb: Problem, nominal: bool) -> list[str]:
         if pb.transmission is None:
             out += _position_checks(robot, prep.log.q, name)
         out += _speed_check(robot, prep, name)
-        peak = np.abs(tau).max(axis=0)
+        peak = np.maximum(tau.max(axis=0), -tau.min(axis=0))  # |τ|'s peak, no copy of τ
         flat = max(5, int(0.05 * prep.filt.fs))  # a clipped signal sits flat at its peak
         for j in range(robot.n):
             at_peak = np.abs(tau[:, j]) >= peak[j] - 1e-9 * max(peak[j], 1.0)
@@ -84,22 +84,23 @@ def sanity_checks(pb: Problem, nominal: bool) -> list[str]:
             step = max(1, len(prep.log) // 4000)
             trim = prep.filt.settle
             sl = slice(trim, len(prep.log) - trim, step)
-            pred = rigid_regressor(robot, prep.q[sl], prep.qd[sl], prep.qdd[sl]) @ robot.nominal
-            meas = prep.tau_f[sl]
+            q, qd, qdd, meas = prep.rows(sl)
+            pred = rigid_regressor(robot, q, qd, qdd) @ robot.nominal
             for j in range(robot.n):
                 sp, sm = pred[:, j].std(), meas[:, j].std()
                 if sp < 1e-9 or sm < 1e-9:
                     continue
                 r = np.corrcoef(pred[:, j], meas[:, j])[0, 1]
                 ratio = sm / sp
-                scale, sigma = _model_scale(prep, sl, pred, j) if r < 0 else (1.0, 0.0)
+                scale, sigma = (_model_scale((qd, qdd, meas), pred, j) if r < 0
+                                else (1.0, 0.0))
                 if scale < -0.5 and scale < -SIGN_SIGMAS * sigma:  # the sign's evidence
                     out.append(f"{name}: tau{j + 1} has the opposite sign of the a-priori "
                                f"model (scale {scale:.3g} ± {sigma:.2g} beside friction and "
                                f"rotor inertia; correlation {r:.2f}): sign convention?")
                 elif r > 0.5 and not 1 / 3 < ratio < 3:
                     out.append(f"{name}: tau{j + 1} is {ratio:.3g}× the a-priori model's "
-                               f"torque: {_scale_cause(robot, prep, sl, pred, j, ratio)}")
+                               f"torque: {_scale_cause(robot, (qd, qdd, meas), pred, j, ratio)}")
     return out
 
 
@@ -143,7 +144,9 @@ def _speed_check(robot: Robot, prep: Prepared, name: str) -> list[str]:
     """A motion that spans its joints' ranges at a crawl no robot excites dynamics with: the
     time stamps are likely not in seconds (milliseconds at a rate the rate check allows)."""
     limit = robot.limits.qd_max
-    fast = np.percentile(np.abs(prep.qd), 95, axis=0)
+    step = max(1, len(prep.log) // 4000)  # thinned rows: no whole array of a long log
+    _, qd, _, _ = prep.rows(slice(prep.filt.settle, len(prep.log) - prep.filt.settle, step))
+    fast = np.percentile(np.abs(qd), 95, axis=0)
     span = np.ptp(prep.log.q, axis=0)
     ok = np.isfinite(limit) & (limit > 0)
     if not ok.any() or np.any(fast[ok] >= CRAWL * limit[ok]) or span.max() < 0.05:
@@ -157,12 +160,13 @@ def _speed_check(robot: Robot, prep: Prepared, name: str) -> list[str]:
 SIGN_SIGMAS = 5.0
 
 
-def _model_scale(prep: Prepared, sl: slice, pred: np.ndarray, j: int) -> tuple[float, float]:
+def _model_scale(rows: tuple[np.ndarray, np.ndarray, np.ndarray], pred: np.ndarray, j: int
+                 ) -> tuple[float, float]:
     """The scale of the a-priori model's torque in joint ``j``'s measured torque, fitted beside
     what it lacks (viscous and Coulomb friction, rotor inertia, an offset), and its standard
     error (the residual's lag-1 correlation widens it: the rows are filtered). A correlation
     below zero alone is no evidence of a flipped sign: friction the model lacks can make it."""
-    qd, qdd, meas = prep.qd[sl, j], prep.qdd[sl, j], prep.tau_f[sl, j]
+    qd, qdd, meas = (r[:, j] for r in rows)  # q̇, q̈ and the filtered torque of the rows
     cols = np.column_stack([pred[:, j], qd, np.sign(qd), qdd, np.ones_like(qd)])
     coef, *_ = np.linalg.lstsq(cols, meas, rcond=None)
     e = meas - cols @ coef
@@ -172,12 +176,12 @@ def _model_scale(prep: Prepared, sl: slice, pred: np.ndarray, j: int) -> tuple[f
     return float(coef[0]), float(np.sqrt(max(var * inv[0, 0], 0.0)))
 
 
-def _scale_cause(robot: Robot, prep: Prepared, sl: slice, pred: np.ndarray, j: int,
-                 ratio: float) -> str:
+def _scale_cause(robot: Robot, rows: tuple[np.ndarray, np.ndarray, np.ndarray],
+                 pred: np.ndarray, j: int, ratio: float) -> str:
     """Why a joint's measured torque is ``ratio``× the a-priori model's: when the model plus
     viscous and Coulomb friction and a rotor inertia (which the a-priori model lacks) explain
     the measurement, say that, not 'units'."""
-    qd, qdd, meas = prep.qd[sl, j], prep.qdd[sl, j], prep.tau_f[sl, j]
+    qd, qdd, meas = (r[:, j] for r in rows)  # q̇, q̈ and the filtered torque of the rows
     cols = np.column_stack([pred[:, j], qd, np.sign(qd), qdd, np.ones_like(qd)])
     coef, *_ = np.linalg.lstsq(cols, meas, rcond=None)
     r2 = 1.0 - float(np.var(meas - cols @ coef)) / max(float(np.var(meas)), 1e-300)

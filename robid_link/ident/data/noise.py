@@ -105,6 +105,11 @@ class LagSums:
             self.tail[k] += b.sum(axis=0)
             self.pairs[k] += both.sum(axis=0)
 
+    def merge(self, other: LagSums) -> None:
+        """Add another chunk's sums (pairs across the chunks' edge are left out)."""
+        for name in ("prod", "head", "tail", "pairs", "total", "count"):
+            getattr(self, name).__iadd__(getattr(other, name))
+
     def result(self) -> Whiteness | None:
         if self.count.min() <= self.lags + 1:
             return None

@@ -28,8 +28,7 @@ from robid_link.ident.diagnosis.candidates import (
     screen_notes,
     structural_screen,
 )
-from robid_link.ident.diagnosis.counterbalance import Counterbalance, counterbalances
-from robid_link.ident.diagnosis.evidence import Signatures
+from robid_link.ident.diagnosis.evidence import Counterbalance, Signatures, counterbalances
 from robid_link.ident.diagnosis.limits import (
     limited_candidates,
     limits_note,
