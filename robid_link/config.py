@@ -17,7 +17,7 @@ from robid_link.kinds import KIND_OPTIONS, experiment_options
 from robid_link.yamlio import check_keys, read_yaml_mapping, yaml_type
 
 __all__ = ["load_daemon_config", "DaemonConfig", "CampaignDef",
-           "ExperimentDef", "WebConfig", "check_store_url"]
+           "ExperimentDef", "WebConfig", "check_store_url", "robot_name"]
 
 
 # ----------------------------------------------------------------------------- daemon config
@@ -25,7 +25,7 @@ __all__ = ["load_daemon_config", "DaemonConfig", "CampaignDef",
 _DAEMON_REQUIRED = ("robot", "state_dir", "control_socket", "driver", "campaigns")
 _DAEMON_OPTIONAL = ("lock", "socket_mode", "worker_start_method", "log_level", "web", "store",
                     "robot_name", "log_store")
-_WEB_OPTIONAL = ("listen", "tls_cert", "tls_key", "token", "token_file")
+_WEB_OPTIONAL = ("listen", "tls_cert", "tls_key", "token", "token_file", "hosts")
 _CAMPAIGN_OPTIONAL = ("identify", "diagnose", "model", "add", "method", "retries", "backoff_s",
                       "timeout_s", "reduced_speed_first", "cutoff_hz", "motor_side", "upload",
                       "force")
@@ -64,13 +64,15 @@ class CampaignDef:
 class WebConfig:
     """``web:``: the operator's page. ``listen`` HOST:PORT (the daemon serves it when set);
     TLS certificate and key; the token actions need (given, or in ``token_file``, by default
-    ``web.token`` in the state dir, mode 0600)."""
+    ``web.token`` in the state dir, mode 0600); ``hosts``: the names the page is reached by
+    besides the listen host and localhost (a request naming another Host is refused)."""
 
     listen: str | None = None
     tls_cert: Path | None = None
     tls_key: Path | None = None
     token: str | None = None
     token_file: Path | None = None
+    hosts: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -98,10 +100,22 @@ class DaemonConfig:
         return self.path.parent
 
 
+def robot_name(cfg: DaemonConfig, description_name: str | None) -> str:
+    """The robot's name in the store, on its page and in its commands: the config's
+    ``robot_name``, else the robot description's name (robots of one type share it; a plant's
+    store tells them apart by ``robot_name``), else the description file's stem (a
+    description that does not load: ``description_name`` None)."""
+    return cfg.robot_name or description_name or cfg.robot.stem
+
+
+#: connection parameters of libpq that are secrets (in a URL's query string as in its user info)
+_SECRET_PARAMS = frozenset({"password", "sslpassword"})
+
+
 def check_store_url(value: Any, key: str = "store") -> str:
     """A PostgreSQL URL with no password in it (the password comes from PGPASSWORD or a
     PGPASSFILE); the one line refusing one never prints it."""
-    from urllib.parse import urlsplit
+    from urllib.parse import parse_qsl, urlsplit
 
     if not isinstance(value, str) or not value.startswith(("postgresql://", "postgresql+psycopg://",
                                                            "postgres://")):
@@ -112,7 +126,8 @@ def check_store_url(value: Any, key: str = "store") -> str:
         parts.port  # noqa: B018 - raises on a bad port
     except ValueError:
         raise ConfigError(f"{key}: not a valid URL") from None
-    if parts.password is not None:
+    query = {k.lower() for k, _ in parse_qsl(parts.query, keep_blank_values=True)}
+    if parts.password is not None or query & _SECRET_PARAMS:
         raise ConfigError(f"{key}: the URL holds a password; give it in PGPASSWORD or a "
                           "PGPASSFILE (~/.pgpass), never in the config or on the command line")
     if not parts.hostname or not parts.path.strip("/"):
@@ -247,7 +262,27 @@ def _web(raw: Any, base: Path) -> WebConfig:
         raise ConfigError("web: give token or token_file, not both")
     paths = {k: _path(base, raw[k], f"web.{k}") if raw.get(k) else None
              for k in ("tls_cert", "tls_key", "token_file")}
-    return WebConfig(listen=raw.get("listen"), token=raw.get("token"), **paths)
+    return WebConfig(listen=raw.get("listen"), token=raw.get("token"),
+                     hosts=_web_hosts(raw.get("hosts", [])), **paths)
+
+
+def _web_hosts(raw: Any) -> tuple[str, ...]:
+    """``web.hosts``: host names or addresses, without a scheme or a port."""
+    import ipaddress
+    import re
+
+    if not isinstance(raw, list):
+        raise ConfigError(f"web.hosts: expected a list of host names, got {raw!r}")
+    for k, name in enumerate(raw):
+        try:
+            ok = isinstance(name, str) and (re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9.-]*", name)
+                                            is not None or bool(ipaddress.ip_address(name)))
+        except ValueError:
+            ok = False
+        if not ok:
+            raise ConfigError(f"web.hosts[{k}]: expected a host name or address (no scheme "
+                              f"or port), got {name!r}")
+    return tuple(name.lower().rstrip(".") for name in raw)
 
 
 def load_daemon_config(path: str | Path) -> DaemonConfig:

@@ -149,16 +149,11 @@ def report_lines(state_dir: Path, run_ids: list[str], most: int = 5) -> list[str
 
 
 def _robot_name(cfg: Any) -> str:
-    """The robot's name as the store records it: ``robot_name``, else the description's name
-    (else the file's stem)."""
-    if cfg.robot_name:
-        return str(cfg.robot_name)
-    from robid_link.ident.model.robot import load_robot
+    """The robot's name as the store records it (``config.robot_name``)."""
+    from robid_link.config import robot_name
+    from robid_link.ident.model.robot import description_name
 
-    try:
-        return str(load_robot(cfg.robot, cfg.lock).name)
-    except RobidError:
-        return Path(cfg.robot).stem
+    return robot_name(cfg, description_name(cfg.robot, cfg.lock))
 
 
 def store_reader(cfg: Any) -> Any:

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from robid_link import jobs as jb
-from robid_link.config import CampaignDef, DaemonConfig, ExperimentDef
+from robid_link.config import CampaignDef, DaemonConfig, ExperimentDef, robot_name
 from robid_link.exceptions import ApprovalError, ConfigError, RobidError, StoreFullError
 from robid_link.jobs import MotionProgram
 from robid_link.link.cycle import CyclePolicy, run_cycle
@@ -21,21 +21,19 @@ from robid_link.link.driver import CAP_UPLOAD, Driver, FeedforwardSource, parame
 from robid_link.link.store import AsyncStore, Store
 from robid_link.link.worker import run_here, run_in_worker
 
-__all__ = ["TRIGGERS", "plan", "stored_name", "check_capabilities", "create_run",
+__all__ = ["TRIGGERS", "UNATTENDED", "plan", "check_approved", "check_capabilities", "create_run",
            "prepare_programs", "preflight", "check_config", "describe_campaigns", "execute_run",
            "resonance_hints", "feedforward_source", "drift_flags", "drift_flags_of"]
 
 log = logging.getLogger("robid.campaign")
 
-TRIGGERS = ("operator", "timer")
+#: starts nobody is known to watch from beside the robot (a timer; the web page, which may be
+#: far from the cell): they move only programs an operator approved by hash (``robid campaign
+#: approve``) and upload only approved parameter sets, resumed after a restart too
+UNATTENDED = ("timer", "web")
+TRIGGERS = ("operator", *UNATTENDED)
 BEFORE_SUFFIX = "-before"
 SLOW_SUFFIX = "-slow"
-
-
-def stored_name(cfg: DaemonConfig, description_name: str) -> str:
-    """The robot's name in the store: ``robot_name`` of the config, else its description's
-    (robots of one type share a description; a plant's store tells them apart by this)."""
-    return cfg.robot_name or description_name
 
 
 def plan(camp: CampaignDef) -> list[tuple[str, ExperimentDef, float | None]]:
@@ -91,11 +89,27 @@ def _program_job(cfg: DaemonConfig, exp_id: str, exp: ExperimentDef, slow: float
                          str(cfg.base_dir), slow)
 
 
-async def preflight(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: str) -> None:
+async def preflight(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: str,
+                    trigger: str = "operator") -> None:
     """Everything a run of ``campaign`` will need, checked before any program is given: the
-    model file and ``add:`` effects load, every program generates and passes the limits."""
+    model file and ``add:`` effects load, every program generates and passes the limits; a
+    start from the web page is refused here unless every program is approved."""
     await run_in_worker(ctx, _model_job(cfg, campaign))
-    await prepare_programs(cfg, store, ctx, campaign)
+    programs = await prepare_programs(cfg, store, ctx, campaign)
+    if trigger == "web":
+        await check_approved(cfg, store, campaign, programs, trigger)
+
+
+async def check_approved(cfg: DaemonConfig, store: AsyncStore, campaign: str,
+                         programs: list[tuple[str, MotionProgram]], trigger: str) -> None:
+    """ApprovalError (one line) unless an operator approved every program of an unattended
+    start (``UNATTENDED``)."""
+    for exp_id, prog in programs:
+        if not await store.approved(prog.sha256):
+            what = "web start" if trigger == "web" else "unattended run"
+            raise ApprovalError(f"{what} refused: program of experiment {exp_id} "
+                                f"({prog.sha256[:12]}) is not approved; run: robid campaign "
+                                f"approve {campaign} --config {cfg.path}")
 
 
 def check_config(cfg: DaemonConfig, driver: Driver) -> dict[str, str | None]:
@@ -130,7 +144,7 @@ async def create_run(cfg: DaemonConfig, store: AsyncStore, campaign: str, trigge
         raise ConfigError(f"campaign {campaign!r}: not in {cfg.path} "
                           f"(known: {', '.join(sorted(cfg.campaigns))})")
     if trigger not in TRIGGERS:
-        raise ConfigError(f"trigger: expected operator or timer, got {trigger!r}")
+        raise ConfigError(f"trigger: expected {', '.join(TRIGGERS)}, got {trigger!r}")
     camp = cfg.campaigns[campaign]
     exps = [(exp_id, exp.kind) for exp_id, exp, _ in plan(camp)]
     # how the run identifies: what a fleet re-identification repeats with another model
@@ -215,13 +229,8 @@ async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx:
     await store.set_run(run_id, "running", step="generating programs")
     try:
         programs = await _pinned_programs(cfg, store, ctx, run_id, run["campaign"])
-        if run["trigger"] == "timer":
-            missing = [e for e, p in programs if not await store.approved(p.sha256)]
-            if missing:
-                raise ApprovalError(f"unattended run refused: program of experiment "
-                                    f"{missing[0]} ({dict(programs)[missing[0]].sha256[:12]}) "
-                                    f"is not approved; run: robid campaign approve "
-                                    f"{run['campaign']} --config {cfg.path}")
+        if run["trigger"] in UNATTENDED:
+            await check_approved(cfg, store, run["campaign"], programs, run["trigger"])
 
         # the identification's inputs, before the first motion (a config edited since start)
         await run_in_worker(ctx, _model_job(cfg, run["campaign"]))
@@ -332,7 +341,7 @@ async def _identify(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: A
     kill_hook("identifying")
     out: jb.IdentifyOutcome = await run_in_worker(
         ctx, job, on_start=lambda: kill_hook("identify_started"))
-    robot = stored_name(cfg, out.robot)
+    robot = robot_name(cfg, out.robot)
     for kind, rec in out.records.items():
         await store.add_result(run_id, robot, kind, rec)
     log.info("run=%s identified: rmse %s", run_id,
@@ -349,7 +358,7 @@ async def _identify(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: A
     if camp.upload:
         run = await store.run(run_id)
         await upload_set(store, driver, robot, pset["sha256"], run_id,
-                         unattended=run["trigger"] == "timer",
+                         unattended=run["trigger"] in UNATTENDED,
                          force=camp.force or run["spec"].get("force") is True)
 
 
@@ -370,7 +379,7 @@ async def _tracking(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
     out: jb.VerifyOutcome = await run_in_worker(ctx, job)
     for rec in map(dict, out.records):
         rec["run_id"] = run_id
-        await store.add_result(run_id, stored_name(cfg, out.robot), f"verify_{rec['phase']}",
+        await store.add_result(run_id, robot_name(cfg, out.robot), f"verify_{rec['phase']}",
                                rec)
         log.info("run=%s %s: tool RMS %.3f mm, max %.3f mm", run_id, rec["experiment"],
                  rec["tracking"]["tool_rms_mm"], rec["tracking"]["tool_max_mm"])
@@ -416,7 +425,7 @@ async def _elasticity(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: st
     out: jb.ElasticityOutcome = await run_in_worker(ctx, job)
     rec = {"kind": "elasticity", "run_id": run_id, "robot": out.robot,
            "experiments": [dict(r) for r in out.results]}
-    await store.add_result(run_id, stored_name(cfg, out.robot), "elasticity", rec)
+    await store.add_result(run_id, robot_name(cfg, out.robot), "elasticity", rec)
     for res in out.results:
         for j in res["result"].get("joints", []):
             log.info("run=%s %s joint %d: K %.4g, D %.4g, f_res %.3g Hz", run_id,

@@ -16,7 +16,7 @@ from collections.abc import Awaitable, Callable, Mapping, Sequence
 from contextlib import AbstractAsyncContextManager
 from typing import Any, TextIO
 
-from robid_link.config import DaemonConfig
+from robid_link.config import DaemonConfig, robot_name
 from robid_link.exceptions import ConfigError, DriverError, RobidError, StoreFullError
 from robid_link.jobs import WORKER_PRELOAD, RobotInfo, RobotInfoJob
 from robid_link.link import campaign as cp
@@ -125,7 +125,7 @@ class Daemon:
         stack = contextlib.AsyncExitStack()
         try:
             self.robot = await run_in_worker(self.ctx, RobotInfoJob(str(cfg.robot), cfg.lock))
-            self.robot_name = cfg.robot_name or self.robot.name
+            self.robot_name = robot_name(cfg, self.robot.name)
             self.store = open_store(cfg.state_dir, url=cfg.store, robot=self.robot_name,
                                     log_store=cfg.log_store)
             await self.store.open()
@@ -351,7 +351,8 @@ class Daemon:
         await self.store.require_space()
         trigger = req.get("trigger", "operator")
         if str(req.get("campaign")) in self.cfg.campaigns:  # else create_run says so
-            await cp.preflight(self.cfg, self.store, self.ctx, str(req.get("campaign")))
+            await cp.preflight(self.cfg, self.store, self.ctx, str(req.get("campaign")),
+                               str(trigger))
         run_id = await cp.create_run(self.cfg, self.store, str(req.get("campaign")), trigger,
                                      force=req.get("force") is True)
         self._queue.put_nowait(run_id)
@@ -418,6 +419,10 @@ class Daemon:
         assert self.store is not None
         cmd, robot, ref = req["cmd"], str(req.get("robot")), req.get("set")
         by = str(req.get("by", "operator"))
+        if robot != self.robot_name:  # its store rows and its controller are another's
+            raise ConfigError(f"robot {robot}: this daemon holds robot {self.robot_name}; "
+                              f"{'approve' if cmd == 'params_approve' else 'roll back'} "
+                              f"{robot}'s parameter sets with {robot}'s own daemon")
         sets = await self.store.param_sets(robot)
         if not sets:
             raise ConfigError(f"robot {robot}: no parameter set stored yet")

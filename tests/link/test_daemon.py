@@ -73,6 +73,25 @@ def test_campaign_runs_to_completion(tmp_path: Path, controller: Any) -> None:
     assert ctrl.core.feedforward.sha256 == params["sha256"]  # the controller loaded it
 
 
+def test_a_campaign_keeps_its_logs_in_the_log_store_folder(tmp_path: Path,
+                                                           controller: Any) -> None:
+    """``log_store: FOLDER`` (a plant's central log folder): the cycle finds the log it
+    stored there, the run completes, nothing is written under the state dir's logs."""
+    central = tmp_path / "central"
+    cfg = write_config(tmp_path, {"one": ONE}, log_store=str(central))
+
+    async def body(d: Daemon) -> dict:
+        return await start(d)
+
+    with controller() as ctrl:
+        run = with_daemon(cfg, body)
+    assert run["state"] == "completed", run["error"]
+    assert len(ctrl.handled) == 1
+    sha = run["experiments"][0]["log_sha"]
+    assert [p.name for p in central.rglob("*.csv")] == [f"{sha}.csv"]
+    assert list((tmp_path / "state" / "logs").rglob("*.csv")) == []
+
+
 @pytest.mark.parametrize("fault, journal_error", [
     ("never_answer", "no 'done' for experiment rigid_body"),
     ("truncated_log", "truncated log"),
@@ -208,6 +227,32 @@ def test_unattended_runs_need_approved_programs(tmp_path: Path, controller: Any)
     assert "robid campaign approve one" in refused["error"]
     assert approved["approved"][0]["sha256"] == ran["experiments"][0]["program_sha"]
     assert ran["state"] == "completed" and len(ctrl.handled) == 1
+
+
+def test_a_web_start_runs_only_approved_programs(tmp_path: Path, controller: Any) -> None:
+    """The page may be far from the cell: its start is unattended. Before the programs are
+    approved it is refused in one line and nothing is queued or given; once approved it runs,
+    and after a restart it is still held to the approvals (its trigger is stored)."""
+    from robid_link.exceptions import ApprovalError
+
+    cfg = write_config(tmp_path, {"one": ONE})
+    web = {"cmd": "start", "campaign": "one", "trigger": "web", "by": "web"}
+
+    async def body(d: Daemon) -> tuple[str, int, dict]:
+        assert d.store is not None
+        with pytest.raises(ApprovalError) as err:
+            await d.handle(web)
+        runs = len(await d.store.runs())
+        await d.handle({"cmd": "approve", "campaign": "one"})
+        ans = await d.handle(web)
+        return str(err.value), runs, await wait_run(d, ans["run_id"])
+
+    with controller() as ctrl:
+        refused, runs, ran = with_daemon(cfg, body)
+    assert re.fullmatch(r"web start refused: program of experiment rigid_body \(\w{12}\) is "
+                        r"not approved; run: robid campaign approve one --config \S+", refused)
+    assert runs == 0 and ctrl.handled[1:] == []
+    assert ran["state"] == "completed" and ran["trigger"] == "web" and len(ctrl.handled) == 1
 
 
 def test_reduced_speed_first_run(tmp_path: Path, controller: Any) -> None:

@@ -173,9 +173,10 @@ class AsyncStore(abc.ABC):
         """The journal (of one run, or all) in order."""
 
     # ----------------------------------------------------------------- raw logs
+    @abc.abstractmethod
     def log_path(self, sha: str) -> Path:
-        """Where the raw log of ``sha`` is (no I/O)."""
-        return log_file(self.dir, sha)
+        """Where the raw log of ``sha`` is (no I/O): under ``dir``, or the ``log_store``
+        folder that holds the logs instead."""
 
     @abc.abstractmethod
     async def put_log(self, data: bytes, *, run_id: str | None = None,

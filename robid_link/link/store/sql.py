@@ -525,10 +525,19 @@ class Store:
         return pick_param_set(self.param_sets(robot), robot, ref)
 
     def approve_param_set(self, sha: str, by: str) -> None:
+        """Approve this robot's set ``sha``; another robot's is refused naming both."""
         ps = sc.param_sets
         with self._tx() as c:
-            c.execute(update(ps).where(ps.c.sha256 == sha, self._mine(ps.c.robot))
-                      .values(approved=time.time(), approved_by=by))
+            done = c.execute(update(ps).where(ps.c.sha256 == sha, self._mine(ps.c.robot))
+                             .values(approved=time.time(), approved_by=by)).rowcount
+            if not done:
+                other = c.execute(select(ps.c.robot, ps.c.version)
+                                  .where(ps.c.sha256 == sha)).first()
+                if other is None:
+                    raise ConfigError(f"parameter set {sha[:12]}: not in the store")
+                raise ConfigError(f"parameter set {other.version} of robot {other.robot} "
+                                  f"({sha[:12]}): this store is robot {self.robot}'s; approve "
+                                  f"it with robot {other.robot}'s daemon")
 
     def record_upload(self, robot: str, sha: str, run_id: str | None, state: str,
                       error: str | None = None) -> None:
