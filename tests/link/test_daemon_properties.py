@@ -152,6 +152,7 @@ def test_daemon_invariants(sc: dict[str, Any], arm3_robot: Any) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(not os.environ.get("ROBID_VALIDATE"), reason="make validate")
 @settings(max_examples=40, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(sc=scenario)

@@ -370,24 +370,8 @@ class ConsistentFit:
         }
 
 
-def fit_consistent(design: Design, train: Sequence[Piece], names: Sequence[str], *,
-                   nominal: np.ndarray | None, interval: int, block_len: int,
-                   lam: float | None = None) -> ConsistentFit:
-    """Fit standard inertial parameters (log-Cholesky) + effects with the CAD prior.
-
-    ``design`` must hold all columns (standard parameters first, effects after). With ``lam``
-    None, λ is chosen by cross-validation on ``train`` (note 4); the validation data is never
-    seen here.
-    """
-    robot = design.robot
-    n_rigid = 10 * robot.n
-    if nominal is None:
-        raise EstimationError("consistent identification needs the robot's inertials as prior "
-                              "(URDF <inertial> or MDH 'inertial:' entries); this robot has none")
-    if design.p < n_rigid or not np.array_equal(design.cols[:n_rigid], np.arange(n_rigid)) \
-            or design.blocks[0].effect.name != "rigid_body":
-        raise EstimationError("consistent identification needs the rigid_body effect first and "
-                              "all its standard columns in the design")
+def pieces_by_file(train: Sequence[Piece]) -> tuple[list[Log], list[list[Piece]]]:
+    """The training pieces grouped by their log, in order of first appearance."""
     files: list[Log] = []
     per_file: list[list[Piece]] = []
     for pc in train:
@@ -398,7 +382,32 @@ def fit_consistent(design: Design, train: Sequence[Piece], names: Sequence[str],
         else:
             files.append(pc.prep.log)
             per_file.append([pc])
-    grams = [accumulate(design, pcs, interval, block_len) for pcs in per_file]
+    return files, per_file
+
+
+def fit_consistent(design: Design, train: Sequence[Piece], names: Sequence[str], *,
+                   nominal: np.ndarray | None, interval: int, block_len: int,
+                   lam: float | None = None,
+                   grams: Sequence[Grams] | None = None) -> ConsistentFit:
+    """Fit standard inertial parameters (log-Cholesky) + effects with the CAD prior.
+
+    ``design`` must hold all columns (standard parameters first, effects after). With ``lam``
+    None, λ is chosen by cross-validation on ``train`` (note 4); the validation data is never
+    seen here. ``grams``: the design's Grams per file of ``pieces_by_file(train)``, when the
+    caller has them already.
+    """
+    robot = design.robot
+    n_rigid = 10 * robot.n
+    if nominal is None:
+        raise EstimationError("consistent identification needs the robot's inertials as prior "
+                              "(URDF <inertial> or MDH 'inertial:' entries); this robot has none")
+    if design.p < n_rigid or not np.array_equal(design.cols[:n_rigid], np.arange(n_rigid)) \
+            or design.blocks[0].effect.name != "rigid_body":
+        raise EstimationError("consistent identification needs the rigid_body effect first and "
+                              "all its standard columns in the design")
+    files, per_file = pieces_by_file(train)
+    if grams is None:
+        grams = [accumulate(design, pcs, interval, block_len) for pcs in per_file]
     theta_cad = np.asarray(nominal, dtype=float)
     j0 = _realizable(pseudo_inertia(theta_cad.reshape(-1, 10)))
     _, m_full = _whitened_map(j0)

@@ -27,7 +27,7 @@ from robid_link.ident.data.currents import (
 from robid_link.ident.data.logs import Log, file_sha256, load_log
 from robid_link.ident.data.preprocess import Problem, build_problem, check_counts
 from robid_link.ident.data.sticks import without_sticks
-from robid_link.ident.fit.consistent import ConsistentFit, fit_consistent
+from robid_link.ident.fit.consistent import ConsistentFit, fit_consistent, pieces_by_file
 from robid_link.ident.fit.design import Design, make_design, structural_mask, with_predictions
 from robid_link.ident.fit.estimate import Fit, Grams, accumulate, fit
 from robid_link.ident.fit.results import (
@@ -54,6 +54,7 @@ __all__ = [
     "Estimate",
     "estimate",
     "estimate_consistent",
+    "assemble_consistent",
     "result_of",
 ]
 
@@ -79,10 +80,12 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
     pb = with_current_gains(pb, model.known)
     pb = with_model_torque(pb)
     pb, hypers = with_profiled_hypers(pb)
-    asm = assemble(pb, Path(data[0].path).name)
-    est = estimate(pb, asm, method, weight)
     if method == "consistent":
-        est = estimate_consistent(pb, asm, est)
+        asm, full = assemble_consistent(pb, Path(data[0].path).name)
+        est = estimate_consistent(pb, asm, estimate(pb, asm, "ols"), full)
+    else:
+        asm = assemble(pb, Path(data[0].path).name)
+        est = estimate(pb, asm, method, weight)
     notes = [*est.notes, *data_checks(pb, stacklevel=_CALLER)]
     return result_of(pb, asm, est, method=method, hypers=hypers, notes=notes,
                      files=(data, validate or ()))
@@ -196,6 +199,33 @@ def assemble(pb: Problem, where: str) -> Assembly:
 
 
 @dataclass(frozen=True)
+class FullAssembly:
+    """The consistent fit's design (every standard column) and its Grams per file."""
+
+    design: Design
+    grams: list[Grams]
+
+
+def assemble_consistent(pb: Problem, where: str) -> tuple[Assembly, FullAssembly]:
+    """``assemble`` for the consistent fit: one pass over the rows with every standard
+    column, per file; the base design's columns are a subset of them, so with one file its
+    Grams are read out of the full ones instead of a second pass."""
+    design, base, names = make_design(pb.robot, pb.blocks, pb.transmission)
+    cols = np.arange(len(names))
+    full = Design(pb.robot, tuple(pb.blocks), cols,
+                  structural_mask(pb.robot, pb.blocks, cols, pb.transmission))
+    _, per_file = pieces_by_file(pb.train)
+    grams = [accumulate(full, pcs, pb.interval, pb.block_len) for pcs in per_file]
+    if len(grams) == 1:
+        sel = np.concatenate((design.cols, [full.p, full.p + 1]))
+        base_grams = Grams(grams[0].g[:, :, sel[:, None], sel], grams[0].n_rows.copy())
+    else:  # blocks span the files together: the base Grams take their own pass
+        base_grams = accumulate(design, pb.train, pb.interval, pb.block_len)
+    check_counts(int(base_grams.n_rows.sum()), design.p, where)
+    return Assembly(design, base, names, base_grams), FullAssembly(full, grams)
+
+
+@dataclass(frozen=True)
 class Estimate:
     """An estimator's answer: θ of ``design``'s columns with its covariance, the parameter
     table, the errors on the training rows, and the notes so far."""
@@ -249,15 +279,21 @@ def _parameters(pb: Problem, asm: Assembly, f: Fit) -> list[Parameter]:
                                                strict=True))]
 
 
-def estimate_consistent(pb: Problem, asm: Assembly, est: Estimate) -> Estimate:
+def estimate_consistent(pb: Problem, asm: Assembly, est: Estimate,
+                        fa: FullAssembly | None = None) -> Estimate:
     """The physically consistent fit with the CAD prior on all standard columns; the
     base-parameter OLS estimate ``est`` stays for conditioning and notes. Its θ belongs to
-    the full design (the result's held-out figures are computed on it)."""
-    cols = np.arange(len(asm.names))
-    full = Design(pb.robot, tuple(pb.blocks), cols,
-                  structural_mask(pb.robot, pb.blocks, cols, pb.transmission))
+    the full design (the result's held-out figures are computed on it). ``fa``: the full
+    design and its Grams from ``assemble_consistent`` (else built here)."""
+    if fa is None:
+        cols = np.arange(len(asm.names))
+        full = Design(pb.robot, tuple(pb.blocks), cols,
+                      structural_mask(pb.robot, pb.blocks, cols, pb.transmission))
+    else:
+        full = fa.design
     cons = fit_consistent(full, pb.train, asm.names, nominal=pb.robot.nominal,
-                          interval=pb.interval, block_len=pb.block_len)
+                          interval=pb.interval, block_len=pb.block_len,
+                          grams=None if fa is None else fa.grams)
     val = evaluate_held_out(pb, full, cons.theta).validation
     val_ols = evaluate_held_out(pb, asm.design, est.theta).validation
     cons.validation_ols = None if val_ols is None else val_ols.as_dict()
