@@ -29,7 +29,7 @@ _DAEMON_OPTIONAL = ("lock", "socket_mode", "worker_start_method", "log_level", "
 _WEB_OPTIONAL = ("listen", "tls_cert", "tls_key", "token", "token_file", "hosts")
 _CAMPAIGN_OPTIONAL = ("identify", "diagnose", "model", "add", "method", "retries", "backoff_s",
                       "timeout_s", "reduced_speed_first", "cutoff_hz", "motor_side", "upload",
-                      "channels")
+                      "channels", "force")
 #: experiment kinds whose logs feed the identification: the ones ``channels`` splits
 SPLIT_KINDS = ("rigid_body", "friction", "custom")
 
@@ -94,6 +94,8 @@ class CampaignDef:
                 span = f"j{g[0]}" if len(g) == 1 else f"j{g[0]}-{g[-1]}"
                 out.append(ExperimentDef(f"{e.exp_id}-{span}", e.kind, e.options, g))
         return tuple(out)
+    #: upload a parameter set the worker marked unfit (worse than CAD, physically impossible)
+    force: bool = False
 
 
 @dataclass(frozen=True)
@@ -259,15 +261,15 @@ def _campaign(name: str, raw: Any, base: Path) -> CampaignDef:
     check_keys(raw, w, required=("experiments",), optional=_CAMPAIGN_OPTIONAL)
     raw = _upload_step(raw, w)
     method = raw.get("method", "ols")
-    if method not in ("ols", "wls", "irls"):
-        raise ConfigError(f"{w}.method: expected ols, wls or irls, got {method!r}")
+    if method not in ("ols", "wls", "irls", "consistent"):
+        raise ConfigError(f"{w}.method: expected ols, wls, irls or consistent, got {method!r}")
     add = raw.get("add") or []
     if not isinstance(add, list) or not all(isinstance(a, str) for a in add):
         raise ConfigError(f"{w}.add: expected a list of EFFECT[@J]")
     rsf = _num(raw, "reduced_speed_first", w, None)
     if rsf is not None and rsf >= 1:
         raise ConfigError(f"{w}.reduced_speed_first: expected a fraction in (0, 1), got {rsf!r}")
-    for key in ("identify", "diagnose", "motor_side", "upload"):
+    for key in ("identify", "diagnose", "motor_side", "upload", "force"):
         if not isinstance(raw.get(key, False), bool):
             raise ConfigError(f"{w}.{key}: expected true or false")
     if raw.get("upload", False) and not raw.get("identify", True):
@@ -291,7 +293,8 @@ def _campaign(name: str, raw: Any, base: Path) -> CampaignDef:
         backoff_s=_num(raw, "backoff_s", w, 2.0, positive=False),
         timeout_s=_num(raw, "timeout_s", w, None), reduced_speed_first=rsf,
         cutoff_hz=_num(raw, "cutoff_hz", w, None), motor_side=raw.get("motor_side", False),
-        upload=raw.get("upload", False), channels=channels)
+        upload=raw.get("upload", False), channels=channels,
+        force=raw.get("force", False))
 
 
 def _check_split_ids(experiments: tuple[ExperimentDef, ...], where: str) -> None:

@@ -35,6 +35,9 @@ def _start_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trigger", choices=("operator", "timer"), default="operator",
                    help="timer: unattended, runs only approved programs")
     p.add_argument("--wait", action="store_true", help="show progress until the run ends")
+    p.add_argument("--force", action="store_true",
+                   help="upload the identified parameter set even if the worker marks it "
+                        "unfit (validates worse than CAD, physically impossible)")
     p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
                    help="with --wait: write the run and results")
 
@@ -42,7 +45,8 @@ def _start_options(p: argparse.ArgumentParser) -> None:
 def _start(args: argparse.Namespace) -> int:
     cfg = _config(args)
     run_id = request(cfg.control_socket, {"cmd": "start", "campaign": args.name,
-                                          "trigger": args.trigger},
+                                          "trigger": args.trigger,
+                                          **({"force": True} if args.force else {})},
                      timeout_s=PREFLIGHT_TIMEOUT_S)["run_id"]
     print(run_id)
     if not args.wait:

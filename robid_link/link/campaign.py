@@ -162,8 +162,9 @@ def describe_campaigns(cfg: DaemonConfig) -> list[dict[str, Any]]:
             for name, camp in cfg.campaigns.items()]
 
 
-async def create_run(cfg: DaemonConfig, store: AsyncStore, campaign: str, trigger: str
-                     ) -> str:
+async def create_run(cfg: DaemonConfig, store: AsyncStore, campaign: str, trigger: str,
+                     force: bool = False) -> str:
+    """A queued run; ``force``: the operator lets it upload a set the worker marked unfit."""
     if campaign not in cfg.campaigns:
         raise ConfigError(f"campaign {campaign!r}: not in {cfg.path} "
                           f"(known: {', '.join(sorted(cfg.campaigns))})")
@@ -174,7 +175,8 @@ async def create_run(cfg: DaemonConfig, store: AsyncStore, campaign: str, trigge
     # how the run identifies: what a fleet re-identification repeats with another model
     spec = {"campaign": campaign, "identify": {"method": camp.method,
                                                "cutoff_hz": camp.cutoff_hz,
-                                               "motor_side": camp.motor_side}}
+                                               "motor_side": camp.motor_side},
+            **({"force": True} if force else {})}
     return await store.create_run(campaign, trigger, spec, exps)
 
 
@@ -379,8 +381,9 @@ async def _identify(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: A
         return
     if not may_give:
         raise MotionWithheld("upload")
-    trigger = (await store.run(run_id))["trigger"]
-    await upload_set(store, driver, robot, sha, run_id, unattended=trigger in UNATTENDED)
+    run = await store.run(run_id)
+    await upload_set(store, driver, robot, sha, run_id, unattended=run["trigger"] in UNATTENDED,
+                     force=camp.force or run["spec"].get("force") is True)
 
 
 async def _identified(store: AsyncStore, run_id: str) -> tuple[str, str | None]:
@@ -496,10 +499,14 @@ async def _elasticity(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: st
 
 
 async def upload_set(store: AsyncStore, driver: Driver, robot: str, sha: str, run_id: str | None,
-                     *, unattended: bool, timeout_s: float = 120.0) -> None:
+                     *, unattended: bool, force: bool = False, timeout_s: float = 120.0) -> None:
     """Send a stored parameter set to the controller. Unattended runs send only a set an
-    operator approved; every attempt is recorded; the controller's acknowledgement (or its
-    absence: the set is withdrawn, the controller keeps its old one) is the outcome."""
+    operator approved; a set the worker marked unfit (``uploadable: false``: worse than CAD,
+    physically impossible) only when forced; every attempt is recorded; the controller's
+    acknowledgement (or its absence: the set is withdrawn, the controller keeps its old one) is
+    the outcome."""
+    import json
+
     row = next((s for s in await store.param_sets(robot) if s["sha256"] == sha), None)
     if row is None:
         raise ConfigError(f"robot {robot}: no parameter set {sha[:12]}")
@@ -507,11 +514,16 @@ async def upload_set(store: AsyncStore, driver: Driver, robot: str, sha: str, ru
         raise ApprovalError(f"unattended upload refused: parameter set {row['version']} of "
                             f"{robot} ({sha[:12]}) is not approved; run: robid params approve "
                             f"{row['version']} --robot {robot} --config C")
-    import json
+    body = json.loads(row["body"])
+    if body.get("uploadable") is False and not force:
+        raise ApprovalError(f"upload refused: parameter set {row['version']} of {robot} "
+                            f"({sha[:12]}) is unfit: {'; '.join(body.get('unfit') or [])} — "
+                            "or force it (robid campaign start NAME --force, campaign "
+                            "force: true)")
 
     await store.record_upload(robot, sha, run_id, "sent")
     try:
-        await driver.upload_parameters(json.loads(row["body"]), timeout_s=timeout_s)
+        await driver.upload_parameters(body, timeout_s=timeout_s)
     except RobidError as err:
         await store.record_upload(robot, sha, run_id, "failed", str(err))
         raise

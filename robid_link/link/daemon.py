@@ -472,7 +472,8 @@ class Daemon:
         if str(req.get("campaign")) in self.cfg.campaigns:  # else create_run says so
             await cp.preflight(self.cfg, self.store, self.ctx, str(req.get("campaign")),
                                str(trigger))
-        run_id = await cp.create_run(self.cfg, self.store, str(req.get("campaign")), trigger)
+        run_id = await cp.create_run(self.cfg, self.store, str(req.get("campaign")), trigger,
+                                     force=req.get("force") is True)
         self._queue.put_nowait(run_id)
         log.info("run=%s queued campaign=%s trigger=%s", run_id, req.get("campaign"), trigger)
         return {"ok": True, "run_id": run_id}
@@ -587,7 +588,8 @@ class Daemon:
         if len(active) < 2:
             raise ConfigError(f"robot {robot}: the controller has had no earlier set to roll "
                               "back to")
-        await cp.upload_set(self.store, self.driver, robot, active[-2], None, unattended=False)
+        await cp.upload_set(self.store, self.driver, robot, active[-2], None, unattended=False,
+                            force=True)  # the set the controller ran before: the operator's
         row = next(s for s in sets if s["sha256"] == active[-2])
         return {"ok": True, "message": f"rolled {robot} back to parameter set {row['version']} "
                 f"({active[-2][:16]}…), acknowledged by the controller"}

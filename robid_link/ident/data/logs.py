@@ -33,6 +33,13 @@ MAX_ARRAY_BYTES = 1 << 30
 GAP_FACTOR = 2.5
 #: relative jitter of the time step above which the log is resampled onto a uniform grid
 JITTER_TOL = 0.01
+#: sampling rates a robot's log can have (Hz): below, its time is not in seconds (or the log
+#: cannot hold the dynamics); above, neither
+MIN_RATE_HZ = 10.0
+MAX_RATE_HZ = 100_000.0
+#: time units a log's time column is often written in, by their size in seconds
+_TIME_UNITS = (("milliseconds", 1e-3), ("microseconds", 1e-6), ("nanoseconds", 1e-9),
+               ("minutes", 60.0))
 
 
 @dataclass
@@ -130,7 +137,8 @@ def load_log(path: str | Path, n_joints: int, fs: float | None = None, *,
 def _load_bag(p: Path, names: Sequence[str], topic: str | None,
               effort_current: np.ndarray | None, fs: float | None) -> Log:
     bag = read_bag(p, names, topic)
-    cols = {"t": bag.t, "q": bag.q, "tau": bag.tau}
+    cols: dict[str, Any] = {"t": bag.t, "q": bag.q, "tau": bag.tau,
+                            "__time__": "the messages' time stamps"}
     cols.update({k: v for k, v in (("qd", bag.qd), ("q_ref", bag.q_ref)) if v is not None})
     for note in bag.notes:
         warnings.warn(note, DataWarning, stacklevel=3)
@@ -288,6 +296,9 @@ def _read_mat(p: Path, n: int, fs: float | None) -> dict[str, np.ndarray]:
 
     if fs is None or not math.isfinite(fs) or fs <= 0:
         raise DataError(f"{p}: a .mat log has no time stamps; give the sampling rate with --fs")
+    if not MIN_RATE_HZ <= fs <= MAX_RATE_HZ:
+        raise DataError(f"{p}: --fs {fs:g}: a robot's log runs at {MIN_RATE_HZ:g} Hz to "
+                        f"{MAX_RATE_HZ:g} Hz (the rate in Hz, not the step in seconds?)")
     _size_checked(p, MAX_LOG_BYTES)
     try:
         for name, shape, _kind in scipy.io.whosmat(str(p)):
@@ -415,7 +426,22 @@ def _npz_columns(p: Path, cols: dict[str, np.ndarray], n: int) -> dict[str, np.n
 # ----------------------------------------------------------------------------- checks
 
 
+def _time_units(p: Path, where: str, step: float) -> None:
+    """Refuse time stamps whose rate no robot's log has, with the unit they look like."""
+    rate = 1.0 / step
+    if MIN_RATE_HZ <= rate <= MAX_RATE_HZ:
+        return
+    hint = next((f": read as {unit} it is {rate / size:.4g} Hz — give the time in seconds"
+                 for unit, size in _TIME_UNITS
+                 if MIN_RATE_HZ <= rate / size <= MAX_RATE_HZ), ": is it in seconds?")
+    raise DataError(f"{p}: {where}: a time step of {step:.4g} per sample is a rate of "
+                    f"{rate:.3g} Hz, outside the {MIN_RATE_HZ:g} Hz to {MAX_RATE_HZ:g} Hz a "
+                    f"robot's log runs at{hint}")
+
+
 def _check_and_grid(p: Path, cols: dict[str, np.ndarray], n: int, fs: float | None) -> Log:
+    time_col = str(cols.pop("__time__", "column t" if "__csv__" in cols else
+                            "array 'times'" if "times" in cols else "array 't'"))
     cols = _csv_columns(p, cols, n) if "__csv__" in cols else _npz_columns(p, cols, n)
     current = cols.pop("__current__", None)
     held = cols.pop("__held__", None)
@@ -444,6 +470,7 @@ def _check_and_grid(p: Path, cols: dict[str, np.ndarray], n: int, fs: float | No
                         f"({t[k]:.6g} → {t[k + 1]:.6g} s)")
     notes: list[str] = []
     h = float(np.median(dt))
+    _time_units(p, time_col, h)
     gaps = np.flatnonzero(dt > GAP_FACTOR * h)
     bounds = [0, *(gaps + 1).tolist(), nsamp]
     pieces = [(bounds[i], bounds[i + 1]) for i in range(len(bounds) - 1)]

@@ -38,7 +38,6 @@ __all__ = [
     "split",
     "motion_span",
     "held_out_ranges",
-    "noise_floor",
     "Problem",
     "build_problem",
     "shift_torque",
@@ -109,6 +108,9 @@ class Prepared:
     tau_model: np.ndarray | None = None  # the current model's torque on every raw sample
     #: known torques (model file), already subtracted from ``tau`` and ``tau_f``
     tau_known: np.ndarray | None = None
+    #: (N, n) rows × joints whose torque enters the joint's equation (None: all): False for a
+    #: partial log's missing torques and where a joint sticks (friction at rest is static)
+    tau_mask: np.ndarray | None = None
     channels: _Channels = field(default_factory=_Channels, compare=False, repr=False)
 
     @property
@@ -335,40 +337,6 @@ def held_out_ranges(valid: Sequence[Piece]) -> str:
         by_file.setdefault(Path(pc.prep.log.path).name, []).append(
             f"{t[pc.lo]:.4g}–{t[pc.hi - 1]:.4g} s")
     return "; ".join(f"{name} {', '.join(r)}" for name, r in by_file.items())
-
-
-def _rejected_share(filt: ZeroPhaseFilter, points: int = 4096) -> float:
-    """Share of white noise's variance in ``raw − filtered`` for the zero-phase filter:
-    the mean over the band of (1 − |H|²)² (|H|² because the filter runs twice)."""
-    w = np.linspace(0.0, math.pi, points)
-    z1 = np.exp(-1j * w)
-    h = np.ones_like(z1)
-    for b0, b1, b2, _, a1, a2 in filt.sos:
-        h = h * (b0 + b1 * z1 + b2 * z1**2) / (1.0 + a1 * z1 + a2 * z1**2)
-    return float(np.mean((1.0 - np.abs(h) ** 2) ** 2))
-
-
-def noise_floor(pieces: Sequence[Piece]) -> np.ndarray | None:
-    """Per joint, the torque measurement noise (N·m, standard deviation) that no model of
-    the motion can explain: the raw torque's content above the filter's cutoff, where an
-    excitation (a few Hz) has none, scaled to the whole band as white noise. Validation RMSE
-    on raw torque cannot fall below it. None when the filter is off (nothing to compare)."""
-    if not pieces or not pieces[0].prep.filt.active:
-        return None
-    n = pieces[0].prep.log.q.shape[1]
-    acc, rows = np.zeros(n), np.zeros(n)
-    for pc in pieces:
-        held = pc.prep.log.held  # a partial log: the joints whose torque it holds
-        for lo in range(pc.lo, pc.hi, CHUNK):
-            hi = min(pc.hi, lo + CHUNK)
-            d = pc.prep.tau[lo:hi, held] - pc.prep.tau_f_rows(lo, hi)[:, held]
-            acc[held] += np.sum(d * d, axis=0)
-            rows[held] += d.shape[0]
-    if not rows.any():
-        return None
-    share = _rejected_share(pieces[0].prep.filt)
-    with np.errstate(invalid="ignore", divide="ignore"):  # a joint no piece holds: NaN
-        return np.asarray(np.sqrt(acc / rows / max(share, 1e-12)))
 
 
 def filter_windows(piece: Piece, interval: int = 1, chunk: int = CHUNK

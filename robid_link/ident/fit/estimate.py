@@ -103,6 +103,7 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
     rows = max((w[3] - w[2] for _, w, _ in tasks), default=0)
     bufs: list[np.ndarray | None] = [None] * len(slots)  # one chunk buffer per slot
     no_weight = np.ones((0, n))
+    left_out = [np.zeros(n) for _ in slots]  # rows without a joint's torque, per slot
 
     def work(task: tuple[Piece, tuple[int, int, int, int, bool], int], slot: int) -> None:
         pc, window, at = task
@@ -111,6 +112,10 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
         c, y, idx = design_rows(design, pc, window, interval, bufs[slot])
         bid = (np.arange(at, at + c.shape[0]) * k_blocks) // total
         sw = np.sqrt(row_weight(c, y, idx)) if row_weight is not None else no_weight
+        if pc.prep.tau_mask is not None:  # rows without a joint's torque: not its equation
+            mw = pc.prep.tau_mask[idx].astype(float)
+            left_out[slot] += (c.shape[0] - mw.sum(axis=0)) * held[id(pc)]
+            sw = mw if row_weight is None else sw * mw
         _gram_serial(c, np.ascontiguousarray(y), np.ascontiguousarray(sw), bid, offsets,
                      held[id(pc)], slots[slot])
 
@@ -127,7 +132,7 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
         upper = gc[j, :, :s, :s]
         full = upper + np.triu(upper, 1).transpose(0, 2, 1)
         g[j][np.ix_(np.arange(k_blocks), sup, sup)] = full
-    return Grams(g, n_rows)
+    return Grams(g, n_rows - sum(left_out))
 
 
 def _joint_parts(sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -26,6 +26,7 @@ from robid_link.ident.data.currents import (
 )
 from robid_link.ident.data.logs import Log, file_sha256, load_log
 from robid_link.ident.data.preprocess import Problem, build_problem, check_counts
+from robid_link.ident.data.sticks import without_sticks
 from robid_link.ident.fit.consistent import ConsistentFit, fit_consistent, pieces_by_file
 from robid_link.ident.fit.design import Design, make_design, structural_mask, with_predictions
 from robid_link.ident.fit.estimate import Fit, Grams, accumulate, fit
@@ -74,6 +75,7 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
     """
     pb = build_problem(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
                        interval=interval, motor_side=motor_side)
+    pb, _ = without_sticks(pb)
     pb = without_known_torques(pb, model.known)
     pb = with_current_gains(pb, model.known)
     pb = with_model_torque(pb)
@@ -158,8 +160,12 @@ def with_profiled_hypers(pb: Problem) -> tuple[Problem, dict[str, dict[str, floa
     if not free:
         return pb, chosen
     blocks = list(pb.blocks)
-    for eff_name, hyper in sorted({(b.effect.name, h) for _, b, h in free}):
-        targets = [(k, b) for k, b, h in free if b.effect.name == eff_name and h == hyper]
+    order = sorted({(b.effect.name, list(b.effect.hypers).index(h), h) for _, b, h in free})
+    several = {e for e, i, _ in order if i > 0}  # twice round for Stribeck's (vs, shape)
+    order += [o for o in order if o[0] in several]
+    for eff_name, _, hyper in order:  # an effect's hyper-parameters in its own order
+        targets = [(k, blocks[k]) for k, b, h in free  # with the choices made so far
+                   if b.effect.name == eff_name and h == hyper]
         best = _grid_choice(pb, blocks, targets, hyper)
         for k, b in targets:
             blocks[k] = b.with_opts(**{hyper: best[k]})
@@ -270,7 +276,7 @@ def estimate(pb: Problem, asm: Assembly, method: str, weight: str = "bisquare") 
     n_rows = grams.n_rows
     ms = f.rss / np.maximum(n_rows, 1)
     var = np.maximum(ms - f.mean_res**2, 0.0)
-    # partial logs: joints have rows from different logs; the count is the largest
+    # partial logs, sticking rows: joints have rows of their own; the count is the largest
     fit_err = ErrorStats(np.sqrt(ms), np.sqrt(var), var, int(n_rows.max()))
     return Estimate(f.theta, f.cov, params, fit_err, f.cond, least, int(n_rows.max()),
                     asm.design, notes)
