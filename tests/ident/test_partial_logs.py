@@ -190,9 +190,10 @@ def test_report_and_json_of_a_partial_validation_log(industrial6, tmp_path):
                   report_dir=tmp_path / "rep")
     doc = out.docs["identify"]
     assert [x is None for x in doc["rmse"]] == [True, True, True, False, False, True]
-    assert doc["noise_floor"][3] is not None and doc["noise_floor"][0] is None
+    # the noise estimate reads every log that holds the joint's torque (training ones too)
+    assert all(x is not None and x > 0 for x in doc["noise_floor"])
     row1 = next(ln for ln in out.result.summary().splitlines() if ln.startswith("   1 a1"))
-    assert row1.split()[2:5] == ["—", "—", "—"]
+    assert [row1.split()[k] for k in (2, 4)] == ["—", "—"]  # no held-out figures
     figs = sorted(p.name for p in (tmp_path / "rep").glob("torque_joint*.png"))
     assert figs == ["torque_joint4.png", "torque_joint5.png"]
     assert "partial logs" in (tmp_path / "rep" / "report.html").read_text()
