@@ -8,9 +8,12 @@ that module and its line in ``GROUPS``.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+import traceback
 import warnings
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from robid_link import __version__
@@ -18,7 +21,7 @@ from robid_link.cli import analyse, campaign, daemon, demo, params, robot, runs
 from robid_link.cli.types import Command, OneLineParser, error_line
 from robid_link.exceptions import RobidError
 
-__all__ = ["main", "GROUPS"]
+__all__ = ["main", "GROUPS", "EXIT_INTERNAL"]
 
 #: the command groups, in the order ``robid --help`` lists their commands
 GROUPS = (analyse, robot, demo, daemon, campaign, runs, params)
@@ -57,7 +60,41 @@ def _one_line_warnings() -> None:
     warnings.simplefilter("default")
 
 
+def _os_error_line(err: OSError) -> str:
+    """An OSError the command's own checks did not foresee, as ``file: reason``."""
+    reason = err.strerror or str(err) or type(err).__name__
+    if err.filename is None:
+        return reason
+    if err.filename2 is not None:
+        return f"{err.filename} → {err.filename2}: {reason}"
+    return f"{err.filename}: {reason}"
+
+
+def _internal_error_line(err: BaseException) -> str:
+    """A bug: one line with where it happened, and how to see the whole traceback."""
+    frames = traceback.extract_tb(err.__traceback__)
+    where = f" ({Path(frames[-1].filename).name}:{frames[-1].lineno})" if frames else ""
+    text = " ".join(str(err).split())[:200]
+    return (f"robid: internal error: {type(err).__name__}: {text}{where}; rerun with --debug "
+            "for the traceback and report it")
+
+
+def _quiet_broken_pipe() -> int:
+    """``robid status | head``: the reader left; no traceback, no 'Exception ignored'."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+    return 128 + 13  # the shell's status for a process ended by SIGPIPE
+
+
+#: exit status of a bug (an exception no check foresaw): EX_SOFTWARE of sysexits.h
+EXIT_INTERNAL = 70
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one command. Exit 0 on success, 2 on an error (one line on stderr), 70 on a bug
+    (one line; ``--debug`` shows the traceback), 130 when interrupted; a command may return
+    a status of its own (``campaign start --trigger timer`` with nothing to do)."""
     try:
         args = _parser().parse_args(argv)
     except SystemExit as exc:  # a usage error (already printed in one line), --help, --version
@@ -69,11 +106,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         if command.check is not None:
             command.check(args)
         return int(command.run(args) or 0)
+    except BrokenPipeError:
+        return _quiet_broken_pipe()
     except RobidError as err:
         if args.debug:
             raise
         print(error_line(str(err)), file=sys.stderr)
         return 2
+    except OSError as err:  # a file the command reads or writes, beyond what it checked
+        if args.debug:
+            raise
+        print(error_line(_os_error_line(err)), file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("robid: interrupted", file=sys.stderr)
         return 130
+    except Exception as err:  # a bug: still one line, with a status of its own
+        if args.debug:
+            raise
+        print(_internal_error_line(err), file=sys.stderr)
+        return EXIT_INTERNAL

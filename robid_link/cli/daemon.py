@@ -13,6 +13,7 @@ from robid_link.cli.types import (
     bounded_int,
     config_option,
     output_path,
+    refuse_given,
     robot_options,
     seed_option,
 )
@@ -64,7 +65,7 @@ def _fake_controller_options(p: argparse.ArgumentParser) -> None:
                    "Coulomb friction, torque noise)")
     p.add_argument("--fault", help="never_answer, die, truncated_log, corrupt_log, "
                    "answer_twice, stale_semaphore, nan_log, fail, or one of the peer's own")
-    p.add_argument("--fault-count", type=bounded_int(0, 1_000_000), default=1, metavar="N",
+    p.add_argument("--fault-count", type=bounded_int(0, 1_000_000), metavar="N",
                    help="how many programs the fault hits (default 1)")
     seed_option(p)
 
@@ -103,7 +104,8 @@ def _fake_controller(args: argparse.Namespace) -> int:
         raise RobidError(f"--workdir: {args.workdir}: folder not found")
     try:
         peer = ctrl.make_peer(args.driver, robot, truth, args.workdir, fault=args.fault,
-                              fault_count=args.fault_count, seed=args.seed, exit_on_die=True,
+                              fault_count=1 if args.fault_count is None else args.fault_count,
+                              seed=args.seed, exit_on_die=True,
                               **options)
     except TypeError as err:  # an option the peer does not take
         raise RobidError(f"--option: {err}") from err
@@ -123,12 +125,17 @@ def _fake_controller(args: argparse.Namespace) -> int:
     return 0
 
 
+def _fake_controller_check(args: argparse.Namespace) -> None:
+    if not args.fault:
+        refuse_given(args, ["--fault-count"], "needs --fault (which fault to repeat)")
+
+
 COMMANDS = (
     Command(name="daemon", help="run the link daemon in the foreground (systemd unit)",
             options=config_option, run=_daemon),
     Command(name="fake-controller", help="the controller side of a driver's protocol over the "
             "simulated robot (tests, demos)", options=_fake_controller_options,
-            run=_fake_controller),
+            check=_fake_controller_check, run=_fake_controller),
     Command(name="config", help="check a daemon config without a daemon", commands=(
         Command(name="check", help="everything each campaign's run will need: one line per "
                 "campaign, ok or the reason", options=config_option, run=_config_check),)),

@@ -10,7 +10,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from robid_link.cli.types import Command, config_option, output_path, positive_float
+from robid_link.cli.types import (
+    Command,
+    config_option,
+    figure_path,
+    output_path,
+    positive_float,
+    refuse_given,
+)
 from robid_link.exceptions import DaemonUnreachable, RobidError
 from robid_link.link.control import request
 
@@ -183,20 +190,25 @@ def _results_options(p: argparse.ArgumentParser) -> None:
                    help="with --robot: each parameter over the stored runs, drift flagged")
     g.add_argument("--compare", nargs=2, metavar=("ROBOT_A", "ROBOT_B"),
                    help="the latest identification of two robots of one type side by side")
-    p.add_argument("--sigma", type=positive_float(1e3), default=5.0,
+    p.add_argument("--sigma", type=positive_float(1e3),
                    help="drift flag: change in combined standard errors (default 5)")
-    p.add_argument("--min-change", type=positive_float(10.0), default=0.10, metavar="FRACTION",
+    p.add_argument("--min-change", type=positive_float(10.0), metavar="FRACTION",
                    help="drift flag: change of the baseline, at the lower end of its 95 %% "
                    "interval (default 0.10)")
     p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
                    help="write the trend as JSON")
-    p.add_argument("--out", metavar="PNG", type=output_path("file"),
+    p.add_argument("--out", metavar="PNG", type=figure_path(),
                    help="plot the trend of the flagged (or all physically readable) parameters")
 
 
 def _results_check(args: argparse.Namespace) -> None:
     if args.trend and not args.robot:
         raise RobidError("--trend: name the robot with --robot NAME")
+    if args.compare:
+        refuse_given(args, ["--robot"], "not used with --compare (it names its two robots)")
+    if not args.trend:
+        refuse_given(args, ["--sigma", "--min-change", "--json", "--out"],
+                     "applies to --trend only")
 
 
 def _results(args: argparse.Namespace) -> int:
@@ -223,7 +235,8 @@ def _drift(args: argparse.Namespace, res: list[dict[str, Any]]) -> int:
     if args.compare:
         print(drift.compare(res, *args.compare))
         return 0
-    tr = drift.trend(res, args.robot, sigma=args.sigma, min_change=args.min_change)
+    tr = drift.trend(res, args.robot, sigma=5.0 if args.sigma is None else args.sigma,
+                     min_change=0.10 if args.min_change is None else args.min_change)
     shown = list(dict.fromkeys(f.parameter for f in tr.flags)) or [
         n for n in tr.values if drift.parameter_kind(n, tr.expressions[n])]
     print(tr.table(shown))

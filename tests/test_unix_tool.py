@@ -1,0 +1,213 @@
+"""Issue 25: the CLI as a well-behaved Unix tool. Each case a new user tripped over ends in one
+line naming the thing and the problem (exit 2), a bug in one ``internal error`` line (exit 70),
+and nothing is silently ignored."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from robid_link.cli import EXIT_INTERNAL, main
+from robid_link.cli.analyse import IRLS_WEIGHTS
+from robid_link.cli.types import Command
+
+from .conftest import ROBOTS
+
+ARM3 = str(ROBOTS / "arm3.yaml")
+
+
+def one_error(argv: list[str], capsys: pytest.CaptureFixture[str], *names: str) -> str:
+    """Run ``robid argv``: exit 2, one stderr line ``robid: error: …`` naming each of names."""
+    rc = main(argv)
+    err = [line for line in capsys.readouterr().err.strip().splitlines()
+           if not line.startswith("robid: warning:")]
+    assert rc == 2, err
+    assert len(err) == 1 and err[0].startswith("robid: error: "), err
+    for name in names:
+        assert name in err[0], err[0]
+    return err[0]
+
+
+# ----------------------------------------------------------------------------- tracebacks
+
+def test_show_robot_unknown_image_format_is_refused_before_the_drawing(tmp_path, capsys):
+    out = tmp_path / "chain.xyz"
+    line = one_error(["show-robot", "--robot", ARM3, "--out", str(out)], capsys, str(out),
+                     "unknown image format .xyz")
+    assert ".png" in line and not out.exists()
+
+
+@pytest.mark.parametrize("folder", ["/proc", "/sys"])
+def test_identify_out_into_a_folder_that_cannot_be_written(tmp_path, capsys, folder):
+    """Refused at parse time, before the identification: even as root, where os.access says
+    yes, the probe file cannot be made."""
+    if not Path(folder).is_dir():
+        pytest.skip(f"no {folder}")
+    target = f"{folder}/robid-out"
+    one_error(["identify", "--robot", ARM3, "--data", str(tmp_path / "none.csv"), "--out",
+               target], capsys, target, f"cannot write in folder {folder}")
+
+
+def test_an_output_file_that_is_a_device_or_fifo_is_refused(tmp_path, capsys):
+    """An atomic write renames over its target: /dev/null would be replaced by a file."""
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    for target, kind in ((os.devnull, "a character device"), (str(fifo), "a FIFO")):
+        one_error(["identify", "--robot", ARM3, "--data", "x.csv", "--json", target], capsys,
+                  target, kind)
+
+
+def _only_command(monkeypatch: pytest.MonkeyPatch, run: object) -> None:
+    """``robid history M`` runs ``run`` instead (the parser and error path stay real)."""
+    import robid_link.cli as cli
+
+    group = argparse.Namespace(COMMANDS=(Command(
+        name="history", help="", options=lambda p: p.add_argument("model_file"), run=run),))
+    monkeypatch.setattr(cli, "GROUPS", (group,))
+
+
+def test_an_unforeseen_os_error_is_one_line_naming_the_file(monkeypatch, tmp_path, capsys):
+    def fail(args: argparse.Namespace) -> int:
+        raise PermissionError(13, "Permission denied", str(tmp_path / "h.jsonl"))
+
+    _only_command(monkeypatch, fail)
+    one_error(["history", "m.yaml"], capsys, f"{tmp_path / 'h.jsonl'}: Permission denied")
+
+
+def test_a_bug_is_one_internal_error_line_and_debug_shows_the_traceback(monkeypatch, capsys):
+    def bug(args: argparse.Namespace) -> int:
+        raise TypeError("unsupported operand")
+
+    _only_command(monkeypatch, bug)
+    assert main(["history", "m.yaml"]) == EXIT_INTERNAL
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("robid: internal error: TypeError: "), err
+    assert "test_unix_tool.py:" in err[0] and "--debug" in err[0]
+    with pytest.raises(TypeError):
+        main(["--debug", "history", "m.yaml"])
+
+
+_PRINTS_A_LOT = """
+import argparse, sys
+import robid_link.cli as cli
+from robid_link.cli.types import Command
+
+def run(args):
+    for i in range(200_000):
+        print("run", i)
+    return 0
+
+cli.GROUPS = (argparse.Namespace(COMMANDS=(Command(name="many", help="", run=run),)),)
+sys.exit(cli.main(["many"]))
+"""
+
+
+def test_a_closed_pipe_ends_quietly():
+    """``robid … | head -1``: no BrokenPipeError traceback, no 'Exception ignored'."""
+    with subprocess.Popen([sys.executable, "-c", _PRINTS_A_LOT], stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE) as proc:
+        assert proc.stdout is not None and proc.stderr is not None
+        assert proc.stdout.readline() == b"run 0\n"
+        proc.stdout.close()
+        err = proc.stderr.read().decode()
+        assert proc.wait(timeout=60) == 141
+    assert "Traceback" not in err and "Exception ignored" not in err, err
+
+
+# ------------------------------------------------------------- contradictory options refused
+
+@pytest.mark.parametrize(("argv", "names"), [
+    (["identify", "--robot", ARM3, "--data", "x.csv", "--weight", "huber"],
+     ["--weight", "--method irls", "ols"]),
+    (["identify", "--robot", ARM3, "--data", "x.csv", "--method", "wls", "--weight", "huber"],
+     ["--weight", "wls"]),
+    (["identify", "--robot", ARM3, "--data", "x.csv", "--fs", "500"], ["--fs", ".mat"]),
+    (["diagnose", "--robot", ARM3, "--data", "x.npz", "--fs", "500"], ["--fs", ".mat"]),
+    (["elasticity", "--robot", ARM3, "--data", "x.csv", "--fs", "500"], ["--fs", ".mat"]),
+    (["excite", "--robot", ARM3, "--out", "t.csv", "--steps", "6"],
+     ["--steps", "--kind fourier"]),
+    (["excite", "--robot", ARM3, "--out", "t.csv", "--joint", "2"], ["--joint"]),
+    (["excite", "--robot", ARM3, "--out", "t.csv", "--kind", "elasticity", "--harmonics", "3"],
+     ["--harmonics", "--kind elasticity"]),
+    (["excite", "--robot", ARM3, "--out", "t.csv", "--kind", "elasticity", "--seed", "3"],
+     ["--seed"]),
+    (["excite", "--robot", ARM3, "--out", "t.csv", "--kind", "elasticity", "--model", "m.yaml"],
+     ["--model"]),
+    (["results", "--config", "c.yaml", "--sigma", "3"], ["--sigma", "--trend"]),
+    (["results", "--config", "c.yaml", "--robot", "r", "--out", "t.png"], ["--out", "--trend"]),
+    (["results", "--config", "c.yaml", "--compare", "a", "b", "--robot", "c"],
+     ["--robot", "--compare"]),
+    (["params", "diff", "--config", "c.yaml", "--robot", "r", "--json", "x.json"],
+     ["--json", "params show"]),
+    (["params", "approve", "1", "2", "--config", "c.yaml", "--robot", "r"], ["params approve"]),
+    (["params", "rollback", "3", "--config", "c.yaml", "--robot", "r"],
+     ["params rollback", "'3'"]),
+    (["fake-controller", "--share", ".", "--robot", ARM3, "--fault-count", "2"],
+     ["--fault-count", "--fault"]),
+])
+def test_contradictory_options_are_refused_not_ignored(tmp_path, monkeypatch, capsys, argv,
+                                                       names):
+    """Before any file is read (none of these exists)."""
+    monkeypatch.chdir(tmp_path)
+    one_error(argv, capsys, *names)
+
+
+def test_weight_choices_are_the_estimators(capsys):
+    from robid_link.ident.fit.estimate import WEIGHTS
+
+    assert set(IRLS_WEIGHTS) == set(WEIGHTS)
+
+
+def test_implausible_rates_are_refused_at_parse_time(capsys):
+    for argv in (["excite", "--robot", ARM3, "--out", "t.csv", "--rate", "1e-6"],
+                 ["identify", "--robot", ARM3, "--data", "x.mat", "--fs", "0.5"]):
+        one_error(argv, capsys, "--rate" if "--rate" in argv else "--fs", "[10,")
+
+
+# ----------------------------------------------------------------------------- show-robot
+
+def test_show_robot_titles_the_pose_in_the_units_given(tmp_path, monkeypatch, capsys):
+    from robid_link.ident.report import figures
+
+    titles: list[str] = []
+    real = figures._place_labels
+
+    def spy(fig, ax, labels):
+        titles.append(ax.get_title())
+        real(fig, ax, labels)
+
+    monkeypatch.setattr(figures, "_place_labels", spy)
+    assert main(["show-robot", "--robot", ARM3, "--q", "30", "45", "10", "--out",
+                 str(tmp_path / "a.png")]) == 0
+    assert titles == ["arm3 at q = [30°, 45°, 10°] (arrows: joint axes)"]
+
+
+def test_show_robot_labels_do_not_overlap(tmp_path, monkeypatch):
+    """Joints at one place share a label; labels a few pixels apart move aside."""
+    from robid_link.ident.model.robot import load_robot
+    from robid_link.ident.report import figures
+
+    boxes: list[list[object]] = []
+    real = figures._place_labels
+
+    def spy(fig, ax, labels):
+        real(fig, ax, labels)
+        renderer = fig.canvas.get_renderer()
+        boxes.append([t.get_window_extent(renderer) for t in ax.texts])
+        boxes.append([label for _, label in labels])
+
+    monkeypatch.setattr(figures, "_place_labels", spy)
+    robot = load_robot(ROBOTS / "industrial6.yaml")
+    figures.draw_robot(robot, np.radians([0, -30, 60, 0, 45, 0]), tmp_path / "i.png")
+    placed, labels = boxes
+    assert any(", " in str(label) for label in labels)  # the wrist's axes 4 and 5 share one
+    assert len(placed) == len(labels)
+    for i, a in enumerate(placed):
+        for b in placed[i + 1:]:
+            assert not a.overlaps(b)  # type: ignore[attr-defined]
