@@ -16,6 +16,7 @@ import pytest
 from robid_link.cli import EXIT_INTERNAL, main
 from robid_link.cli.analyse import IRLS_WEIGHTS
 from robid_link.cli.types import Command
+from robid_link.exceptions import RobidError
 
 from .conftest import ROBOTS
 
@@ -211,3 +212,90 @@ def test_show_robot_labels_do_not_overlap(tmp_path, monkeypatch):
     for i, a in enumerate(placed):
         for b in placed[i + 1:]:
             assert not a.overlaps(b)  # type: ignore[attr-defined]
+
+
+# ----------------------------------------------------------------------------- robot files
+
+_ARM = ('<link name="{child}"><inertial><mass value="1"/><inertia ixx="0.01" ixy="0" ixz="0" '
+        'iyy="0.01" iyz="0" izz="0.01"/></inertial></link>')
+_JOINT = ('<joint name="{name}" type="revolute"><parent link="{parent}"/><child link="{child}"/>'
+          '<axis xyz="0 0 1"/>{extra}<limit lower="-1" upper="1" effort="10" velocity="2"/>'
+          '</joint>')
+
+
+def _urdf(tmp_path: Path, links: list[str], joints: list[tuple[str, str, str]],
+          extra: str = "") -> Path:
+    p = tmp_path / "r.urdf"
+    body = "".join(_ARM.format(child=c) for c in links)
+    body += "".join(_JOINT.format(name=n, parent=a, child=b, extra=extra) for n, a, b in joints)
+    p.write_text(f'<robot name="r"><link name="base"/>{body}</robot>')
+    return p
+
+
+@pytest.mark.parametrize(("links", "joints", "names"), [
+    (["l1"], [("j1", "base", "l1"), ("j2", "l1", "l1")],
+     ["joint 'j2'", "parent and child are both link 'l1'", "loop"]),
+    (["l1", "l2"], [("j1", "base", "l1"), ("j2", "l1", "l2"), ("j3", "l2", "l1")],
+     ["link 'l1'", "'j1' and 'j3'"]),
+    (["l1", "l2"], [("j2", "l1", "l2"), ("j3", "l2", "l1")], ["'j2'", "'j3'", "form a loop"]),
+    (["l1", "l2"], [("j1", "base", "l1")], ["'base' and 'l2'", "no parent joint"]),
+])
+def test_urdf_that_is_not_one_tree_is_refused(tmp_path, capsys, links, joints, names):
+    p = _urdf(tmp_path, links, joints)
+    one_error(["show-robot", "--robot", str(p), "--out", str(tmp_path / "r.png")], capsys,
+              str(p), *names)
+    assert not (tmp_path / "r.png").exists()
+
+
+def test_urdf_parser_output_is_summarised_into_the_one_line(tmp_path, capfd):
+    """urdfdom writes several lines to file descriptor 2 itself: none reaches the terminal,
+    the error line says what it found and where."""
+    p = _urdf(tmp_path, ["l1"], [("j1", "base", "l1")], '<dynamics damping="x"/>')
+    assert main(["show-robot", "--robot", str(p), "--out", str(tmp_path / "r.png")]) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert err == [f"robid: error: {p}: cannot parse URDF: damping value (x) is not a valid "
+                   "float; Could not parse joint_dynamics element for joint [j1]"]
+    with pytest.raises(RobidError, match="damping value"):
+        main(["--debug", "show-robot", "--robot", str(p), "--out", str(tmp_path / "r.png")])
+
+
+def test_urdf_parser_complaint_about_an_unused_part_is_one_warning(tmp_path, capfd):
+    p = _urdf(tmp_path, ["l1"], [("j1", "base", "l1")])
+    p.write_text(p.read_text().replace(
+        '<link name="l1">', '<link name="l1"><visual><geometry><box size="1 x"/></geometry>'
+        '</visual>'))
+    assert main(["show-robot", "--robot", str(p), "--out", str(tmp_path / "r.png")]) == 0
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"robid: warning: {p}: the URDF parser "
+                                               "skipped: "), err
+    assert "visual element for Link [l1]" in err[0]
+
+
+# ----------------------------------------------------------------------------- truth rates
+
+@pytest.mark.parametrize("rate", [1e-6, 0.5, 9.99, 2e5])
+def test_truth_with_an_implausible_sampling_rate_is_refused(tmp_path, arm3, rate):
+    from robid_link.fakes.plant import load_truth
+
+    p = tmp_path / "truth.yaml"
+    p.write_text(f"rate_hz: {rate}\n")
+    with pytest.raises(RobidError) as exc:
+        load_truth(p, arm3)
+    msg = str(exc.value)
+    assert "\n" not in msg and str(p) in msg and "rate_hz" in msg and "[10, 100000] Hz" in msg
+
+
+def test_trajectory_header_with_an_implausible_rate_is_refused(tmp_path):
+    from robid_link.ident.excite.excitation import read_trajectory
+
+    (tmp_path / "t.csv").write_text("t,q1\n0,0\n1000000,0\n")
+    (tmp_path / "t.yaml").write_text("rate_hz: 1e-6\nkind: custom\n")
+    with pytest.raises(RobidError, match=r"t\.yaml: rate_hz: expected a rate in \[10, 100000\]"):
+        read_trajectory(tmp_path / "t.csv")
+
+
+def test_the_cli_and_the_worker_agree_on_plausible_rates():
+    from robid_link.cli.types import MIN_RATE_HZ
+    from robid_link.ident.excite import excitation
+
+    assert MIN_RATE_HZ == excitation.MIN_RATE_HZ

@@ -8,6 +8,7 @@ that module and its line in ``GROUPS``.
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import sys
 import traceback
@@ -52,12 +53,24 @@ def _parser() -> argparse.ArgumentParser:
     return ap
 
 
+class _OneLineLog(logging.Handler):
+    """The library's logged warnings (an unlimited joint accepted, a URDF part skipped) as
+    ``robid: warning: …`` lines on the stderr of the moment."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        print(f"robid: {record.levelname.lower()}: {record.getMessage()}", file=sys.stderr)
+
+
 def _one_line_warnings() -> None:
     def show(message: Warning | str, category: type[Warning], *args: Any, **kw: Any) -> None:
         print(f"robid: warning: {message}", file=sys.stderr)
 
     warnings.showwarning = show  # type: ignore[assignment]
     warnings.simplefilter("default")
+    library = logging.getLogger("robid_link")
+    if not any(isinstance(h, _OneLineLog) for h in library.handlers):
+        handler = _OneLineLog(logging.WARNING)
+        library.addHandler(handler)
 
 
 def _os_error_line(err: OSError) -> str:
