@@ -63,7 +63,8 @@ def test_identify_methods(arm3_log, method, tmp_path, capsys):
     [
         (["--data", "missing.csv"], "robid: error: missing.csv: log file not found"),
         (["--add", "warp_drive"], "robid: error: --add warp_drive: unknown effect 'warp_drive'"),
-        (["--add", "viscous@9"], "robid: error: effect viscous@9: the robot has 3 joints"),
+        (["--add", "viscous@9"], "robid: error: --add viscous@9: effect viscous@9: the robot "
+                                 "has 3 joints"),
         (["--interval", "0"], "robid: error: argument --interval: expected a whole number in "
                               "[1, 100000], got '0'"),
         (["--cutoff", "-3"], "robid: error: argument --cutoff: expected a number in (0, 1e+06]"),

@@ -64,7 +64,7 @@ def _load_model(args: argparse.Namespace) -> Any:
         print(f"created {args.model} with the default model [{', '.join(DEFAULT_MODEL.labels())}]")
     model = load_model(args.model)
     for entry in args.add:
-        model = model.with_added(parse_effect(entry, f"--add {entry}"))
+        model = model.with_added(parse_effect(entry, f"--add {entry}"), f"--add {entry}")
     return model
 
 

@@ -55,7 +55,7 @@ def check_model(model_path: str | None, add: list[str]) -> list[str]:
 
     model = load_model(model_path) if model_path else DEFAULT_MODEL
     for entry in add:
-        model = model.with_added(parse_effect(entry, f"add {entry}"))
+        model = model.with_added(parse_effect(entry, f"add {entry}"), f"add {entry}")
     return [str(e) for e in getattr(model, "effects", ())]
 
 
@@ -68,7 +68,7 @@ def identify_run(job: dict[str, Any]) -> dict[str, Any]:
     robot = _robot(job["robot"], tuple(job["lock"]))
     model = load_model(job["model"]) if job.get("model") else DEFAULT_MODEL
     for entry in job.get("add", ()):
-        model = model.with_added(parse_effect(entry, f"add {entry}"))
+        model = model.with_added(parse_effect(entry, f"add {entry}"), f"add {entry}")
     out = Path(job["report_dir"])
     out.mkdir(parents=True, exist_ok=True)
     analyses = ("identify", "diagnose") if job.get("diagnose") else ("identify",)

@@ -11,14 +11,14 @@ antiresonance and resonance read off the measured points.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
-from robid_link.exceptions import EstimationError
+from robid_link.exceptions import DataError, EstimationError, RobidError
 from robid_link.ident.data.logs import Log
 from robid_link.ident.elastic.frequency import Frf, frf_from_log, frf_from_schedule, log_schedule
 from robid_link.ident.model.robot import Robot
@@ -27,6 +27,7 @@ __all__ = ["two_mass_frf", "coupled_frf", "gravity_stiffness", "JointElasticity"
            "CoupledElasticity", "ElasticityResult", "fit_two_mass", "fit_coupled",
            "identify_elasticity", "elasticity_figures"]
 
+_T = TypeVar("_T")
 _NAMES = ("jm", "ja", "k", "d", "ba")
 
 
@@ -263,8 +264,8 @@ def _logres(model: np.ndarray, meas: np.ndarray) -> np.ndarray:
     return np.concatenate((r.real.ravel(), r.imag.ravel()))
 
 
-def _solve(fun: Any, x0: np.ndarray, names: Sequence[str], log_scale: Sequence[bool]
-           ) -> tuple[np.ndarray, dict[str, float], float]:
+def _solve(fun: Any, x0: np.ndarray, names: Sequence[str], log_scale: Sequence[bool],
+           what: str) -> tuple[np.ndarray, dict[str, float], float]:
     from scipy.optimize import least_squares
 
     res = least_squares(fun, x0, method="lm", x_scale="jac")
@@ -273,8 +274,8 @@ def _solve(fun: Any, x0: np.ndarray, names: Sequence[str], log_scale: Sequence[b
     try:
         cov = np.linalg.inv(res.jac.T @ res.jac) * s2
     except np.linalg.LinAlgError as err:
-        raise EstimationError("elasticity fit: singular Jacobian (too few or too noisy "
-                              "points)") from err
+        raise EstimationError(f"{what}: elasticity fit: singular Jacobian (too few or too "
+                              "noisy FRF points)") from err
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     vals = np.where(log_scale, np.exp(res.x), res.x)
     std = {n: float(v * s if lg else s) for n, v, s, lg in zip(names, vals, sd, log_scale,
@@ -305,7 +306,7 @@ def fit_two_mass(frf: Frf, notes: list[str] | None = None, kg: float = 0.0
             return np.tile(w, 2) * _logres(two_mass_frf(f, *np.exp(x[:4]), x[4], kg), g)
 
         vals, std, rms = _solve(fun, np.r_[np.log(x0[:4]), x0[4]], _NAMES,
-                                [True] * 4 + [False])
+                                [True] * 4 + [False], f"joint {joint}")
         p = JointElasticity(joint, *map(float, vals[:4]), std=std, fit_rms=rms,
                             ba=float(vals[4]), kg=float(kg))
         if frf.tau_amp is not None and frf.drift is not None:
@@ -365,7 +366,8 @@ def _with_arm_coulomb(frf: Frf, band: np.ndarray, p: JointElasticity, notes: lis
     for frac in (0.01, 0.1, 1.0):
         x0 = np.r_[np.log([p.jm, p.ja, p.k, p.d]), p.ba, math.log(frac * scale)]
         try:
-            fit = _solve(fun, x0, (*_NAMES, "fc"), [True] * 4 + [False, True])
+            fit = _solve(fun, x0, (*_NAMES, "fc"), [True] * 4 + [False, True],
+                         f"joint {p.joint}")
         except EstimationError:
             continue
         if best is None or fit[2] < best[2]:
@@ -428,7 +430,8 @@ def fit_coupled(frf: Frf, notes: list[str] | None = None, kg: np.ndarray | None 
         return np.tile(w, 8) * np.concatenate(diag + offr)
 
     names = [f"{n}{i}" for i in (1, 2) for n in _NAMES] + ["jcop"]
-    vals, std, rms = _solve(fun, x0, names, ([True] * 4 + [False]) * 2 + [False])
+    vals, std, rms = _solve(fun, x0, names, ([True] * 4 + [False]) * 2 + [False],
+                            f"joints {frf.joints[0]},{frf.joints[1]}")
     joints = [JointElasticity(j, *map(float, vals[5 * i: 5 * i + 4]),
                               std={n: std[f"{n}{i + 1}"] for n in _NAMES}, fit_rms=rms,
                               ba=float(vals[5 * i + 4]),
@@ -464,8 +467,8 @@ def identify_elasticity(robot: Robot, logs: Sequence[Log], *, joints: Sequence[i
     coupled = None
     targets: list[tuple[int, ...]] = [(j,) for j in joints] + ([tuple(pair)] if pair else [])
     kg = _gravity_stiffness_of_logs(robot, logs, side, inertials, notes)
-    found = None if schedule is not None else [log_schedule(log.t, log.q, log.tau)
-                                               for log in logs]
+    found = None if schedule is not None else [
+        _named(log.path, log_schedule, log.t, log.q, log.tau) for log in logs]
     for target in targets:
         frf = _merged_frf(logs, target, schedule, tau_model, found)
         frfs.append(frf)
@@ -510,6 +513,14 @@ def _gravity_stiffness_of_logs(robot: Robot, logs: Sequence[Log], side: str,
     return gravity_stiffness(robot, pose, np.asarray(theta, dtype=float))
 
 
+def _named(path: str, analysis: Callable[..., _T], *args: Any) -> _T:
+    """The frequency analysis works on arrays: its data errors get the log's name here."""
+    try:
+        return analysis(*args)
+    except DataError as err:
+        raise DataError(f"{path}: {err}") from err
+
+
 def _merged_frf(logs: Sequence[Log], target: tuple[int, ...],
                 schedule: Sequence[dict[str, Any]] | None,
                 tau_model: Sequence[np.ndarray] | None,
@@ -519,11 +530,12 @@ def _merged_frf(logs: Sequence[Log], target: tuple[int, ...],
         tm = tau_model[i] if tau_model is not None else None
         try:
             if schedule is not None:
-                parts.append(frf_from_schedule(log.t, log.q, log.tau, schedule, target, tm))
+                parts.append(_named(log.path, frf_from_schedule, log.t, log.q, log.tau,
+                                    schedule, target, tm))
             else:
-                parts.append(frf_from_log(log.t, log.q, log.tau, target, tm,
-                                          steps=found[i] if found else None))
-        except Exception as err:  # one log without this joint's steps is fine if another has
+                parts.append(_named(log.path, frf_from_log, log.t, log.q, log.tau, target, tm,
+                                    found[i] if found else None))
+        except RobidError as err:  # one log without this joint's steps is fine if another has
             if len(logs) == 1:
                 raise
             last = err
