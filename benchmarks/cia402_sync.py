@@ -37,8 +37,8 @@ def _with_drives(period: float, body: Any) -> Any:
     """Open the driver on six fake drives with SYNC ``period`` and run ``body(master)``."""
     from robid_link.fakes.controller import default_truth, make_peer
     from robid_link.ident.model.robot import load_robot
+    from robid_link.jobs import RobotInfo
     from robid_link.link import registry
-    from robid_link.link.driver import RobotInfo
 
     robot = load_robot(ROBOT)
     with tempfile.TemporaryDirectory() as tmp:

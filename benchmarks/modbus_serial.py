@@ -17,10 +17,11 @@ import numpy as np
 
 from robid_link.fakes.controller import default_truth, log_csv, make_peer
 from robid_link.ident.excite import excitation as ex
+from robid_link.ident.excite import program as pg
 from robid_link.ident.model.robot import load_robot
-from robid_link.link import program as pg
+from robid_link.jobs import RobotInfo
 from robid_link.link import registry
-from robid_link.link.driver import Done, Driver, RobotInfo
+from robid_link.link.driver import Done, Driver
 
 __all__ = ["bench_handoffs", "bench_transfer", "sixty_second_log"]
 

@@ -42,7 +42,8 @@ from robid_link.drivers.rws_api import (
     rws_module,
 )
 from robid_link.exceptions import ConfigError, DriverError
-from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver, MotionProgram, RobotInfo
+from robid_link.jobs import MotionProgram, RobotInfo
+from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver
 
 __all__ = ["AbbRwsDriver"]
 

@@ -43,11 +43,12 @@ from robid_link.drivers.cia402 import (
     error_words,
     tpdo_maps,
 )
-from robid_link.drivers.cia402_feedforward import TorqueFeedforward
+from robid_link.drivers.cia402_feedforward import KeptParameterSet, torque_offsets
 from robid_link.drivers.cia402_master import Axis, Job, SyncMaster, quintic, ramp_to_rest
 from robid_link.drivers.cia402_record import BlfTap, log_bytes
 from robid_link.exceptions import ConfigError, DriverError
-from robid_link.link.driver import CAP_UPLOAD, Done, Driver, MotionProgram, RobotInfo
+from robid_link.jobs import MotionProgram, RobotInfo
+from robid_link.link.driver import CAP_FEEDFORWARD, CAP_UPLOAD, Done, Driver
 
 __all__ = ["CanopenDrivesDriver", "log_bytes"]
 
@@ -86,18 +87,20 @@ class CanopenDrivesDriver(Driver):
     ``following_error_rad``, ``heartbeat_ms``, ``heartbeat_timeout_s``, ``boot_timeout_s``,
     ``state_timeout_s``, ``settle_timeout_s``, ``standstill_rad_s``, ``max_missed``,
     ``overrun_streak``, ``max_approach_rad``, ``bus_options`` (extra python-can arguments),
-    ``robot_file`` (the robot description: the feedforward's inverse dynamics needs it),
+    ``robot_file`` (accepted for older configs, no longer needed: the feedforward's inverse
+    dynamics runs in the worker on the daemon's robot),
     ``sync_echo`` (the drive's UNSIGNED8 object, mappable, that holds the counter of the SYNC
     at which its TPDO values were latched: ``"0x2100:0"`` by default; each TPDO carries it, so
     a late answer is still put at its own SYNC; the driver sets 0x1019 so SYNCs carry a
     counter).
 
     An uploaded parameter set is the driver's own feedforward: every setpoint carries the set's
-    model torque as torque offset 0x60B2 (see ``cia402_feedforward``).
+    model torque (a table the worker computes, ``feedforward_table``) as torque offset 0x60B2
+    (see ``cia402_feedforward``).
     """
 
     name = "canopen_drives"
-    capabilities = frozenset({CAP_UPLOAD})
+    capabilities = frozenset({CAP_UPLOAD, CAP_FEEDFORWARD})
     options = frozenset({"interface", "channel", "bitrate", "host", "port", "robot_file",
                          "nodes", "sync_period_s",
                          "counts_per_rad", "rated_torque_nm", "eds", "record_dir",
@@ -169,7 +172,7 @@ class CanopenDrivesDriver(Driver):
                                        or not Path(robot_file).is_file()):
             raise ConfigError(f"driver.robot_file: {robot_file!r}: file not found")
         self.robot_file = robot_file
-        self.feedforward: TorqueFeedforward | None = None
+        self.parameters: KeptParameterSet | None = None
         self.network: canopen.Network | None = None
         self.axes: list[Axis] = []
         self.master: SyncMaster | None = None
@@ -202,10 +205,8 @@ class CanopenDrivesDriver(Driver):
         if self.robot is None:
             raise DriverError(f"{self.name}: no robot bound (bind_robot before open)")
         self.record_dir.mkdir(parents=True, exist_ok=True)
-        self.feedforward = TorqueFeedforward(self.robot_file, self.robot.joint_names,
-                                             self.record_dir / "parameters.json")
-        if self.robot_file is not None:
-            await asyncio.to_thread(self.feedforward.restore)
+        self.parameters = KeptParameterSet(self.robot, self.record_dir / "parameters.json")
+        await asyncio.to_thread(self.parameters.restore)
         try:
             await asyncio.to_thread(self._bring_up)
         except BaseException:
@@ -447,8 +448,7 @@ class CanopenDrivesDriver(Driver):
                               "restarts with the cause cleared")
         if exp_id not in self._programs:
             raise DriverError(f"experiment {exp_id}: no program put before give")
-        # the feedforward of a whole program is numerical work: off the loop
-        job = await asyncio.to_thread(self._job, exp_id, nonce, master)
+        job = await self._job(exp_id, nonce, master)
         if (exp_id, nonce) in self._jobs:
             return
         assert self._tap is not None
@@ -462,10 +462,24 @@ class CanopenDrivesDriver(Driver):
         log.info("exp=%s nonce=%s streaming %d setpoints (%d to approach the start)", exp_id,
                  nonce, len(job.targets), job.record_from)
 
-    def _job(self, exp_id: str, nonce: str, master: SyncMaster) -> Job:
-        """The program with a rest-to-rest approach from where the drives are."""
+    async def _job(self, exp_id: str, nonce: str, master: SyncMaster) -> Job:
+        """The program with a rest-to-rest approach from where the drives are, and the torque
+        offsets of the set in use along every setpoint (a table the worker computes)."""
         assert self.robot is not None and self.counts_per_rad is not None
-        counts, t0 = self._programs[exp_id]
+        targets, approach = await asyncio.to_thread(self._targets, exp_id, master)
+        pset = self.parameters.in_use if self.parameters is not None else None
+        offsets = None
+        if pset is not None:
+            q = targets / np.array(self.counts_per_rad)
+            table = await self.feedforward_table(pset, self.period, q.tolist())
+            offsets = torque_offsets(table, [a.rated_torque_nm for a in self.axes])
+        return Job(exp_id, nonce, targets, approach, self._programs[exp_id][1], self.period,
+                   self.settle_timeout + 0.0, offsets)
+
+    def _targets(self, exp_id: str, master: SyncMaster) -> tuple[np.ndarray, int]:
+        """Setpoints in counts (the approach, then the program) and the approach's length."""
+        assert self.robot is not None and self.counts_per_rad is not None
+        counts = self._programs[exp_id][0]
         cpr = np.array(self.counts_per_rad)
         here = master.hold / cpr
         start = counts[0] / cpr
@@ -478,13 +492,7 @@ class CanopenDrivesDriver(Driver):
         cap_v = 0.5 * np.array([x if math.isfinite(x) else 1.0 for x in self.robot.qd_max])
         cap_a = 0.5 * np.array([x if math.isfinite(x) else 2.0 for x in self.robot.qdd_max])
         approach = np.rint(quintic(here, start, cap_v, cap_a, self.period) * cpr)
-        targets = np.vstack([approach.astype(np.int64), counts])
-        offsets = None
-        if self.feedforward is not None:
-            offsets = self.feedforward.offsets(targets, cpr, [a.rated_torque_nm
-                                                              for a in self.axes], self.period)
-        return Job(exp_id, nonce, targets, len(approach), t0, self.period,
-                   self.settle_timeout + 0.0, offsets)
+        return np.vstack([approach.astype(np.int64), counts]), len(approach)
 
     def _job_ended(self, job: Job) -> None:
         """From the master thread: write the log (or what was captured) off that thread."""
@@ -538,9 +546,9 @@ class CanopenDrivesDriver(Driver):
         """The set becomes this driver's feedforward (the daemon is the motion master, so its
         acknowledgement is the driver's own): checked, saved to ``record_dir``, used from the
         next experiment given on. A refused set leaves the previous one in use."""
-        if self.feedforward is None:
+        if self.parameters is None:
             raise DriverError(f"{self.name}: not open")
-        await asyncio.to_thread(self.feedforward.load, body)
+        await asyncio.to_thread(self.parameters.load, body)
 
     async def _withdraw(self, exp_id: str, nonce: str) -> None:
         job = self._jobs.get((exp_id, nonce))

@@ -24,7 +24,8 @@ from watchdog.events import FileSystemEventHandler
 from robid_link.atomic import atomic_write
 from robid_link.drivers.rapid import MAX_AXES, render_rapid
 from robid_link.exceptions import ConfigError, DriverError, ProtocolError
-from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver, MotionProgram
+from robid_link.jobs import MotionProgram
+from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver
 from robid_link.safeopen import read_regular
 
 __all__ = ["FileShareDriver", "ShareTransfer", "sem_name", "parse_sem", "network_fs",

@@ -41,7 +41,8 @@ from robid_link.atomic import atomic_write
 from robid_link.drivers.file_share import ShareTransfer
 from robid_link.drivers.rapid import MAX_AXES
 from robid_link.exceptions import ConfigError, DriverError
-from robid_link.link.driver import CAP_RAPID, Done, Driver, MotionProgram
+from robid_link.jobs import MotionProgram
+from robid_link.link.driver import CAP_RAPID, Done, Driver
 
 __all__ = ["ModbusPlcDriver", "REGISTERS", "Command", "Status", "ERROR_CODES", "nonce_tag",
            "register_map"]

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from robid_link.exceptions import ConfigError, DriverError
-from robid_link.link.driver import MotionProgram, ProgramTrajectory
+from robid_link.jobs import MotionProgram, ProgramTrajectory
 
 __all__ = ["RAPID_RATE_HZ", "MAX_AXES", "rapid_units", "render_rapid", "parse_rapid",
            "module_name"]

@@ -24,7 +24,8 @@ from typing import Any
 import serial  # type: ignore[import-untyped]
 
 from robid_link.exceptions import ConfigError, DriverError
-from robid_link.link.driver import Done, Driver, MotionProgram
+from robid_link.jobs import MotionProgram
+from robid_link.link.driver import Done, Driver
 
 __all__ = ["SerialLineDriver", "encode_frame", "decode_frame", "ERROR_CODES", "MAX_LINE"]
 

@@ -21,7 +21,7 @@ from robid_link.exceptions import RobidError
 from robid_link.fakes.plant import Plant, Truth
 from robid_link.ident.excite.excitation import Trajectory, trajectory_states
 from robid_link.ident.model.robot import Robot
-from robid_link.link.driver import MotionProgram
+from robid_link.jobs import MotionProgram
 
 __all__ = ["FAULTS", "ControllerCore", "Peer", "RunResult", "default_truth", "log_csv",
            "make_peer"]

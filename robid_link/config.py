@@ -1,7 +1,7 @@
 """The daemon's config, parsed once into frozen dataclasses whose errors name the key path.
 
-Imports no wing but two one-way edges: experiment kinds (``ident/excite/experiments.py``) and the
-file-name rule of experiment ids (``link/driver.py``). The YAML reader is ``yamlio.py``.
+Imports no wing: experiment kinds' options (``kinds.py``) and the file-name rule of experiment
+ids (``jobs.py``) are on the door, checked alike by the worker. The YAML reader is ``yamlio.py``.
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from pathlib import Path
 from typing import Any
 
 from robid_link.exceptions import ConfigError, RobidError
-from robid_link.ident.excite.experiments import EXPERIMENT_KINDS, experiment_options
-from robid_link.link.driver import check_name
+from robid_link.jobs import check_name
+from robid_link.kinds import KIND_OPTIONS, experiment_options
 from robid_link.yamlio import check_keys, read_yaml_mapping, yaml_type
 
 __all__ = ["load_daemon_config", "DaemonConfig", "CampaignDef",
@@ -106,8 +106,8 @@ def _experiments(raw: Any, where: str) -> tuple[ExperimentDef, ...]:
             raise ConfigError(f"{w}: expected an experiment kind or a mapping with 'kind'")
         opts = dict(entry)
         kind = opts.pop("kind", None)
-        if not isinstance(kind, str) or kind not in EXPERIMENT_KINDS:
-            raise ConfigError(f"{w}.kind: expected one of {', '.join(EXPERIMENT_KINDS)}, "
+        if not isinstance(kind, str) or kind not in KIND_OPTIONS:
+            raise ConfigError(f"{w}.kind: expected one of {', '.join(KIND_OPTIONS)}, "
                               f"got {kind!r}")
         exp_id = opts.pop("id", kind if i == 0 or all(e.kind != kind for e in out)
                           else f"{kind}-{i + 1}")

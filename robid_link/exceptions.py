@@ -15,7 +15,8 @@
      ├── StoreLockedError (RuntimeError)  the state dir is in use by another daemon
      ├── StoreFullError (OSError)       the state_dir has no room: new runs wait, none fails
      ├── DaemonUnreachable (ConnectionError)  no daemon answers on the control socket
-     └── WorkerError (RuntimeError)     a worker process crashed or died (a bug, not bad input)
+     ├── WorkerError (RuntimeError)     a worker process crashed or died (a bug, not bad input)
+     └── RecordError (ValueError)       a job or result record of another version, type or keys
 
     RobidWarning (UserWarning)
      ├── ConditioningWarning            poorly excited / ill-conditioned regressor
@@ -42,6 +43,7 @@ __all__ = [
     "StoreFullError",
     "DaemonUnreachable",
     "WorkerError",
+    "RecordError",
     "RobidWarning",
     "ConditioningWarning",
     "ExcitationWarning",
@@ -107,6 +109,11 @@ class DaemonUnreachable(RobidError, ConnectionError):
 
 class WorkerError(RobidError, RuntimeError):
     """A worker process crashed (an unexpected exception) or died without an answer."""
+
+
+class RecordError(RobidError, ValueError):
+    """A job or result record that this side cannot read: another schema version, an unknown
+    record type, a missing or unknown key (the message names the record and key)."""
 
 
 class RobidWarning(UserWarning):

@@ -176,6 +176,20 @@ def test_the_core_does_not_import_fakes_or_drivers() -> None:
     assert offenders == []
 
 
+def test_the_link_and_the_worker_meet_only_at_the_door() -> None:
+    """link/, drivers/, config and the door import nothing of the worker (``robid_link.ident``:
+    its entry point is named in jobs.py and imported by name in the worker process); the
+    worker imports nothing of the link."""
+    near = ("robid_link.link", "robid_link.drivers", "robid_link.config", "robid_link.jobs",
+            "robid_link.kinds")
+    offenders = sorted((m, d) for m, deps in GRAPH.items()
+                       if m.startswith(near)
+                       for d in deps if d.startswith("robid_link.ident"))
+    offenders += sorted((m, d) for m, deps in GRAPH.items() if m.startswith("robid_link.ident")
+                        for d in deps if d.startswith("robid_link.link"))
+    assert offenders == []
+
+
 def test_no_private_name_across_modules_in_the_worker() -> None:
     assert sorted(p for p in PRIVATE if p[0].startswith("robid_link.ident.")) == []
 

@@ -19,6 +19,7 @@ from robid_link.ident.report.figures import residual_figures, write_json, write_
 
 if TYPE_CHECKING:  # diagnose (scipy.stats) is imported only when a job diagnoses
     from robid_link.ident.diagnosis.diagnose import Diagnosis
+    from robid_link.jobs import ResonanceHint
 
 __all__ = ["ANALYSES", "JobOutcome", "run_job"]
 
@@ -48,16 +49,17 @@ def run_job(robot: Robot, data: Sequence[Log], model: Model, *,
             interval: int = 1, method: str = "ols", weight: str = "bisquare",
             motor_side: bool = False, json_files: Mapping[str, str | Path] | None = None,
             report_dir: str | Path | None = None, history: str | Path | None = None,
-            run_id: str | None = None, campaign: str | None = None,
-            elasticity_entries: Mapping[int, str] | None = None) -> JobOutcome:
+            run_id: str | None = None,
+            resonance_hints: Mapping[int, ResonanceHint] | None = None) -> JobOutcome:
     """Run the ``analyses`` (``identify``, ``diagnose``) on one set of inputs.
 
     The model is fitted once: a diagnosis reuses the identification (see ``diagnose``).
     ``json_files`` maps an analysis to the file its JSON document goes to; ``report_dir``
     gets identify's report files and the diagnosis' residual figures; ``history`` (a model
     file) gets one record per analysis, after all of them ran (once per ``run_id`` of a
-    daemon run, so a run resumed after a crash adds no second record). ``campaign`` and
-    ``elasticity_entries``: what the diagnosis names for an unexplained resonance.
+    daemon run, so a run resumed after a crash adds no second record). ``resonance_hints``:
+    per joint, what the diagnosis tells of an unexplained resonance (the daemon's campaign
+    language; without, the generic advice).
     """
     unknown = set(analyses) - set(ANALYSES)
     if unknown or not analyses:
@@ -77,7 +79,7 @@ def run_job(robot: Robot, data: Sequence[Log], model: Model, *,
 
         dg = diagnose(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
                       interval=interval, motor_side=motor_side, result=res,
-                      campaign=campaign, elasticity_entries=elasticity_entries)
+                      resonance_hints=resonance_hints)
         out.diagnosis = dg
         doc = dg.to_dict()
         doc["data_files"] = dg.result.to_dict()["data_files"]

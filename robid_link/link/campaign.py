@@ -12,23 +12,18 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from robid_link import jobs as jb
 from robid_link.config import CampaignDef, DaemonConfig, ExperimentDef
 from robid_link.exceptions import ApprovalError, ConfigError, RobidError, StoreFullError
+from robid_link.jobs import MotionProgram
 from robid_link.link.cycle import CyclePolicy, run_cycle
-from robid_link.link.driver import CAP_UPLOAD, Driver, MotionProgram, parameter_bytes
+from robid_link.link.driver import CAP_UPLOAD, Driver, FeedforwardSource, parameter_bytes
 from robid_link.link.store import Store
-from robid_link.link.worker import (
-    check_log,
-    check_model,
-    elasticity_run,
-    generate_program,
-    identify_run,
-    run_in_worker,
-    verify_run,
-)
+from robid_link.link.worker import run_here, run_in_worker
 
 __all__ = ["TRIGGERS", "plan", "check_capabilities", "create_run", "prepare_programs",
-           "preflight", "check_config", "describe_campaigns", "execute_run"]
+           "preflight", "check_config", "describe_campaigns", "execute_run", "resonance_hints",
+           "feedforward_source", "drift_flags"]
 
 log = logging.getLogger("robid.campaign")
 
@@ -77,17 +72,23 @@ def _check_driver_caps(cfg: DaemonConfig, name: str, caps: frozenset[str], drive
                           "parameters; set upload: false or use a driver that can")
 
 
-def _model_args(cfg: DaemonConfig, name: str) -> tuple[str | None, list[str]]:
+def _model_job(cfg: DaemonConfig, name: str) -> jb.ModelCheckJob:
     camp = cfg.campaigns[name]
     if camp.model is not None and not camp.model.is_file():
         raise ConfigError(f"campaigns.{name}.model: {camp.model}: file not found")
-    return (str(camp.model) if camp.model else None), list(camp.add)
+    return jb.ModelCheckJob(str(camp.model) if camp.model else None, camp.add)
+
+
+def _program_job(cfg: DaemonConfig, exp_id: str, exp: ExperimentDef, slow: float | None
+                 ) -> jb.ProgramJob:
+    return jb.ProgramJob(str(cfg.robot), cfg.lock, exp_id, exp.kind, exp.options,
+                         str(cfg.base_dir), slow)
 
 
 async def preflight(cfg: DaemonConfig, store: Store, ctx: Any, campaign: str) -> None:
     """Everything a run of ``campaign`` will need, checked before any program is given: the
     model file and ``add:`` effects load, every program generates and passes the limits."""
-    await run_in_worker(ctx, check_model, *_model_args(cfg, campaign))
+    await run_in_worker(ctx, _model_job(cfg, campaign))
     await prepare_programs(cfg, store, ctx, campaign)
 
 
@@ -98,10 +99,9 @@ def check_config(cfg: DaemonConfig, driver: Driver) -> dict[str, str | None]:
     for name in cfg.campaigns:
         try:
             _check_driver_caps(cfg, name, frozenset(driver.capabilities), driver.name)
-            check_model(*_model_args(cfg, name))
+            run_here(_model_job(cfg, name))
             for exp_id, exp, slow in plan(cfg.campaigns[name]):
-                generate_program(str(cfg.robot), cfg.lock, exp_id, exp.kind, exp.options,
-                                 str(cfg.base_dir), slow)
+                run_here(_program_job(cfg, exp_id, exp, slow))
             verdict[name] = None
         except RobidError as err:
             verdict[name] = str(err)
@@ -177,8 +177,7 @@ async def _generated(cfg: DaemonConfig, store: Store, ctx: Any, campaign: str, k
     done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
     _generating[token] = done
     try:
-        prog = await run_in_worker(ctx, generate_program, str(cfg.robot), cfg.lock,
-                                   exp_id, exp.kind, exp.options, str(cfg.base_dir), slow)
+        prog = await run_in_worker(ctx, _program_job(cfg, exp_id, exp, slow))
         sha = store.put_program(key, prog)
     finally:
         del _generating[token]
@@ -211,10 +210,10 @@ async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any,
                                     f"{run['campaign']} --config {cfg.path}")
 
         # the identification's inputs, before the first motion (a config edited since start)
-        await run_in_worker(ctx, check_model, *_model_args(cfg, run["campaign"]))
+        await run_in_worker(ctx, _model_job(cfg, run["campaign"]))
 
-        async def check(path: str) -> dict[str, Any]:
-            return await run_in_worker(ctx, check_log, n_joints, path)
+        async def check(path: str) -> jb.LogCheck:
+            return await run_in_worker(ctx, jb.LogCheckJob(path, n_joints))
 
         kinds = {e: d.kind for e, d, _ in plan(camp)}
         first = [(e, p) for e, p in programs if not after_upload(camp, e)]
@@ -232,7 +231,7 @@ async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any,
             await cycle(k, exp_id, program)
         if camp.identify:
             data = [s for e, s in shas.items() if kinds.get(e) not in ("verify", "elasticity")]
-            await _identify(cfg, store, driver, ctx, run_id, camp, data, kill_hook)
+            await _identify(cfg, store, driver, ctx, run_id, camp, data, n_joints, kill_hook)
         for k, (exp_id, program) in enumerate(then, len(first) + 1):
             await cycle(k, exp_id, program)
         await _tracking(cfg, store, ctx, run_id, camp, [(e, p, shas[e]) for e, p in programs
@@ -267,9 +266,9 @@ async def _pinned_programs(cfg: DaemonConfig, store: Store, ctx: Any, run_id: st
 
 
 def elasticity_entries(cfg: DaemonConfig) -> dict[int, str]:
-    """Joint → the first campaign experiment that measures its elasticity (what the diagnosis
-    names for an unexplained resonance). Without joints or pairs an experiment measures every
-    joint (listed up to 64: the diagnosis asks only for the robot's)."""
+    """Joint → the first campaign experiment that measures its elasticity. Without joints or
+    pairs an experiment measures every joint (listed up to 64: hints ask only for the
+    robot's)."""
     out: dict[int, str] = {}
     for camp in cfg.campaigns.values():
         for exp in camp.experiments:
@@ -285,36 +284,54 @@ def elasticity_entries(cfg: DaemonConfig) -> dict[int, str]:
     return out
 
 
+def resonance_hints(cfg: DaemonConfig, campaign: str, n_joints: int
+                    ) -> tuple[jb.ResonanceHint, ...]:
+    """Per joint, what the diagnosis says of an unexplained resonance in a run of
+    ``campaign``: the campaign experiment that measures the joint's elasticity, else the
+    entry to add to ``campaign`` (the config's language stays on the link's side)."""
+    entries = elasticity_entries(cfg)
+    out = []
+    for j in range(1, n_joints + 1):
+        entry = entries.get(j)
+        todo = (f"measured by {entry}" if entry is not None else
+                f"add an elasticity experiment for joint {j}: campaigns.{campaign}.experiments: "
+                f"[…, {{kind: elasticity, joints: [{j}]}}] (or robid excite --kind elasticity "
+                f"--joint {j})")
+        out.append(jb.ResonanceHint(j, entry, todo))
+    return tuple(out)
+
+
 async def _identify(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, run_id: str,
-                    camp: CampaignDef, shas: list[str], kill_hook: Callable[[str], None]) -> None:
+                    camp: CampaignDef, shas: list[str], n_joints: int,
+                    kill_hook: Callable[[str], None]) -> None:
     store.set_run(run_id, "running", step="identifying" + (" and diagnosing"
                                                            if camp.diagnose else ""))
-    job = {"run_id": run_id, "robot": str(cfg.robot), "lock": list(cfg.lock),
-           "logs": [str(store.check_log(s)) for s in shas],
-           "model": str(camp.model) if camp.model else None, "add": list(camp.add),
-           "method": camp.method, "diagnose": camp.diagnose, "cutoff_hz": camp.cutoff_hz,
-           "motor_side": camp.motor_side, "upload": camp.upload,
-           "report_dir": str(store.dir / "reports" / run_id), "campaign": camp.name,
-           "elasticity_entries": elasticity_entries(cfg)}
+    job = jb.IdentifyJob(
+        run_id=run_id, robot=str(cfg.robot), lock=cfg.lock,
+        logs=tuple(str(store.check_log(s)) for s in shas),
+        report_dir=str(store.dir / "reports" / run_id),
+        model=str(camp.model) if camp.model else None, add=camp.add, method=camp.method,
+        diagnose=camp.diagnose, cutoff_hz=camp.cutoff_hz, motor_side=camp.motor_side,
+        upload=camp.upload, resonance_hints=resonance_hints(cfg, camp.name, n_joints))
     kill_hook("identifying")
-    out = await run_in_worker(ctx, identify_run, job,
-                              on_start=lambda: kill_hook("identify_started"))
-    for kind, rec in out["records"].items():
-        store.add_result(run_id, out["robot"], kind, rec)
+    out: jb.IdentifyOutcome = await run_in_worker(
+        ctx, job, on_start=lambda: kill_hook("identify_started"))
+    for kind, rec in out.records.items():
+        store.add_result(run_id, out.robot, kind, rec)
     log.info("run=%s identified: rmse %s", run_id,
-             " ".join(f"{x:.3g}" for x in out["records"]["identify"]["rmse"] or []))
-    for flag in drift_flags(store, out["robot"], run_id):
+             " ".join(f"{x:.3g}" for x in out.records["identify"]["rmse"] or []))
+    for flag in drift_flags(store, out.robot, run_id):
         store.note(run_id, None, "drift", parameter=flag.parameter, kind=flag.kind,
                    change=round(flag.change, 4), sigmas=round(flag.sigmas, 1))
         log.warning("run=%s drift: %s", run_id, flag.message)
-    pset = out["parameter_set"]
+    pset = dict(out.parameter_set.doc)
     body = parameter_bytes(pset)
     version = store.add_param_set(pset, body)
-    log.info("run=%s parameter set %d of %s: %s", run_id, version, out["robot"],
+    log.info("run=%s parameter set %d of %s: %s", run_id, version, out.robot,
              pset["sha256"][:12])
     if camp.upload:
         trigger = store.run(run_id)["trigger"]
-        await upload_set(store, driver, out["robot"], pset["sha256"], run_id,
+        await upload_set(store, driver, out.robot, pset["sha256"], run_id,
                          unattended=trigger == "timer")
 
 
@@ -329,27 +346,35 @@ async def _tracking(cfg: DaemonConfig, store: Store, ctx: Any, run_id: str,
             return "before"
         return "after" if camp.upload else "check"
 
-    job = {"robot": str(cfg.robot), "lock": list(cfg.lock), "runs": [
-        {"exp_id": e, "phase": phase(e), "log": str(store.check_log(sha)),
-         "files": dict(p.files)} for e, p, sha in runs]}
-    out = await run_in_worker(ctx, verify_run, job)
-    for rec in out["records"]:
+    job = jb.VerifyJob(str(cfg.robot), cfg.lock, tuple(
+        jb.VerifyRun(e, phase(e), str(store.check_log(sha)), p) for e, p, sha in runs))
+    out: jb.VerifyOutcome = await run_in_worker(ctx, job)
+    for rec in map(dict, out.records):
         rec["run_id"] = run_id
-        store.add_result(run_id, out["robot"], f"verify_{rec['phase']}", rec)
+        store.add_result(run_id, out.robot, f"verify_{rec['phase']}", rec)
         log.info("run=%s %s: tool RMS %.3f mm, max %.3f mm", run_id, rec["experiment"],
                  rec["tracking"]["tool_rms_mm"], rec["tracking"]["tool_max_mm"])
 
 
-def drift_flags(store: Store, robot: str, run_id: str | None = None) -> list[Any]:
-    """Drift flags of ``robot``'s stored identifications (of one run, or all)."""
-    from robid_link.exceptions import ModelError
-    from robid_link.ident.diagnosis.drift import trend
+def drift_flags(store: Store, robot: str, run_id: str | None = None) -> list[jb.DriftFlag]:
+    """Drift flags of ``robot``'s stored identifications (of one run, or all): a DriftJob run
+    here (pure Python, quick: the status answers with it)."""
+    report = run_here(jb.DriftJob(robot, tuple(store.results(robot)), run_id))
+    assert isinstance(report, jb.DriftReport)
+    return list(report.flags)
 
-    try:
-        tr = trend(store.results(robot), robot)
-    except ModelError:  # no identification with parameters yet
-        return []
-    return [f for f in tr.flags if run_id is None or f.run_id == run_id]
+
+def feedforward_source(cfg: DaemonConfig, ctx: Any) -> FeedforwardSource:
+    """What a ``CAP_FEEDFORWARD`` driver calls for the torques of its setpoints: a
+    FeedforwardJob on the daemon's robot in a worker process."""
+
+    async def source(pset: jb.ParameterSet, period_s: float, q: Any) -> jb.FeedforwardTable:
+        job = jb.FeedforwardJob(str(cfg.robot), cfg.lock, pset, float(period_s),
+                                tuple(tuple(float(x) for x in row) for row in q))
+        table: jb.FeedforwardTable = await run_in_worker(ctx, job)
+        return table
+
+    return source
 
 
 async def _elasticity(cfg: DaemonConfig, store: Store, ctx: Any, run_id: str,
@@ -358,14 +383,13 @@ async def _elasticity(cfg: DaemonConfig, store: Store, ctx: Any, run_id: str,
     if not runs:
         return
     store.set_run(run_id, "running", step="elasticity")
-    job = {"robot": str(cfg.robot), "lock": list(cfg.lock), "runs": [
-        {"exp_id": e, "log": str(store.check_log(sha)), "files": dict(p.files)}
-        for e, p, sha in runs]}
-    out = await run_in_worker(ctx, elasticity_run, job)
-    rec = {"kind": "elasticity", "run_id": run_id, "robot": out["robot"],
-           "experiments": out["results"]}
-    store.add_result(run_id, out["robot"], "elasticity", rec)
-    for res in out["results"]:
+    job = jb.ElasticityJob(str(cfg.robot), cfg.lock, tuple(
+        jb.ElasticityRun(e, str(store.check_log(sha)), p) for e, p, sha in runs))
+    out: jb.ElasticityOutcome = await run_in_worker(ctx, job)
+    rec = {"kind": "elasticity", "run_id": run_id, "robot": out.robot,
+           "experiments": [dict(r) for r in out.results]}
+    store.add_result(run_id, out.robot, "elasticity", rec)
+    for res in out.results:
         for j in res["result"].get("joints", []):
             log.info("run=%s %s joint %d: K %.4g, D %.4g, f_res %.3g Hz", run_id,
                      res["experiment"], j["joint"], j["k"], j["d"], j["f_res_hz"])

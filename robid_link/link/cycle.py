@@ -15,7 +15,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from robid_link.exceptions import CycleError, DataError, DriverError, ProtocolError
-from robid_link.link.driver import Done, Driver, MotionProgram
+from robid_link.jobs import MotionProgram
+from robid_link.link.driver import Done, Driver
 from robid_link.link.store import Store
 
 __all__ = ["CyclePolicy", "run_cycle", "new_nonce"]
@@ -40,7 +41,7 @@ def new_nonce() -> str:
 
 async def run_cycle(store: Store, driver: Driver, run_id: str, exp_id: str,
                     program: MotionProgram, policy: CyclePolicy,
-                    check_log: Callable[[str], Awaitable[dict[str, Any]]],
+                    check_log: Callable[[str], Awaitable[Any]],
                     kill_hook: KillHook = lambda step: None) -> str:
     """Run (or resume) one experiment; returns the SHA-256 of its stored, checked log."""
     if program.exp_id != exp_id:  # a cached program shared by two experiments (same content)

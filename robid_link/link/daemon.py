@@ -17,15 +17,16 @@ from typing import Any, TextIO
 
 from robid_link.config import DaemonConfig
 from robid_link.exceptions import ConfigError, DriverError, RobidError, StoreFullError
+from robid_link.jobs import WORKER_PRELOAD, RobotInfo, RobotInfoJob
 from robid_link.link import campaign as cp
 from robid_link.link.control import ControlServer
-from robid_link.link.driver import Done, RobotInfo
+from robid_link.link.driver import Done
 from robid_link.link.notify import Notifier
 from robid_link.link.registry import make_driver
 from robid_link.link.store import Store
 from robid_link.link.worker import run_in_worker
 
-__all__ = ["Daemon", "setup_logging", "robot_info"]
+__all__ = ["Daemon", "setup_logging"]
 
 log = logging.getLogger("robid.daemon")
 
@@ -61,12 +62,6 @@ def setup_logging(level: str = "info", stream: TextIO | None = None) -> None:
     root.propagate = False
 
 
-def robot_info(robot_path: str, lock: tuple[str, ...]) -> RobotInfo:
-    from robid_link.ident.model.robot import load_robot
-
-    return RobotInfo.of(load_robot(robot_path, lock))
-
-
 def _kill_hook(spec: str | None) -> Any:
     """``ROBID_FAULT_KILL_AFTER=step[:n]``: SIGKILL this process after the n-th such step."""
     if not spec:
@@ -94,10 +89,7 @@ class Daemon:
         self.ctx = multiprocessing.get_context(cfg.worker_start_method)
         if cfg.worker_start_method == "forkserver":
             # children fork with the numerical stack imported (numba kernels come from cache)
-            self.ctx.set_forkserver_preload(["robid_link.link.worker", "robid_link.link.program",
-                                             "robid_link.ident.excite.experiments",
-                                             "robid_link.ident.fit.identify",
-                                             "robid_link.ident.diagnosis.diagnose"])
+            self.ctx.set_forkserver_preload(["robid_link.link.worker", *WORKER_PRELOAD])
         self.store: Store | None = None
         self.driver: Any = None
         self.robot: RobotInfo | None = None
@@ -129,8 +121,9 @@ class Daemon:
         try:
             self.store = Store(cfg.state_dir)
             stack.callback(self._closed_store)
-            self.robot = await run_in_worker(self.ctx, robot_info, str(cfg.robot), cfg.lock)
+            self.robot = await run_in_worker(self.ctx, RobotInfoJob(str(cfg.robot), cfg.lock))
             self.driver = make_driver(cfg.driver)
+            self.driver.bind_feedforward(cp.feedforward_source(cfg, self.ctx))
             cp.check_capabilities(cfg, self.driver)  # before anything can move
             self.driver.bind_robot(self.robot)
             await stack.enter_async_context(self.driver)

@@ -9,33 +9,23 @@ from __future__ import annotations
 import abc
 import asyncio
 import hashlib
-import io
 import json
 import logging
-import re
-from collections.abc import Mapping
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, ClassVar, Self
+from collections.abc import Awaitable, Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar, Self
 
-import numpy as np
-import yaml
-
-from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
-from robid_link.safeyaml import load_yaml
-
-if TYPE_CHECKING:
-    from robid_link.ident.model.robot import Robot
+from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError, RobidError
+from robid_link.jobs import FeedforwardTable, MotionProgram, ParameterSet, RobotInfo, check_name
 
 __all__ = [
     "Driver",
-    "MotionProgram",
-    "ProgramTrajectory",
-    "RobotInfo",
     "Done",
-    "check_name",
+    "FeedforwardSource",
     "parameter_bytes",
     "CAP_UPLOAD",
     "CAP_RAPID",
+    "CAP_FEEDFORWARD",
 ]
 
 log = logging.getLogger("robid.driver")
@@ -43,8 +33,13 @@ log = logging.getLogger("robid.driver")
 #: capability names a driver may advertise
 CAP_UPLOAD = "upload_parameters"
 CAP_RAPID = "rapid"
+#: the driver is the motion master and streams a parameter set's model torque with each
+#: setpoint: it asks for the table through ``feedforward_table`` (it computes no dynamics)
+CAP_FEEDFORWARD = "feedforward"
 
-_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_\-]{0,63}$")
+#: the link's way to the worker for a feed-forward table: (set, period_s, setpoints q) → table
+FeedforwardSource = Callable[[ParameterSet, float, Sequence[Sequence[float]]],
+                             Awaitable[FeedforwardTable]]
 
 
 def parameter_bytes(doc: Mapping[str, Any]) -> bytes:
@@ -52,99 +47,6 @@ def parameter_bytes(doc: Mapping[str, Any]) -> bytes:
     rollback restores the previous set byte for byte)."""
     return (json.dumps(doc, sort_keys=True, allow_nan=False, separators=(",", ":"))
             + "\n").encode()
-
-
-def check_name(value: str, what: str) -> str:
-    """Experiment ids and nonces become file names: letters, digits, '_' and '-' only, so no
-    name can escape a folder or collide with the protocol's dots."""
-    if not isinstance(value, str) or not _NAME.match(value):
-        raise DriverError(f"{what} {value!r}: expected 1-64 letters, digits, '_' or '-'")
-    return value
-
-
-@dataclass(frozen=True)
-class RobotInfo:
-    """What a driver needs to know of the robot it moves (picklable, no Pinocchio model):
-    joints in model order, their types and limits in SI units (``inf`` where unknown)."""
-
-    name: str
-    joint_names: tuple[str, ...]
-    joint_types: tuple[str, ...]
-    q_min: tuple[float, ...]
-    q_max: tuple[float, ...]
-    qd_max: tuple[float, ...]
-    qdd_max: tuple[float, ...]
-    tau_max: tuple[float, ...]
-
-    @property
-    def n(self) -> int:
-        return len(self.joint_names)
-
-    @classmethod
-    def of(cls, robot: Robot) -> RobotInfo:
-        lim = robot.limits
-        return cls(robot.name, tuple(robot.joint_names), tuple(robot.joint_types),
-                   *(tuple(float(x) for x in a)
-                     for a in (lim.q_min, lim.q_max, lim.qd_max, lim.qdd_max, lim.tau_max)))
-
-
-@dataclass(frozen=True)
-class ProgramTrajectory:
-    """The neutral trajectory of a program, parsed back from its files: what a driver renders
-    for its controller (RAPID, counts per SYNC, …)."""
-
-    t: np.ndarray
-    q: np.ndarray
-    rate_hz: float
-    kind: str
-    robot: str
-    joint_types: tuple[str, ...]
-    header: Mapping[str, Any]
-
-
-@dataclass(frozen=True)
-class MotionProgram:
-    """One experiment's program as it leaves the daemon: the neutral trajectory
-    (``traj.csv`` + ``traj.yaml``), already checked against the robot's limits. This is what
-    an operator approves by hash; a driver renders it for its controller in ``_put_program``."""
-
-    exp_id: str
-    files: Mapping[str, bytes]
-    duration_s: float
-    meta: Mapping[str, Any] = field(default_factory=dict)
-
-    @property
-    def sha256(self) -> str:
-        """Hash of the program's content (what an operator approves)."""
-        h = hashlib.sha256()
-        for suffix in sorted(self.files):
-            h.update(suffix.encode() + b"\0" + self.files[suffix] + b"\0")
-        return h.hexdigest()
-
-    def trajectory(self) -> ProgramTrajectory:
-        """``traj.csv`` + ``traj.yaml`` parsed; a DriverError names what is wrong."""
-        where = f"program {self.exp_id}"
-        try:
-            head = load_yaml(self.files["traj.yaml"], f"{where}: traj.yaml", error=DriverError)
-            arr = np.loadtxt(io.BytesIO(self.files["traj.csv"]), delimiter=",", skiprows=1,
-                             ndmin=2)
-        except KeyError as err:
-            raise DriverError(f"{where}: file {err.args[0]} missing") from err
-        except (ValueError, UnicodeDecodeError, yaml.YAMLError) as err:
-            raise DriverError(f"{where}: unreadable trajectory ({err})") from err
-        if not isinstance(head, dict) or arr.shape[1] < 2 or arr.shape[0] < 1:
-            raise DriverError(f"{where}: trajectory header or samples malformed")
-        n = arr.shape[1] - 1
-        types = tuple(head.get("joint_types") or ("revolute",) * n)
-        if len(types) != n or not np.all(np.isfinite(arr)):
-            raise DriverError(f"{where}: {n} joints in traj.csv, {len(types)} joint types in "
-                              "traj.yaml, or non-finite samples")
-        try:
-            rate = float(head["rate_hz"])
-        except (KeyError, TypeError, ValueError) as err:
-            raise DriverError(f"{where}: traj.yaml has no valid rate_hz") from err
-        return ProgramTrajectory(arr[:, 0], arr[:, 1:], rate, str(head.get("kind", "custom")),
-                                 str(head.get("robot", "")), types, head)
 
 
 @dataclass(frozen=True)
@@ -162,7 +64,8 @@ class Driver(abc.ABC):
 
     Subclasses set ``name`` and ``capabilities`` and implement ``_open``, ``_close``,
     ``_put_program``, ``_give_ready``, ``_wait_done``, ``_fetch_logs``; optionally
-    ``_upload_parameters`` and ``_acknowledge``.
+    ``_upload_parameters`` and ``_acknowledge``. A ``CAP_FEEDFORWARD`` driver keeps the set it
+    was given and asks ``feedforward_table`` for its setpoints' torques when it gives.
     """
 
     name: ClassVar[str] = "driver"
@@ -174,6 +77,7 @@ class Driver(abc.ABC):
         self._opened = False
         self._closed = False
         self.robot: RobotInfo | None = None
+        self._feedforward_source: FeedforwardSource | None = None
 
     def bind_robot(self, robot: RobotInfo) -> None:
         """The robot this link moves, given before ``open``: a driver checks its options
@@ -181,6 +85,32 @@ class Driver(abc.ABC):
         motion, with the option's name."""
         self._check_robot(robot)
         self.robot = robot
+
+    def bind_feedforward(self, source: FeedforwardSource) -> None:
+        """How a ``CAP_FEEDFORWARD`` driver gets torques: the link binds ``source(set,
+        period_s, q)``, which runs a FeedforwardJob in the worker (before ``open``)."""
+        self._feedforward_source = source
+
+    async def feedforward_table(self, pset: ParameterSet, period_s: float,
+                                q: Sequence[Sequence[float]]) -> FeedforwardTable:
+        """The model torque of ``pset`` along setpoints ``q`` (rad, one row per ``period_s``),
+        computed by the worker (the driver's ``_give_ready`` calls this before it streams);
+        a DriverError, before any motion, when none can be had or it does not fit."""
+        where = f"{self.name}: feed-forward of parameter set {pset.sha256[:12]}"
+        if self._feedforward_source is None:
+            raise DriverError(f"{where}: no worker bound to compute it (bind_feedforward)")
+        try:
+            table = await self._feedforward_source(pset, period_s, q)
+        except DriverError:
+            raise
+        except RobidError as err:
+            raise DriverError(f"{where}: {err}") from err
+        n = len(q[0]) if len(q) else 0
+        if (table.set_sha256 != pset.sha256 or len(table.tau) != len(q)
+                or any(len(row) != n for row in table.tau)):
+            raise DriverError(f"{where}: the table answered does not fit ({len(table.tau)} "
+                              f"rows for {len(q)} setpoints, set {table.set_sha256[:12]})")
+        return table
 
     # -- lifecycle
     async def open(self) -> None:

@@ -19,7 +19,7 @@ from typing import Any
 
 from robid_link.atomic import atomic_write, fsync_dir
 from robid_link.exceptions import ConfigError, RobidError, StoreFullError, StoreLockedError
-from robid_link.link.driver import MotionProgram
+from robid_link.jobs import MotionProgram
 
 __all__ = ["Store", "RUN_STATES"]
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from robid_link.ident.excite import excitation as ex
+from robid_link.ident.excite import program as pg
 from robid_link.ident.model.robot import Robot, load_robot
-from robid_link.link import program as pg
-from robid_link.link.driver import MotionProgram
+from robid_link.jobs import MotionProgram
 
 ARM3 = Path(__file__).resolve().parents[2] / "examples" / "robots" / "arm3.yaml"
 

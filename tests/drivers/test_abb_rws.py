@@ -20,8 +20,9 @@ from robid_link.drivers.rws_api import parse_done, read_credentials, rws_module
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.fakes.controller import default_truth, make_peer
 from robid_link.ident.model.robot import Robot
+from robid_link.jobs import MotionProgram, RobotInfo
 from robid_link.link import registry
-from robid_link.link.driver import Driver, MotionProgram, RobotInfo
+from robid_link.link.driver import Driver
 from tests.drivers.test_contract import RATE_HZ, _cycle, _parse
 
 HAVE_OPENSSL = shutil.which("openssl") is not None

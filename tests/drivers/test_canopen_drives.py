@@ -21,10 +21,11 @@ from robid_link.exceptions import ConfigError, DriverError
 from robid_link.fakes.cia402_peer import EDS
 from robid_link.fakes.controller import default_truth, make_peer
 from robid_link.ident.excite import excitation as ex
+from robid_link.ident.excite import program as pg
 from robid_link.ident.model.robot import Robot
-from robid_link.link import program as pg
+from robid_link.jobs import MotionProgram, RobotInfo
 from robid_link.link import registry
-from robid_link.link.driver import Driver, MotionProgram, RobotInfo
+from robid_link.link.driver import Driver
 
 from .conftest import bump_program
 

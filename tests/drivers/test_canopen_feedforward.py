@@ -1,6 +1,7 @@
 """The CANopen driver's own feedforward (an uploaded parameter set → torque offset 0x60B2 of every
-setpoint, kept across restarts), its socketcand options, and the fake drives' reaction to a
-master that stops sending SYNC (quick stop on their own)."""
+setpoint, kept across restarts; the torques come from the worker as a table), its socketcand
+options, and the fake drives' reaction to a master that stops sending SYNC (quick stop on their
+own)."""
 
 from __future__ import annotations
 
@@ -19,10 +20,12 @@ from robid_link.drivers.canopen_drives import CanopenDrivesDriver
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.fakes.cia402_peer import EDS
 from robid_link.fakes.controller import default_truth, make_peer
+from robid_link.ident.entry import run
 from robid_link.ident.fit.paramset import FORMAT, set_sha256
 from robid_link.ident.model.robot import Robot
+from robid_link.jobs import FeedforwardJob, FeedforwardTable, MotionProgram, ParameterSet, RobotInfo
 from robid_link.link import registry
-from robid_link.link.driver import Driver, MotionProgram, RobotInfo
+from robid_link.link.driver import Driver
 
 from .conftest import bump_program
 
@@ -60,7 +63,15 @@ def drives(tmp_path: Path, robot: Robot, **peer_opts: Any) -> Iterator[tuple[Any
 def _driver(peer: Any, robot: Robot) -> Driver:
     driver = registry.make_driver(peer.driver_options())
     driver.bind_robot(RobotInfo.of(robot))
+    driver.bind_feedforward(_worker)
     return driver
+
+
+async def _worker(pset: ParameterSet, period_s: float, q: Any) -> FeedforwardTable:
+    """What the daemon binds (a FeedforwardJob in a worker process), run here through the
+    same door: the job's JSON into the worker's entry point, the table's JSON back."""
+    job = FeedforwardJob(str(ARM3), (), pset, period_s, tuple(map(tuple, q)))
+    return FeedforwardTable.from_json(await asyncio.to_thread(run, job.to_json()))
 
 
 async def _cycle(driver: Driver, program: MotionProgram, nonce: str) -> bytes:
@@ -115,6 +126,34 @@ def test_uploaded_set_reaches_every_drive_as_torque_offset(tmp_path: Path, robot
     assert np.abs(pm[seg]).max() > 50  # gravity and inertia, not a trivial zero
 
 
+def test_a_set_in_use_without_a_fitting_table_is_refused_before_motion(
+        tmp_path: Path, robot: Robot, program: MotionProgram) -> None:
+    """The driver computes no dynamics: with a set in use it streams only a table the worker
+    made for exactly its setpoints (rows, joints, set), else the give fails before motion."""
+    doc = parameter_set(robot)
+
+    async def short(pset: ParameterSet, period_s: float, q: Any) -> FeedforwardTable:
+        return FeedforwardTable(pset.sha256, period_s, tuple((0.0,) * robot.n for _ in q[1:]))
+
+    with drives(tmp_path, robot) as (peer, _):
+        async def go() -> None:
+            driver = registry.make_driver(peer.driver_options())
+            driver.bind_robot(RobotInfo.of(robot))
+            async with driver:
+                await driver.upload_parameters(doc, timeout_s=10)
+                await driver.put_program(program)
+                with pytest.raises(DriverError, match="no worker bound to compute it"):
+                    await driver.give_ready("exp1", "n1")
+                driver.bind_feedforward(short)
+                with pytest.raises(DriverError, match="the table answered does not fit"):
+                    await driver.give_ready("exp1", "n2")
+                driver.bind_feedforward(_worker)
+                await driver.give_ready("exp1", "n3")  # nothing was left half-given
+                await driver.take_done("exp1", "n3", timeout_s=30)
+
+        asyncio.run(go())
+
+
 def test_set_kept_by_a_restarted_driver_and_refused_set_changes_nothing(
         tmp_path: Path, robot: Robot) -> None:
     doc = parameter_set(robot)
@@ -129,11 +168,11 @@ def test_set_kept_by_a_restarted_driver_and_refused_set_changes_nothing(
                                    (other, "for robot another")):
                     with pytest.raises(DriverError, match=f"parameter set refused: .*{why}"):
                         await driver.upload_parameters(wrong, timeout_s=10)
-                assert driver.feedforward.sha256 == doc["sha256"]
+                assert driver.parameters.sha256 == doc["sha256"]
 
         async def second() -> str | None:
             async with make() as driver:
-                return str(driver.feedforward.sha256)
+                return str(driver.parameters.sha256)
 
         asyncio.run(first())
         saved = Path(peer.driver_options()["record_dir"]) / "parameters.json"

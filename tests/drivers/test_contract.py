@@ -21,8 +21,9 @@ import pytest
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.fakes.controller import default_truth, make_peer
 from robid_link.ident.model.robot import Robot
+from robid_link.jobs import MotionProgram, RobotInfo
 from robid_link.link import registry
-from robid_link.link.driver import Done, Driver, MotionProgram, RobotInfo
+from robid_link.link.driver import Done, Driver
 
 ARM3 = Path(__file__).resolve().parents[2] / "examples" / "robots" / "arm3.yaml"
 NAMES = sorted(set(registry.available_drivers()) & set(registry.available_peers()))

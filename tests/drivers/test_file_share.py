@@ -14,7 +14,8 @@ import pytest
 
 from robid_link.drivers.file_share import FileShareDriver, parse_sem
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
-from robid_link.link.driver import Done, Driver, MotionProgram
+from robid_link.jobs import MotionProgram
+from robid_link.link.driver import Done, Driver
 from robid_link.link.registry import make_driver
 
 PROGRAM_CSV = b"t,q1,q2,q3\n0,0,0,0\n0.01,0.001,0,0\n"

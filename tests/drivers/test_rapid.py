@@ -12,9 +12,9 @@ from robid_link.drivers.file_share import FileShareDriver
 from robid_link.drivers.rapid import parse_rapid, render_rapid
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.ident.excite import excitation as ex
+from robid_link.ident.excite import program as pg
 from robid_link.ident.model.robot import load_robot
-from robid_link.link import program as pg
-from robid_link.link.driver import MotionProgram
+from robid_link.jobs import MotionProgram
 
 ROBOTS = Path(__file__).resolve().parents[2] / "examples" / "robots"
 

@@ -16,8 +16,9 @@ from robid_link.drivers.serial_line import SerialLineDriver, decode_frame, encod
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.fakes.controller import default_truth, make_peer
 from robid_link.ident.model.robot import Robot
+from robid_link.jobs import MotionProgram, RobotInfo
 from robid_link.link import registry
-from robid_link.link.driver import Driver, MotionProgram, RobotInfo
+from robid_link.link.driver import Driver
 
 from .conftest import bump_program
 from .test_contract import RATE_HZ

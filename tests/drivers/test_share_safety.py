@@ -13,9 +13,10 @@ import pytest
 
 from robid_link.drivers.file_share import FileShareDriver
 from robid_link.exceptions import ConfigError, CycleError, DriverError, ProtocolError
+from robid_link.jobs import MotionProgram
 from robid_link.link import cycle
 from robid_link.link.cycle import CyclePolicy, run_cycle
-from robid_link.link.driver import Done, MotionProgram
+from robid_link.link.driver import Done
 from robid_link.link.store import Store
 from robid_link.safeopen import NotRegularError, TooLargeError, read_regular
 

@@ -212,10 +212,12 @@ def test_cli_excite_elasticity_header(tmp_path):
 def test_campaign_kind_and_worker(plant_log):
     """The ``elasticity`` experiment kind makes the same program; the daemon's worker fits
     the log with the schedule its program carried and names the entry that measured it."""
+    from robid_link import jobs as jb
     from robid_link.exceptions import ConfigError
-    from robid_link.ident.excite.experiments import experiment_options, experiment_trajectory
-    from robid_link.link.program import make_program
-    from robid_link.link.worker import elasticity_run
+    from robid_link.ident.entry import run
+    from robid_link.ident.excite.experiments import experiment_trajectory
+    from robid_link.ident.excite.program import make_program
+    from robid_link.kinds import experiment_options
 
     robot, traj, _, tmp, _ = plant_log
     opts = experiment_options("elasticity", {"joints": [1], "steps": 14, "f_min_hz": 3.0,
@@ -223,9 +225,10 @@ def test_campaign_kind_and_worker(plant_log):
     made = experiment_trajectory(robot, "elasticity", opts)
     np.testing.assert_allclose(made.q, traj.q, atol=1e-9)
     program = make_program(robot, made, "stiff")
-    out = elasticity_run({"robot": ROBOT, "lock": [], "runs": [
-        {"exp_id": "stiff", "log": str(tmp / "log.csv"), "files": dict(program.files)}]})
-    joint = out["results"][0]["result"]["joints"][0]
+    job = jb.ElasticityJob(ROBOT, (), (jb.ElasticityRun("stiff", str(tmp / "log.csv"),
+                                                         program),))
+    out = jb.ElasticityOutcome.from_json(run(job.to_json()))
+    joint = out.results[0]["result"]["joints"][0]
     assert joint["joint"] == 1 and joint["k"] == pytest.approx(TRUE["k"], rel=0.01)
     assert joint["measures"] == {"experiment": "stiff", "kind": "elasticity"}
     for bad, key in [({"steps": 2}, "steps"), ({"f_min_hz": 80.0}, "f_max_hz"),
@@ -308,7 +311,7 @@ def test_unexplained_resonance_names_the_campaign_entry(tmp_path):
     campaign entry when one exists, else the entry to add to the run's own campaign."""
     from robid_link.config import load_daemon_config
     from robid_link.ident.diagnosis.diagnose import _unexplained
-    from robid_link.link.campaign import elasticity_entries
+    from robid_link.link.campaign import elasticity_entries, resonance_hints
     from tests.link.conftest import QUICK, write_config
 
     cfg = load_daemon_config(write_config(tmp_path, {
@@ -317,16 +320,21 @@ def test_unexplained_resonance_names_the_campaign_entry(tmp_path):
                   "identify": False}}))
     entries = elasticity_entries(cfg)
     assert set(entries) == {2, 3} and "campaign 'stiff'" in entries[2]
+    hints = {h.joint: h for h in resonance_hints(cfg, "quick", 3)}
     prep, design = _resonant_residual(joint=2)
-    [hit] = _unexplained(prep, design, np.zeros(0), "quick", entries)
+    [hit] = _unexplained(prep, design, np.zeros(0), hints)
     assert hit["joint"] == 2 and hit["frequency_hz"] == pytest.approx(35.0, rel=0.05)
     assert hit["measured_by"] == entries[2]
     assert "campaign 'stiff' (experiment" in hit["text"] and "robid campaign start stiff" \
         in hit["text"]
     prep, design = _resonant_residual(joint=1)
-    [hit] = _unexplained(prep, design, np.zeros(0), "quick", entries)
+    [hit] = _unexplained(prep, design, np.zeros(0), hints)
     assert hit["joint"] == 1 and hit["measured_by"] is None
     assert "campaigns.quick.experiments: […, {kind: elasticity, joints: [1]}]" in hit["text"]
+    # from the command line (no daemon config): the generic advice, no config language
+    [hit] = _unexplained(prep, design, np.zeros(0))
+    assert hit["measured_by"] is None and "campaigns." not in hit["text"]
+    assert "robid excite --kind elasticity --joint 1" in hit["text"]
 
 
 def test_arm_coulomb_reversal_is_noted_and_fitted():

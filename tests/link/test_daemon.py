@@ -17,9 +17,10 @@ import pytest
 
 from robid_link.config import load_daemon_config
 from robid_link.exceptions import ConfigError, UnsafeProgramError
+from robid_link.jobs import MotionProgram
 from robid_link.link.control import request
 from robid_link.link.daemon import Daemon
-from robid_link.link.driver import Done, Driver, MotionProgram
+from robid_link.link.driver import CAP_FEEDFORWARD, Done, Driver
 
 from .conftest import QUICK, wait_run, write_config
 
@@ -357,6 +358,47 @@ def test_upload_with_a_driver_that_cannot_is_refused_at_start(
     assert not (tmp_path / "ctl.sock").exists()
     with Store(tmp_path / "state"):  # the lock was released
         pass
+
+
+class _MasterDriver(_NoUploadDriver):
+    """A plug-in driver that is the motion master (CAP_FEEDFORWARD): it asks for torques."""
+
+    name = "master"
+    capabilities = frozenset({CAP_FEEDFORWARD})
+
+
+def test_the_daemon_gives_a_motion_master_its_torques_from_the_worker(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The daemon binds ``Driver.feedforward_table`` to a FeedforwardJob on its robot, run in a
+    worker process: the table is the set's inverse dynamics plus friction (the same numbers
+    as the worker's code run here), one row per setpoint; the driver computes nothing."""
+    import numpy as np
+
+    from robid_link.ident.fit.paramset import feedforward, setpoint_torque
+    from robid_link.ident.model.robot import load_robot
+    from robid_link.jobs import ParameterSet, set_sha256
+    from robid_link.link import daemon as daemon_module
+
+    from .conftest import ARM3
+
+    robot = load_robot(ARM3)
+    assert robot.nominal is not None
+    doc = {"format": "robid-parameter-set/1", "robot": robot.name,
+           "friction": {"viscous": [2.0] * 3, "coulomb": [1.5] * 3, "offset": [0.0] * 3},
+           "standard_inertials": [float(x) for x in robot.nominal]}
+    pset = ParameterSet.from_doc({**doc, "sha256": set_sha256(doc)})
+    q = np.column_stack([0.3 * np.sin(np.linspace(0, 3, 50))] * 3) * [1.0, -1.0, 0.5]
+    cfg = write_config(tmp_path, {"one": ONE})
+    monkeypatch.setattr(daemon_module, "make_driver", lambda options: _MasterDriver())
+
+    async def body(d: Daemon) -> Any:
+        return await d.driver.feedforward_table(pset, 0.004, q.tolist())
+
+    table = with_daemon(cfg, body)
+    want = setpoint_torque(robot, feedforward(pset.doc, 3), q, 0.004)
+    assert table.set_sha256 == pset.sha256 and len(table.tau) == len(q)
+    np.testing.assert_allclose(np.array(table.tau), want, rtol=1e-12, atol=1e-12)
+    assert np.abs(want).max() > 1.0  # gravity and inertia, not zeros
 
 
 def test_upload_needs_identify(tmp_path: Path) -> None:

@@ -11,8 +11,9 @@ import pytest
 from robid_link.exceptions import ConfigError, UnsafeProgramError
 from robid_link.ident.excite import excitation as ex
 from robid_link.ident.excite import experiments as xp
+from robid_link.ident.excite import program as pg
 from robid_link.ident.model.robot import Robot, load_robot
-from robid_link.link import program as pg
+from robid_link.kinds import KIND_OPTIONS, experiment_options
 
 ROBOTS = Path(__file__).resolve().parents[2] / "examples" / "robots"
 
@@ -24,14 +25,14 @@ def arm3() -> Robot:
 
 @pytest.fixture(scope="module")
 def fourier(arm3: Robot) -> ex.Trajectory:
-    opts = xp.experiment_options("rigid_body", {"duration_s": 10, "harmonics": 4,
+    opts = experiment_options("rigid_body", {"duration_s": 10, "harmonics": 4,
                                                 "evaluations": 40, "rate_hz": 100}, "e")
     return xp.experiment_trajectory(arm3, "rigid_body", opts)
 
 
 def test_generated_programs_respect_every_limit(arm3: Robot, fourier: ex.Trajectory) -> None:
     sweeps = xp.experiment_trajectory(arm3, "friction",
-                                      xp.experiment_options("friction", {}, "e"))
+                                      experiment_options("friction", {}, "e"))
     for traj in (fourier, sweeps):
         pg.check_program(arm3, traj, "x")  # raises if not
         q, qd, qdd = pg.program_trajectory(traj)
@@ -91,19 +92,23 @@ def test_program_hash_is_stable_and_content_addressed(arm3: Robot,
 def test_experiment_options_name_the_bad_key() -> None:
     with pytest.raises(ConfigError, match=r"c\.experiments\[0\]: unknown key 'colour' \(known: "
                        r"base_hz, duration_s, evaluations"):
-        xp.experiment_options("rigid_body", {"colour": 1}, "c.experiments[0]")
+        experiment_options("rigid_body", {"colour": 1}, "c.experiments[0]")
     with pytest.raises(ConfigError, match=r"e\.speeds: expected fractions"):
-        xp.experiment_options("friction", {"speeds": [2.0]}, "e")
+        experiment_options("friction", {"speeds": [2.0]}, "e")
     with pytest.raises(ConfigError, match=r"e: missing key 'trajectory'"):
-        xp.experiment_options("custom", {}, "e")
+        experiment_options("custom", {}, "e")
     with pytest.raises(ConfigError, match=r"e\.duration_s: expected a positive number"):
-        xp.experiment_options("rigid_body", {"duration_s": -1}, "e")
+        experiment_options("rigid_body", {"duration_s": -1}, "e")
 
 
 def test_experiment_kinds_are_one_table() -> None:
-    """Every kind the config accepts has defaults and a generator in one registry."""
+    """Every kind the config accepts has options on the door and a generator in the worker's
+    registry, in the same order."""
+    assert list(xp.EXPERIMENT_KINDS) == list(KIND_OPTIONS)
     assert list(xp.EXPERIMENT_KINDS)[:3] == ["rigid_body", "friction", "custom"]
     with pytest.raises(ValueError, match="already registered"):
         xp.register_kind(xp.EXPERIMENT_KINDS["friction"])
+    with pytest.raises(ValueError, match="no options"):
+        xp.register_kind(xp.ExperimentKind("warp", xp.EXPERIMENT_KINDS["friction"].generate))
     with pytest.raises(ConfigError, match=r"e\.kind: expected one of rigid_body, friction"):
-        xp.experiment_options("warp", {}, "e")
+        experiment_options("warp", {}, "e")

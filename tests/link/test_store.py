@@ -11,7 +11,7 @@ import yaml
 
 from robid_link.config import load_daemon_config
 from robid_link.exceptions import ConfigError, RobidError, StoreLockedError
-from robid_link.link.driver import MotionProgram
+from robid_link.jobs import MotionProgram
 from robid_link.link.store import Store
 
 from .conftest import QUICK, write_config

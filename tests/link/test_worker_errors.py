@@ -1,5 +1,7 @@
 """Errors cross the worker-process boundary as their own class: an unsafe program stays an
-UnsafeProgramError, a bug or a dead process becomes a WorkerError, nothing else is trusted."""
+UnsafeProgramError, a bug, a dead process or an answer of the wrong record becomes a
+WorkerError, nothing else is trusted. The child runs this module's ``entry`` (named like the
+worker's entry point, imported by name) on a LogCheckJob whose ``log`` says what to do."""
 
 from __future__ import annotations
 
@@ -16,7 +18,10 @@ from robid_link.exceptions import (
     UnsafeProgramError,
     WorkerError,
 )
+from robid_link.jobs import LogCheckJob, ModelCheck
 from robid_link.link import worker
+
+ENTRY = f"{__name__}:entry"
 
 
 class _Odd(RobidError):
@@ -25,6 +30,17 @@ class _Odd(RobidError):
     def __init__(self, message: str, code: int) -> None:
         super().__init__(message)
         self.code = code
+
+
+def entry(job_json: str) -> str:
+    """A worker entry point that misbehaves as the job's ``log`` says."""
+    kind = LogCheckJob.from_json(job_json).log
+    if kind == "wrong_record":
+        return ModelCheck(("rigid_body",)).to_json()
+    if kind == "not_json":
+        return "{"
+    _raise(kind)
+    raise AssertionError(kind)
 
 
 def _raise(kind: str) -> None:
@@ -44,7 +60,7 @@ def _raise(kind: str) -> None:
 
 def _run(kind: str) -> None:
     ctx = multiprocessing.get_context("spawn")
-    asyncio.run(worker.run_in_worker(ctx, _raise, kind))
+    asyncio.run(worker.run_in_worker(ctx, LogCheckJob(kind, 3), entry=ENTRY))
 
 
 @pytest.mark.parametrize(("kind", "cls", "message"), [
@@ -65,10 +81,18 @@ def test_worker_errors_come_back_as_their_class(kind: str, cls: type, message: s
 
 
 def test_a_crash_or_a_dead_worker_is_a_worker_error() -> None:
-    with pytest.raises(WorkerError, match=r"worker _raise crashed: ZeroDivisionError"):
+    with pytest.raises(WorkerError, match=r"worker log-check-job crashed: ZeroDivisionError"):
         _run("bug")
-    with pytest.raises(WorkerError, match=r"worker process _raise died \(exit code 3\)"):
+    with pytest.raises(WorkerError,
+                       match=r"worker process log-check-job died \(exit code 3\)"):
         _run("die")
+
+
+def test_an_answer_of_the_wrong_record_is_a_worker_error() -> None:
+    with pytest.raises(WorkerError, match=r"answered a model-check record, expected log-check"):
+        _run("wrong_record")
+    with pytest.raises(WorkerError, match=r"cannot read: record: not JSON"):
+        _run("not_json")
 
 
 @pytest.mark.parametrize("name", ["os:system", "builtins:ValueError", "nowhere.at.all:X",

@@ -37,6 +37,7 @@ from robid_link.ident.fit.identify import identify
 from robid_link.ident.fit.results import IdentResult
 from robid_link.ident.model.effects import REGISTRY, Block, Model, States, effect_label
 from robid_link.ident.model.robot import Robot
+from robid_link.jobs import ResonanceHint
 
 __all__ = ["Suggestion", "Diagnosis", "diagnose", "GAIN_MIN", "P_MAX"]
 
@@ -410,13 +411,13 @@ def _evidence(blk: Block, before: float, after: float,
 def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
              validate: Sequence[Log] | None = None, cutoff_hz: float | None = None,
              interval: int = 1, method: str = "ols", motor_side: bool = False,
-             result: IdentResult | None = None, campaign: str | None = None,
-             elasticity_entries: Mapping[int, str] | None = None) -> Diagnosis:
+             result: IdentResult | None = None,
+             resonance_hints: Mapping[int, ResonanceHint] | None = None) -> Diagnosis:
     """Fit the model, then score every catalog effect not in it (see the module docstring).
 
-    ``campaign`` (the daemon's campaign these logs came from) and ``elasticity_entries``
-    (joint → the campaign experiment that measures its elasticity) make an unexplained
-    resonance name the entry to run, or the one to add to ``campaign``.
+    ``resonance_hints`` (joint → what the caller tells of an unexplained resonance there: the
+    daemon names its campaign experiment that measures the joint, or the entry to add)
+    replace the generic advice (``robid excite --kind elasticity``).
 
     ``result``: the model already identified from these inputs (``identify`` with the same
     options); its prepared logs, design and estimate are reused instead of fitting again.
@@ -442,7 +443,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     base, _ = base_set_for(robot, pb.blocks, pb.transmission)
     theta0 = np.asarray(result.theta)  # same model, same base set: identify's estimate
     attach_predictions(robot, preps, design, theta0)
-    odd = _unexplained(preps[0], design, theta0, campaign, elasticity_entries)
+    odd = _unexplained(preps[0], design, theta0, resonance_hints)
     notes: list[str] = []
     if len(logs) == 1 or all(_same_motion(logs[0], lg) for lg in logs[1:]):
         notes.append("all data is one motion: candidates are scored by blocked "
@@ -754,11 +755,9 @@ def _residual_with_states(pieces: Sequence[Piece], step: int
 
 
 def _unexplained(prep: Prepared, design: Design, theta: np.ndarray,
-                 campaign: str | None = None, entries: Mapping[int, str] | None = None
-                 ) -> list[dict[str, Any]]:
+                 hints: Mapping[int, ResonanceHint] | None = None) -> list[dict[str, Any]]:
     """Structure no catalog effect explains: a resonance in the raw residual spectrum, with
-    what measures it: the campaign entry that does (``entries``), else the entry to add to
-    ``campaign`` (or to a campaign, from the command line)."""
+    what measures it: the caller's hint for that joint (``hints``), else the generic one."""
     import scipy.signal as sig
 
     out: list[dict[str, Any]] = []
@@ -787,14 +786,11 @@ def _unexplained(prep: Prepared, design: Design, theta: np.ndarray,
         prominence = float(spec[k] / np.median(spec[near]))
         if prominence > 20:
             fr = float(f[k])
-            entry = (entries or {}).get(j + 1)
-            if entry is not None:
-                todo = f"measured by {entry}"
-            else:
-                where = f"campaigns.{campaign}" if campaign else "campaigns.<campaign>"
-                todo = (f"add an elasticity experiment for joint {j + 1}: {where}.experiments: "
-                        f"[…, {{kind: elasticity, joints: [{j + 1}]}}] (or robid excite --kind "
-                        f"elasticity --joint {j + 1})")
+            hint = (hints or {}).get(j + 1)
+            entry = hint.measured_by if hint is not None else None
+            todo = hint.todo if hint is not None else (
+                f"measure it with an elasticity experiment for joint {j + 1} (robid excite "
+                f"--kind elasticity --joint {j + 1})")
             out.append({"joint": j + 1, "kind": "resonance", "frequency_hz": round(fr, 3),
                         "peak_over_floor": round(prominence, 1), "measured_by": entry,
                         "text": f"joint {j + 1} residual has a resonance at {fr:.3g} Hz "

@@ -146,9 +146,6 @@ def nominal_torque(robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
     return rigid_regressor(robot, q, qd, qdd) @ robot.nominal
 
 
-#: the old private name, still called by link/program.py (its owner switches to the public one)
-
-
 def fit_limits(robot: Robot, traj: FourierTrajectory, margin: float = LIMIT_MARGIN,
                n_check: int = 1000, torque: bool = True) -> FourierTrajectory:
     """Largest uniform scaling of the harmonics that keeps q, q̇, q̈ (and the a-priori torque)

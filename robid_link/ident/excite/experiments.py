@@ -1,19 +1,20 @@
-"""Experiment kinds: each kind's options (defaults, validation) and the trajectory it moves.
+"""Experiment kinds: the trajectory each kind moves. Their options (defaults, validation) are
+on the door (``robid_link/kinds.py``), checked by the daemon config at load and here again.
 
-One table, ``EXPERIMENT_KINDS``: a new kind (``elasticity``, ``verify``) is one
-``register_kind(ExperimentKind(...))``; the daemon config, the campaign runner and the
-program generator all read the table. Numerical work is imported only when a trajectory is made.
+One table, ``EXPERIMENT_KINDS``: a new kind (``elasticity``, ``verify``) is its options in
+``kinds.KIND_OPTIONS`` and one ``register_kind(ExperimentKind(...))`` here. Numerical work is
+imported only when a trajectory is made.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from robid_link.exceptions import ConfigError
-from robid_link.yamlio import check_keys
+from robid_link.kinds import KIND_OPTIONS, KindOptions, experiment_options
 
 if TYPE_CHECKING:
     import numpy as np
@@ -21,29 +22,22 @@ if TYPE_CHECKING:
     from robid_link.ident.excite.excitation import Trajectory
     from robid_link.ident.model.robot import Robot
 
-__all__ = ["ExperimentKind", "EXPERIMENT_KINDS", "register_kind", "experiment_options",
-           "experiment_trajectory"]
+__all__ = ["ExperimentKind", "EXPERIMENT_KINDS", "register_kind", "experiment_trajectory"]
 
 Generator = Callable[["Robot", Mapping[str, Any], "Path | None"], "Trajectory"]
-Validator = Callable[[dict[str, Any], str], None]
-
-
-def _no_check(opts: dict[str, Any], where: str) -> None:
-    return None
 
 
 @dataclass(frozen=True)
 class ExperimentKind:
-    """One kind of experiment: its options over ``defaults`` (``required`` keys have no
-    default), an extra ``validate(opts, where)`` and ``generate(robot, opts, base_dir)``."""
+    """One kind of experiment: ``generate(robot, opts, base_dir)``; its options are
+    ``kinds.KIND_OPTIONS[name]``."""
 
     name: str
-    defaults: Mapping[str, Any]
     generate: Generator
-    validate: Validator = _no_check
-    required: tuple[str, ...] = ()
-    summary: str = ""
-    positive: tuple[str, ...] = field(default=("duration_s", "base_hz", "rate_hz"))
+
+    @property
+    def options(self) -> KindOptions:
+        return KIND_OPTIONS[self.name]
 
 
 #: kind name → ExperimentKind, in the order users see them
@@ -51,38 +45,23 @@ EXPERIMENT_KINDS: dict[str, ExperimentKind] = {}
 
 
 def register_kind(kind: ExperimentKind) -> ExperimentKind:
-    """Add a kind to the table (a name is registered once)."""
+    """Add a kind to the table (a name is registered once, and has its options)."""
     if kind.name in EXPERIMENT_KINDS:
         raise ValueError(f"experiment kind {kind.name!r} is already registered")
+    if kind.name not in KIND_OPTIONS:
+        raise ValueError(f"experiment kind {kind.name!r} has no options in kinds.KIND_OPTIONS")
     EXPERIMENT_KINDS[kind.name] = kind
     return kind
 
 
-def experiment_options(kind: str, opts: Mapping[str, Any], where: str) -> dict[str, Any]:
-    """The experiment's options over its kind's defaults; errors name the key path."""
-    spec = EXPERIMENT_KINDS.get(kind)
-    if spec is None:
-        raise ConfigError(f"{where}.kind: expected one of {', '.join(EXPERIMENT_KINDS)}, "
-                          f"got {kind!r}")
-    check_keys(dict(opts), where, required=spec.required,
-               optional=[k for k in spec.defaults if k not in spec.required])
-    out = {**spec.defaults, **opts}
-    for key in spec.positive:
-        if key in out:
-            v = out[key]
-            if isinstance(v, bool) or not isinstance(v, int | float) or v <= 0:
-                raise ConfigError(f"{where}.{key}: expected a positive number, got {v!r}")
-    spec.validate(out, where)
-    return out
-
-
 def experiment_trajectory(robot: Robot, kind: str, opts: Mapping[str, Any],
-                          base_dir: Path | None = None) -> Trajectory:
-    """Generate the trajectory of one experiment (numerical work: run it off the event loop)."""
+                          base_dir: Path | None = None, where: str = "experiment") -> Trajectory:
+    """Generate the trajectory of one experiment (numerical work: run it off the event loop);
+    its options are checked again (``where`` names them in errors)."""
     spec = EXPERIMENT_KINDS.get(kind)
     if spec is None:
         raise ConfigError(f"kind: expected one of {', '.join(EXPERIMENT_KINDS)}, got {kind!r}")
-    return spec.generate(robot, opts, base_dir)
+    return spec.generate(robot, experiment_options(kind, opts, where), base_dir)
 
 
 # ----------------------------------------------------------------------------- rigid_body
@@ -104,53 +83,7 @@ def _rigid_body(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) ->
     return ex.Trajectory(t, q, rate, "fourier", robot.name, ex.fourier_header(four, cond))
 
 
-def _bounded(opts: Mapping[str, Any], where: str, key: str, lo: float, hi: float, *,
-             integer: bool = False) -> None:
-    """``opts[key]`` within [lo, hi] (an integer when ``integer``); absurd values are refused
-    at load, before any motion, instead of misbehaving after it."""
-    v = opts[key]
-    ok_type = isinstance(v, int) if integer else isinstance(v, int | float)
-    if isinstance(v, bool) or not ok_type or not (lo <= v <= hi) or v != v:
-        what = "an integer" if integer else "a number"
-        raise ConfigError(f"{where}.{key}: expected {what} in [{lo:g}, {hi:g}], got {v!r}")
-
-
-def _check_common(opts: Mapping[str, Any], where: str) -> None:
-    if "duration_s" in opts:
-        _bounded(opts, where, "duration_s", 0.1, 3600.0)
-    if "rate_hz" in opts:
-        _bounded(opts, where, "rate_hz", 1.0, 10_000.0)
-
-
-def _check_rigid_body(opts: dict[str, Any], where: str) -> None:
-    _check_common(opts, where)
-    _bounded(opts, where, "harmonics", 1, 50, integer=True)
-    _bounded(opts, where, "base_hz", 1e-3, 10.0)
-    _bounded(opts, where, "evaluations", 1, 100_000, integer=True)
-    _bounded(opts, where, "restarts", 1, 100, integer=True)
-    _bounded(opts, where, "seed", 0, 2**32 - 1, integer=True)
-
-
 # ----------------------------------------------------------------------------- friction
-
-
-def _check_friction(opts: dict[str, Any], where: str) -> None:
-    sp = opts["speeds"]
-    if (not isinstance(sp, list) or not sp
-            or not all(isinstance(x, int | float) and not isinstance(x, bool) and 0 < x <= 1
-                       for x in sp)):
-        raise ConfigError(f"{where}.speeds: expected fractions of each joint's speed limit "
-                          "in (0, 1]")
-    joints = opts["joints"]
-    if joints is not None and (not isinstance(joints, list) or not joints or not all(
-            isinstance(j, int) and not isinstance(j, bool) and j >= 1 for j in joints)):
-        raise ConfigError(f"{where}.joints: expected a list of joint numbers (from 1)")
-    if joints is not None and (len(set(joints)) != len(joints) or max(joints) > 64):
-        raise ConfigError(f"{where}.joints: expected distinct joint numbers (1..64), "
-                          f"got {joints!r}")
-    if len(sp) > 100:
-        raise ConfigError(f"{where}.speeds: at most 100 speeds, got {len(sp)}")
-    _check_common(opts, where)
 
 
 def _friction(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) -> Trajectory:
@@ -199,12 +132,6 @@ def _joined(robot: Robot, parts: list[np.ndarray], rate: float) -> np.ndarray:
 # ----------------------------------------------------------------------------- custom
 
 
-def _check_custom(opts: dict[str, Any], where: str) -> None:
-    if not isinstance(opts["trajectory"], str) or not opts["trajectory"]:
-        raise ConfigError(f"{where}.trajectory: expected the path of a trajectory file "
-                          f"(CSV t,q1..qn + its .yaml header), got {opts['trajectory']!r}")
-
-
 def _custom(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) -> Trajectory:
     from robid_link.ident.excite import excitation as ex
 
@@ -218,27 +145,12 @@ def _custom(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) -> Tra
                          {**traj.header, "source": str(path)})
 
 
-register_kind(ExperimentKind(
-    "rigid_body", {"duration_s": 40.0, "harmonics": 8, "base_hz": 0.1, "rate_hz": 250.0,
-                   "evaluations": 600, "restarts": 1, "seed": 0},
-    _rigid_body, _check_rigid_body,
-    summary="optimised Fourier excitation of the rigid-body parameters"))
-register_kind(ExperimentKind(
-    "friction", {"speeds": [0.05, 0.1, 0.2, 0.4], "joints": None, "rate_hz": 250.0},
-    _friction, _check_friction, summary="constant-velocity sweeps, one joint at a time"))
-register_kind(ExperimentKind(
-    "custom", {"trajectory": None}, _custom, _check_custom, required=("trajectory",),
-    summary="a trajectory file given by the user"))
+register_kind(ExperimentKind("rigid_body", _rigid_body))
+register_kind(ExperimentKind("friction", _friction))
+register_kind(ExperimentKind("custom", _custom))
 
 
 # ----------------------------------------------------------------------------- verify
-
-
-def _check_verify(opts: dict[str, Any], where: str) -> None:
-    sp = opts["speed"]
-    if isinstance(sp, bool) or not isinstance(sp, int | float) or not 0 < sp <= 1:
-        raise ConfigError(f"{where}.speed: expected a fraction of the limits in (0, 1], "
-                          f"got {sp!r}")
 
 
 def _verify(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) -> Trajectory:
@@ -247,37 +159,10 @@ def _verify(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) -> Tra
     return verify_trajectory(robot, speed=float(opts["speed"]), rate_hz=float(opts["rate_hz"]))
 
 
-register_kind(ExperimentKind(
-    "verify", {"speed": 0.6, "rate_hz": 250.0}, _verify, _check_verify,
-    summary="a fixed, fast path run before and after an upload: tracking and tool error"))
+register_kind(ExperimentKind("verify", _verify))
 
 
 # ----------------------------------------------------------------------------- elasticity
-
-
-def _check_elasticity(opts: dict[str, Any], where: str) -> None:
-    joints = opts["joints"]
-    if joints is not None and (not isinstance(joints, list) or not joints or not all(
-            isinstance(j, int) and not isinstance(j, bool) and 1 <= j <= 64 for j in joints)):
-        raise ConfigError(f"{where}.joints: expected a list of joint numbers (from 1)")
-    pairs = opts["pairs"]
-    if not isinstance(pairs, list) or not all(
-            isinstance(p, list) and len(p) == 2 and p[0] != p[1] and all(
-                isinstance(j, int) and not isinstance(j, bool) and 1 <= j <= 64 for j in p)
-            for p in pairs):
-        raise ConfigError(f"{where}.pairs: expected pairs of joint numbers, e.g. [[2, 3]]")
-    pose = opts["pose_deg"]
-    if pose is not None and (not isinstance(pose, list) or not all(
-            isinstance(x, int | float) and not isinstance(x, bool) and abs(x) <= 3600
-            for x in pose)):
-        raise ConfigError(f"{where}.pose_deg: expected one angle (degrees) per joint")
-    lo, hi = opts["f_min_hz"], opts["f_max_hz"]
-    if not (isinstance(lo, int | float) and isinstance(hi, int | float) and 0 < lo < hi <= 500):
-        raise ConfigError(f"{where}.f_max_hz: expected 0 < f_min_hz < f_max_hz ≤ 500, got "
-                          f"{lo!r}, {hi!r}")
-    steps = opts["steps"]
-    if isinstance(steps, bool) or not isinstance(steps, int) or not 4 <= steps <= 200:
-        raise ConfigError(f"{where}.steps: expected a whole number in 4..200, got {steps!r}")
 
 
 def _elasticity(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) -> Trajectory:
@@ -299,8 +184,4 @@ def _elasticity(robot: Robot, opts: Mapping[str, Any], base_dir: Path | None) ->
         steps=int(opts["steps"]), rate_hz=float(opts["rate_hz"])))
 
 
-register_kind(ExperimentKind(
-    "elasticity", {"joints": None, "pairs": [], "pose_deg": None, "f_min_hz": 2.0, "f_max_hz": 60.0,
-                   "steps": 24, "rate_hz": 2000.0}, _elasticity, _check_elasticity,
-    summary="stepped sines per axis (pairs: two axes together) around a pose: FRFs, "
-            "two-mass fit (Jm, Ja, K, D), coupled fit (Jcop)"))
+register_kind(ExperimentKind("elasticity", _elasticity))

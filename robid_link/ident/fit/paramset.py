@@ -9,8 +9,6 @@ the standard parameters nearest to CAD that reproduce every identified torque ex
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import time
 from collections.abc import Mapping
@@ -21,25 +19,15 @@ import numpy as np
 
 from robid_link.exceptions import ModelError
 from robid_link.ident.model.robot import Robot
+from robid_link.jobs import PARAMETER_SET_FORMAT as FORMAT
+from robid_link.jobs import ParameterSet, canonical_bytes, set_sha256
 
 __all__ = ["FORMAT", "make_parameter_set", "canonical_bytes", "set_sha256", "Feedforward",
-           "feedforward", "diff_sets", "physical_problem"]
+           "feedforward", "setpoint_states", "setpoint_torque", "diff_sets",
+           "physical_problem"]
 
-#: the document's format name and version (a controller refuses what it does not know)
-FORMAT = "robid-parameter-set/1"
 #: joint-side friction a controller's feedforward applies (other effects: reported only)
 _FRICTION = {"fv": "viscous", "fc": "coulomb", "off": "offset"}
-
-
-def canonical_bytes(doc: Mapping[str, Any]) -> bytes:
-    """The set's bytes as stored, uploaded and hashed: sorted keys, no NaN, one line."""
-    body = {k: v for k, v in doc.items() if k != "sha256"}
-    return (json.dumps(body, sort_keys=True, allow_nan=False, separators=(",", ":"))
-            + "\n").encode()
-
-
-def set_sha256(doc: Mapping[str, Any]) -> str:
-    return hashlib.sha256(canonical_bytes(doc)).hexdigest()
 
 
 def make_parameter_set(robot: Robot, identify_doc: Mapping[str, Any], *, run_id: str,
@@ -185,31 +173,42 @@ class Feedforward:
 
 
 def feedforward(doc: Mapping[str, Any], n_joints: int) -> Feedforward:
-    """A parameter set checked for what a controller needs; ModelError names the problem."""
-    if doc.get("format") != FORMAT:
-        raise ModelError(f"parameter set: format {doc.get('format')!r}, expected {FORMAT}")
-    if doc.get("sha256") != set_sha256(doc):
-        raise ModelError("parameter set: content does not match its sha256 (damaged)")
+    """A parameter set checked for what a controller needs; ModelError names the problem (the
+    checks are the door's, ``jobs.ParameterSet``: a driver makes them without numpy)."""
+    pset = ParameterSet.from_doc(doc)
+    pset.check(n_joints)
     fr = doc.get("friction") or {}
     arrays = {k: np.asarray(fr.get(k, [0.0] * n_joints), dtype=float)
               for k in ("viscous", "coulomb", "offset")}
     inert = doc.get("standard_inertials")
     theta = None if inert is None else np.asarray(inert, dtype=float)
-    if any(a.shape != (n_joints,) for a in arrays.values()) or (
-            theta is not None and theta.shape != (10 * n_joints,)):
-        raise ModelError(f"parameter set: sizes do not fit a {n_joints}-joint robot")
-    if theta is not None and not np.all(np.isfinite(theta)):
-        raise ModelError("parameter set: standard inertials hold a non-finite number")
-    if any(np.any(~np.isfinite(a)) for a in arrays.values()):
-        raise ModelError("parameter set: friction holds a non-finite number")
-    ripple = []
-    for r in doc.get("ripple") or []:
-        j, period = int(r["joint"]), float(r["period"])
-        if not 1 <= j <= n_joints or not period > 0:
-            raise ModelError(f"parameter set: ripple of joint {j} (period {period}) does not "
-                             f"fit a {n_joints}-joint robot")
-        ripple.append((j - 1, period, float(r["sin"]), float(r["cos"])))
-    return Feedforward(str(doc["sha256"]), theta, **arrays, ripple=tuple(ripple))
+    ripple = tuple((int(r["joint"]) - 1, float(r["period"]), float(r["sin"]), float(r["cos"]))
+                   for r in doc.get("ripple") or [])
+    return Feedforward(pset.sha256, theta, **arrays, ripple=ripple)
+
+
+def setpoint_states(q: np.ndarray, period: float) -> tuple[np.ndarray, np.ndarray]:
+    """Velocity and acceleration of a setpoint series (N, n) by central differences (one-sided
+    velocity and zero acceleration at the ends, where a program is at rest)."""
+    if len(q) < 3:
+        return np.zeros_like(q), np.zeros_like(q)
+    qd = np.gradient(q, period, axis=0)
+    qdd = np.zeros_like(q)
+    qdd[1:-1] = (q[2:] - 2 * q[1:-1] + q[:-2]) / period**2
+    return qd, qdd
+
+
+def setpoint_torque(robot: Robot, ff: Feedforward, q: np.ndarray, period: float) -> np.ndarray:
+    """Model torque (N, n) in N·m along setpoints ``q`` streamed every ``period`` s: rigid-body
+    inverse dynamics with the set's standard inertials, τ = Y(q, q̇, q̈)·θ, plus its joint
+    friction (what a driver that is the motion master feeds forward)."""
+    from robid_link.ident.model.regressor import reference_regressor
+
+    qd, qdd = setpoint_states(q, period)
+    tau = np.zeros_like(q)
+    if ff.inertials is not None and len(q):
+        tau += reference_regressor(robot, q, qd, qdd) @ ff.inertials
+    return tau + ff.friction(qd)
 
 
 def diff_sets(a: Mapping[str, Any], b: Mapping[str, Any]) -> list[str]:

@@ -1,6 +1,6 @@
-"""Motion programs: an experiment's trajectory (``ident/excite/experiments.py`` makes it) checked
-against the robot's limits before it may leave the daemon, slowed down on request, and packaged
-as the neutral trajectory file (drivers render it for their controller: ``drivers/rapid.py``)."""
+"""Motion programs: an experiment's trajectory (``experiments.py`` makes it) checked against the
+robot's limits before it may leave the worker, slowed down on request, and packaged as the
+neutral trajectory file (drivers render it for their controller: ``drivers/rapid.py``)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import yaml
 from robid_link.exceptions import ConfigError, UnsafeProgramError
 from robid_link.ident.excite import excitation as ex
 from robid_link.ident.model.robot import Robot
-from robid_link.link.driver import MotionProgram, check_name
+from robid_link.jobs import MotionProgram, check_name
 
 __all__ = ["check_program", "reduced_speed", "make_program", "trajectory_files",
            "program_trajectory"]

@@ -1,0 +1,616 @@
+"""The door between the link and the worker: typed, versioned job and result records, and what
+both sides check alike (experiment ids as file names, parameter sets; kinds' options: kinds.py).
+
+On the wire a record is one JSON object: ``{"schema": "robid-job/1", "type": "identify-job",
+<field>: …}``; ``from_json`` refuses an unknown schema, an unknown record type, and a missing or
+unknown key, in one line naming the record and the key (``RecordError``). Bytes go as base64;
+NaN and ±inf (unknown limits) as Python's json writes them. The worker's entry point is named
+here (``WORKER_ENTRY``) and imported by name in the child: this module imports nothing
+numerical (numpy only inside ``MotionProgram.trajectory``).
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import dataclasses
+import hashlib
+import json
+import math
+import re
+import types
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, ClassVar, Self
+
+from robid_link.exceptions import DriverError, ModelError, RecordError
+
+if TYPE_CHECKING:
+    import numpy as np
+
+__all__ = [
+    "SCHEMA", "WORKER_ENTRY", "WORKER_PRELOAD", "RECORDS", "Record", "Job",
+    "check_name",
+    "PARAMETER_SET_FORMAT", "canonical_bytes", "set_sha256",
+    "RobotInfo", "MotionProgram", "ProgramTrajectory", "ParameterSet", "ResonanceHint",
+    "RobotInfoJob", "ProgramJob", "LogCheckJob", "LogCheck", "ModelCheckJob", "ModelCheck",
+    "IdentifyJob", "IdentifyOutcome", "VerifyRun", "VerifyJob", "VerifyOutcome",
+    "ElasticityRun", "ElasticityJob", "ElasticityOutcome", "FeedforwardJob", "FeedforwardTable",
+    "DriftFlag", "DriftJob", "DriftReport",
+]
+
+#: the wire format's name and version; a record of another version is refused
+SCHEMA = "robid-job/1"
+#: the worker process's entry point (``module:function``, JSON job in, JSON result out)
+WORKER_ENTRY = "robid_link.ident.entry:run"
+#: what a fork server imports once, so each worker forks with the numerical stack loaded
+WORKER_PRELOAD = ("robid_link.ident.entry", "robid_link.ident.excite.experiments",
+                  "robid_link.ident.fit.identify", "robid_link.ident.diagnosis.diagnose")
+
+#: record type name → record class (every record, jobs, results and their parts)
+RECORDS: dict[str, type[Record]] = {}
+
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_\-]{0,63}$")
+
+
+def check_name(value: str, what: str) -> str:
+    """Experiment ids and nonces become file names: letters, digits, '_' and '-' only, so no
+    name can escape a folder or collide with the protocol's dots."""
+    if not isinstance(value, str) or not _NAME.match(value):
+        raise DriverError(f"{what} {value!r}: expected 1-64 letters, digits, '_' or '-'")
+    return value
+
+
+# ----------------------------------------------------------------------------- records
+
+
+class Record:
+    """Base of every record: a frozen dataclass with a ``TYPE`` name, JSON both ways."""
+
+    TYPE: ClassVar[str] = ""
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        name = cls.__dict__.get("TYPE")
+        if name:
+            if name in RECORDS:
+                raise ValueError(f"record type {name!r} is defined twice")
+            RECORDS[name] = cls
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"schema": SCHEMA, "type": self.TYPE, **_encode(self)}
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), separators=(",", ":"), default=_plain)
+
+    @classmethod
+    def from_json(cls, text: str | bytes) -> Self:
+        """The record in ``text``; RecordError names what is wrong (one line)."""
+        try:
+            doc = json.loads(text)
+        except ValueError as err:
+            raise RecordError(f"record: not JSON ({err})") from err
+        return cls.from_dict(doc)
+
+    @classmethod
+    def from_dict(cls, doc: Any) -> Self:
+        if not isinstance(doc, dict):
+            raise RecordError(f"record: expected a JSON object, got {_what(doc)}")
+        if "schema" not in doc:
+            raise RecordError("record: key 'schema' missing")
+        if doc["schema"] != SCHEMA:
+            raise RecordError(f"record: schema {doc['schema']!r} unknown (this side reads "
+                              f"{SCHEMA})")
+        name = doc.get("type")
+        target = RECORDS.get(name) if isinstance(name, str) else None
+        if target is None or not isinstance(name, str):
+            raise RecordError(f"record: type {name!r} unknown")
+        if not issubclass(target, cls):
+            raise RecordError(f"{name}: expected a {cls.TYPE or cls.__name__} record")
+        body = {k: v for k, v in doc.items() if k not in ("schema", "type")}
+        return typing.cast(Self, _decode_record(target, body, name, ""))
+
+
+class Job(Record):
+    """A job for the worker; ``RESULT`` is the record type it answers with."""
+
+    RESULT: ClassVar[type[Record]] = Record
+
+
+def _plain(value: Any) -> Any:
+    """numpy scalars and arrays that slipped into a free-form mapping: as JSON numbers."""
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON")
+
+
+def _encode(value: Any) -> Any:
+    if isinstance(value, Record):
+        return {f.name: _encode(getattr(value, f.name)) for f in dataclasses.fields(value)}  # type: ignore[arg-type]
+    if isinstance(value, bytes):
+        return base64.b64encode(value).decode("ascii")
+    if isinstance(value, Mapping):
+        return {str(k): _encode(v) for k, v in value.items()}
+    if isinstance(value, tuple | list):
+        if all(type(v) in _PLAIN for v in value):  # a row of numbers: no walk per element
+            return list(value)
+        return [_encode(v) for v in value]
+    return value
+
+
+_PLAIN = (int, float, str, bool, type(None))
+#: element types of tuples decoded in one pass (a bad element falls back to the walk that
+#: names it); bool is not an int here
+_FAST: dict[Any, tuple[type, ...]] = {float: (int, float), int: (int,), str: (str,)}
+
+
+def _what(value: Any) -> str:
+    if isinstance(value, bool | int | float | str) or value is None:
+        text = repr(value)
+        return text if len(text) <= 40 else f"{text[:37]}…"
+    names: dict[type, str] = {dict: "an object", list: "a list"}
+    return names.get(type(value), type(value).__name__)
+
+
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def _decode_record(cls: type[Record], body: Any, rec: str, path: str) -> Record:
+    if not isinstance(body, dict):
+        raise RecordError(f"{rec}: key '{path}': expected an object, got {_what(body)}")
+    hints = _HINTS.get(cls)
+    if hints is None:
+        hints = _HINTS[cls] = typing.get_type_hints(cls)
+    names = [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
+    for key in body:
+        if key not in names:
+            raise RecordError(f"{rec}: unknown key '{path}{key}' (known: {', '.join(names)})")
+    for key in names:
+        if key not in body:
+            raise RecordError(f"{rec}: key '{path}{key}' missing")
+    values = {k: _decode(body[k], hints[k], rec, f"{path}{k}") for k in names}
+    try:
+        return cls(**values)
+    except (TypeError, ValueError) as err:
+        raise RecordError(f"{rec}: {err}") from err
+
+
+def _decode(value: Any, hint: Any, rec: str, path: str) -> Any:
+    """``value`` (parsed JSON) as the field type ``hint``; RecordError names the key."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+
+    def bad(expected: str) -> RecordError:
+        return RecordError(f"{rec}: key '{path}': expected {expected}, got {_what(value)}")
+
+    if hint is Any:
+        return value
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        return _decode(value, next(a for a in args if a is not type(None)), rec, path)
+    if isinstance(hint, type) and issubclass(hint, Record):
+        return _decode_record(hint, value, rec, f"{path}.")
+    if origin is tuple:
+        if not isinstance(value, list):
+            raise bad("a list")
+        fast = _FAST.get(args[0])
+        if fast is not None and all(type(v) in fast for v in value):
+            return tuple(map(args[0], value))
+        return tuple(_decode(v, args[0], rec, f"{path}[{i}]") for i, v in enumerate(value))
+    if origin in (dict, Mapping):
+        if not isinstance(value, dict):
+            raise bad("an object")
+        return {k: _decode(v, args[1], rec, f"{path}.{k}") for k, v in value.items()}
+    if hint is bytes:
+        try:
+            return base64.b64decode(value, validate=True)
+        except (TypeError, ValueError, binascii.Error):
+            raise bad("base64 text") from None
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise bad("true or false")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise bad("an integer")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise bad("a number")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise bad("a string")
+        return value
+    raise TypeError(f"{rec}.{path}: no JSON form for {hint!r}")
+
+
+# ----------------------------------------------------------------------------- values
+
+
+@dataclass(frozen=True)
+class RobotInfo(Record):
+    """What the link and a driver know of the robot (no Pinocchio model): joints in model
+    order, their types and limits in SI units (``inf`` where unknown)."""
+
+    TYPE: ClassVar[str] = "robot-info"
+    name: str
+    joint_names: tuple[str, ...]
+    joint_types: tuple[str, ...]
+    q_min: tuple[float, ...]
+    q_max: tuple[float, ...]
+    qd_max: tuple[float, ...]
+    qdd_max: tuple[float, ...]
+    tau_max: tuple[float, ...]
+
+    @property
+    def n(self) -> int:
+        return len(self.joint_names)
+
+    @classmethod
+    def of(cls, robot: Any) -> RobotInfo:
+        """From the worker's robot model (read by attribute: nothing is imported here)."""
+        lim = robot.limits
+        return cls(robot.name, tuple(robot.joint_names), tuple(robot.joint_types),
+                   *(tuple(float(x) for x in a)
+                     for a in (lim.q_min, lim.q_max, lim.qd_max, lim.qdd_max, lim.tau_max)))
+
+
+@dataclass(frozen=True)
+class ProgramTrajectory:
+    """The neutral trajectory of a program, parsed back from its files: what a driver renders
+    for its controller (RAPID, counts per SYNC, …). A value, not a record: it never crosses
+    the door as such (its MotionProgram does)."""
+
+    t: np.ndarray
+    q: np.ndarray
+    rate_hz: float
+    kind: str
+    robot: str
+    joint_types: tuple[str, ...]
+    header: Mapping[str, Any]
+
+
+@dataclass(frozen=True)
+class MotionProgram(Record):
+    """One experiment's program as it leaves the worker: the neutral trajectory (``traj.csv``
+    + ``traj.yaml``), already checked against the robot's limits. This is what an operator
+    approves by hash; a driver renders it for its controller in ``_put_program``."""
+
+    TYPE: ClassVar[str] = "motion-program"
+    exp_id: str
+    files: Mapping[str, bytes]
+    duration_s: float
+    meta: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def sha256(self) -> str:
+        """Hash of the program's content (what an operator approves)."""
+        h = hashlib.sha256()
+        for suffix in sorted(self.files):
+            h.update(suffix.encode() + b"\0" + self.files[suffix] + b"\0")
+        return h.hexdigest()
+
+    def trajectory(self) -> ProgramTrajectory:
+        """``traj.csv`` + ``traj.yaml`` parsed; a DriverError names what is wrong."""
+        import io
+
+        import numpy as np
+        import yaml
+
+        from robid_link.safeyaml import load_yaml
+
+        where = f"program {self.exp_id}"
+        try:
+            head = load_yaml(self.files["traj.yaml"], f"{where}: traj.yaml", error=DriverError)
+            arr = np.loadtxt(io.BytesIO(self.files["traj.csv"]), delimiter=",", skiprows=1,
+                             ndmin=2)
+        except KeyError as err:
+            raise DriverError(f"{where}: file {err.args[0]} missing") from err
+        except (ValueError, UnicodeDecodeError, yaml.YAMLError) as err:
+            raise DriverError(f"{where}: unreadable trajectory ({err})") from err
+        if not isinstance(head, dict) or arr.shape[1] < 2 or arr.shape[0] < 1:
+            raise DriverError(f"{where}: trajectory header or samples malformed")
+        n = arr.shape[1] - 1
+        types_ = tuple(head.get("joint_types") or ("revolute",) * n)
+        if len(types_) != n or not np.all(np.isfinite(arr)):
+            raise DriverError(f"{where}: {n} joints in traj.csv, {len(types_)} joint types in "
+                              "traj.yaml, or non-finite samples")
+        try:
+            rate = float(head["rate_hz"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise DriverError(f"{where}: traj.yaml has no valid rate_hz") from err
+        return ProgramTrajectory(arr[:, 0], arr[:, 1:], rate, str(head.get("kind", "custom")),
+                                 str(head.get("robot", "")), types_, head)
+
+
+#: the parameter set's format name and version (a controller refuses what it does not know)
+PARAMETER_SET_FORMAT = "robid-parameter-set/1"
+
+
+def canonical_bytes(doc: Mapping[str, Any]) -> bytes:
+    """A parameter set's bytes as hashed: sorted keys, no NaN, one line, without its sha256."""
+    body = {k: v for k, v in doc.items() if k != "sha256"}
+    return (json.dumps(body, sort_keys=True, allow_nan=False, separators=(",", ":"))
+            + "\n").encode()
+
+
+def set_sha256(doc: Mapping[str, Any]) -> str:
+    return hashlib.sha256(canonical_bytes(doc)).hexdigest()
+
+
+def _numbers(value: Any, size: int) -> bool:
+    return (isinstance(value, list) and len(value) == size
+            and all(isinstance(x, int | float) and not isinstance(x, bool) for x in value))
+
+
+@dataclass(frozen=True)
+class ParameterSet(Record):
+    """A ``robid-parameter-set/1`` document (what the identification hands a controller), as
+    data: ``from_doc`` checks its format and hash, ``check`` its sizes against a robot."""
+
+    TYPE: ClassVar[str] = "parameter-set"
+    doc: Mapping[str, Any]
+
+    @property
+    def sha256(self) -> str:
+        return str(self.doc.get("sha256"))
+
+    @property
+    def robot(self) -> str | None:
+        name = self.doc.get("robot")
+        return None if name is None else str(name)
+
+    @classmethod
+    def from_doc(cls, doc: Any) -> ParameterSet:
+        """The set, or ModelError: not a set of this format, or damaged (hash)."""
+        if not isinstance(doc, Mapping):
+            raise ModelError("parameter set: expected a JSON object")
+        if doc.get("format") != PARAMETER_SET_FORMAT:
+            raise ModelError(f"parameter set: format {doc.get('format')!r}, expected "
+                             f"{PARAMETER_SET_FORMAT}")
+        try:
+            sha = set_sha256(doc)
+        except (TypeError, ValueError) as err:
+            raise ModelError(f"parameter set: not canonical JSON ({err})") from err
+        if doc.get("sha256") != sha:
+            raise ModelError("parameter set: content does not match its sha256 (damaged)")
+        return cls(dict(doc))
+
+    def check(self, n_joints: int) -> None:
+        """What a controller needs of the set for an ``n_joints`` robot; ModelError names the
+        problem."""
+        fr = self.doc.get("friction") or {}
+        lists = [fr.get(k, [0.0] * n_joints) if isinstance(fr, Mapping) else None
+                 for k in ("viscous", "coulomb", "offset")]
+        inert = self.doc.get("standard_inertials")
+        if not all(_numbers(v, n_joints) for v in lists) or (
+                inert is not None and not _numbers(inert, 10 * n_joints)):
+            raise ModelError(f"parameter set: sizes do not fit a {n_joints}-joint robot")
+        if inert is not None and not all(math.isfinite(x) for x in inert):
+            raise ModelError("parameter set: standard inertials hold a non-finite number")
+        if not all(math.isfinite(x) for v in lists for x in v or ()):
+            raise ModelError("parameter set: friction holds a non-finite number")
+        for r in self.doc.get("ripple") or []:
+            ok = isinstance(r, Mapping) and all(
+                isinstance(r.get(k), int | float) and not isinstance(r.get(k), bool)
+                for k in ("joint", "period", "sin", "cos"))
+            if not ok:
+                raise ModelError("parameter set: a ripple entry lacks a number of joint, "
+                                 "period, sin or cos")
+            if not 1 <= r["joint"] <= n_joints or not r["period"] > 0:
+                raise ModelError(f"parameter set: ripple of joint {r['joint']} (period "
+                                 f"{r['period']}) does not fit a {n_joints}-joint robot")
+
+
+@dataclass(frozen=True)
+class ResonanceHint(Record):
+    """What the diagnosis tells the user about an unexplained resonance on ``joint``: the
+    experiment that measures its elasticity (``measured_by``), and the advice (``todo``)."""
+
+    TYPE: ClassVar[str] = "resonance-hint"
+    joint: int
+    measured_by: str | None
+    todo: str
+
+
+# ----------------------------------------------------------------------------- jobs
+
+
+@dataclass(frozen=True)
+class RobotInfoJob(Job):
+    """Load the robot description (``lock``: URDF joints held fixed) → RobotInfo."""
+
+    TYPE: ClassVar[str] = "robot-info-job"
+    RESULT: ClassVar[type[Record]] = RobotInfo
+    robot: str
+    lock: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class ProgramJob(Job):
+    """Generate, limit-check and package one experiment's program → MotionProgram."""
+
+    TYPE: ClassVar[str] = "program-job"
+    RESULT: ClassVar[type[Record]] = MotionProgram
+    robot: str
+    lock: tuple[str, ...]
+    exp_id: str
+    kind: str
+    options: Mapping[str, Any]
+    base_dir: str
+    reduced_speed: float | None
+
+
+@dataclass(frozen=True)
+class LogCheck(Record):
+    TYPE: ClassVar[str] = "log-check"
+    samples: int
+    duration_s: float
+    rate_hz: float
+
+
+@dataclass(frozen=True)
+class LogCheckJob(Job):
+    """Load a captured log as the identification will (columns, joints, NaN, time)."""
+
+    TYPE: ClassVar[str] = "log-check-job"
+    RESULT: ClassVar[type[Record]] = LogCheck
+    log: str
+    n_joints: int
+
+
+@dataclass(frozen=True)
+class ModelCheck(Record):
+    TYPE: ClassVar[str] = "model-check"
+    effects: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class ModelCheckJob(Job):
+    """Build the model a run's identification will use (file, ``add:`` entries) now."""
+
+    TYPE: ClassVar[str] = "model-check-job"
+    RESULT: ClassVar[type[Record]] = ModelCheck
+    model: str | None
+    add: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class IdentifyOutcome(Record):
+    """Records by kind (``identify``, ``diagnose``), the summary text, and the parameter set
+    (a consistent fit when the run uploads)."""
+
+    TYPE: ClassVar[str] = "identify-outcome"
+    robot: str
+    records: Mapping[str, Any]
+    summary: str
+    parameter_set: ParameterSet
+
+
+@dataclass(frozen=True)
+class IdentifyJob(Job):
+    """Identify (and diagnose) a run's logs and write its report into ``report_dir``."""
+
+    TYPE: ClassVar[str] = "identify-job"
+    RESULT: ClassVar[type[Record]] = IdentifyOutcome
+    run_id: str
+    robot: str
+    lock: tuple[str, ...]
+    logs: tuple[str, ...]
+    report_dir: str
+    model: str | None
+    add: tuple[str, ...]
+    method: str
+    diagnose: bool
+    cutoff_hz: float | None
+    motor_side: bool
+    upload: bool
+    resonance_hints: tuple[ResonanceHint, ...]
+
+
+@dataclass(frozen=True)
+class VerifyRun(Record):
+    TYPE: ClassVar[str] = "verify-run"
+    exp_id: str
+    phase: str
+    log: str
+    program: MotionProgram
+
+
+@dataclass(frozen=True)
+class VerifyOutcome(Record):
+    TYPE: ClassVar[str] = "verify-outcome"
+    robot: str
+    records: tuple[Mapping[str, Any], ...]
+
+
+@dataclass(frozen=True)
+class VerifyJob(Job):
+    """Tracking of each verification log against the path its program gave."""
+
+    TYPE: ClassVar[str] = "verify-job"
+    RESULT: ClassVar[type[Record]] = VerifyOutcome
+    robot: str
+    lock: tuple[str, ...]
+    runs: tuple[VerifyRun, ...]
+
+
+@dataclass(frozen=True)
+class ElasticityRun(Record):
+    TYPE: ClassVar[str] = "elasticity-run"
+    exp_id: str
+    log: str
+    program: MotionProgram
+
+
+@dataclass(frozen=True)
+class ElasticityOutcome(Record):
+    TYPE: ClassVar[str] = "elasticity-outcome"
+    robot: str
+    results: tuple[Mapping[str, Any], ...]
+
+
+@dataclass(frozen=True)
+class ElasticityJob(Job):
+    """Two-mass fits of each stepped-sine log, from the schedule its program carried."""
+
+    TYPE: ClassVar[str] = "elasticity-job"
+    RESULT: ClassVar[type[Record]] = ElasticityOutcome
+    robot: str
+    lock: tuple[str, ...]
+    runs: tuple[ElasticityRun, ...]
+
+
+@dataclass(frozen=True)
+class FeedforwardTable(Record):
+    """Model torque (N·m) per setpoint and joint of a parameter set: what a driver that is
+    the motion master streams as torque offsets."""
+
+    TYPE: ClassVar[str] = "feedforward-table"
+    set_sha256: str
+    period_s: float
+    tau: tuple[tuple[float, ...], ...]
+
+
+@dataclass(frozen=True)
+class FeedforwardJob(Job):
+    """The parameter set's inverse dynamics plus joint friction along setpoints ``q`` (rad,
+    one row per ``period_s``; q̇, q̈ by central differences)."""
+
+    TYPE: ClassVar[str] = "feedforward-job"
+    RESULT: ClassVar[type[Record]] = FeedforwardTable
+    robot: str
+    lock: tuple[str, ...]
+    parameter_set: ParameterSet
+    period_s: float
+    q: tuple[tuple[float, ...], ...]
+
+
+@dataclass(frozen=True)
+class DriftFlag(Record):
+    TYPE: ClassVar[str] = "drift-flag"
+    run_id: str
+    parameter: str
+    kind: str
+    change: float
+    sigmas: float
+    message: str
+
+
+@dataclass(frozen=True)
+class DriftReport(Record):
+    TYPE: ClassVar[str] = "drift-report"
+    flags: tuple[DriftFlag, ...]
+
+
+@dataclass(frozen=True)
+class DriftJob(Job):
+    """Drift flags of a robot's stored identify records (of one run, or all)."""
+
+    TYPE: ClassVar[str] = "drift-job"
+    RESULT: ClassVar[type[Record]] = DriftReport
+    robot: str
+    results: tuple[Mapping[str, Any], ...]
+    run_id: str | None
