@@ -18,6 +18,7 @@ import yaml
 from robid_link.exceptions import ConfigError
 from robid_link.ident.model.effects import DEFAULT_MODEL, Model, States
 from robid_link.ident.model.robot import Robot
+from robid_link.safeopen import file_problem
 from robid_link.yamlio import read_yaml_mapping
 
 __all__ = [
@@ -360,10 +361,12 @@ def read_trajectory(path: str | Path) -> Trajectory:
 
     p = Path(path)
     y = p.with_suffix(".yaml")
-    if not p.is_file():
-        raise ConfigError(f"{p}: trajectory file not found")
-    if not y.is_file():
-        raise ConfigError(f"{p}: header file {y.name} not found")
+    problem = file_problem(p)
+    if problem:
+        raise ConfigError(f"{p}: trajectory file {problem}")
+    problem = file_problem(y)
+    if problem:
+        raise ConfigError(f"{p}: header file {y.name} {problem}")
     meta = read_yaml_mapping(y, "trajectory header")
     for key in ("rate_hz", "kind"):
         if key not in meta:

@@ -23,6 +23,7 @@ from robid_link.ident.model.robot_check import (
     native_stderr,
     parser_summary,
 )
+from robid_link.safeopen import file_problem
 from robid_link.yamlio import check_keys, read_yaml_mapping
 
 __all__ = ["Robot", "Limits", "load_robot", "STANDARD_NAMES", "standard_parameter_names"]
@@ -155,8 +156,9 @@ def load_robot(path: str | Path, lock: Sequence[str] = (), *, allow_unlimited: b
     warning. A URDF continuous joint is bounded to one turn (±180°) for those checks.
     """
     p = Path(path)
-    if not p.is_file():
-        raise RobotError(f"{p}: robot description not found")
+    problem = file_problem(p)
+    if problem:
+        raise RobotError(f"{p}: robot description {problem}")
     suffix = p.suffix.lower()
     if suffix in (".yaml", ".yml"):
         if lock:
