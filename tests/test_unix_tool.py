@@ -294,8 +294,9 @@ def test_trajectory_header_with_an_implausible_rate_is_refused(tmp_path):
         read_trajectory(tmp_path / "t.csv")
 
 
-def test_the_cli_and_the_worker_agree_on_plausible_rates():
+def test_the_cli_the_config_and_the_worker_agree_on_plausible_rates():
+    from robid_link import kinds
     from robid_link.cli.types import MIN_RATE_HZ
     from robid_link.ident.excite import excitation
 
-    assert MIN_RATE_HZ == excitation.MIN_RATE_HZ
+    assert MIN_RATE_HZ == kinds.MIN_RATE_HZ == excitation.MIN_RATE_HZ

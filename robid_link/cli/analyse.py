@@ -9,6 +9,7 @@ from typing import Any
 
 from robid_link.cli.types import (
     Command,
+    axes_of,
     axis_pair,
     bounded_int,
     figure_path,
@@ -258,10 +259,12 @@ def _elasticity(args: argparse.Namespace) -> int:
     from robid_link.ident.model.robot import load_robot
     from robid_link.ident.report.figures import write_json
 
+    pair = axis_pair(args.joints, "--joints") if args.joints else None
     robot = load_robot(args.robot, args.lock)
+    axes_of(robot, "--joint", args.joint)
+    axes_of(robot, "--joints", pair or ())
     logs = [load_log(p, robot.n, args.fs, joint_names=robot.joint_names, topic=args.topic,
                      effort_current=robot.effort_current) for p in args.data]
-    pair = axis_pair(args.joints, "--joints") if args.joints else None
     schedule = None
     if args.schedule:
         schedule = read_yaml_mapping(args.schedule, "trajectory header").get("schedule")

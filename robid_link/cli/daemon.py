@@ -12,6 +12,7 @@ from robid_link.cli.types import (
     Command,
     bounded_int,
     config_option,
+    known_peer,
     output_path,
     refuse_given,
     robot_options,
@@ -126,6 +127,7 @@ def _fake_controller(args: argparse.Namespace) -> int:
 
 
 def _fake_controller_check(args: argparse.Namespace) -> None:
+    known_peer(args)
     if not args.fault:
         refuse_given(args, ["--fault-count"], "needs --fault (which fault to repeat)")
 

@@ -10,6 +10,7 @@ from typing import Any
 
 from robid_link.cli.types import (
     Command,
+    axes_of,
     axis_pair,
     bounded_int,
     figure_path,
@@ -21,7 +22,7 @@ from robid_link.cli.types import (
     robot_options,
     seed_option,
 )
-from robid_link.exceptions import RobidError
+from robid_link.exceptions import ConfigError, RobidError
 
 __all__ = ["COMMANDS", "MAX_SAMPLES"]
 
@@ -92,7 +93,7 @@ def _excite_options(p: argparse.ArgumentParser) -> None:
                    help="elasticity: lowest frequency (default 2)")
     p.add_argument("--f-max", type=positive_float(1000.0), metavar="HZ",
                    help="elasticity: highest frequency (default 60)")
-    p.add_argument("--steps", type=bounded_int(2, 500), metavar="N",
+    p.add_argument("--steps", type=bounded_int(3, 500), metavar="N",
                    help="elasticity: frequencies per axis (default 24)")
 
 
@@ -105,9 +106,18 @@ _ELASTICITY_OPTIONS = {"--joint": None, "--pair": None, "--pose": None, "--f-min
 
 
 def _excite_check(args: argparse.Namespace) -> None:
-    """An option of the other --kind would be ignored: refused before the robot is read."""
+    """An option of the other --kind would be ignored: refused before the robot is read; the
+    stepped sines' band must fit below the rate."""
     other = _ELASTICITY_OPTIONS if args.kind == "fourier" else _FOURIER_OPTIONS
     refuse_given(args, list(other), f"not used by --kind {args.kind}")
+    if args.kind == "elasticity":
+        full = _with_defaults(args)
+        rate = args.rate or 2000.0
+        if full.f_min >= full.f_max:
+            raise ConfigError(f"--f-min {full.f_min:g}: must be below --f-max {full.f_max:g}")
+        if full.f_max > 0.2 * rate:
+            raise ConfigError(f"--f-max {full.f_max:g}: above 20 % of --rate {rate:g} (raise "
+                              "--rate)")
 
 
 def _with_defaults(args: argparse.Namespace) -> argparse.Namespace:
@@ -170,8 +180,14 @@ def _excite_elasticity(args: argparse.Namespace, robot: Any) -> int:
     from robid_link.ident.elastic.frequency import ElasticityOptions, elasticity_trajectory
     from robid_link.ident.excite.excitation import write_trajectory
 
+    pairs = [axis_pair(p) for p in args.pair]
+    axes_of(robot, "--joint", args.joint)
+    axes_of(robot, "--pair", [j for p in pairs for j in p])
+    if args.pose and len(args.pose) != robot.n:
+        raise RobidError(f"--pose: {len(args.pose)} values given, the robot has {robot.n} "
+                         "joints")
     pose = tuple(np.radians(args.pose)) if args.pose else None
-    opts = ElasticityOptions(joints=tuple(args.joint), pairs=tuple(map(axis_pair, args.pair)),
+    opts = ElasticityOptions(joints=tuple(args.joint), pairs=tuple(pairs),
                              pose=pose, f_min_hz=args.f_min,
                              f_max_hz=args.f_max, steps=args.steps, rate_hz=args.rate or 2000.0)
     traj = elasticity_trajectory(robot, opts)

@@ -13,13 +13,14 @@ import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from robid_link.exceptions import ConfigError, RobidError
 
 __all__ = ["Command", "OneLineParser", "error_line", "finite_float", "positive_float",
            "bounded_int", "output_path", "figure_path", "FIGURE_FORMATS", "robot_options",
            "seed_option", "config_option", "axis_pair", "rate_hz", "MIN_RATE_HZ", "given",
-           "refuse_given"]
+           "refuse_given", "known_peer", "axes_of"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -209,6 +210,17 @@ def refuse_given(args: argparse.Namespace, flags: Sequence[str], reason: str) ->
             raise ConfigError(f"{flag}: {reason}")
 
 
+def known_peer(args: argparse.Namespace) -> None:
+    """``--driver`` of the fake controller (demo, fake-controller): a peer that exists, checked
+    before anything starts."""
+    from robid_link.link.registry import available_peers
+
+    peers = available_peers()
+    if args.driver not in peers:
+        raise ConfigError(f"--driver {args.driver}: no fake peer of that name (available: "
+                          f"{', '.join(sorted(peers))})")
+
+
 class OneLineParser(argparse.ArgumentParser):
     """Usage errors in one line, like every other error: ``robid: error: …``."""
 
@@ -244,4 +256,14 @@ def axis_pair(text: str, option: str = "--pair") -> tuple[int, int]:
         a, b = (int(x) for x in text.split(","))
     except ValueError as err:
         raise RobidError(f"{option} {text}: expected two axes J1,J2") from err
+    if a < 1 or b < 1 or a == b:
+        raise RobidError(f"{option} {text}: expected two different axes, numbered from 1")
     return (a, b)
+
+
+def axes_of(robot: Any, option: str, axes: Sequence[int]) -> None:
+    """The axes an option names exist on the robot (checked once it is read)."""
+    n = int(robot.n)
+    beyond = [j for j in axes if j > n]
+    if beyond:
+        raise RobidError(f"{option} {beyond[0]}: the robot has {n} joints")

@@ -1,0 +1,416 @@
+"""Fuzz every command of ``robid`` (issue 25): each generated command line has exactly one thing
+wrong — a file that is missing, a folder, a FIFO, a device, empty, junk, of another kind or of
+an unknown format; an option value out of range or of another mode; a daemon config with one
+bad key — and must end in exit 2 with one ``robid: error:`` line naming that file, option or
+key. Last: the tally of this module and ``test_fuzz.py`` (``make validate``: ≥ 2000 cases).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+from hypothesis import assume, given
+from hypothesis import strategies as st
+
+from .conftest import ROBOTS
+from .fuzzing import (
+    COUNTS,
+    FAILURES,
+    FUZZ,
+    SLOW,
+    VERDICTS,
+    check_cli,
+    is_float,
+    json_like,
+    not_a_number,
+    set_path,
+    write,
+    yaml_junk,
+)
+
+pytestmark = pytest.mark.slow
+ARM3 = ROBOTS / "arm3.yaml"
+
+
+# ----------------------------------------------------------------------------- a valid cell
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Valid inputs of every kind; each case spoils exactly one of them."""
+    work = tmp_path_factory.mktemp("fuzz-cli")
+    t = np.arange(400) / 100.0
+    q = np.column_stack([np.sin(t * (j + 1)) for j in range(3)])
+    cols = np.column_stack([t, q, 0.3 * q + 0.01])
+    header = "t,q1,q2,q3,tau1,tau2,tau3"
+    np.savetxt(work / "log.csv", cols, delimiter=",", header=header, comments="", fmt="%.6f")
+    np.savetxt(work / "traj.csv", np.column_stack([t[:200], q[:200] * 0.1]), delimiter=",",
+               header="t,q1,q2,q3", comments="", fmt="%.6f")
+    (work / "traj.yaml").write_text("rate_hz: 100\nkind: custom\n")
+    (work / "model.yaml").write_text("effects: [rigid_body, viscous, coulomb]\n")
+    (work / "truth.yaml").write_text((ROBOTS / "arm3.truth.yaml").read_text())
+    (work / "steps.yaml").write_text("rate_hz: 2000\nkind: stepped_sine\nschedule:\n"
+                                     "  - {joint: 1, f_hz: 5, t_measure: 1.0, t_end: 2.0}\n")
+    (work / "share").mkdir()
+    (work / "daemon.yaml").write_text(yaml.safe_dump(_config(work)))
+    return {"robot": ARM3, "log": work / "log.csv", "traj": work / "traj.csv",
+            "model": work / "model.yaml", "truth": work / "truth.yaml",
+            "steps": work / "steps.yaml", "share": work / "share",
+            "config": work / "daemon.yaml", "work": work}
+
+
+def _config(work: Path) -> dict[str, Any]:
+    return {"robot": str(ARM3), "state_dir": str(work / "state"),
+            "control_socket": str(work / "c.sock"),
+            "driver": {"name": "file_share", "share": str(work / "share")},
+            "campaigns": {"a": {"experiments": ["rigid_body", "friction"],
+                                "model": str(work / "model.yaml")}}}
+
+
+# ----------------------------------------------------------------------------- bad files
+
+#: what a spoiled file is: (category, how it is made from the valid one)
+def _missing(work: Path, valid: Path, suffix: str, k: int) -> Path:
+    return work / f"missing-{k}{suffix}"
+
+
+def _folder(work: Path, valid: Path, suffix: str, k: int) -> Path:
+    p = work / f"folder{suffix}"
+    p.mkdir(exist_ok=True)
+    return p
+
+
+def _fifo(work: Path, valid: Path, suffix: str, k: int) -> Path:
+    p = work / f"fifo{suffix}"
+    if not p.exists():
+        os.mkfifo(p)
+    return p
+
+
+def _device(work: Path, valid: Path, suffix: str, k: int) -> Path:
+    return Path(os.devnull)
+
+
+def _empty(work: Path, valid: Path, suffix: str, k: int) -> Path:
+    return write(work / f"empty{suffix}", b"")
+
+
+def _junk(work: Path, valid: Path, suffix: str, k: int) -> Path:
+    rng = np.random.default_rng(k)
+    return write(work / f"junk{suffix}", rng.bytes(int(rng.integers(1, 400))))
+
+
+def _cut(work: Path, valid: Path, suffix: str, k: int) -> Path:
+    data = valid.read_bytes()
+    return write(work / f"cut{suffix}", data[: k % max(len(data) // 3, 1)] + b"\x00\xff[{")
+
+
+def _other_kind(work: Path, valid: Path, suffix: str, k: int) -> Path:
+    """A valid file of another kind under this one's suffix (a truth file as a robot…)."""
+    cell = work.parent
+    others = [ARM3, ROBOTS / "arm3.truth.yaml", cell / "model.yaml", cell / "daemon.yaml",
+              cell / "traj.csv", cell / "steps.yaml", cell / "log.csv"]
+    pick = [o for o in others if o.suffix == suffix and o.resolve() != valid.resolve()]
+    source = pick[k % len(pick)] if pick else others[k % len(others)]
+    return write(work / f"other-{k % 7}{suffix}", source.read_bytes())
+
+
+def _suffix(work: Path, valid: Path, suffix: str, k: int) -> Path:
+    return write(work / f"valid{['.txt', '.xml', '.json', '.bin', ''][k % 5]}",
+                 valid.read_bytes())
+
+
+SPOILERS: dict[str, Callable[[Path, Path, str, int], Path]] = {
+    "missing": _missing, "folder": _folder, "fifo": _fifo, "device": _device, "empty": _empty,
+    "junk": _junk, "cut": _cut, "other kind": _other_kind, "suffix": _suffix}
+
+#: command → its valid command line ({slot} for a file of the cell) and the slots to spoil;
+#: a slot's spoilers leave out what is not wrong there (a missing --model is created; YAML is
+#: YAML under any suffix)
+_YAML = ("suffix",)
+_CREATED = ("missing", "suffix")
+COMMANDS: dict[str, tuple[list[str], dict[str, tuple[str, ...]]]] = {
+    "identify": (["identify", "--robot", "{robot}", "--data", "{log}", "--model", "{model}",
+                  "--validate", "{log}"], {"robot": (), "log": (), "model": _CREATED}),
+    "diagnose": (["diagnose", "--robot", "{robot}", "--data", "{log}", "--model", "{model}"],
+                 {"robot": (), "log": (), "model": _CREATED}),
+    "history": (["history", "{model}"], {"model": ("suffix",)}),
+    "elasticity": (["elasticity", "--robot", "{robot}", "--data", "{log}", "--schedule",
+                    "{steps}"], {"robot": (), "log": (), "steps": ("cut", "other kind",
+                                                                   "suffix")}),
+    "show-robot": (["show-robot", "--robot", "{robot}", "--out", "{work}/r.png"],
+                   {"robot": ()}),
+    "excite": (["excite", "--robot", "{robot}", "--model", "{model}", "--out",
+                "{work}/t.csv"], {"robot": (), "model": _YAML}),
+    "simulate": (["simulate", "--robot", "{robot}", "--truth", "{truth}", "--trajectory",
+                  "{traj}", "--out", "{work}/sim.csv"],
+                 {"robot": (), "truth": _YAML, "traj": ("other kind",)}),
+    "fake-controller": (["fake-controller", "--share", "{share}", "--robot", "{robot}",
+                         "--truth", "{truth}"], {"robot": (), "truth": _YAML}),
+    "config check": (["config", "check", "--config", "{config}"], {"config": _YAML}),
+    "daemon": (["daemon", "--config", "{config}"], {"config": _YAML}),
+    "campaign start": (["campaign", "start", "a", "--config", "{config}"], {"config": _YAML}),
+    "campaign list": (["campaign", "list", "--config", "{config}"], {"config": _YAML}),
+    "status": (["status", "--config", "{config}"], {"config": _YAML}),
+    "results": (["results", "--config", "{config}"], {"config": _YAML}),
+    "params": (["params", "show", "--config", "{config}", "--robot", "arm3"],
+               {"config": _YAML}),
+}
+
+
+def file_case() -> st.SearchStrategy[tuple[str, str, str, int]]:
+    """(command, slot, spoiler, seed) of every command's every file slot."""
+    cases = [(c, slot, s) for c, (_, slots) in COMMANDS.items() for slot, skip in slots.items()
+             for s in SPOILERS if s not in skip]
+    return st.tuples(st.sampled_from(cases), st.integers(0, 10_000)).map(
+        lambda m: (*m[0], m[1]))
+
+
+def _argv(template: list[str], cell: dict[str, Path], spoilt: str = "", bad: str = ""
+          ) -> list[str]:
+    out = []
+    for a in template:
+        for key, value in cell.items():
+            a = a.replace(f"{{{key}}}", bad if key == spoilt else str(value))
+        out.append(a)
+    return out
+
+
+@FUZZ
+@given(case=file_case())
+def test_fuzz_cli_files(cell, capsys, case):
+    command, slot, spoiler, k = case
+    template, _ = COMMANDS[command]
+    valid = cell[slot]
+    folder = cell["work"] / slot  # one folder per slot: a spoilt header is not another's
+    folder.mkdir(exist_ok=True)
+    bad = SPOILERS[spoiler](folder, valid, valid.suffix, k)
+    # a trajectory is two files (CSV and its .yaml header): the message names either
+    name = bad.with_suffix("") if slot == "traj" and bad.suffix == ".csv" else bad
+    check_cli(f"CLI {command}", _argv(template, cell, slot, str(bad)), capsys, name)
+
+
+@FUZZ
+@given(name=st.sampled_from(["robot", "model", "truth", "trajectory"]), text=yaml_junk())
+def test_fuzz_cli_yaml_files(cell, capsys, name, text):
+    """YAML junk as each YAML input of the commands."""
+    work = cell["work"]
+    p = write(work / f"cli-{name}.yaml", text)
+    if name == "trajectory":
+        write(work / "cli-trajectory.csv", "t,q1,q2,q3\n0,0,0,0\n0.01,0,0,0\n")
+    argv = {"robot": ["show-robot", "--robot", p, "--out", work / "r.png"],
+            "model": ["excite", "--robot", ARM3, "--model", p, "--out", work / "t.csv"],
+            "truth": ["simulate", "--robot", ARM3, "--truth", p, "--trajectory", cell["traj"],
+                      "--out", work / "l.csv"],
+            "trajectory": ["simulate", "--robot", ARM3, "--truth", cell["truth"],
+                           "--trajectory", work / "cli-trajectory.csv", "--out",
+                           work / "l.csv"]}
+    check_cli(f"CLI --{name} YAML", argv[name], capsys, p)
+
+
+# ----------------------------------------------------------------------------- bad options
+
+_IDENTIFY = ["identify", "--robot", "{robot}", "--data", "{log}"]
+_EXCITE = ["excite", "--robot", "{robot}", "--out", "{work}/t.csv"]
+_ELASTIC = [*_EXCITE, "--kind", "elasticity"]
+_RESULTS = ["results", "--config", "{config}", "--robot", "arm3", "--trend"]
+#: option → (the command line before it, its kind of value)
+OPTIONS: dict[str, tuple[list[str], str]] = {
+    "--cutoff": (_IDENTIFY, "float"),
+    "--fs": (["diagnose", "--robot", "{robot}", "--data", "x.mat"], "rate"),
+    "--interval": (_IDENTIFY, "int"),
+    "--method": (_IDENTIFY, "word"),
+    "--weight": ([*_IDENTIFY, "--method", "irls"], "word"),
+    "--add": (_IDENTIFY, "effect"),
+    "--lock": (_IDENTIFY, "word"),
+    "--topic": (_IDENTIFY, "word"),
+    "--rate": (_EXCITE, "rate"),
+    "--duration": (_EXCITE, "float"),
+    "--base-hz": (_EXCITE, "float"),
+    "--harmonics": (_EXCITE, "int"),
+    "--evaluations": (_EXCITE, "int"),
+    "--kind": (_EXCITE, "word"),
+    "--f-min": (_ELASTIC, "float"),
+    "--f-max": (_ELASTIC, "float"),
+    "--steps": (_ELASTIC, "int"),
+    "--pair": (_ELASTIC, "pair"),
+    "--joint": (["elasticity", "--robot", "{robot}", "--data", "{log}"], "int"),
+    "--joints": (["elasticity", "--robot", "{robot}", "--data", "{log}"], "pair"),
+    "--seed": (["simulate", "--robot", "{robot}", "--truth", "{truth}", "--trajectory",
+                "{traj}", "--out", "{work}/l.csv"], "int"),
+    "--fault-count": (["fake-controller", "--share", "{share}", "--robot", "{robot}",
+                       "--fault", "die"], "int"),
+    "--fault": (["fake-controller", "--share", "{share}", "--robot", "{robot}"], "word"),
+    "--driver": (["fake-controller", "--share", "{share}", "--robot", "{robot}"], "word"),
+    "--option": (["fake-controller", "--share", "{share}", "--robot", "{robot}"], "keyvalue"),
+    "--q": (["show-robot", "--robot", "{robot}", "--out", "{work}/x.png"], "floats"),
+    "--pose": (_ELASTIC, "floats"),
+    "--sigma": (_RESULTS, "float"),
+    "--min-change": (_RESULTS, "float"),
+    "--trigger": (["campaign", "start", "a", "--config", "{config}"], "word"),
+}
+
+
+def _values(kind: str) -> st.SearchStrategy[str]:
+    bad_float = st.one_of(st.sampled_from(["nan", "inf", "-inf", "1e999", "-1", "0", "", "x",
+                                           "1e10", "0x1p3", "1/2"]),
+                          st.floats(max_value=-1e-9).map(repr),
+                          st.text(max_size=6).filter(lambda s: not is_float(s)))
+    bad_int = st.one_of(st.sampled_from(["1.5", "1e3", "-1", "9" * 30, "nan", "inf", "", "x",
+                                         "0x10", " ", "1_0", "٣"]),
+                        st.integers(10 ** 20, 10 ** 40).map(str),
+                        st.text(max_size=6).filter(lambda s: not s.strip().isdigit()))
+    word = st.one_of(st.sampled_from(["nope", "", "OLS", "-", "x" * 80, "../etc"]),
+                     st.text(alphabet="abcxyz_/@", min_size=1, max_size=8).filter(
+                         lambda s: s not in ("abc",)))
+    return {"float": bad_float, "int": bad_int, "word": word,
+            "rate": st.one_of(bad_float, st.sampled_from(["1e-6", "0.5", "9.9", "1e7"])),
+            "effect": st.sampled_from(["warp", "viscous@9", "viscous@0", "viscous@", "@1",
+                                       "ripple@1:x", "coulomb@m9", "rigid_body@1"]),
+            "pair": st.sampled_from(["1", "1,", "a,b", "1,2,3", "0,9", "1,1", "", "9,10"]),
+            "keyvalue": st.sampled_from(["x", "=1", "port", "1x=2", "port=[", "nope=1"]),
+            "floats": st.sampled_from(["nan", "inf", "x", "1e999"]),
+            }[kind]
+
+
+def option_case() -> st.SearchStrategy[tuple[str, str]]:
+    return st.sampled_from(sorted(OPTIONS)).flatmap(
+        lambda o: _values(OPTIONS[o][1]).map(lambda v: (o, v)))
+
+
+@FUZZ
+@given(case=option_case())
+def test_fuzz_cli_options(cell, capsys, case):
+    option, value = case
+    before, kind = OPTIONS[option]
+    if (option, value) in (("--weight", "andrews"), ("--weight", "bisquare"), ("--fault", "")):
+        return  # a valid choice; no fault at all (the fake controller would serve)
+    # nargs="+" (--q, --pose): a bad value among good ones, else a count the robot has not
+    extra = ["0", value] if kind == "floats" else [value]
+    check_cli(f"CLI {option}", [*_argv(before, cell), option, *extra], capsys, option)
+
+
+#: options that another option or the chosen mode makes meaningless: (argv, option named)
+CONTRADICTIONS: list[tuple[list[str], str]] = [
+    ([*_IDENTIFY, "--weight", "huber"], "--weight"),
+    ([*_IDENTIFY, "--method", "wls", "--weight", "cauchy"], "--weight"),
+    ([*_IDENTIFY, "--export-urdf", "{work}/x.urdf"], "--export-urdf"),
+    ([*_IDENTIFY, "--fs", "500"], "--fs"),
+    ([*_IDENTIFY, "--topic", "/joint_states"], "--topic"),
+    ([*_IDENTIFY, "--lock", "j1"], "--lock"),
+    ([*_EXCITE, "--steps", "6"], "--steps"),
+    ([*_EXCITE, "--pose", "0", "0", "0"], "--pose"),
+    ([*_EXCITE, "--f-max", "30"], "--f-max"),
+    ([*_EXCITE, "--joint", "1"], "--joint"),
+    ([*_ELASTIC, "--harmonics", "4"], "--harmonics"),
+    ([*_ELASTIC, "--evaluations", "10"], "--evaluations"),
+    ([*_ELASTIC, "--model", "{model}"], "--model"),
+    ([*_ELASTIC, "--seed", "2"], "--seed"),
+    (["results", "--config", "{config}", "--sigma", "3"], "--sigma"),
+    (["results", "--config", "{config}", "--out", "{work}/t.png"], "--out"),
+    (["results", "--config", "{config}", "--compare", "a", "b", "--robot", "c"], "--robot"),
+    (["results", "--config", "{config}", "--trend"], "--trend"),
+    (["params", "diff", "1", "--config", "{config}", "--robot", "r"], "params diff"),
+    (["params", "rollback", "2", "--config", "{config}", "--robot", "r"], "params rollback"),
+    (["params", "approve", "--json", "{work}/p.json", "--config", "{config}", "--robot", "r"],
+     "--json"),
+    (["fake-controller", "--share", "{share}", "--robot", "{robot}", "--fault-count", "3"],
+     "--fault-count"),
+    (["demo", "--driver", "nope", "--out", "{work}/demo"], "--driver nope"),
+    (["show-robot", "--robot", "{robot}", "--out", "{work}/x.xyz"], "x.xyz"),
+    (["show-robot", "--robot", "{robot}", "--out", "/proc/robid/x.png"], "/proc/robid/x.png"),
+    ([*_IDENTIFY, "--json", os.devnull], os.devnull),
+    ([*_IDENTIFY, "--out", "{log}"], "--out"),
+]
+
+
+@FUZZ
+@given(k=st.integers(0, len(CONTRADICTIONS) - 1))
+def test_fuzz_cli_contradictions(cell, capsys, k):
+    argv, name = CONTRADICTIONS[k]
+    check_cli("CLI contradiction", _argv(argv, cell), capsys, name)
+
+
+# ----------------------------------------------------------------------------- config keys
+
+def config_key_case() -> st.SearchStrategy[tuple[tuple[Any, ...], Any, str]]:
+    """(key path, bad value, the key path the message names) over every key of the config,
+    of its campaigns and of each experiment kind's options."""
+    from robid_link.kinds import KIND_OPTIONS
+
+    top = [(("robot",), "robot"), (("state_dir",), "state_dir"),
+           (("control_socket",), "control_socket"), (("driver",), "driver"),
+           (("campaigns",), "campaigns"), (("lock",), "lock"), (("socket_mode",), "socket_mode"),
+           (("worker_start_method",), "worker_start_method"), (("log_level",), "log_level")]
+    camp = [(("campaigns", "a", k), f"campaigns.a.{k}") for k in (
+        "experiments", "identify", "diagnose", "model", "add", "method", "retries",
+        "backoff_s", "timeout_s", "reduced_speed_first", "cutoff_hz", "motor_side", "upload")]
+    exp = [(kind, key) for kind, spec in KIND_OPTIONS.items() for key in spec.defaults]
+    bad = st.one_of(json_like.filter(lambda v: v is not None), not_a_number.filter(
+        lambda v: v is not None), st.sampled_from([-1, 0, 1e12, "x", [], {}, True]))
+    plain = st.tuples(st.sampled_from(top + camp), bad).map(lambda m: (m[0][0], m[1],
+                                                                       m[0][1]))
+    options = st.tuples(st.sampled_from(exp), bad).map(
+        lambda m: (("campaigns", "a", "experiments", 0), {"kind": m[0][0], m[0][1]: m[1]},
+                   f"campaigns.a.experiments[0].{m[0][1]}"))
+    return st.one_of(plain, options)
+
+
+def _spoils(doc: dict[str, Any], path: tuple[Any, ...], value: Any) -> bool:
+    """Whether ``value`` at ``path`` makes the config fail to load (some values are fine)."""
+    import tempfile
+
+    from robid_link.config import load_daemon_config
+    from robid_link.exceptions import RobidError
+
+    with tempfile.TemporaryDirectory() as tmp:
+        p = Path(tmp) / "d.yaml"
+        p.write_text(yaml.safe_dump(set_path(doc, path, value)))
+        try:
+            load_daemon_config(p)
+        except RobidError:
+            return True
+    return False
+
+
+@FUZZ
+@given(case=config_key_case(), command=st.sampled_from(["config check", "daemon", "status",
+                                                        "results", "campaign list"]))
+def test_fuzz_cli_config_keys(cell, capsys, case, command):
+    path, value, key = case
+    doc = _config(cell["work"])
+    try:
+        text = yaml.safe_dump(set_path(doc, path, value))
+    except yaml.YAMLError:
+        text = ""
+    assume(text and _spoils(doc, path, value))  # some values are valid there
+    p = write(cell["work"] / "bad-daemon.yaml", text)
+    template, _ = COMMANDS[command]
+    check_cli(f"CLI config {key.split('.')[0]}", _argv(template, {**cell, "config": p}),
+              capsys, key)
+
+
+# ----------------------------------------------------------------------------- the tally
+
+def test_zz_fuzz_counts(capsys):
+    """The tally of the fuzz modules' run: printed for the closing note, checked in validate."""
+    if not COUNTS:
+        pytest.skip("no fuzz test ran")
+    total = sum(COUNTS.values())
+    kinds = ", ".join(f"{k} {v}" for k, v in sorted(COUNTS.items()))
+    plural = {"traceback": "tracebacks", "hang": "hangs", "unnamed error": "unnamed errors",
+              "wrong success": "wrong successes"}
+    verdicts = ", ".join(f"{plural[v]} {sum(f[0] == v for f in FAILURES)}" for v in VERDICTS)
+    first = {text.split(":")[0]: (verdict, text) for verdict, text in reversed(FAILURES)}
+    with capsys.disabled():
+        print(f"\nfuzz: {total} malformed inputs ({kinds}); {verdicts}")
+        for verdict, text in first.values():  # the first of each kind (shrinking repeats it)
+            print(f"  {verdict}: {text}")
+    assert not FAILURES, list(first.values())[:5]
+    if SLOW and "log CSV" in COUNTS:  # the whole fuzz ran (both modules)
+        assert total >= 2000, total
