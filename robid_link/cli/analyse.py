@@ -19,7 +19,7 @@ from robid_link.cli.types import (
     refuse_given,
     robot_options,
 )
-from robid_link.exceptions import ConfigError, RobidError
+from robid_link.exceptions import ConfigError, DataError, RobidError
 
 __all__ = ["COMMANDS", "IRLS_WEIGHTS"]
 
@@ -259,7 +259,7 @@ def _elasticity(args: argparse.Namespace) -> int:
     from robid_link.ident.model.robot import load_robot
     from robid_link.ident.report.figures import write_json
 
-    pair = axis_pair(args.joints, "--joints") if args.joints else None
+    pair = axis_pair(args.joints, "--joints") if args.joints is not None else None
     robot = load_robot(args.robot, args.lock)
     axes_of(robot, "--joint", args.joint)
     axes_of(robot, "--joints", pair or ())
@@ -274,8 +274,11 @@ def _elasticity(args: argparse.Namespace) -> int:
     if not joints and pair is None:  # every excited axis, and the pair excited together
         from robid_link.ident.elastic.frequency import detect_steps, excited_axes
 
-        steps = schedule if schedule is not None else detect_steps(
-            logs[0].t, logs[0].q, logs[0].tau)
+        try:
+            steps = schedule if schedule is not None else detect_steps(
+                logs[0].t, logs[0].q, logs[0].tau)
+        except DataError as err:
+            raise DataError(f"{logs[0].path}: {err}") from err
         joints, pairs = excited_axes(steps)
         pair = pairs[0] if pairs else None
     res = identify_elasticity(robot, logs, joints=joints, pair=pair, schedule=schedule,
