@@ -18,7 +18,6 @@ import hashlib
 import ipaddress
 import json
 import logging
-import random
 import re
 import ssl
 from collections.abc import AsyncIterator, Mapping
@@ -44,6 +43,8 @@ from robid_link.drivers.rws_api import (
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.jobs import MotionProgram, RobotInfo
 from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver
+from robid_link.link.options import Choice, File, Flag, Integer, Number, Options, Text
+from robid_link.link.retry import Backoff
 
 __all__ = ["AbbRwsDriver"]
 
@@ -52,6 +53,8 @@ log = logging.getLogger("robid.driver.abb_rws")
 _IDENT = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,31}$")
 _START = {"regain": "continue", "execmode": "continue", "cycle": "once", "condition": "none",
           "stopatbp": "disabled", "alltaskbytsp": "false"}
+#: a file upload's Content-Type: RWS 2.0 refuses any but its versioned types (HTTP 415)
+_UPLOAD_TYPE = {1: None, 2: "application/octet-stream;v=2.0"}
 
 
 class _Lost(Exception):
@@ -60,18 +63,6 @@ class _Lost(Exception):
 
 class _Unavailable(DriverError):
     """The controller did not answer (503, refused connection) within the bounded retries."""
-
-
-def _number(key: str, value: Any, minimum: float = 0.0) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not value > minimum:
-        raise ConfigError(f"driver.{key}: expected a number > {minimum:g}, got {value!r}")
-    return float(value)
-
-
-def _flag(key: str, value: Any) -> bool:
-    if not isinstance(value, bool):
-        raise ConfigError(f"driver.{key}: expected true or false, got {value!r}")
-    return value
 
 
 def _loopback(host: str) -> bool:
@@ -92,45 +83,37 @@ class AbbRwsDriver(Driver):
 
     name = "abb_rws"
     capabilities = frozenset({CAP_RAPID, CAP_UPLOAD})
-    options = frozenset({"url", "version", "credentials_file", "task", "module", "ca_file",
-                         "verify_tls", "insecure_skip_verify", "ping_interval_s",
-                         "request_timeout_s", "retries", "backoff_s"})
+    options = Options(
+        version=Choice(1, 2, expect="1 (RWS 1.0, IRC5) or 2 (RWS 2.0, OmniCore)"),
+        url=Text(hint="http(s)://controller[:port]"),
+        credentials_file=File(private=True, hint="a file with the RWS user and password, "
+                              "readable only by the daemon's user"),
+        task=Text("T_ROB1", pattern=_IDENT.pattern, expect="a RAPID name"),
+        module=Text("robid", pattern=_IDENT.pattern, expect="a RAPID name"),
+        ca_file=File(None, exists=True), verify_tls=Flag(True),
+        insecure_skip_verify=Flag(False), ping_interval_s=Number(30.0, above=0),
+        request_timeout_s=Number(10.0, above=0), retries=Integer(5, low=0),
+        backoff_s=Number(0.5, above=0))
 
-    def __init__(self, *, url: str | None = None, version: int | None = None,
-                 credentials_file: str | None = None, task: str = "T_ROB1",
-                 module: str = "robid", ca_file: str | None = None, verify_tls: bool = True,
-                 insecure_skip_verify: bool = False, ping_interval_s: float = 30.0,
-                 request_timeout_s: float = 10.0, retries: int = 5,
-                 backoff_s: float = 0.5) -> None:
-        super().__init__()
-        if version not in (1, 2) or isinstance(version, bool):
-            raise ConfigError(f"driver.version: expected 1 (RWS 1.0, IRC5) or 2 (RWS 2.0, "
-                              f"OmniCore), got {version!r}")
-        self.api = API[version]
-        self._url = self._check_url(url, version)
-        if credentials_file is None:
-            raise ConfigError("driver.credentials_file: missing (a file with the RWS user and "
-                              "password, readable only by the daemon's user)")
-        self.credentials_file = str(credentials_file)
-        self._user, self._password = read_credentials(credentials_file)
-        for key, val in (("task", task), ("module", module)):
-            if not isinstance(val, str) or not _IDENT.match(val):
-                raise ConfigError(f"driver.{key}: expected a RAPID name, got {val!r}")
-        self.task, self.module = task, module
-        self._ssl = self._tls(ca_file, _flag("verify_tls", verify_tls),
-                              _flag("insecure_skip_verify", insecure_skip_verify))
-        self._ping_s = _number("ping_interval_s", ping_interval_s)
-        self._request_s = _number("request_timeout_s", request_timeout_s)
-        self._backoff_s = _number("backoff_s", backoff_s)
-        if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
-            raise ConfigError(f"driver.retries: expected a whole number >= 0, got {retries!r}")
-        self._retries = retries
+    def __init__(self, **options: Any) -> None:
+        super().__init__(**options)
+        o = self.config
+        self.api = API[o.version]
+        self._url = self._check_url(o.url, o.version)
+        self.credentials_file = str(o.credentials_file)
+        self._user, self._password = read_credentials(o.credentials_file)
+        self.task, self.module = o.task, o.module
+        self._ssl = self._tls(o.ca_file, o.verify_tls, o.insecure_skip_verify)
+        self._ping_s, self._request_s = o.ping_interval_s, o.request_timeout_s
+        # a busy controller (HTTP 503, session limit) and a lost subscription are retried
+        # with growing, jittered waits: at most 10 s and 5 s
+        self._retry = Backoff(o.backoff_s, max(10.0, o.backoff_s))
+        self._resubscribe = Backoff(o.backoff_s, max(5.0, o.backoff_s))
+        self._retries = o.retries
         self._http: aiohttp.ClientSession | None = None
 
     @staticmethod
-    def _check_url(url: Any, version: int) -> URL:
-        if not isinstance(url, str):
-            raise ConfigError("driver.url: missing (http(s)://controller[:port])")
+    def _check_url(url: str, version: int) -> URL:
         u = URL(url)
         if u.scheme not in ("http", "https") or not u.host or u.path not in ("", "/"):
             raise ConfigError(f"driver.url: expected http(s)://host[:port], got {url!r}")
@@ -139,14 +122,13 @@ class AbbRwsDriver(Driver):
                               "(Basic auth): use https://")
         return u.with_path("/")
 
-    def _tls(self, ca_file: str | None, verify: bool, insecure: bool) -> ssl.SSLContext | bool:
+    def _tls(self, ca_file: Path | None, verify: bool, insecure: bool
+             ) -> ssl.SSLContext | bool:
         if not verify and not insecure:
             raise ConfigError("driver.verify_tls: false needs driver.insecure_skip_verify: "
                               "true as well (verification is only turned off explicitly)")
         if insecure:
             return False
-        if ca_file is not None and not Path(ca_file).is_file():
-            raise ConfigError(f"driver.ca_file: {ca_file}: file not found")
         if self._url.scheme != "https":
             return True
         try:
@@ -207,7 +189,10 @@ class AbbRwsDriver(Driver):
         lost connections; 401 and TLS failures are refused at once, in one line."""
         assert self._http is not None
         url = self._url.with_path(path, encoded=True)
-        headers = {} if path.startswith("/fileservice") else self.api.headers(form is not None)
+        headers = self.api.headers(form is not None)
+        if path.startswith("/fileservice"):
+            upload = _UPLOAD_TYPE[self.api.version] if raw is not None else None
+            headers = {"Content-Type": upload} if upload else {}
         data = urlencode(form).encode() if form is not None else raw
         last = ""
         retries = self._retries if retries is None else retries
@@ -237,7 +222,7 @@ class AbbRwsDriver(Driver):
                                       f"{self._rws_message(body)}")
                 last = "HTTP 503 (too many sessions, or the controller is starting)"
             if attempt < retries:
-                delay = min(self._backoff_s * 2 ** attempt, 10.0) * random.uniform(0.5, 1.5)
+                delay = self._retry.delay(attempt + 1)
                 log.warning("driver=abb_rws %s: %s; retry %d/%d in %.2f s", what, last,
                             attempt + 1, retries, delay)
                 await asyncio.sleep(delay)
@@ -288,7 +273,14 @@ class AbbRwsDriver(Driver):
             await self._call("mastership_release", {}, what="release RAPID mastership")
 
     async def _put_file(self, remote: str, data: bytes) -> None:
-        await self._request("PUT", f"/fileservice/{remote}", raw=data, what=f"upload {remote}")
+        await self._request("PUT", self._file_uri(remote), raw=data, what=f"upload {remote}")
+
+    def _file_uri(self, remote: str) -> str:
+        """The file service's URI of a controller path; RWS 1.0 names environment variables
+        in small case there (``$home``, ABB's RWS manual, "File Service")."""
+        if self.api.version == 1 and remote.startswith("$HOME/"):
+            remote = "$home/" + remote[len("$HOME/"):]
+        return f"/fileservice/{remote}"
 
     # -- the cycle
     async def _put_program(self, program: MotionProgram) -> None:
@@ -334,7 +326,7 @@ class AbbRwsDriver(Driver):
                         await self._next_event(ws)
             except (_Lost, _Unavailable) as err:
                 lost += 1
-                delay = min(self._backoff_s * 2 ** min(lost, 4), 5.0) * random.uniform(0.5, 1.5)
+                delay = self._resubscribe.delay(lost)
                 log.warning("driver=abb_rws exp=%s subscription lost (%s); subscribing again in "
                             "%.2f s and asking the state", exp_id, err, delay)
                 await asyncio.sleep(delay)
@@ -412,7 +404,7 @@ class AbbRwsDriver(Driver):
 
     async def _fetch_logs(self, done: Done) -> bytes:
         remote = log_file(done.exp_id, done.nonce)
-        status, body, _ = await self._request("GET", f"/fileservice/{remote}",
+        status, body, _ = await self._request("GET", self._file_uri(remote),
                                               what=f"download {remote}", missing_ok=True)
         if status == 404:
             raise DriverError(f"{self.name}: {remote}: log missing although 'done' was given")
@@ -430,7 +422,9 @@ class AbbRwsDriver(Driver):
         robid module loads it and answers ``robid_params_ack`` = ``<sha16> OK`` (or
         ``<sha16> ERR <reason>``). A rare operation: the answer is read every 0.2 s under
         the caller's timeout."""
-        robot = re.sub(r"[^A-Za-z0-9_\-]", "_", str(doc.get("robot", "robot")))[:40]
+        # robid_params holds the path: a RAPID string holds at most 80 characters, and
+        # "$HOME/robid/params/" + ".<tag>.json" leave 39 for the robot's name
+        robot = re.sub(r"[^A-Za-z0-9_\-]", "_", str(doc.get("robot", "robot")))[:39]
         tag = hashlib.sha256(body).hexdigest()[:16]
         remote = f"{HOME}/params/{robot}.{tag}.json"
         await self._put_file(remote, body)

@@ -16,7 +16,6 @@ import struct
 import tempfile
 import threading
 import time
-from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -49,6 +48,17 @@ from robid_link.drivers.cia402_record import BlfTap, log_bytes
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.jobs import MotionProgram, RobotInfo
 from robid_link.link.driver import CAP_FEEDFORWARD, CAP_UPLOAD, Done, Driver
+from robid_link.link.options import (
+    File,
+    Folder,
+    Integer,
+    Number,
+    Option,
+    Options,
+    Table,
+    Text,
+    Vector,
+)
 
 __all__ = ["CanopenDrivesDriver", "log_bytes"]
 
@@ -60,20 +70,25 @@ logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR
 _INT32 = 2**31 - 1
 
 
-def _number(key: str, value: Any, *, low: float = 0.0, high: float = math.inf) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not (
-            low <= value <= high) or not math.isfinite(value):
-        raise ConfigError(f"driver.{key}: expected a number in [{low:g}, {high:g}], "
-                          f"got {value!r}")
-    return float(value)
+class _ObjectEntry(Option):
+    """An object dictionary entry given as ``"0x2100:0"``, ``"0x2100"`` or an int index,
+    manufacturer-specific (0x2000..0x5FFF): ``(index, subindex)``."""
 
+    expect = "a manufacturer-specific object as '0xIIII:SS' (index 0x2000..0x5FFF)"
 
-def _vector(key: str, value: Any) -> tuple[float, ...] | None:
-    if value is None:
-        return None
-    if not isinstance(value, list | tuple) or not value:
-        raise ConfigError(f"driver.{key}: expected a list with one positive number per joint")
-    return tuple(_number(f"{key}[{i}]", v, low=1e-12) for i, v in enumerate(value))
+    def convert(self, key: str, value: Any) -> tuple[int, int]:
+        if isinstance(value, int) and not isinstance(value, bool):
+            index, sub = value, 0
+        else:
+            try:
+                head, _, tail = str(value).partition(":") if isinstance(value, str) else (
+                    "", "", "")
+                index, sub = int(head, 0), int(tail or "0", 0)
+            except ValueError:
+                index = sub = -1
+        if not (0x2000 <= index <= 0x5FFF and 0 <= sub <= 0xFF):
+            raise self.refuse(key, value)
+        return index, sub
 
 
 class CanopenDrivesDriver(Driver):
@@ -101,77 +116,55 @@ class CanopenDrivesDriver(Driver):
 
     name = "canopen_drives"
     capabilities = frozenset({CAP_UPLOAD, CAP_FEEDFORWARD})
-    options = frozenset({"interface", "channel", "bitrate", "host", "port", "robot_file",
-                         "nodes", "sync_period_s",
-                         "counts_per_rad", "rated_torque_nm", "eds", "record_dir",
-                         "following_error_rad", "heartbeat_ms", "heartbeat_timeout_s",
-                         "boot_timeout_s", "state_timeout_s", "settle_timeout_s",
-                         "standstill_rad_s", "max_missed", "overrun_streak",
-                         "max_approach_rad", "bus_options", "sync_echo"})
+    options = Options(
+        interface=Text("socketcan", expect="a name"), channel=Text("can0", expect="a name"),
+        bitrate=Integer(1_000_000, low=10_000, high=1_000_000),
+        host=Text(None, expect="the socketcand server's host name or address"),
+        port=Integer(None, low=1, high=65535,
+                     expect="the socketcand server's TCP port (1..65535)"),
+        robot_file=File(None, exists=True),
+        nodes=Vector(Integer(low=1, high=127, expect="a node id in 1..127"), per_joint=True,
+                     unique=True, hint="a list of node ids, one per joint"),
+        sync_period_s=Number(0.004, low=0.001, high=0.1),
+        counts_per_rad=Vector(Number(above=0), per_joint=True,
+                              hint="encoder counts per joint radian, one per joint"),
+        rated_torque_nm=Vector(Number(above=0), None, per_joint=True),
+        eds=File(exists=True, hint="the drives' EDS file"), record_dir=Folder(None),
+        following_error_rad=Number(0.15, low=1e-6),
+        heartbeat_ms=Integer(100, low=1, high=65535),
+        heartbeat_timeout_s=Number(0.35, low=0.001), boot_timeout_s=Number(2.0, low=0.01),
+        state_timeout_s=Number(0.5, low=0.001), settle_timeout_s=Number(2.0, low=0.01),
+        standstill_rad_s=Number(0.01, low=0.0),
+        # answers are put at their SYNC by its counter, unambiguous within SYNC_OVERFLOW
+        max_missed=Integer(3, low=1, high=SYNC_OVERFLOW - 40),
+        overrun_streak=Integer(5, low=1, high=1_000_000), max_approach_rad=Number(1.0, low=0),
+        bus_options=Table(None), sync_echo=_ObjectEntry(SYNC_ECHO))
 
-    def __init__(self, *, interface: str = "socketcan", channel: str = "can0",
-                 bitrate: int = 1_000_000, nodes: Sequence[int] | None = None,
-                 sync_period_s: float = 0.004, counts_per_rad: Sequence[float] | None = None,
-                 rated_torque_nm: Sequence[float] | None = None, eds: str | None = None,
-                 record_dir: str | None = None, following_error_rad: float = 0.15,
-                 heartbeat_ms: int = 100, heartbeat_timeout_s: float = 0.35,
-                 boot_timeout_s: float = 2.0, state_timeout_s: float = 0.5,
-                 settle_timeout_s: float = 2.0, standstill_rad_s: float = 0.01,
-                 max_missed: int = 3, overrun_streak: int = 5, max_approach_rad: float = 1.0,
-                 bus_options: dict[str, Any] | None = None, host: str | None = None,
-                 port: int | None = None, robot_file: str | None = None,
-                 sync_echo: str | int | None = None) -> None:
-        super().__init__()
-        for key, val in (("interface", interface), ("channel", channel)):
-            if not isinstance(val, str) or not val:
-                raise ConfigError(f"driver.{key}: expected a name, got {val!r}")
-        self.interface, self.channel = interface, channel
-        self.server = _server(interface, host, port)
-        self.bitrate = int(_number("bitrate", bitrate, low=10_000, high=1_000_000))
-        if not isinstance(nodes, list | tuple) or not nodes:
-            raise ConfigError("driver.nodes: expected a list of node ids, one per joint")
-        for i, node in enumerate(nodes):
-            if isinstance(node, bool) or not isinstance(node, int) or not 1 <= node <= 127:
-                raise ConfigError(f"driver.nodes[{i}]: expected a node id in 1..127, "
-                                  f"got {node!r}")
-        if len(set(nodes)) != len(nodes):
-            raise ConfigError(f"driver.nodes: node ids repeat ({list(nodes)})")
-        self.nodes = tuple(nodes)
-        self.period = _number("sync_period_s", sync_period_s, low=0.001, high=0.1)
-        if counts_per_rad is None:
-            raise ConfigError("driver.counts_per_rad: missing (encoder counts per joint radian, "
-                              "one per joint)")
-        self.counts_per_rad = _vector("counts_per_rad", counts_per_rad)
-        self.rated_torque_nm = _vector("rated_torque_nm", rated_torque_nm)
-        if eds is None:
-            raise ConfigError("driver.eds: missing (the drives' EDS file)")
-        self.eds = Path(eds)
-        if not self.eds.is_file():
-            raise ConfigError(f"driver.eds: {eds}: file not found")
-        self.record_dir = Path(record_dir or Path(tempfile.gettempdir()) / "robid-canopen")
-        self.window = _number("following_error_rad", following_error_rad, low=1e-6)
-        self.heartbeat_ms = int(_number("heartbeat_ms", heartbeat_ms, low=1, high=65535))
-        self.hb_timeout = _number("heartbeat_timeout_s", heartbeat_timeout_s, low=0.001)
+    def __init__(self, **options: Any) -> None:
+        super().__init__(**options)
+        o = self.config
+        self.interface, self.channel = o.interface, o.channel
+        self.server = _server(o.interface, o.host, o.port)
+        self.bitrate = o.bitrate
+        self.nodes: tuple[int, ...] = o.nodes
+        self.period = o.sync_period_s
+        self.counts_per_rad: tuple[float, ...] | None = o.counts_per_rad
+        self.rated_torque_nm: tuple[float, ...] | None = o.rated_torque_nm
+        self.eds = o.eds
+        self.record_dir = o.record_dir or Path(tempfile.gettempdir()) / "robid-canopen"
+        self.window = o.following_error_rad
+        self.heartbeat_ms = o.heartbeat_ms
+        self.hb_timeout = o.heartbeat_timeout_s
         if self.hb_timeout < 2e-3 * self.heartbeat_ms:
-            raise ConfigError(f"driver.heartbeat_timeout_s: {heartbeat_timeout_s} s is shorter "
-                              f"than two heartbeats ({heartbeat_ms} ms each)")
-        self.boot_timeout = _number("boot_timeout_s", boot_timeout_s, low=0.01)
-        self.state_timeout = _number("state_timeout_s", state_timeout_s, low=0.001)
-        self.settle_timeout = _number("settle_timeout_s", settle_timeout_s, low=0.01)
-        self.standstill = _number("standstill_rad_s", standstill_rad_s, low=0.0)
-        # answers are put at their SYNC by its counter, unambiguous within SYNC_OVERFLOW periods
-        self.max_missed = int(_number("max_missed", max_missed, low=1, high=SYNC_OVERFLOW - 40))
-        self.tpdo_maps = tpdo_maps(SYNC_ECHO if sync_echo is None
-                                   else _object("sync_echo", sync_echo))
-        self.overrun_streak = int(_number("overrun_streak", overrun_streak, low=1, high=1e6))
-        self.max_approach = _number("max_approach_rad", max_approach_rad, low=0.0)
-        if bus_options is not None and not isinstance(bus_options, dict):
-            raise ConfigError("driver.bus_options: expected a mapping of python-can arguments")
-        self.bus_options = dict(bus_options or {})
-        if robot_file is not None and (not isinstance(robot_file, str)
-                                       or not Path(robot_file).is_file()):
-            raise ConfigError(f"driver.robot_file: {robot_file!r}: file not found")
-        self.robot_file = robot_file
+            raise ConfigError(f"driver.heartbeat_timeout_s: expected at least two heartbeats "
+                              f"({2e-3 * self.heartbeat_ms:g} s), got {self.hb_timeout:g}")
+        self.boot_timeout, self.state_timeout = o.boot_timeout_s, o.state_timeout_s
+        self.settle_timeout, self.standstill = o.settle_timeout_s, o.standstill_rad_s
+        self.max_missed = o.max_missed
+        self.tpdo_maps = tpdo_maps(o.sync_echo)
+        self.overrun_streak, self.max_approach = o.overrun_streak, o.max_approach_rad
+        self.bus_options = dict(o.bus_options or {})
+        self.robot_file = None if o.robot_file is None else str(o.robot_file)
         self.parameters: KeptParameterSet | None = None
         self.network: canopen.Network | None = None
         self.axes: list[Axis] = []
@@ -183,13 +176,8 @@ class CanopenDrivesDriver(Driver):
 
     # -- configuration against the robot
     def _check_robot(self, robot: RobotInfo) -> None:
-        n, who = robot.n, f"robot {robot.name} has {robot.n} joints"
-        for key, vec in (("nodes", self.nodes), ("counts_per_rad", self.counts_per_rad),
-                         ("rated_torque_nm", self.rated_torque_nm)):
-            if vec is not None and len(vec) != n:
-                raise ConfigError(f"driver.{key}: {len(vec)} values, {who}")
-        assert self.counts_per_rad is not None
-        for j in range(n):
+        assert self.counts_per_rad is not None  # lengths: the base's check_joints
+        for j in range(robot.n):
             reach = max(abs(robot.q_min[j]), abs(robot.q_max[j]))
             if math.isfinite(reach) and reach * self.counts_per_rad[j] > _INT32:
                 raise ConfigError(f"driver.counts_per_rad[{j}]: joint {j + 1} reaches "
@@ -525,7 +513,7 @@ class CanopenDrivesDriver(Driver):
             raise DriverError(f"experiment {exp_id}: nonce {nonce} was not streamed by this "
                               "daemon (restarted mid-experiment: its motion ended with the "
                               "old process and is not repeated)")
-        path, sha, size = await _wait_future(job.result)
+        path, sha, size = await self.bridge.wait(job.result)
         if job.error is not None:
             what = "quick stop on every drive" if job.quick_stop else "no quick stop needed"
             raise DriverError(f"experiment {exp_id}: {job.error}; {what}; log captured so far "
@@ -559,23 +547,7 @@ class CanopenDrivesDriver(Driver):
         await asyncio.to_thread(master.idle.wait, 10.0)
 
 
-def _object(key: str, value: Any) -> tuple[int, int]:
-    """An object dictionary entry given as ``"0x2100:0"``, ``"0x2100"`` or an int index."""
-    if isinstance(value, int) and not isinstance(value, bool):
-        index, sub = value, 0
-    else:
-        try:
-            head, _, tail = str(value).partition(":") if isinstance(value, str) else ("", "", "")
-            index, sub = int(head, 0), int(tail or "0", 0)
-        except ValueError:
-            index = sub = -1
-    if not (0x2000 <= index <= 0x5FFF and 0 <= sub <= 0xFF):
-        raise ConfigError(f"driver.{key}: expected a manufacturer-specific object as "
-                          f"'0xIIII:SS' (index 0x2000..0x5FFF), got {value!r}")
-    return index, sub
-
-
-def _server(interface: str, host: Any, port: Any) -> dict[str, Any]:
+def _server(interface: str, host: str | None, port: int | None) -> dict[str, Any]:
     """python-can's socketcand arguments (``host``, ``port``), only with that interface."""
     if interface != "socketcand":
         for key, val in (("host", host), ("port", port)):
@@ -583,26 +555,8 @@ def _server(interface: str, host: Any, port: Any) -> dict[str, Any]:
                 raise ConfigError(f"driver.{key}: only for interface socketcand (a socketcand "
                                   f"server), not {interface}")
         return {}
-    if not isinstance(host, str) or not host:
-        raise ConfigError(f"driver.host: expected the socketcand server's host name or "
-                          f"address, got {host!r}")
-    if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
-        raise ConfigError(f"driver.port: expected the socketcand server's TCP port "
-                          f"(1..65535), got {port!r}")
+    for key, val in (("host", host), ("port", port)):
+        if val is None:
+            raise ConfigError(f"driver.{key}: missing (the socketcand server's "
+                              f"{'host name or address' if key == 'host' else 'TCP port'})")
     return {"host": host, "port": port, "tcp_tune": True}  # TCP_NODELAY: no Nagle delay
-
-
-async def _wait_future(fut: Future[Any]) -> Any:
-    """A thread's Future awaited on the loop (cancelling the wait leaves the Future alone)."""
-    loop = asyncio.get_running_loop()
-    event = asyncio.Event()
-
-    def wake(_: Future[Any]) -> None:
-        try:
-            loop.call_soon_threadsafe(event.set)
-        except RuntimeError:  # that loop has closed meanwhile
-            pass
-
-    fut.add_done_callback(wake)
-    await event.wait()
-    return fut.result()

@@ -25,7 +25,8 @@ from robid_link.atomic import atomic_write
 from robid_link.drivers.rapid import MAX_AXES, render_rapid
 from robid_link.exceptions import ConfigError, DriverError, ProtocolError
 from robid_link.jobs import MotionProgram
-from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver
+from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver, ThreadBridge
+from robid_link.link.options import Choice, Flag, Folder, Integer, Number, Options
 from robid_link.safeopen import read_regular
 
 __all__ = ["FileShareDriver", "ShareTransfer", "sem_name", "parse_sem", "network_fs",
@@ -210,23 +211,20 @@ class ShareTransfer:
 
 
 
-class _Bridge(FileSystemEventHandler):
-    """watchdog handler: hands file names from the observer thread to the event loop."""
+class _Events(FileSystemEventHandler):
+    """watchdog handler: hands file names from the observer thread to the event loop through
+    the driver's bridge."""
 
-    def __init__(self, loop: asyncio.AbstractEventLoop, callback: Any) -> None:
+    def __init__(self, bridge: ThreadBridge, callback: Any) -> None:
         super().__init__()
-        self._loop, self._callback = loop, callback
+        self._bridge, self._callback = bridge, callback
 
     def dispatch(self, event: Any) -> None:
         if event.is_directory or event.event_type not in ("created", "moved", "modified",
                                                             "closed"):
             return
         raw = event.dest_path if event.event_type == "moved" else event.src_path
-        name = os.path.basename(os.fsdecode(raw))
-        try:
-            self._loop.call_soon_threadsafe(self._callback, name)
-        except RuntimeError:  # loop closed while the observer stops
-            pass
+        self._bridge.call(self._callback, os.path.basename(os.fsdecode(raw)))
 
 
 class FileShareDriver(Driver):
@@ -242,42 +240,28 @@ class FileShareDriver(Driver):
 
     name = "file_share"
     capabilities = frozenset({CAP_RAPID, CAP_UPLOAD})
-    options = frozenset({"share", "observer", "poll_interval_s", "canary_interval_s",
-                         "canary_timeout_s", "rapid", "max_log_bytes"})
+    options = Options(
+        share=Folder(hint="the shared folder"),
+        observer=Choice("auto", "inotify", "polling", default="auto"),
+        poll_interval_s=Number(0.1, low=0), canary_interval_s=Number(30.0, low=0),
+        canary_timeout_s=Number(2.0, low=0), rapid=Flag(True),
+        max_log_bytes=Integer(MAX_LOG_BYTES, low=1))
 
-    def __init__(self, *, share: str | os.PathLike[str] | None = None, observer: str = "auto",
-                 poll_interval_s: float = 0.1, canary_interval_s: float = 30.0,
-                 canary_timeout_s: float = 2.0, rapid: bool = True,
-                 max_log_bytes: int = MAX_LOG_BYTES) -> None:
-        super().__init__()
-        if (isinstance(max_log_bytes, bool) or not isinstance(max_log_bytes, int)
-                or max_log_bytes <= 0):
-            raise ConfigError(f"driver.max_log_bytes: expected a positive number of bytes, "
-                              f"got {max_log_bytes!r}")
-        self.max_log_bytes = max_log_bytes
-        if not isinstance(rapid, bool):
-            raise ConfigError(f"driver.rapid: expected true or false, got {rapid!r}")
-        self.rapid = rapid
-        if not rapid:
+    def __init__(self, **options: Any) -> None:
+        super().__init__(**options)
+        o = self.config
+        self.max_log_bytes, self.rapid = o.max_log_bytes, o.rapid
+        if not self.rapid:
             self.capabilities = frozenset({CAP_UPLOAD})
-        if share is None:
-            raise ConfigError("driver.share: missing (the shared folder)")
-        if observer not in ("auto", "inotify", "polling"):
-            raise ConfigError(f"driver.observer: expected auto, inotify or polling, "
-                              f"got {observer!r}")
-        for key, val in (("poll_interval_s", poll_interval_s),
-                         ("canary_interval_s", canary_interval_s),
-                         ("canary_timeout_s", canary_timeout_s)):
-            if isinstance(val, bool) or not isinstance(val, int | float) or val < 0:
-                raise ConfigError(f"driver.{key}: expected a non-negative number, got {val!r}")
-        self.share = Path(share)
-        self.transfer = ShareTransfer(self.share, rapid=rapid, max_log_bytes=max_log_bytes)
+        self.share = o.share
+        self.transfer = ShareTransfer(self.share, rapid=self.rapid,
+                                      max_log_bytes=self.max_log_bytes)
         self.inbox, self.outbox, self.sem = (self.transfer.inbox, self.transfer.outbox,
                                              self.transfer.sem)
-        self._observer_choice = observer
-        self._poll_s = float(poll_interval_s) or 0.1
-        self._canary_s = float(canary_interval_s)
-        self._canary_timeout_s = float(canary_timeout_s) or 2.0
+        self._observer_choice = o.observer
+        self._poll_s = o.poll_interval_s or 0.1
+        self._canary_s = o.canary_interval_s
+        self._canary_timeout_s = o.canary_timeout_s or 2.0
         self._observer: Any = None
         self.observer_kind = ""
         self._waiters: dict[tuple[str, str], asyncio.Event] = {}
@@ -315,8 +299,7 @@ class FileShareDriver(Driver):
         if self._observer is not None:
             await self._stop_observer()
         obs = PollingObserver(timeout=self._poll_s) if kind == "polling" else Observer()
-        obs.schedule(_Bridge(asyncio.get_running_loop(), self._on_file), str(self.sem),
-                     recursive=False)
+        obs.schedule(_Events(self.bridge, self._on_file), str(self.sem), recursive=False)
         try:
             await asyncio.to_thread(obs.start)
         except OSError as err:  # e.g. inotify watch limit reached
@@ -333,7 +316,9 @@ class FileShareDriver(Driver):
     async def _stop_observer(self) -> None:
         obs, self._observer = self._observer, None
         if obs is not None:
-            obs.stop()
+            # stop() waits for the observer's lock, which its thread holds while it hands an
+            # event over: off the loop, or a full bridge would never drain
+            await asyncio.to_thread(obs.stop)
             await asyncio.to_thread(obs.join, 5.0)
 
     async def _close(self) -> None:

@@ -26,12 +26,10 @@ import asyncio
 import contextlib
 import json
 import logging
-import random
 import re
 import time
 import zlib
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 from pymodbus.client import AsyncModbusTcpClient
@@ -43,6 +41,8 @@ from robid_link.drivers.rapid import MAX_AXES
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.jobs import MotionProgram
 from robid_link.link.driver import CAP_RAPID, Done, Driver
+from robid_link.link.options import Flag, Folder, Integer, Number, Options, Table, Text
+from robid_link.link.retry import Backoff
 
 __all__ = ["ModbusPlcDriver", "REGISTERS", "Command", "Status", "ERROR_CODES", "nonce_tag",
            "register_map"]
@@ -75,6 +75,8 @@ ERROR_CODES = {1: "program missing or unreadable on the share",
                6: "share not writable (log not saved)",
                7: "aborted by the daemon"}
 _HEX_NONCE = re.compile(r"^[0-9a-f]{1,8}$")
+#: waits between connection attempts
+CONNECT_BACKOFF = Backoff(0.05, 1.0)
 
 
 def nonce_tag(nonce: str) -> int:
@@ -83,33 +85,24 @@ def nonce_tag(nonce: str) -> int:
     return int(nonce, 16) if _HEX_NONCE.match(nonce) else zlib.crc32(nonce.encode())
 
 
-def _number(key: str, value: Any, lo: float, hi: float | None = None) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not (
-            lo <= value and (hi is None or value <= hi)):
-        rng = f"between {lo:g} and {hi:g}" if hi is not None else f">= {lo:g}"
-        raise ConfigError(f"driver.{key}: expected a number {rng}, got {value!r}")
-    return float(value)
+_BASE_ADDRESS = Integer(0, low=0, high=65536 - len(REGISTERS))
+_ADDRESS = Integer(low=0, high=65535, expect="an address 0-65535")
+_REGISTERS = Table(None)
 
 
 def register_map(base_address: Any = 0, registers: Any = None) -> dict[str, int]:
     """Address of each register: ``base_address`` + its default offset, moved by ``registers``
     (name → address). ConfigError names the key when an address is bad, shared or the map
     spans more than one Modbus read."""
-    base = int(_number("base_address", base_address, 0, 65536 - len(REGISTERS)))
-    if not isinstance(base_address, int):
-        raise ConfigError(f"driver.base_address: expected an integer, got {base_address!r}")
+    base = _BASE_ADDRESS.convert("driver.base_address", base_address)
     addr = {name: base + k for k, name in enumerate(REGISTERS)}
-    if registers is not None and not isinstance(registers, Mapping):
-        raise ConfigError(f"driver.registers: expected a mapping of register name to address, "
-                          f"got {registers!r}")
-    for name, value in (registers or {}).items():
+    moved: Mapping[str, Any] = ({} if registers is None
+                                else _REGISTERS.convert("driver.registers", registers))
+    for name, value in moved.items():
         if name not in addr:
             raise ConfigError(f"driver.registers.{name}: unknown register (known: "
                               f"{', '.join(REGISTERS)})")
-        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 65535:
-            raise ConfigError(f"driver.registers.{name}: expected an address 0-65535, "
-                              f"got {value!r}")
-        addr[name] = value
+        addr[name] = _ADDRESS.convert(f"driver.registers.{name}", value)
     seen: dict[int, str] = {}
     for name, a in addr.items():
         if a in seen:
@@ -135,41 +128,31 @@ class ModbusPlcDriver(Driver):
     # no parameter upload: the handshake has no register for "load this set" and nothing that
     # acknowledges it (a driver without upload says so, and campaigns needing it are refused)
     capabilities: frozenset[str] = frozenset()
-    options = frozenset({"host", "port", "device_id", "share", "base_address", "registers",
-                         "poll_interval_s", "heartbeat_period_s", "heartbeat_timeout_s",
-                         "io_timeout_s", "connect_retries", "rapid"})
+    options = Options(
+        host=Text(hint="the PLC's address"), port=Integer(502, low=1, high=65535),
+        device_id=Integer(1, low=0, high=255),
+        share=Folder(hint="the folder programs and logs travel on"),
+        base_address=_BASE_ADDRESS, registers=_REGISTERS,
+        poll_interval_s=Number(0.02, low=0.001, high=10),
+        heartbeat_period_s=Number(0.2, low=0.01, high=60),
+        heartbeat_timeout_s=Number(2.0, above=0), io_timeout_s=Number(1.0, low=0.01, high=60),
+        connect_retries=Integer(5, low=0, high=100), rapid=Flag(False))
 
-    def __init__(self, *, host: str | None = None, port: int = 502, device_id: int = 1,
-                 share: str | None = None, base_address: int = 0,
-                 registers: Mapping[str, int] | None = None, poll_interval_s: float = 0.02,
-                 heartbeat_period_s: float = 0.2, heartbeat_timeout_s: float = 2.0,
-                 io_timeout_s: float = 1.0, connect_retries: int = 5,
-                 rapid: bool = False) -> None:
-        super().__init__()
-        if not isinstance(host, str) or not host:
-            raise ConfigError("driver.host: missing (the PLC's address)")
-        if share is None:
-            raise ConfigError("driver.share: missing (the folder programs and logs travel on)")
-        if not isinstance(rapid, bool):
-            raise ConfigError(f"driver.rapid: expected true or false, got {rapid!r}")
-        for key, val, lo, hi in (("port", port, 1, 65535), ("device_id", device_id, 0, 255),
-                                 ("connect_retries", connect_retries, 0, 100)):
-            if not isinstance(val, int) or isinstance(val, bool):
-                raise ConfigError(f"driver.{key}: expected an integer, got {val!r}")
-            _number(key, val, lo, hi)
-        self.host, self.port, self.device_id = host, port, device_id
-        self.addr = register_map(base_address, registers)
+    def __init__(self, **options: Any) -> None:
+        super().__init__(**options)
+        o = self.config
+        self.host, self.port, self.device_id = o.host, o.port, o.device_id
+        self.addr = register_map(o.base_address, o.registers)
         self._lo = min(self.addr.values())
         self._span = max(self.addr.values()) - self._lo + 1
-        self.poll_s = _number("poll_interval_s", poll_interval_s, 0.001, 10)
-        self.hb_period_s = _number("heartbeat_period_s", heartbeat_period_s, 0.01, 60)
-        self.hb_timeout_s = _number("heartbeat_timeout_s", heartbeat_timeout_s,
-                                    2 * self.hb_period_s)
-        self.io_timeout_s = _number("io_timeout_s", io_timeout_s, 0.01, 60)
-        self.connect_retries = connect_retries
-        if rapid:
+        self.poll_s, self.hb_period_s = o.poll_interval_s, o.heartbeat_period_s
+        self.hb_timeout_s = Number(low=2 * self.hb_period_s).convert(
+            "driver.heartbeat_timeout_s", o.heartbeat_timeout_s)  # two periods at least
+        self.io_timeout_s = o.io_timeout_s
+        self.connect_retries = o.connect_retries
+        if o.rapid:
             self.capabilities = frozenset({CAP_RAPID})  # type: ignore[misc]
-        self.transfer = ShareTransfer(Path(share), rapid=rapid)
+        self.transfer = ShareTransfer(o.share, rapid=o.rapid)
         self._index_path = self.transfer.inbox / "experiments.json"
         self._numbers: dict[str, int] = {}
         self._client: Any = None
@@ -219,7 +202,6 @@ class ModbusPlcDriver(Driver):
 
     async def _connect(self) -> None:
         """Connect with a bounded number of growing, jittered retries; one line if it fails."""
-        delay = 0.05
         for attempt in range(self.connect_retries + 1):
             try:
                 async with asyncio.timeout(self.io_timeout_s + 1):
@@ -228,8 +210,7 @@ class ModbusPlcDriver(Driver):
             except (TimeoutError, OSError, ModbusException):
                 pass
             if attempt < self.connect_retries:
-                await asyncio.sleep(delay * random.uniform(0.5, 1.5))
-                delay = min(2 * delay, 1.0)
+                await CONNECT_BACKOFF.sleep(attempt + 1)
         raise DriverError(f"{self.where} unreachable after {self.connect_retries + 1} "
                           "connection attempts (PLC gone or address wrong)")
 

@@ -14,7 +14,6 @@ import base64
 import binascii
 import contextlib
 import logging
-import random
 import threading
 import time
 import zlib
@@ -23,9 +22,11 @@ from typing import Any
 
 import serial  # type: ignore[import-untyped]
 
-from robid_link.exceptions import ConfigError, DriverError
+from robid_link.exceptions import DriverError
 from robid_link.jobs import MotionProgram
 from robid_link.link.driver import Done, Driver
+from robid_link.link.options import Integer, Number, Options, Text
+from robid_link.link.retry import Backoff
 
 __all__ = ["SerialLineDriver", "encode_frame", "decode_frame", "ERROR_CODES", "MAX_LINE"]
 
@@ -38,6 +39,8 @@ ERROR_CODES = {1: "program missing or incomplete", 2: "motion supervision trigge
                9: "no log for this experiment and nonce"}
 #: the longest frame either side accepts (a 16 KiB chunk in base64 plus its header)
 MAX_LINE = 24_000
+#: waits between attempts to reopen a vanished port (within ``reopen_s``)
+REOPEN_BACKOFF = Backoff(0.05, 0.5)
 
 
 def encode_frame(*fields: object) -> bytes:
@@ -76,28 +79,19 @@ class SerialLineDriver(Driver):
     """
 
     name = "serial_line"
-    options = frozenset({"port", "baudrate", "chunk_bytes", "io_timeout_s", "retries",
-                         "reopen_s", "stat_period_s"})
+    options = Options(
+        port=Text(hint="the serial device, e.g. /dev/ttyUSB0"),
+        baudrate=Integer(115200, low=50, high=10_000_000),
+        chunk_bytes=Integer(2048, low=16, high=16384), io_timeout_s=Number(1.0, above=0),
+        retries=Integer(8, low=0, high=100), reopen_s=Number(5.0, above=0),
+        stat_period_s=Number(0.5, above=0))
 
-    def __init__(self, *, port: str | None = None, baudrate: int = 115200,
-                 chunk_bytes: int = 2048, io_timeout_s: float = 1.0, retries: int = 8,
-                 reopen_s: float = 5.0, stat_period_s: float = 0.5) -> None:
-        super().__init__()
-        if not isinstance(port, str) or not port:
-            raise ConfigError("driver.port: missing (the serial device, e.g. /dev/ttyUSB0)")
-        for key, val, lo, hi in (("baudrate", baudrate, 50, 10_000_000),
-                                 ("chunk_bytes", chunk_bytes, 16, 16384),
-                                 ("retries", retries, 0, 100)):
-            if isinstance(val, bool) or not isinstance(val, int) or not lo <= val <= hi:
-                raise ConfigError(f"driver.{key}: expected an integer between {lo} and {hi}, "
-                                  f"got {val!r}")
-        for key, sec in (("io_timeout_s", io_timeout_s), ("reopen_s", reopen_s),
-                         ("stat_period_s", stat_period_s)):
-            if isinstance(sec, bool) or not isinstance(sec, int | float) or not sec > 0:
-                raise ConfigError(f"driver.{key}: expected a positive number, got {sec!r}")
-        self.port, self.baudrate, self.chunk = port, baudrate, chunk_bytes
-        self.io_timeout_s, self.retries = float(io_timeout_s), retries
-        self.reopen_s, self.stat_period_s = float(reopen_s), float(stat_period_s)
+    def __init__(self, **options: Any) -> None:
+        super().__init__(**options)
+        o = self.config
+        self.port, self.baudrate, self.chunk = o.port, o.baudrate, o.chunk_bytes
+        self.io_timeout_s, self.retries = o.io_timeout_s, o.retries
+        self.reopen_s, self.stat_period_s = o.reopen_s, o.stat_period_s
         self._serial: Any = None
         self._reader: threading.Thread | None = None
         self._stop_reader = threading.Event()
@@ -129,15 +123,15 @@ class SerialLineDriver(Driver):
                 serial.Serial, self.port, self.baudrate, timeout=0.05, write_timeout=30)
         except (serial.SerialException, OSError, ValueError) as err:
             raise DriverError(f"serial port {self.port}: cannot open ({_reason(err)})") from err
-        loop = asyncio.get_running_loop()
         self._stop_reader.clear()
-        self._reader = threading.Thread(target=self._read_thread, args=(self._serial, loop),
+        self._reader = threading.Thread(target=self._read_thread, args=(self._serial,),
                                         name=f"serial-reader-{self.port}", daemon=True)
         self._reader.start()
         self._up.set()
 
-    def _read_thread(self, port: Any, loop: asyncio.AbstractEventLoop) -> None:
-        """Blocking reads, split into lines, each handed to the loop; a dead port is reported."""
+    def _read_thread(self, port: Any) -> None:
+        """Blocking reads, split into lines, each handed to the loop through the bridge (it
+        waits for room when the loop is behind); a dead port is reported."""
         buf = bytearray()
         try:
             while not self._stop_reader.is_set():
@@ -148,13 +142,12 @@ class SerialLineDriver(Driver):
                 buf += data
                 while (k := buf.find(b"\n")) >= 0:
                     line, buf = bytes(buf[: k + 1]), buf[k + 1:]
-                    loop.call_soon_threadsafe(self._on_line, line)
+                    self.bridge.call(self._on_line, line)
                 if len(buf) > MAX_LINE:  # noise without a newline
                     buf.clear()
         except (serial.SerialException, OSError, TypeError) as err:
             if not self._stop_reader.is_set():
-                with contextlib.suppress(RuntimeError):
-                    loop.call_soon_threadsafe(self._on_lost, _reason(err))
+                self.bridge.call(self._on_lost, _reason(err))
 
     async def _close_port(self) -> None:
         self._up.clear()
@@ -182,7 +175,7 @@ class SerialLineDriver(Driver):
             reason = self._lost_reason
             await self._close_port()
             loop = asyncio.get_running_loop()
-            end, delay = loop.time() + self.reopen_s, 0.05
+            end, tries = loop.time() + self.reopen_s, 0
             while not self._up.is_set():
                 try:
                     await self._open_port()
@@ -200,8 +193,8 @@ class SerialLineDriver(Driver):
                             self._pending.future.set_exception(self._fault)
                         await asyncio.sleep(1.0)  # keep trying, slowly: a cable comes back
                         continue
-                    await asyncio.sleep(delay * random.uniform(0.5, 1.5))
-                    delay = min(2 * delay, 0.5)
+                    tries += 1
+                    await REOPEN_BACKOFF.sleep(tries)
 
     async def _close(self) -> None:
         for task in self._tasks:

@@ -25,16 +25,26 @@ import can
 import canopen
 import numpy as np
 
-from robid_link.drivers.cia402 import (
+from robid_link.exceptions import RobidError
+from robid_link.fakes.cia402_tables import (
+    COB_EMCY,
+    COB_NMT,
+    COB_RPDO1,
+    COB_SYNC,
+    EMCY_HEARTBEAT,
+    EMCY_OVER_CURRENT,
+    ERROR_REGISTER_COMMUNICATION,
+    ERROR_REGISTER_GENERIC,
     MODE_CSP,
     NMT_PRE_OPERATIONAL,
-    NMT_RESET_COMM,
+    NMT_RESET_COMMUNICATION,
+    NMT_RESET_NODE,
     NMT_START,
+    STATUSWORD,
     SYNC_ECHO,
-    SYNC_ID,
-    error_words,
+    error_text,
+    next_state,
 )
-from robid_link.exceptions import RobidError
 from robid_link.fakes.controller import ControllerCore, Peer
 from robid_link.fakes.socketcand_server import SocketcandServer
 
@@ -47,11 +57,8 @@ EDS = Path(str(resources.files("robid_link.fakes") / "cia402_drive.eds"))
 #: seven-point quadratic fit at the centre: value, first and second derivative weights
 _SG_D1 = np.array([-3, -2, -1, 0, 1, 2, 3]) / 28.0
 _SG_D2 = np.array([5, 0, -3, -4, -3, 0, 5]) / 42.0
-_STATUS = {"Switch on disabled": 0x0240, "Ready to switch on": 0x0231,
-           "Switched on": 0x0233, "Operation enabled": 0x0237,
-           "Quick stop active": 0x0217, "Fault": 0x0208}
-_FAULT_CODE = 0x2310  # continuous over-current
-_MASTER_LOST = 0x8130  # life guard or heartbeat error: here, no SYNC from the master
+_FAULT_CODE = EMCY_OVER_CURRENT
+_MASTER_LOST = EMCY_HEARTBEAT  # here: no SYNC from the master
 
 
 class _Drive:
@@ -80,7 +87,7 @@ class _Drive:
         return int(struct.unpack(fmt, self.node.get_data(index, sub))[0])
 
     def _status(self) -> None:
-        self._put(0x6041, 0, _STATUS[self.state], "<H")
+        self._put(0x6041, 0, STATUSWORD[self.state], "<H")
         self._put(0x603F, 0, self.error, "<H")
 
     def _on_write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
@@ -90,30 +97,21 @@ class _Drive:
             self._put(0x6061, 0, struct.unpack("<b", data)[0], "<b")
 
     def _controlword(self, cw: int) -> None:
-        prev, self.cw, s = self.cw, cw, self.state
-        if s == "Fault":
-            if cw & 0x80 and not prev & 0x80:
-                self.state, self.error = "Switch on disabled", 0
-        elif cw & 0x02 == 0:
-            self.state = "Switch on disabled"
-        elif cw & 0x06 == 0x02:
-            self.state = "Quick stop active" if s in ("Operation enabled",
-                                                      "Quick stop active") else \
-                "Switch on disabled"
-        elif cw & 0x87 == 0x06:
-            self.state = "Ready to switch on"
-        elif cw & 0x8F == 0x07 and s in ("Ready to switch on", "Operation enabled"):
-            self.state = "Switched on"
-        elif cw & 0x8F == 0x0F and s in ("Ready to switch on", "Switched on"):
-            if self._get(0x6060, 0, "<b") == MODE_CSP:
-                self.state = "Operation enabled"
+        prev, self.cw = self.cw, cw
+        state = next_state(self.state, cw, prev)
+        if state == "Operation enabled" and self._get(0x6060, 0, "<b") != MODE_CSP:
+            state = self.state  # this drive runs only in cyclic synchronous position mode
+        if self.state == "Fault" and state != "Fault":
+            self.error = 0
+        self.state = state
         self._status()
 
     def fault(self, code: int) -> None:
         self.state, self.error = "Fault", code
         self._status()
         if not self.silent:
-            self.node.network.send_message(0x80 + self.id, struct.pack("<HB5x", code, 0x01))
+            self.node.network.send_message(COB_EMCY + self.id, struct.pack(
+                "<HB5x", code, ERROR_REGISTER_GENERIC))
 
     def read_maps(self) -> None:
         """The PDO mapping the master wrote by SDO (taken over at NMT start)."""
@@ -263,9 +261,9 @@ class Cia402Peer(Peer):
             if self.core.fault == "no_boot" and d.joint == self.fault_joint:
                 continue  # never boots: absent from the bus
             net[d.id] = d.node
-            net.subscribe(0x200 + d.id, self._rpdo_cb(d))
-        net.subscribe(0, self._on_nmt)
-        net.subscribe(SYNC_ID, self._on_sync)
+            net.subscribe(COB_RPDO1 + d.id, self._rpdo_cb(d))
+        net.subscribe(COB_NMT, self._on_nmt)
+        net.subscribe(COB_SYNC, self._on_sync)
         net.connect()
         for d in self.drives:
             if d.node.has_network():
@@ -280,7 +278,7 @@ class Cia402Peer(Peer):
         self._watch.start()
 
     def _boot(self, d: _Drive) -> None:
-        d.node.nmt.send_command(NMT_RESET_COMM)  # boot-up message
+        d.node.nmt.send_command(NMT_RESET_COMMUNICATION)  # boot-up message
         d.node.nmt.send_command(NMT_PRE_OPERATIONAL)  # heartbeat producer starts (0x1017)
 
     def stop(self) -> None:
@@ -309,7 +307,7 @@ class Cia402Peer(Peer):
         for d in self.drives:
             if target not in (0, d.id) or not d.node.has_network() or d.silent:
                 continue
-            if cmd in (NMT_RESET_COMM, 0x81):
+            if cmd in (NMT_RESET_COMMUNICATION, NMT_RESET_NODE):
                 self._boot(d)
             elif cmd == NMT_START:
                 d.read_maps()
@@ -364,13 +362,14 @@ class Cia402Peer(Peer):
                 self.master_lost += 1
                 log.warning("fake drives: no SYNC from the master for %.3g s: quick stop on "
                             "nodes %s (%s)", silent, [d.id for d in enabled],
-                            error_words(_MASTER_LOST))
+                            error_text(_MASTER_LOST))
                 for d in enabled:
                     d.state = "Quick stop active"
                     d._status()
                     if not d.silent:
-                        d.node.network.send_message(0x80 + d.id,
-                                                    struct.pack("<HB5x", _MASTER_LOST, 0x11))
+                        register = ERROR_REGISTER_GENERIC | ERROR_REGISTER_COMMUNICATION
+                        d.node.network.send_message(COB_EMCY + d.id, struct.pack(
+                            "<HB5x", _MASTER_LOST, register))
             self._brake()
 
     def _brake(self) -> None:
@@ -430,7 +429,7 @@ class Cia402Peer(Peer):
         log.info("fake drives: injecting %s on node %d", fault, d.id)
         if fault in ("fail", "drive_fault"):
             d.fault(_FAULT_CODE)
-            log.info("node %d: %s", d.id, error_words(_FAULT_CODE))
+            log.info("node %d: %s", d.id, error_text(_FAULT_CODE))
         elif fault == "heartbeat_loss":
             d.node.nmt.stop_heartbeat()
         elif fault == "following_error":

@@ -1,4 +1,4 @@
-"""The controller side of the file-share protocol (DESIGN.md): every new
+"""The controller side of the file-share protocol (``docs/file_share_protocol.md``): every new
 ``sem/<id>.<nonce>.ready`` is run on the fake controller, the log written atomically to
 ``outbox/``, then ``sem/<id>.<nonce>.done`` (SHA-256 and size) or ``.failed`` (the reason)."""
 
@@ -12,10 +12,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from robid_link.atomic import atomic_write
-from robid_link.drivers.file_share import done_text, log_name, parse_sem, sem_name
 from robid_link.exceptions import RobidError
 from robid_link.fakes.controller import ControllerCore, Peer
+from robid_link.fakes.share_protocol import PARAMS_PREFIX, Share, parse_semaphore
 
 __all__ = ["FileSharePeer"]
 
@@ -31,11 +30,11 @@ class FileSharePeer(Peer):
     def __init__(self, core: ControllerCore, workdir: Path, *, poll_s: float = 0.005) -> None:
         super().__init__(core, workdir)
         self.share, self.poll_s = Path(workdir), poll_s
+        self.files = Share(self.share)
         self._seen: set[tuple[str, str]] = set()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        for d in ("inbox", "outbox", "sem"):
-            (self.share / d).mkdir(parents=True, exist_ok=True)
+        self.files.make()
 
     @property
     def handled(self) -> list[tuple[str, str]]:
@@ -68,62 +67,58 @@ class FileSharePeer(Peer):
             stop.wait(self.poll_s)
 
     def _new_readies(self) -> list[tuple[str, str]]:
-        names = set(os.listdir(self.share / "sem"))
+        """Readies not answered yet, in name order (page: "The controller", 1)."""
+        names = set(os.listdir(self.files.sem))
         out = []
         for name in sorted(names):
-            p = parse_sem(name)
+            p = parse_semaphore(name)
             if p is None or p[2] != "ready" or (p[0], p[1]) in self._seen:
                 continue
-            if sem_name(p[0], p[1], "done") in names or sem_name(p[0], p[1], "failed") in names:
+            if f"{p[0]}.{p[1]}.done" in names or f"{p[0]}.{p[1]}.failed" in names:
                 self._seen.add((p[0], p[1]))  # answered before a restart
                 continue
             out.append((p[0], p[1]))
         return out
 
-    def _load_parameters(self, exp_id: str, nonce: str) -> None:
+    def _load_parameters(self, key: str, nonce: str) -> None:
         """An uploaded parameter set: load it and acknowledge with its file's SHA-256."""
-        sem = self.share / "sem"
         if self.core.fault == "no_param_ack" and self.core.take_fault():
             return
         try:
-            body = (self.share / "params" / f"{exp_id}.{nonce}.json").read_bytes()
+            body = self.files.parameter_set(key, nonce)
             self.core.receive_parameters(body)
         except (OSError, RobidError) as err:
-            atomic_write(sem / sem_name(exp_id, nonce, "failed"), f"{err}\n".encode())
+            self.files.answer_failed(key, nonce, str(err))
             return
-        atomic_write(sem / sem_name(exp_id, nonce, "done"),
-                     done_text(hashlib.sha256(body).hexdigest(), len(body)))
+        self.files.answer_done(key, nonce, hashlib.sha256(body).hexdigest(), len(body))
 
     def _handle(self, exp_id: str, nonce: str) -> bool:
         self._seen.add((exp_id, nonce))
-        if exp_id.startswith("params-"):
+        if exp_id.startswith(PARAMS_PREFIX):
             self._load_parameters(exp_id, nonce)
             return True
-        sem, outbox, inbox = self.share / "sem", self.share / "outbox", self.share / "inbox"
+        if not self.files.semaphore(exp_id, nonce, "ready").exists():
+            return True  # withdrawn before it started: never run (page: "The controller", 4)
         try:
-            csv = (inbox / f"{exp_id}.traj.csv").read_bytes()
-            header = (inbox / f"{exp_id}.traj.yaml").read_bytes()
+            csv, header = self.files.program(exp_id)
         except OSError as err:
-            atomic_write(sem / sem_name(exp_id, nonce, "failed"),
-                         f"program {exp_id}: {err.strerror}\n".encode())
+            self.files.answer_failed(exp_id, nonce, f"program {exp_id}: {err.strerror}")
             return True
         res = self.core.run(exp_id, nonce, csv, header)
         if res.fault == "never_answer":
             return True
         if res.error is not None:
-            atomic_write(sem / sem_name(exp_id, nonce, "failed"), f"{res.error}\n".encode())
+            self.files.answer_failed(exp_id, nonce, res.error)
             return True
         if res.fault == "die":  # half a log in a temp file, no rename, no 'done'
-            (outbox / f".{log_name(exp_id, nonce)}.partial").write_bytes(res.log[: len(res.log)
-                                                                                 // 2])
+            self.files.write_partial(exp_id, nonce, res.log[: len(res.log) // 2])
             self.core.die()
             return False
-        atomic_write(outbox / log_name(exp_id, nonce), res.delivered)
+        self.files.write_log(exp_id, nonce, res.delivered)
         if res.fault == "stale_semaphore":  # an answer to an attempt that no longer exists
-            atomic_write(sem / sem_name(exp_id, "0stale0", "done"), done_text("0" * 64, 1))
-        done = done_text(res.sha256, len(res.log))
-        atomic_write(sem / sem_name(exp_id, nonce, "done"), done)
+            self.files.answer_done(exp_id, "0stale0", "0" * 64, 1)
+        self.files.answer_done(exp_id, nonce, res.sha256, len(res.log))
         if res.fault == "answer_twice":
             time.sleep(0.05)
-            atomic_write(sem / sem_name(exp_id, nonce, "done"), done)
+            self.files.answer_done(exp_id, nonce, res.sha256, len(res.log))
         return True

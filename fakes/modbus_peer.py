@@ -1,6 +1,7 @@
-"""The PLC side of the Modbus handshake (``drivers/modbus_plc.py``): a pymodbus TCP server on
-127.0.0.1 whose registers a scan cycle reads and writes like a PLC program, running programs
-from the share on the fake controller and writing logs and ``done`` files back to the share.
+"""The PLC side of the Modbus handshake (``docs/modbus_plc_protocol.md``, written from that page):
+a pymodbus TCP server on 127.0.0.1 whose registers a scan cycle reads and writes like a PLC
+program, running programs from the share on the fake controller and writing logs and ``done``
+files back to the share.
 
 Own faults: ``plc_gone`` (the server stops for good once a RUN arrives), ``heartbeat_frozen``
 (the PLC heartbeat stops for ``freeze_s`` while BUSY), ``error_code`` (ERROR with code 4,
@@ -15,21 +16,44 @@ import logging
 import threading
 import time
 import zlib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from robid_link.atomic import atomic_write
-from robid_link.drivers.file_share import ShareTransfer, done_text, log_name
-from robid_link.drivers.modbus_plc import Command, Status, register_map
 from robid_link.exceptions import RobidError
 from robid_link.fakes.controller import ControllerCore, Peer
+from robid_link.fakes.share_protocol import Share
 
-__all__ = ["ModbusPeer"]
+__all__ = ["ModbusPeer", "REGISTER_OFFSETS", "register_addresses"]
 
 log = logging.getLogger("robid.fake_controller")
+
+#: the register map (page: "Register map"): name → offset from base_address
+REGISTER_OFFSETS = {"command": 0, "exp": 1, "nonce_hi": 2, "nonce_lo": 3,
+                    "daemon_heartbeat": 4, "status": 5, "exp_echo": 6, "nonce_echo_hi": 7,
+                    "nonce_echo_lo": 8, "error_code": 9, "plc_heartbeat": 10}
+# command and status values (page: "Register map")
+CMD_IDLE, CMD_RUN, CMD_ABORT = 0, 1, 2
+IDLE, BUSY, DONE, ERROR = 0, 1, 2, 3
+# error codes (page: "Register map")
+E_PROGRAM, E_SUPERVISION, E_ESTOP = 1, 2, 4
+
+
+def register_addresses(base_address: int = 0, registers: Mapping[str, int] | None = None
+                       ) -> dict[str, int]:
+    """Each register's protocol address: ``base_address`` + its offset, moved by ``registers``
+    (name → address) as a cell configures it."""
+    addr = {name: base_address + k for name, k in REGISTER_OFFSETS.items()}
+    for name, a in (registers or {}).items():
+        if name not in addr or not 0 <= int(a) <= 65535:
+            raise RobidError(f"--option registers: {name}={a!r} is not a register of the map")
+        addr[name] = int(a)
+    if len(set(addr.values())) != len(addr):
+        raise RobidError("--option registers: two registers share an address")
+    return addr
 
 
 class ModbusPeer(Peer):
@@ -43,9 +67,9 @@ class ModbusPeer(Peer):
                  registers: dict[str, int] | None = None, scan_s: float = 0.002,
                  heartbeat_s: float = 0.05, freeze_s: float = 4.0) -> None:
         super().__init__(core, workdir)
-        self.share = ShareTransfer(Path(workdir), rapid=False)
-        self.share.prepare()
-        self.addr = register_map(base_address, registers)
+        self.share = Share(Path(workdir))
+        self.share.make()
+        self.addr = register_addresses(base_address, registers)
         self._lo = min(self.addr.values())
         self.image = [0] * (max(self.addr.values()) - self._lo + 1)
         self.port, self.device_id = port, device_id
@@ -146,20 +170,22 @@ class ModbusPeer(Peer):
             await asyncio.sleep(self.scan_s)
 
     def _scan(self) -> None:
+        """One PLC cycle (page: "What the PLC must do", 2, 5 and 6)."""
         cmd, busy = self.get("command"), self._job is not None and not self._job.done()
         request = (self.get("exp"), self.get("nonce_hi"), self.get("nonce_lo"))
         running = (self.get("exp_echo"), self.get("nonce_echo_hi"), self.get("nonce_echo_lo"))
-        if cmd == Command.ABORT and running == request and self.get("status") == Status.BUSY:
+        if cmd == CMD_ABORT and running == request and self.get("status") == BUSY:
             if self._job is not None:
                 self._job.cancel()
-            self.set(status=Status.IDLE, error_code=0)
-        elif cmd == Command.RUN and not busy and request != self._last and request[0] > 0:
+            self.set(status=IDLE, error_code=0)
+        elif cmd == CMD_RUN and not busy and self.get("status") != BUSY and (
+                request != self._last and request[0] > 0):
             self._last = request
-            self.set(status=Status.BUSY, exp_echo=request[0], nonce_echo_hi=request[1],
-                     nonce_echo_lo=request[2], error_code=0)
+            self.set(exp_echo=request[0], nonce_echo_hi=request[1], nonce_echo_lo=request[2],
+                     error_code=0, status=BUSY)
             self._job = asyncio.create_task(self._run_program(*request), name="fake-plc-job")
-        elif cmd == Command.IDLE and self.get("status") in (Status.DONE, Status.ERROR):
-            self.set(status=Status.IDLE)  # the daemon acknowledged
+        elif cmd == CMD_IDLE and self.get("status") in (DONE, ERROR):
+            self.set(status=IDLE)  # the daemon acknowledged
 
     async def _run_program(self, n: int, hi: int, lo: int) -> None:
         key, nkey = str(n), f"{(hi << 16) | lo:08x}"
@@ -169,26 +195,25 @@ class ModbusPeer(Peer):
             await self._play(fault)
             return
         try:
-            csv = (self.share.inbox / f"{key}.traj.csv").read_bytes()
-            header = (self.share.inbox / f"{key}.traj.yaml").read_bytes()
+            csv, header = await asyncio.to_thread(self.share.program, key)
         except OSError as err:
-            self._fail(key, nkey, 1, f"program {key}: {err.strerror}")
+            await self._fail(key, nkey, E_PROGRAM, f"program {key}: {err.strerror}")
             return
         res = await asyncio.to_thread(self.core.run, key, nkey, csv, header)
         if res.fault == "never_answer":
             return
         if res.error is not None:
-            self._fail(key, nkey, 2 if res.fault == "fail" else 1, res.error)
+            await self._fail(key, nkey, E_SUPERVISION if res.fault == "fail" else E_PROGRAM,
+                             res.error)
             return
         if res.fault == "die":
-            await asyncio.to_thread(self.share.outbox.joinpath(f".{log_name(key, nkey)}.partial")
-                                    .write_bytes, res.log[: len(res.log) // 2])
+            await asyncio.to_thread(self.share.write_partial, key, nkey,
+                                    res.log[: len(res.log) // 2])
             self.core.die()
             self.died.set()
             await self._go_offline()
             return
-        await asyncio.to_thread(atomic_write, self.share.outbox / log_name(key, nkey),
-                                res.delivered)
+        await asyncio.to_thread(self.share.write_log, key, nkey, res.delivered)
         if res.fault == "stale_semaphore":  # an older attempt's answer shows first
             stale = zlib.crc32(b"0stale0")
             await self._answer(key, f"{stale:08x}", n, stale, "0" * 64, 1)
@@ -196,21 +221,19 @@ class ModbusPeer(Peer):
         await self._answer(key, nkey, n, (hi << 16) | lo, res.sha256, len(res.log))
         if res.fault == "answer_twice":
             await asyncio.sleep(0.05)
-            self.set(status=Status.BUSY)
+            self.set(status=BUSY)
             await asyncio.sleep(0.05)
             await self._answer(key, nkey, n, (hi << 16) | lo, res.sha256, len(res.log))
 
     async def _answer(self, key: str, nkey: str, n: int, tag: int, sha: str, size: int) -> None:
         """The 'done' file on the share first, then the registers that point at it."""
-        await asyncio.to_thread(atomic_write, self.share.sem_path(key, nkey, "done"),
-                                done_text(sha, size))
-        self.set(status=Status.DONE, exp_echo=n, nonce_echo_hi=tag >> 16,
-                 nonce_echo_lo=tag & 0xFFFF)
+        await asyncio.to_thread(self.share.answer_done, key, nkey, sha, size)
+        self.set(exp_echo=n, nonce_echo_hi=tag >> 16, nonce_echo_lo=tag & 0xFFFF, status=DONE)
         self.answer_times[nkey] = time.perf_counter()
 
-    def _fail(self, key: str, nkey: str, code: int, reason: str) -> None:
-        atomic_write(self.share.sem_path(key, nkey, "failed"), f"{reason}\n".encode())
-        self.set(status=Status.ERROR, error_code=code)
+    async def _fail(self, key: str, nkey: str, code: int, reason: str) -> None:
+        await asyncio.to_thread(self.share.answer_failed, key, nkey, reason)
+        self.set(error_code=code, status=ERROR)
 
     async def _play(self, fault: str) -> None:
         if fault == "plc_gone":
@@ -220,8 +243,8 @@ class ModbusPeer(Peer):
         elif fault == "heartbeat_frozen":
             self._frozen_until = asyncio.get_running_loop().time() + self.freeze_s
             await asyncio.sleep(self.freeze_s)
-            self.set(status=Status.IDLE)
+            self.set(status=IDLE)
         elif fault == "error_code":
-            self.set(status=Status.ERROR, error_code=4)
+            self.set(error_code=E_ESTOP, status=ERROR)
         elif fault == "register_garbage":
             self.set(status=0xBEEF, exp_echo=0xFFFF, nonce_echo_hi=0x1234, error_code=0xDEAD)

@@ -565,9 +565,6 @@ class Plant:
                     "jcop": {i: float(m[j - 1, i - 1]) for i in elastic if i != j}}
                 for j, e in sorted(elastic.items())}
 
-    def with_truth(self, **changes: Any) -> Plant:
-        return Plant(self.robot, replace(self.truth, **changes))
-
 
 def _stick_slip(v_free: np.ndarray, bound: np.ndarray, minv: np.ndarray, h: float
                 ) -> np.ndarray:

@@ -1,6 +1,7 @@
 """The controller side of the RWS link: an RWS 1.0 or 2.0 look-alike (aiohttp server and
-websocket subscriptions on 127.0.0.1, a random port) serving exactly the calls of
-``drivers/rws_api.py``, running each started program on the fake controller's plant.
+websocket subscriptions on 127.0.0.1, a random port) serving the resources of
+``rws_resources.py`` (written from ABB's RWS manuals, not from the driver), running each
+started program on the fake controller's plant as the robid RAPID module would.
 
 Faults beyond the core's: ``restart`` (the controller restarts mid-program: sockets, sessions
 and subscriptions gone, 503 for a moment, the program finishes meanwhile), ``silent_ws`` (the
@@ -13,54 +14,49 @@ no 'done'), ``session_limit`` (503 for the first ``fault_count`` logins), ``bad_
 from __future__ import annotations
 
 import asyncio
-import base64
 import contextlib
-import hashlib
-import hmac
 import itertools
 import logging
-import os
 import re
 import secrets
 import shutil
-import subprocess
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from aiohttp import WSMsgType, web
 
 from robid_link.atomic import atomic_write
-from robid_link.drivers.rapid import parse_rapid
-from robid_link.drivers.rws_api import (
-    API,
-    PATH_MODULE,
-    VARS,
-    done_value,
-    error_value,
-    log_file,
-    parse_rapid_string,
-)
 from robid_link.exceptions import RobidError
 from robid_link.fakes.controller import ControllerCore, Peer
+from robid_link.fakes.rws_login import Login, tls_context, write_credentials
+from robid_link.fakes.rws_resources import (
+    DIALECTS,
+    PATH_MODULE,
+    ROBID_MODULE,
+    ROBID_TASK,
+    ROBID_VARS,
+    check_path_module,
+    done_value,
+    error_value,
+    event_page,
+    exec_event,
+    rapid_string_text,
+    rapid_string_value,
+    value_event,
+)
 
 __all__ = ["RwsPeer"]
 
 log = logging.getLogger("robid.fake_controller.rws")
 
-REALM = "validusers@robapi.abb"
 _SESSION = web.RequestKey("session", str)
-_DIGEST_FIELD = re.compile(r'(\w+)=(?:"([^"]*)"|([^,\s]*))')
-
-
-def _state(version: int, items: list[dict[str, Any]]) -> dict[str, Any]:
-    return {"_embedded": {"_state": items}} if version == 1 else {"state": items}
-
-
-def _error(version: int, status: int, msg: str) -> web.Response:
-    doc = {"status": {"code": -1073445879, "msg": msg}}
-    return web.json_response({"_embedded": doc} if version == 1 else doc, status=status)
+#: a controller path (loadmod's modulepath, robid_params): the HOME variable, any case
+_CONTROLLER_HOME = re.compile(r"^\$home/", re.I)
+_ROBID_DIR = "robid"
+_ERR = -1073445879  # the RWS return code the fake gives every refusal
 
 
 class RwsPeer(Peer):
@@ -79,7 +75,10 @@ class RwsPeer(Peer):
         super().__init__(core, workdir)
         if version not in (1, 2):
             raise ValueError(f"version: expected 1 or 2, got {version!r}")
-        self.version, self.api = version, API[version]
+        self.version, self.dialect = version, DIALECTS[version]
+        #: set by tests: called with ("request", request, body) as a request arrives and with
+        #: ("response", request, response) once it is answered (a recording peer)
+        self.tap: Callable[[str, web.Request, Any], None] | None = None
         self.ping_s, self.restart_s, self.port = float(ping_interval_s), restart_s, port
         self.home = self.workdir / "HOME"
         (self.home / "robid").mkdir(parents=True, exist_ok=True)
@@ -89,20 +88,17 @@ class RwsPeer(Peer):
         self.user, self._password = "robid", secrets.token_urlsafe(12)
         self.credentials = self.workdir / "rws-credentials"
         wrong = core.fault == "bad_credentials"
-        given = ("wrong-" if wrong else "") + self._password
-        self.credentials.unlink(missing_ok=True)
-        fd = os.open(self.credentials, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        with os.fdopen(fd, "w") as fh:  # created owner-only: never readable by others
-            fh.write(f"{self.user}:{given}\n")
+        write_credentials(self.credentials, self.user, ("wrong-" if wrong else "")
+                          + self._password)
         self.auth_attempts = self.logins = 0
         self.issued: list[str] = []  # session cookies handed out (tests look for leaks)
         self._busy = core.faults_left if core.fault == "session_limit" else 0
         self._sessions: set[str] = set()
-        self._nonces: set[str] = set()
+        self.login = Login(version, self.user, self._password)
         self._master: str | None = None
-        self.vars = dict.fromkeys(VARS, "")
+        self.vars = dict.fromkeys(ROBID_VARS, "")
         self.exec_state = "stopped"
-        self._loaded = ""
+        self._loaded = ""  # the experiment whose module is loaded (its file's name)
         self._subs: dict[str, dict[str, Any]] = {}
         self._ids = itertools.count(1)
         self._down_until = 0.0
@@ -127,7 +123,7 @@ class RwsPeer(Peer):
     def start(self) -> None:
         if self._thread is not None:
             return
-        ssl_ctx = self._tls_context() if self.tls else None
+        ssl_ctx = tls_context(self.workdir) if self.tls else None
         self._loop = asyncio.new_event_loop()
         ready = threading.Event()
         failure: list[BaseException] = []
@@ -159,7 +155,7 @@ class RwsPeer(Peer):
         loop.close()
 
     async def _start_site(self, ssl_ctx: Any) -> None:
-        app = web.Application(middlewares=[self._auth])
+        app = web.Application(middlewares=[self._record, self._auth])
         self._routes(app)
         self._runner = web.AppRunner(app, access_log=None, handle_signals=False)
         await self._runner.setup()
@@ -186,75 +182,48 @@ class RwsPeer(Peer):
             self._thread.join(30)
         self._thread = None
 
-    def _tls_context(self) -> Any:
-        import ssl
-
-        cert, key = self.workdir / "rws-cert.pem", self.workdir / "rws-key.pem"
-        if not cert.exists():
-            subprocess.run(["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt",
-                            "ec_paramgen_curve:prime256v1", "-nodes", "-keyout", str(key),
-                            "-out", str(cert), "-days", "2", "-subj", "/CN=127.0.0.1",
-                            "-addext", "subjectAltName=IP:127.0.0.1,DNS:localhost"],
-                           check=True, capture_output=True, timeout=60)
-        ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
-        ctx.load_cert_chain(cert, key)
-        return ctx
-
     # -- authentication and sessions
-    def _challenge(self, stale: bool = False) -> web.Response:
-        if self.version == 2:
-            head = f'Basic realm="{REALM}"'
-        else:
-            nonce = secrets.token_hex(16)
-            self._nonces.add(nonce)
-            head = (f'Digest realm="{REALM}", qop="auth", nonce="{nonce}", '
-                    f'opaque="{secrets.token_hex(8)}", algorithm=MD5'
-                    + (", stale=TRUE" if stale else ""))
-        return web.Response(status=401, headers={"WWW-Authenticate": head})
+    def _answer(self, status: int, items: list[dict[str, Any]]) -> web.Response:
+        """A JSON answer in this version's envelope."""
+        ctype = "application/hal+json" if self.version == 2 else "application/json"
+        return web.json_response(self.dialect.envelope(items), status=status,
+                                 content_type=ctype)
 
-    def _authorized(self, header: str, request: web.Request) -> bool | None:
-        """True/False for a checked credential, None for a digest on an unknown nonce."""
-        scheme, _, rest = header.partition(" ")
-        if self.version == 2 and scheme == "Basic":
-            try:
-                user, _, pw = base64.b64decode(rest).decode().partition(":")
-            except (ValueError, UnicodeDecodeError):
-                return False
-            return user == self.user and hmac.compare_digest(pw, self._password)
-        if self.version == 1 and scheme == "Digest":
-            f = {m.group(1): m.group(2) if m.group(2) is not None else m.group(3)
-                 for m in _DIGEST_FIELD.finditer(rest)}
-            if f.get("nonce") not in self._nonces:
-                return None
-            md5 = lambda s: hashlib.md5(s.encode()).hexdigest()  # noqa: E731 - RFC 7616 MD5
-            ha1 = md5(f"{self.user}:{REALM}:{self._password}")
-            ha2 = md5(f"{request.method}:{f.get('uri', '')}")
-            want = md5(f"{ha1}:{f['nonce']}:{f.get('nc', '')}:{f.get('cnonce', '')}:"
-                       f"{f.get('qop', '')}:{ha2}")
-            return (f.get("username") == self.user and f.get("uri") == request.raw_path
-                    and hmac.compare_digest(want, f.get("response", "")))
-        return False
+    def _refuse(self, status: int, msg: str) -> web.Response:
+        return web.json_response(self.dialect.error(_ERR, msg), status=status)
+
+    @web.middleware
+    async def _record(self, request: web.Request, handler: Any) -> web.StreamResponse:
+        """Hands every request and its answer to ``tap`` (tests), before and after."""
+        tap = self.tap
+        if tap is None:
+            return await handler(request)
+        tap("request", request, await request.read())
+        resp: web.StreamResponse = await handler(request)
+        tap("response", request, resp)
+        return resp
 
     @web.middleware
     async def _auth(self, request: web.Request, handler: Any) -> web.StreamResponse:
         if time.monotonic() < self._down_until:
-            return _error(self.version, 503, "controller is starting")
+            return self._refuse(503, "controller is starting")
         if request.cookies.get("-http-session-") in self._sessions:
             request[_SESSION] = request.cookies["-http-session-"]
             return await self._checked(request, handler)
         header = request.headers.get("Authorization")
         if not header:
-            return self._challenge()
+            return web.Response(status=401, headers={"WWW-Authenticate": self.login.challenge()})
         self.auth_attempts += 1
-        ok = self._authorized(header, request)
+        ok = self.login.check(header, request.method, request.raw_path)
         if not ok:
             if ok is False:
                 log.warning("login refused for user %r", self.user)
-            return self._challenge(stale=ok is None)
+            return web.Response(status=401, headers={
+                "WWW-Authenticate": self.login.challenge(stale=ok is None)})
         if self._busy > 0:
             self._busy -= 1
             log.info("login refused: too many sessions (503)")
-            return _error(self.version, 503, "too many sessions")
+            return self._refuse(503, "too many sessions")
         token = secrets.token_hex(16)
         self._sessions.add(token)
         self.issued.append(token)
@@ -267,30 +236,29 @@ class RwsPeer(Peer):
         return resp
 
     async def _checked(self, request: web.Request, handler: Any) -> web.StreamResponse:
-        """The encoding each version demands: ``?json=1`` on 1.0, the v2.0 media types."""
-        if request.path.startswith(("/rw", "/subscription")):
-            if self.version == 1 and request.query.get("json") != "1":
-                return _error(1, 400, "this fake answers JSON only (?json=1)")
-            if self.version == 2 and self.api.accept not in request.headers.get("Accept", ""):
-                return _error(2, 406, f"Accept must be {self.api.accept}")
-            if (self.version == 2 and request.method == "POST"
-                    and request.headers.get("Content-Type") != self.api.content_type):
-                return _error(2, 415, f"Content-Type must be {self.api.content_type}")
+        """The encodings each version demands of the resources that answer or take a body:
+        ``?json=1`` for a JSON answer on 1.0; on 2.0 the v2.0 media types (Accept of an answer
+        under /rw or /subscription, Content-Type of a form and of a file upload)."""
+        d, path = self.dialect, request.path
+        rws = path.startswith(("/rw", "/subscription")) and not path.startswith("/poll")
+        if d.json_query and rws and request.method == "GET" and request.query.get("json") != "1":
+            return self._refuse(400, "this fake answers JSON only (?json=1)")
+        if d.accept is not None and rws and request.method in ("GET", "POST") and (
+                d.accept not in request.headers.get("Accept", "")):
+            return self._refuse(406, f"Accept must be {d.accept}")
+        if d.form is not None and rws and request.method == "POST" and (
+                request.headers.get("Content-Type") != d.form):
+            return self._refuse(415, f"Content-Type must be {d.form}")
+        if d.uploads and path.startswith("/fileservice/") and request.method == "PUT" and (
+                request.headers.get("Content-Type") not in d.uploads):
+            return self._refuse(415, f"Content-Type must be one of {', '.join(d.uploads)}")
         return await handler(request)
 
     # -- routes
     def _routes(self, app: web.Application) -> None:
         table: dict[tuple[str, str], dict[str | None, Any]] = {}
-        a = self.api
-        for which, method, fn in (
-                ("mastership_request", "POST", self._mastership_request),
-                ("mastership_release", "POST", self._mastership_release),
-                ("loadmod", "POST", self._loadmod), ("symbol", "GET", self._get_symbol),
-                ("symbol_set", "POST", self._set_symbol), ("execution", "GET", self._get_exec),
-                ("exec_start", "POST", self._start), ("exec_stop", "POST", self._stop_exec),
-                ("exec_resetpp", "POST", self._resetpp)):
-            path, action = getattr(a, which)
-            table.setdefault((method, path), {})[action] = fn
+        for method, path, action, name in self.dialect.routes:
+            table.setdefault((method, path), {})[action] = getattr(self, f"_{name}")
         for (method, path), actions in table.items():
             app.router.add_route(method, path, self._dispatch(actions))
         app.router.add_get("/", self._root)
@@ -304,13 +272,13 @@ class RwsPeer(Peer):
         async def handle(request: web.Request) -> web.StreamResponse:
             fn = actions.get(request.query.get("action"))
             if fn is None:
-                return _error(self.version, 400, "unknown action")
+                return self._refuse(400, "unknown action")
             result: web.StreamResponse = await fn(request)
             return result
         return handle
 
     async def _root(self, request: web.Request) -> web.Response:
-        return web.json_response(_state(self.version, [{"_type": "rw-service"}]))
+        return self._answer(200, [{"_type": "rw-service", "_title": "rw"}])
 
     async def _logout(self, request: web.Request) -> web.Response:
         token = request.get(_SESSION)
@@ -325,7 +293,7 @@ class RwsPeer(Peer):
 
     async def _mastership_request(self, request: web.Request) -> web.Response:
         if self._master not in (None, request.get(_SESSION)):
-            return _error(self.version, 403, "mastership held by another client")
+            return self._refuse(403, "mastership held by another client")
         self._master = request[_SESSION]
         return web.Response(status=204)
 
@@ -335,59 +303,73 @@ class RwsPeer(Peer):
         return web.Response(status=204)
 
     async def _loadmod(self, request: web.Request) -> web.Response:
+        """Load a module file from the controller's disk (modulepath, replace); RAPID
+        mastership required. Only the robid_path module of an experiment loads here."""
         if not self._is_master(request):
-            return _error(self.version, 403, "no RAPID mastership")
+            return self._refuse(403, "no RAPID mastership")
+        if request.match_info["task"] != ROBID_TASK:
+            return self._refuse(404, "no such task")
         form = await request.post()
-        path = self._local(str(form.get("modulepath", "")))
+        remote = str(form.get("modulepath", ""))
+        path = self._controller_path(remote)
+        if path is None or path.parent != self.home / _ROBID_DIR or path.suffix != ".mod":
+            return self._refuse(400, f"load error: {remote!r} is no module in $HOME/robid")
+        if str(form.get("replace", "false")) != "true" and self._loaded:
+            return self._refuse(400, f"load error: module {PATH_MODULE} already loaded")
         try:
-            text = path.read_text() if path else ""
-            if not re.match(rf"MODULE {PATH_MODULE}\b", text):
-                raise ValueError("not the robid_path module")
-            parse_rapid(text, self.core.robot.joint_types)
-        except (OSError, ValueError) as err:
-            return _error(self.version, 400, f"load error: {err}")
-        self._loaded = text
+            why = check_path_module(await asyncio.to_thread(path.read_text))
+        except (OSError, UnicodeDecodeError) as err:
+            why = str(err)
+        if why is not None:
+            return self._refuse(400, f"load error: {why}")
+        self._loaded = path.stem
         return web.Response(status=204)
 
     def _var(self, request: web.Request) -> str | None:
         m = request.match_info
-        ok = m["task"] == "T_ROB1" and m["module"] == "robid" and m["var"] in VARS
+        ok = m["task"] == ROBID_TASK and m["module"] == ROBID_MODULE and m["var"] in ROBID_VARS
         return m["var"] if ok else None
 
     async def _get_symbol(self, request: web.Request) -> web.Response:
         var = self._var(request)
         if var is None:
-            return _error(self.version, 400, "no such symbol")
-        value = '"' + self.vars[var].replace('"', '""') + '"'
-        return web.json_response(_state(self.version, [{"_type": "rap-data", "value": value}]))
+            return self._refuse(400, "no such symbol")
+        return self._answer(200, [{"_type": "rap-data",
+                                   "_title": f"RAPID/{ROBID_TASK}/{ROBID_MODULE}/{var}",
+                                   "value": rapid_string_value(self.vars[var])}])
 
     async def _set_symbol(self, request: web.Request) -> web.Response:
         var = self._var(request)
         if var is None:
-            return _error(self.version, 400, "no such symbol")
+            return self._refuse(400, "no such symbol")
         if not self._is_master(request):
-            return _error(self.version, 403, "no RAPID mastership")
-        self.vars[var] = parse_rapid_string(str((await request.post()).get("value", "")))
+            return self._refuse(403, "no RAPID mastership")
+        text = rapid_string_text(str((await request.post()).get("value", "")))
+        if text is None or len(text) > 80:
+            return self._refuse(400, "value is not a RAPID string (\"…\", at most 80 characters)")
+        self.vars[var] = text
         if var == "robid_params":
-            self._receive_parameters(self.vars[var])
+            self._receive_parameters(text)
         self._notify_var(var)
         return web.Response(status=204)
 
-    async def _get_exec(self, request: web.Request) -> web.Response:
-        return web.json_response(_state(self.version, [{"_type": "rap-execution",
-                                                        "ctrlexecstate": self.exec_state,
-                                                        "cycle": "once"}]))
+    async def _get_execution(self, request: web.Request) -> web.Response:
+        return self._answer(200, [{"_type": "rap-execution", "_title": "execution",
+                                   "ctrlexecstate": self.exec_state, "cycle": "once"}])
 
     async def _resetpp(self, request: web.Request) -> web.Response:
         if not self._is_master(request):
-            return _error(self.version, 403, "no RAPID mastership")
+            return self._refuse(403, "no RAPID mastership")
         return web.Response(status=204)
 
     async def _start(self, request: web.Request) -> web.Response:
         if self.exec_state == "running":
-            return _error(self.version, 400, "execution is already running")
+            return self._refuse(400, "execution is already running")
         if self._master not in (None, request.get(_SESSION)):
-            return _error(self.version, 403, "mastership held by another client")
+            return self._refuse(403, "mastership held by another client")
+        form = await request.post()
+        if form.get("cycle", "asis") not in ("once", "forever", "asis", "oncedone"):
+            return self._refuse(400, "cycle: expected once, forever, asis or oncedone")
         exp, nonce = self.vars["robid_exp"], self.vars["robid_nonce"]
         self._set_exec("running")
         t = threading.Thread(target=self._program, args=(exp, nonce, self._loaded),
@@ -396,20 +378,24 @@ class RwsPeer(Peer):
         t.start()
         return web.Response(status=204)
 
-    async def _stop_exec(self, request: web.Request) -> web.Response:
+    async def _stop(self, request: web.Request) -> web.Response:
         self._set_exec("stopped")
         return web.Response(status=204)
 
     # -- subscriptions
     async def _subscribe(self, request: web.Request) -> web.Response:
+        """``resources=<k>`` (repeated), ``<k>=<resource uri>``, ``<k>-p=<priority 0-2>``."""
         form = await request.post()
-        resources = [str(form[str(k)]) for k in form.getall("resources", []) if str(k) in form]
-        known = {self._event_resource(v) for v in VARS} | {self.api.exec_event}
-        if not resources or any(r not in known for r in resources):
-            return _error(self.version, 400, "unknown subscription resource")
+        keys = [str(k) for k in form.getall("resources", [])]
+        resources = [str(form.get(k, "")) for k in keys]
+        known = {self.dialect.variable_resource(v) for v in ROBID_VARS}
+        known.add(self.dialect.exec_resource)
+        if not keys or any(r not in known for r in resources) or any(
+                str(form.get(f"{k}-p", "")) not in ("0", "1", "2") for k in keys):
+            return self._refuse(400, "unknown subscription resource or priority")
         sid = str(next(self._ids))
         self._subs[sid] = {"resources": resources, "ws": None, "silent": False,
-                           "session": request[_SESSION]}
+                           "session": request[_SESSION], "sent": None}
         scheme = "wss" if self.tls else "ws"
         return web.Response(status=201, headers={
             "Location": f"{scheme}://127.0.0.1:{self.port}/poll/{sid}"})
@@ -417,7 +403,7 @@ class RwsPeer(Peer):
     async def _unsubscribe(self, request: web.Request) -> web.Response:
         sub = self._subs.pop(request.match_info["id"], None)
         if sub is None:
-            return _error(self.version, 404, "no such subscription")
+            return self._refuse(404, "no such subscription")
         if sub["ws"] is not None:
             await sub["ws"].close()
         return web.Response(status=204)
@@ -425,12 +411,12 @@ class RwsPeer(Peer):
     async def _poll(self, request: web.Request) -> web.StreamResponse:
         sub = self._subs.get(request.match_info["id"])
         if sub is None or sub["session"] != request.get(_SESSION) or sub["ws"] is not None:
-            return _error(self.version, 404, "no such subscription")
+            return self._refuse(404, "no such subscription")
         offered = [p.strip() for p in request.headers.get("Sec-WebSocket-Protocol",
                                                           "").split(",")]
-        if self.api.subprotocol not in offered:
-            return _error(self.version, 400, "Unsupported Sec-WebSocket-Protocol")
-        ws = web.WebSocketResponse(protocols=(self.api.subprotocol,))
+        if self.dialect.subprotocol not in offered:
+            return self._refuse(400, "Unsupported Sec-WebSocket-Protocol")
+        ws = web.WebSocketResponse(protocols=(self.dialect.subprotocol,))
         await ws.prepare(request)
         sub["ws"] = ws
         pinger = asyncio.create_task(self._ping_loop(ws, sub), name="rws-peer-ping")
@@ -448,34 +434,30 @@ class RwsPeer(Peer):
             if not sub["silent"] and not ws.closed:
                 await ws.ping()
 
-    def _event_resource(self, var: str) -> str:
-        return self.api.symbol_event.format(task="T_ROB1", module="robid", var=var)
-
-    def _notify(self, resource: str, body: str) -> None:
-        """Send an event to every subscriber of ``resource`` (call on the server's loop)."""
+    def _notify(self, resource: str, items: str) -> None:
+        """An event (XHTML, as RWS sends them) to every subscriber of ``resource``, in order
+        per socket (call on the server's loop)."""
         for sid, sub in self._subs.items():
             ws = sub["ws"]
             if resource in sub["resources"] and ws is not None and not sub["silent"]:
-                text = (f'<html><body><div class="state"><a href="subscription/{sid}" '
-                        f'rel="group"></a><ul>{body}</ul></div></body></html>')
-                asyncio.ensure_future(self._send(ws, text))
+                sub["sent"] = asyncio.ensure_future(self._send(sub["sent"], ws,
+                                                               event_page(sid, items)))
 
     @staticmethod
-    async def _send(ws: web.WebSocketResponse, text: str) -> None:
+    async def _send(before: asyncio.Future[None] | None, ws: web.WebSocketResponse,
+                    text: str) -> None:
+        if before is not None:
+            await asyncio.wait([before])
         with contextlib.suppress(ConnectionError, RuntimeError):  # a closing socket
             await ws.send_str(text)
 
     def _notify_var(self, var: str) -> None:
-        res = self._event_resource(var)
-        self._notify(res, f'<li class="rap-value-ev"><a href="{res.split(";")[0]}" '
-                          'rel="self"/></li>')
+        res = self.dialect.variable_resource(var)
+        self._notify(res, value_event(res, var, rapid_string_value(self.vars[var])))
 
     def _set_exec(self, state: str) -> None:
         self.exec_state = state
-        self._notify(self.api.exec_event,
-                     '<li class="rap-ctrlexecstate-ev"><a href="/rw/rapid/execution;'
-                     f'ctrlexecstate" rel="self"/><span class="ctrlexecstate">{state}</span>'
-                     '</li>')
+        self._notify(self.dialect.exec_resource, exec_event(self.dialect.exec_resource, state))
 
     def _in_loop(self, fn: Any, *args: Any) -> None:
         """Run ``fn`` on the server's loop (from a program thread) and wait for it."""
@@ -493,15 +475,25 @@ class RwsPeer(Peer):
 
     # -- the file service
     def _local(self, remote: str) -> Path | None:
-        if not remote.startswith("$HOME/") or ".." in remote.split("/"):
+        """A file-service path (``<HOME variable>/…``, spelled as this version wants it)."""
+        home = self.dialect.home + "/"
+        return self._inside(remote[len(home):]) if remote.startswith(home) else None
+
+    def _controller_path(self, remote: str) -> Path | None:
+        """A path as RAPID and loadmod name it (``$HOME/…``; the variable in any case)."""
+        m = _CONTROLLER_HOME.match(remote)
+        return self._inside(remote[m.end():]) if m else None
+
+    def _inside(self, rel: str) -> Path | None:
+        if ".." in rel.split("/"):
             return None
-        path = (self.home / remote[len("$HOME/"):]).resolve()
+        path = (self.home / rel).resolve()
         return path if path.is_relative_to(self.home.resolve()) else None
 
     async def _files(self, request: web.Request) -> web.StreamResponse:
         path = self._local(request.match_info["path"])
         if path is None:
-            return _error(self.version, 403, "outside $HOME")
+            return self._refuse(403, f"outside {self.dialect.home}")
         if request.method == "PUT":
             data = await request.read()
             await asyncio.to_thread(self._write, path, data)
@@ -512,7 +504,7 @@ class RwsPeer(Peer):
         if request.method == "DELETE" and path.is_file():
             path.unlink()
             return web.Response(status=204)
-        return _error(self.version, 404, "no such file")
+        return self._refuse(404, "no such file")
 
     @staticmethod
     def _write(path: Path, data: bytes) -> None:
@@ -520,10 +512,12 @@ class RwsPeer(Peer):
         atomic_write(path, data)
 
     def _receive_parameters(self, remote: str) -> None:
-        """The robid module loads the set named in ``robid_params`` and acknowledges it."""
+        """The robid module loads the set named in ``robid_params`` and acknowledges it in
+        ``robid_params_ack``: ``<tag> OK`` or ``<tag> ERR <reason>``, the tag being the part of
+        the file name before ``.json`` after the robot's name."""
         if not remote or (self.core.fault == "no_param_ack" and self.core.take_fault()):
             return
-        path = self._local(remote)
+        path = self._controller_path(remote)
         tag = Path(remote).stem.rsplit(".", 1)[-1]
         try:
             if path is None:
@@ -531,23 +525,27 @@ class RwsPeer(Peer):
             self.core.receive_parameters(path.read_bytes())
             self.vars["robid_params_ack"] = f"{tag} OK"
         except (OSError, RobidError) as err:
-            self.vars["robid_params_ack"] = f"{tag} ERR {str(err)[:80]}"
+            self.vars["robid_params_ack"] = f"{tag} ERR {' '.join(str(err).split())}"[:80]
         self._notify_var("robid_params_ack")
 
     # -- the robid RAPID module's main, on the plant
-    def _program(self, exp: str, nonce: str, module: str) -> None:
+    def _program(self, exp: str, nonce: str, loaded: str) -> None:
+        """main of the robid module: clear robid_done, run the loaded robid_path (late
+        binding), close the log, then ``robid_done`` := ``<nonce> <sha256> <size>`` (or
+        ``ERR <nonce> <text>``); execution stops (README sketch)."""
         def finish(done: str | None) -> None:
             if done is not None:
                 self.vars["robid_done"] = done
                 self._notify_var("robid_done")
             self._set_exec("stopped")
 
-        if f"experiment {exp}," not in module:  # %robid_move% runs whatever is loaded
+        if loaded != exp:  # %robid_move% runs whatever is loaded
             self._in_loop(finish, error_value(nonce, "loaded module is not this experiment's"))
             return
+        folder = self.home / _ROBID_DIR
         try:
-            csv = (self.home / "robid" / f"{exp}.traj.csv").read_bytes()
-            header = (self.home / "robid" / f"{exp}.traj.yaml").read_bytes()
+            csv = (folder / f"{exp}.traj.csv").read_bytes()
+            header = (folder / f"{exp}.traj.yaml").read_bytes()
         except OSError as err:
             self._in_loop(finish, error_value(nonce, f"trajectory: {err.strerror}"))
             return
@@ -580,7 +578,7 @@ class RwsPeer(Peer):
                            for sub in list(self._subs.values()))
                    and time.monotonic() < end and not self._halt.wait(0.01)):
                 pass
-        self._write(self.home / log_file(exp, nonce)[len("$HOME/"):], res.delivered)
+        self._write(folder / f"{exp}.{nonce}.log.csv", res.delivered)
         done = done_value(nonce, res.sha256, len(res.log))
         if res.fault == "stale_semaphore":  # an answer to an attempt that no longer exists
             self._in_loop(self._set_var, "robid_done", done_value("0stale0", "0" * 64, 1))
@@ -596,7 +594,7 @@ class RwsPeer(Peer):
         log.info("controller restarts (fault restart)")
         self._down_until = time.monotonic() + self.restart_s
         self._sessions.clear()
-        self._nonces.clear()
+        self.login.forget()
         self._master = None
         for sub in self._subs.values():
             if sub["ws"] is not None:
@@ -607,3 +605,4 @@ class RwsPeer(Peer):
         log.info("websockets go silent (fault silent_ws)")
         for sub in self._subs.values():
             sub["silent"] = True
+

@@ -1,6 +1,7 @@
-"""The controller end of the serial line protocol (``docs/serial_line_protocol.md``) on the
-master side of a pseudo-terminal pair; the daemon opens the slave through a stable symlink
-``<workdir>/tty`` (a pulled cable comes back as a new pty behind the same name).
+"""The controller end of the serial line protocol (``docs/serial_line_protocol.md``, written
+from that page) on the master side of a pseudo-terminal pair; the daemon opens the slave
+through a stable symlink ``<workdir>/tty`` (a pulled cable comes back as a new pty behind the
+same name).
 
 Own faults: ``flip_bytes`` (a bit flipped in ``flip_rate`` of the frames either way: CRCs
 catch them, frames are resent), ``cable_pulled`` (mid-log the line is gone for ``pull_s`` and
@@ -22,16 +23,37 @@ import select
 import threading
 import time
 import tty
+import zlib
 from pathlib import Path
 from typing import Any
 
-from robid_link.drivers.serial_line import MAX_LINE, decode_frame, encode_frame
 from robid_link.fakes.controller import ControllerCore, Peer, RunResult
 
-__all__ = ["SerialPeer"]
+__all__ = ["SerialPeer", "frame", "frame_fields"]
 
 log = logging.getLogger("robid.fake_controller")
 PROGRAM_FILES = ("traj.csv", "traj.yaml")
+#: the longest line either side accepts (page: "Frames")
+MAX_LINE = 24_000
+
+
+def frame(*fields: object) -> bytes:
+    """One frame (page: "Frames"): ASCII fields joined by single spaces, ``*``, the CRC-32
+    (IEEE 802.3) of everything before the ``*`` as 8 upper-case hex digits, ``\n``."""
+    body = " ".join(str(f) for f in fields).encode("ascii", "replace")  # free text: ASCII
+    return body + b"*" + f"{zlib.crc32(body):08X}".encode() + b"\n"
+
+
+def frame_fields(line: bytes) -> list[str] | None:
+    """The fields of a received line; None when it is no frame or its CRC does not match
+    (upper-case hex exactly: a flipped case bit is damage too)."""
+    body, star, crc = line.rstrip(b"\n").rpartition(b"*")
+    if not star or crc != f"{zlib.crc32(body):08X}".encode():
+        return None
+    try:
+        return body.decode("ascii").split(" ")
+    except UnicodeDecodeError:
+        return None
 
 
 class _Pacer:
@@ -71,7 +93,8 @@ class SerialPeer(Peer):
         self._jobs: queue.Queue[tuple[str, str] | None] = queue.Queue()
         self._files: dict[tuple[str, str], tuple[int, str, bytearray]] = {}
         self._state: dict[tuple[str, str], str] = {}  # BUSY / DONE / ERR
-        self._results: dict[tuple[str, str], RunResult] = {}
+        self._results: dict[tuple[str, str], RunResult] = {}  # logs not cleared yet
+        self._done: dict[tuple[str, str], tuple[int, str]] = {}  # length, SHA-256
         self._errors: dict[tuple[str, str], tuple[int, str]] = {}
         self._programs: dict[str, dict[str, bytes]] = {}
         self._pulled = False
@@ -120,12 +143,16 @@ class SerialPeer(Peer):
 
     # -- bytes
     def _write(self, *fields: object) -> None:
-        frame = bytearray(encode_frame(*fields))
+        self._send(frame(*fields))
+
+    def _send(self, data: bytes) -> None:
+        """One frame onto the line (damaged at random under ``flip_bytes``)."""
+        out = bytearray(data)
         if self.core.fault == "flip_bytes" and self._rng.random() < self.flip_rate:
-            frame[self._rng.randrange(len(frame) - 1)] ^= 1 << self._rng.randrange(7)
+            out[self._rng.randrange(len(out) - 1)] ^= 1 << self._rng.randrange(7)
         with self._write_lock:
-            self._tx.take(len(frame))
-            view = memoryview(frame)
+            self._tx.take(len(out))
+            view = memoryview(out)
             while view:
                 with self._fd_lock:
                     fd = self._master
@@ -163,7 +190,7 @@ class SerialPeer(Peer):
     # -- frames
     def _handle(self, line: bytes) -> None:
         self.frames_in += 1
-        f = decode_frame(line)
+        f = frame_fields(line)
         if f is None:
             self.frames_bad += 1
             self._write("NAK")
@@ -250,15 +277,15 @@ class SerialPeer(Peer):
         if self._state.get(key) == "ERR":
             code, text = self._errors[key]
             self._write("ERR", *key, code, text)
-        elif key in self._results:
-            res = self._results[key]
+        elif key in self._done:  # also after CLEAR: STAT always has an answer
             self.answer_times.setdefault(key[1], time.perf_counter())
-            self._write("DONE", *key, len(res.log), res.sha256)
+            self._write("DONE", *key, *self._done[key])
 
     def offer_log(self, exp_id: str, nonce: str, data: bytes) -> None:
         """A finished program's log, as if it had run (benchmarks of the log transfer)."""
         self._state[(exp_id, nonce)] = "DONE"
-        self._results[(exp_id, nonce)] = RunResult(exp_id, nonce, None, data, data)
+        self._results[(exp_id, nonce)] = res = RunResult(exp_id, nonce, None, data, data)
+        self._done[(exp_id, nonce)] = (len(res.log), res.sha256)
 
     # -- the worker
     def _work(self) -> None:
@@ -279,6 +306,7 @@ class SerialPeer(Peer):
                 self._answer(key)
                 continue
             self._results[key] = res
+            self._done[key] = (len(res.log), res.sha256)
             if res.fault == "stale_semaphore":  # an older attempt's answer shows first
                 self._write("DONE", key[0], "0stale0", 1, "0" * 64)
                 time.sleep(0.2)

@@ -36,7 +36,8 @@ CALIBRATE = {**CAMPAIGN, "experiments": [RIGID, "upload", {"kind": "verify"}],
              "diagnose": False}
 
 
-def _setup(work: Path, out: Path, driver: dict[str, Any]) -> tuple[Path, Path]:
+def _setup(work: Path, out: Path, driver: dict[str, Any], calibrate: bool = True
+           ) -> tuple[Path, Path]:
     model = out / "model.yaml"
     out.mkdir(parents=True, exist_ok=True)
     for stale in (model, model.with_name("model.yaml.history.jsonl")):
@@ -47,8 +48,9 @@ def _setup(work: Path, out: Path, driver: dict[str, Any]) -> tuple[Path, Path]:
     cfg = {"robot": str(DEMO_ROBOT), "state_dir": str(work / "state"),
            "control_socket": str(work / "control.sock"),
            "driver": driver,
-           "campaigns": {"demo": {**CAMPAIGN, "model": str(model)},
-                         "calibrate": {**CALIBRATE, "model": str(model)}}}
+           "campaigns": {"demo": {**CAMPAIGN, "model": str(model)}}}
+    if calibrate:  # only over a link that can upload a parameter set
+        cfg["campaigns"]["calibrate"] = {**CALIBRATE, "model": str(model)}
     path = work / "daemon.yaml"
     path.write_text(yaml.safe_dump(cfg, sort_keys=False))
     return path, model
@@ -132,8 +134,12 @@ def run_demo(work: Path, out: Path, json_path: str | None = None,
           f"{HIDDEN['name']}@{HIDDEN['joint']} (the default model does not know it)")
     print(f"  fake controller ({driver}) and daemon with a temporary state dir; "
           f"daemon log: {out / 'daemon.log'}")
+    from robid_link.link.driver import CAP_UPLOAD
+    from robid_link.link.registry import driver_class
+
+    can_upload = CAP_UPLOAD in driver_class(driver).capabilities
     with _controller(driver, work / "cell") as peer:
-        cfg_path, model_file = _setup(work, out, peer.driver_options())
+        cfg_path, model_file = _setup(work, out, peer.driver_options(), can_upload)
         doc = asyncio.run(_campaign(cfg_path, out / "daemon.log"))
         run = doc["run"]
         if run["state"] != "completed":
@@ -141,10 +147,15 @@ def run_demo(work: Path, out: Path, json_path: str | None = None,
         report = work / "state" / "reports" / run["run_id"]
         print((report / "summary.txt").read_text())
         spec = _add_suggestion(doc, model_file)
-        print("  calibrate and verify: the verification path on the controller's CAD model, "
-              "identification" + (f" with {spec.label()}" if spec else "") + ", upload, the "
-              "path again")
-        cal = asyncio.run(_campaign(cfg_path, out / "daemon.log", "calibrate"))
+        cal = None
+        if can_upload:
+            print("  calibrate and verify: the verification path on the controller's CAD "
+                  "model, identification" + (f" with {spec.label()}" if spec else "")
+                  + ", upload, the path again")
+            cal = asyncio.run(_campaign(cfg_path, out / "daemon.log", "calibrate"))
+        else:
+            print(f"  calibrate and verify: skipped, the {driver} link cannot upload a "
+                  "parameter set")
     files = []
     for f in sorted(report.iterdir()):
         shutil.copy2(f, out / f.name)
@@ -166,9 +177,9 @@ def run_demo(work: Path, out: Path, json_path: str | None = None,
     print("    default model : " + " ".join(f"{x:7.3f}" for x in first["rmse"]))
     if spec is not None:
         print(f"    + {model.labels()[-1]:<12}: " + " ".join(f"{x:7.3f}" for x in final_rmse))
-    if cal["run"]["state"] != "completed":
+    if cal is not None and cal["run"]["state"] != "completed":
         raise RobidError(f"demo calibration failed: {cal['run']['error']}")
-    tracking = _tracking(cal["results"])
+    tracking = _tracking(cal["results"]) if cal is not None else None
     if tracking:
         from robid_link.ident.report.figures import tracking_figure
 

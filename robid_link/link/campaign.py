@@ -18,12 +18,12 @@ from robid_link.exceptions import ApprovalError, ConfigError, RobidError, StoreF
 from robid_link.jobs import MotionProgram
 from robid_link.link.cycle import CyclePolicy, run_cycle
 from robid_link.link.driver import CAP_UPLOAD, Driver, FeedforwardSource, parameter_bytes
-from robid_link.link.store import Store
+from robid_link.link.store import AsyncStore, Store
 from robid_link.link.worker import run_here, run_in_worker
 
 __all__ = ["TRIGGERS", "plan", "check_capabilities", "create_run", "prepare_programs",
            "preflight", "check_config", "describe_campaigns", "execute_run", "resonance_hints",
-           "feedforward_source", "drift_flags"]
+           "feedforward_source", "drift_flags", "drift_flags_of"]
 
 log = logging.getLogger("robid.campaign")
 
@@ -85,7 +85,7 @@ def _program_job(cfg: DaemonConfig, exp_id: str, exp: ExperimentDef, slow: float
                          str(cfg.base_dir), slow)
 
 
-async def preflight(cfg: DaemonConfig, store: Store, ctx: Any, campaign: str) -> None:
+async def preflight(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: str) -> None:
     """Everything a run of ``campaign`` will need, checked before any program is given: the
     model file and ``add:`` effects load, every program generates and passes the limits."""
     await run_in_worker(ctx, _model_job(cfg, campaign))
@@ -117,14 +117,15 @@ def describe_campaigns(cfg: DaemonConfig) -> list[dict[str, Any]]:
             for name, camp in cfg.campaigns.items()]
 
 
-def create_run(cfg: DaemonConfig, store: Store, campaign: str, trigger: str) -> str:
+async def create_run(cfg: DaemonConfig, store: AsyncStore, campaign: str, trigger: str
+                     ) -> str:
     if campaign not in cfg.campaigns:
         raise ConfigError(f"campaign {campaign!r}: not in {cfg.path} "
                           f"(known: {', '.join(sorted(cfg.campaigns))})")
     if trigger not in TRIGGERS:
         raise ConfigError(f"trigger: expected operator or timer, got {trigger!r}")
     exps = [(exp_id, exp.kind) for exp_id, exp, _ in plan(cfg.campaigns[campaign])]
-    return store.create_run(campaign, trigger, {"campaign": campaign}, exps)
+    return await store.create_run(campaign, trigger, {"campaign": campaign}, exps)
 
 
 def _program_key(cfg: DaemonConfig, exp: ExperimentDef, slow: float | None, exp_id: str) -> str:
@@ -146,14 +147,14 @@ def _program_key(cfg: DaemonConfig, exp: ExperimentDef, slow: float | None, exp_
     return h.hexdigest()
 
 
-async def prepare_programs(cfg: DaemonConfig, store: Store, ctx: Any, campaign: str
+async def prepare_programs(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: str
                            ) -> list[tuple[str, MotionProgram]]:
     """Generate (or take from the cache) and limit-check every program of a campaign."""
     out = []
     for exp_id, exp, slow in plan(cfg.campaigns[campaign]):
         key = _program_key(cfg, exp, slow, exp_id)
         sha = await _generated(cfg, store, ctx, campaign, key, exp_id, exp, slow)
-        out.append((exp_id, store.load_program(sha)))
+        out.append((exp_id, await store.load_program(sha)))
     return out
 
 
@@ -163,11 +164,11 @@ async def prepare_programs(cfg: DaemonConfig, store: Store, ctx: Any, campaign: 
 _generating: dict[tuple[int, str], asyncio.Future[None]] = {}
 
 
-async def _generated(cfg: DaemonConfig, store: Store, ctx: Any, campaign: str, key: str,
+async def _generated(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: str, key: str,
                      exp_id: str, exp: ExperimentDef, slow: float | None) -> str:
     token = (id(store), key)
     while True:
-        sha = store.program_for(key)
+        sha = await store.program_for(key)
         if sha is not None:
             return sha
         pending = _generating.get(token)
@@ -178,7 +179,7 @@ async def _generated(cfg: DaemonConfig, store: Store, ctx: Any, campaign: str, k
     _generating[token] = done
     try:
         prog = await run_in_worker(ctx, _program_job(cfg, exp_id, exp, slow))
-        sha = store.put_program(key, prog)
+        sha = await store.put_program(key, prog)
     finally:
         del _generating[token]
         done.set_result(None)
@@ -187,22 +188,22 @@ async def _generated(cfg: DaemonConfig, store: Store, ctx: Any, campaign: str, k
     return sha
 
 
-async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, run_id: str,
+async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: Any, run_id: str,
                       n_joints: int, kill_hook: Callable[[str], None] = lambda step: None
                       ) -> None:
     """Run or resume ``run_id`` to completed/failed (logs are checked for ``n_joints``, the
     robot's). Cancellation leaves it resumable."""
-    run = store.run(run_id)
+    run = await store.run(run_id)
     camp = cfg.campaigns.get(run["campaign"])
     if camp is None:
-        store.set_run(run_id, "failed", error=f"campaign {run['campaign']!r} is no longer in "
-                      f"{cfg.path}")
+        await store.set_run(run_id, "failed", error=f"campaign {run['campaign']!r} is no "
+                            f"longer in {cfg.path}")
         return
-    store.set_run(run_id, "running", step="generating programs")
+    await store.set_run(run_id, "running", step="generating programs")
     try:
         programs = await _pinned_programs(cfg, store, ctx, run_id, run["campaign"])
         if run["trigger"] == "timer":
-            missing = [e for e, p in programs if not store.approved(p.sha256)]
+            missing = [e for e, p in programs if not await store.approved(p.sha256)]
             if missing:
                 raise ApprovalError(f"unattended run refused: program of experiment "
                                     f"{missing[0]} ({dict(programs)[missing[0]].sha256[:12]}) "
@@ -221,7 +222,8 @@ async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any,
         shas: dict[str, str] = {}
 
         async def cycle(k: int, exp_id: str, program: MotionProgram) -> None:
-            store.set_run(run_id, "running", step=f"experiment {k}/{len(programs)} {exp_id}")
+            await store.set_run(run_id, "running",
+                                step=f"experiment {k}/{len(programs)} {exp_id}")
             policy = CyclePolicy(camp.timeout_s or 2 * program.duration_s + 60.0, camp.retries,
                                  camp.backoff_s)
             shas[exp_id] = await run_cycle(store, driver, run_id, exp_id, program, policy,
@@ -241,22 +243,22 @@ async def execute_run(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any,
     except StoreFullError:
         raise  # not the run's fault: it waits, journaled as it is, until space returns
     except RobidError as err:
-        store.set_run(run_id, "failed", error=str(err))
+        await store.set_run(run_id, "failed", error=str(err))
         log.error("run=%s failed: %s", run_id, err)
         return
-    store.set_run(run_id, "completed")
+    await store.set_run(run_id, "completed")
     log.info("run=%s completed", run_id)
 
 
-async def _pinned_programs(cfg: DaemonConfig, store: Store, ctx: Any, run_id: str,
+async def _pinned_programs(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
                            campaign: str) -> list[tuple[str, MotionProgram]]:
     """Programs of the run; an experiment already handed out keeps the program it was given
     (a config edited between a crash and the restart cannot change a half-run experiment)."""
     fresh = dict(await prepare_programs(cfg, store, ctx, campaign))
     out = []
-    for row in store.experiments(run_id):
+    for row in await store.experiments(run_id):
         if row["program_sha"]:
-            out.append((row["exp_id"], store.load_program(row["program_sha"])))
+            out.append((row["exp_id"], await store.load_program(row["program_sha"])))
         elif row["exp_id"] in fresh:
             out.append((row["exp_id"], fresh[row["exp_id"]]))
         else:
@@ -301,14 +303,14 @@ def resonance_hints(cfg: DaemonConfig, campaign: str, n_joints: int
     return tuple(out)
 
 
-async def _identify(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, run_id: str,
+async def _identify(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: Any, run_id: str,
                     camp: CampaignDef, shas: list[str], n_joints: int,
                     kill_hook: Callable[[str], None]) -> None:
-    store.set_run(run_id, "running", step="identifying" + (" and diagnosing"
-                                                           if camp.diagnose else ""))
+    await store.set_run(run_id, "running", step="identifying" + (" and diagnosing"
+                                                                 if camp.diagnose else ""))
     job = jb.IdentifyJob(
         run_id=run_id, robot=str(cfg.robot), lock=cfg.lock,
-        logs=tuple(str(store.check_log(s)) for s in shas),
+        logs=tuple([str(await store.check_log(s)) for s in shas]),
         report_dir=str(store.dir / "reports" / run_id),
         model=str(camp.model) if camp.model else None, add=camp.add, method=camp.method,
         diagnose=camp.diagnose, cutoff_hz=camp.cutoff_hz, motor_side=camp.motor_side,
@@ -317,25 +319,25 @@ async def _identify(cfg: DaemonConfig, store: Store, driver: Driver, ctx: Any, r
     out: jb.IdentifyOutcome = await run_in_worker(
         ctx, job, on_start=lambda: kill_hook("identify_started"))
     for kind, rec in out.records.items():
-        store.add_result(run_id, out.robot, kind, rec)
+        await store.add_result(run_id, out.robot, kind, rec)
     log.info("run=%s identified: rmse %s", run_id,
              " ".join(f"{x:.3g}" for x in out.records["identify"]["rmse"] or []))
-    for flag in drift_flags(store, out.robot, run_id):
-        store.note(run_id, None, "drift", parameter=flag.parameter, kind=flag.kind,
+    for flag in drift_flags_of(await store.results(out.robot), out.robot, run_id):
+        await store.note(run_id, None, "drift", parameter=flag.parameter, kind=flag.kind,
                    change=round(flag.change, 4), sigmas=round(flag.sigmas, 1))
         log.warning("run=%s drift: %s", run_id, flag.message)
     pset = dict(out.parameter_set.doc)
     body = parameter_bytes(pset)
-    version = store.add_param_set(pset, body)
+    version = await store.add_param_set(pset, body)
     log.info("run=%s parameter set %d of %s: %s", run_id, version, out.robot,
              pset["sha256"][:12])
     if camp.upload:
-        trigger = store.run(run_id)["trigger"]
+        trigger = (await store.run(run_id))["trigger"]
         await upload_set(store, driver, out.robot, pset["sha256"], run_id,
                          unattended=trigger == "timer")
 
 
-async def _tracking(cfg: DaemonConfig, store: Store, ctx: Any, run_id: str,
+async def _tracking(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
                     camp: CampaignDef, runs: list[tuple[str, MotionProgram, str]]) -> None:
     """How the robot followed each verification path (before / after the upload)."""
     if not runs:
@@ -346,20 +348,27 @@ async def _tracking(cfg: DaemonConfig, store: Store, ctx: Any, run_id: str,
             return "before"
         return "after" if camp.upload else "check"
 
-    job = jb.VerifyJob(str(cfg.robot), cfg.lock, tuple(
-        jb.VerifyRun(e, phase(e), str(store.check_log(sha)), p) for e, p, sha in runs))
+    job = jb.VerifyJob(str(cfg.robot), cfg.lock, tuple([
+        jb.VerifyRun(e, phase(e), str(await store.check_log(sha)), p) for e, p, sha in runs]))
     out: jb.VerifyOutcome = await run_in_worker(ctx, job)
     for rec in map(dict, out.records):
         rec["run_id"] = run_id
-        store.add_result(run_id, out.robot, f"verify_{rec['phase']}", rec)
+        await store.add_result(run_id, out.robot, f"verify_{rec['phase']}", rec)
         log.info("run=%s %s: tool RMS %.3f mm, max %.3f mm", run_id, rec["experiment"],
                  rec["tracking"]["tool_rms_mm"], rec["tracking"]["tool_max_mm"])
 
 
 def drift_flags(store: Store, robot: str, run_id: str | None = None) -> list[jb.DriftFlag]:
-    """Drift flags of ``robot``'s stored identifications (of one run, or all): a DriftJob run
+    """Drift flags of ``robot``'s stored identifications (of one run, or all), read from a
+    blocking store (the operator commands' reader)."""
+    return drift_flags_of(store.results(robot), robot, run_id)
+
+
+def drift_flags_of(results: list[dict[str, Any]], robot: str, run_id: str | None = None
+                   ) -> list[jb.DriftFlag]:
+    """Drift flags of ``robot`` in its stored ``results`` (of one run, or all): a DriftJob run
     here (pure Python, quick: the status answers with it)."""
-    report = run_here(jb.DriftJob(robot, tuple(store.results(robot)), run_id))
+    report = run_here(jb.DriftJob(robot, tuple(results), run_id))
     assert isinstance(report, jb.DriftReport)
     return list(report.flags)
 
@@ -377,30 +386,30 @@ def feedforward_source(cfg: DaemonConfig, ctx: Any) -> FeedforwardSource:
     return source
 
 
-async def _elasticity(cfg: DaemonConfig, store: Store, ctx: Any, run_id: str,
+async def _elasticity(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
                       runs: list[tuple[str, MotionProgram, str]]) -> None:
     """Two-mass fits of each elasticity experiment (its schedule from the program header)."""
     if not runs:
         return
-    store.set_run(run_id, "running", step="elasticity")
-    job = jb.ElasticityJob(str(cfg.robot), cfg.lock, tuple(
-        jb.ElasticityRun(e, str(store.check_log(sha)), p) for e, p, sha in runs))
+    await store.set_run(run_id, "running", step="elasticity")
+    job = jb.ElasticityJob(str(cfg.robot), cfg.lock, tuple([
+        jb.ElasticityRun(e, str(await store.check_log(sha)), p) for e, p, sha in runs]))
     out: jb.ElasticityOutcome = await run_in_worker(ctx, job)
     rec = {"kind": "elasticity", "run_id": run_id, "robot": out.robot,
            "experiments": [dict(r) for r in out.results]}
-    store.add_result(run_id, out.robot, "elasticity", rec)
+    await store.add_result(run_id, out.robot, "elasticity", rec)
     for res in out.results:
         for j in res["result"].get("joints", []):
             log.info("run=%s %s joint %d: K %.4g, D %.4g, f_res %.3g Hz", run_id,
                      res["experiment"], j["joint"], j["k"], j["d"], j["f_res_hz"])
 
 
-async def upload_set(store: Store, driver: Driver, robot: str, sha: str, run_id: str | None,
+async def upload_set(store: AsyncStore, driver: Driver, robot: str, sha: str, run_id: str | None,
                      *, unattended: bool, timeout_s: float = 120.0) -> None:
     """Send a stored parameter set to the controller. Unattended runs send only a set an
     operator approved; every attempt is recorded; the controller's acknowledgement (or its
     absence: the set is withdrawn, the controller keeps its old one) is the outcome."""
-    row = next((s for s in store.param_sets(robot) if s["sha256"] == sha), None)
+    row = next((s for s in await store.param_sets(robot) if s["sha256"] == sha), None)
     if row is None:
         raise ConfigError(f"robot {robot}: no parameter set {sha[:12]}")
     if unattended and not row["approved"]:
@@ -409,12 +418,12 @@ async def upload_set(store: Store, driver: Driver, robot: str, sha: str, run_id:
                             f"{row['version']} --robot {robot} --config C")
     import json
 
-    store.record_upload(robot, sha, run_id, "sent")
+    await store.record_upload(robot, sha, run_id, "sent")
     try:
         await driver.upload_parameters(json.loads(row["body"]), timeout_s=timeout_s)
     except RobidError as err:
-        store.record_upload(robot, sha, run_id, "failed", str(err))
+        await store.record_upload(robot, sha, run_id, "failed", str(err))
         raise
-    store.record_upload(robot, sha, run_id, "acknowledged")
+    await store.record_upload(robot, sha, run_id, "acknowledged")
     log.info("robot=%s parameter set %d (%s) loaded by the controller", robot, row["version"],
              sha[:12])

@@ -12,7 +12,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from typing import Any, TextIO
 
 from robid_link.config import DaemonConfig
@@ -23,7 +23,7 @@ from robid_link.link.control import ControlServer
 from robid_link.link.driver import Done
 from robid_link.link.notify import Notifier
 from robid_link.link.registry import make_driver
-from robid_link.link.store import Store
+from robid_link.link.store import AsyncStore, SqliteStore
 from robid_link.link.worker import run_in_worker
 
 __all__ = ["Daemon", "setup_logging"]
@@ -90,12 +90,15 @@ class Daemon:
         if cfg.worker_start_method == "forkserver":
             # children fork with the numerical stack imported (numba kernels come from cache)
             self.ctx.set_forkserver_preload(["robid_link.link.worker", *WORKER_PRELOAD])
-        self.store: Store | None = None
+        self.store: AsyncStore | None = None
         self.driver: Any = None
         self.robot: RobotInfo | None = None
         self._queue: asyncio.Queue[str] = asyncio.Queue()
         self._current: str | None = None
         self._run_task: asyncio.Task[None] | None = None
+        # held while a run is taken from the queue and started, and while a cancel decides:
+        # the store is read with awaits, and a queued run must never start once cancelled
+        self._handover = asyncio.Lock()
         self._cancelling: set[str] = set()
         self._run_ended = asyncio.Event()
         self._paused: list[str] = []  # runs waiting for space in the state_dir, in order
@@ -119,8 +122,9 @@ class Daemon:
         cfg = self.cfg
         stack = contextlib.AsyncExitStack()
         try:
-            self.store = Store(cfg.state_dir)
-            stack.callback(self._closed_store)
+            self.store = SqliteStore(cfg.state_dir)
+            await self.store.open()
+            stack.push_async_callback(self._closed_store)
             self.robot = await run_in_worker(self.ctx, RobotInfoJob(str(cfg.robot), cfg.lock))
             self.driver = make_driver(cfg.driver)
             self.driver.bind_feedforward(cp.feedforward_source(cfg, self.ctx))
@@ -131,7 +135,7 @@ class Daemon:
                                                           cfg.socket_mode))
             tg = await stack.enter_async_context(asyncio.TaskGroup())
             await self._withdraw_orphans()
-            for run_id in self.store.unfinished_runs():
+            for run_id in await self.store.unfinished_runs():
                 log.info("run=%s resuming", run_id)
                 self._queue.put_nowait(run_id)
             self._tasks = [tg.create_task(self._runner_loop(), name="robid-runner"),
@@ -145,7 +149,7 @@ class Daemon:
             await stack.aclose()
             raise
         self._stack = stack
-        self.notifier.send(READY=1, STATUS=self._status_line())
+        self.notifier.send(READY=1, STATUS=await self._status_line())
         self.ready.set()
         log.info("daemon ready robot=%s joints=%d driver=%s socket=%s pid=%d", self.robot.name,
                  self.robot.n, cfg.driver["name"], cfg.control_socket, os.getpid())
@@ -164,33 +168,41 @@ class Daemon:
         assert stack is not None
         await stack.aclose()
 
-    def _closed_store(self) -> None:
+    async def _closed_store(self) -> None:
         assert self.store is not None
-        self.store.close()
+        await self.store.close()
         log.info("daemon stopped")
 
     async def _runner_loop(self) -> None:
         assert self.store is not None
         while True:
             run_id = await self._queue.get()
-            if self.store.run(run_id)["state"] not in ("queued", "running"):
-                continue  # cancelled while it waited
-            self._current = run_id
-            self._run_ended.clear()
-            self.notifier.send(STATUS=self._status_line())
+            async with self._handover:  # a cancel finds the run queued or started, never between
+                if (await self.store.run(run_id))["state"] not in ("queued", "running"):
+                    continue  # cancelled while it waited
+                self._current = run_id
+                self._run_ended.clear()
+                status = await self._status_line()
+                self._launch(run_id)
+            self.notifier.send(STATUS=status)
             try:
                 await self._execute(run_id)
             finally:
                 self._current, self._run_task = None, None
                 self._run_ended.set()
-                self.notifier.send(STATUS=self._status_line())
+                self.notifier.send(STATUS=await self._status_line())
 
-    async def _execute(self, run_id: str) -> None:
-        """One run in its own task (``cancel`` stops it); a full state_dir pauses it."""
+    def _launch(self, run_id: str) -> None:
+        """The run's own task (``cancel`` stops it); awaited by ``_execute`` with no await in
+        between, so it never runs unwatched."""
         assert self.store is not None and self.robot is not None
         self._run_task = asyncio.create_task(
             cp.execute_run(self.cfg, self.store, self.driver, self.ctx, run_id, self.robot.n,
                            self._kill), name=f"robid-run-{run_id}")
+
+    async def _execute(self, run_id: str) -> None:
+        """Await the run's task; a cancel finishes it, a full state_dir pauses it."""
+        assert self.store is not None and self._run_task is not None
         try:
             await self._run_task
         except asyncio.CancelledError:
@@ -205,7 +217,7 @@ class Daemon:
             cause = f"{type(err).__name__}: {err}"
             log.error("run=%s internal error: %s", run_id, cause, exc_info=err)
             with contextlib.suppress(StoreFullError):
-                self.store.set_run(run_id, "failed", error=f"internal error: {cause}")
+                await self.store.set_run(run_id, "failed", error=f"internal error: {cause}")
         finally:
             self._cancelling.discard(run_id)
 
@@ -213,10 +225,10 @@ class Daemon:
         """Withdraw what is still out (so no controller runs it later), keep a log that was
         already announced, journal, state ``cancelled``."""
         assert self.store is not None
-        for row in self.store.experiments(run_id):
+        for row in await self.store.experiments(run_id):
             if row["state"] in ("giving", "given", "taken") and row["nonce"]:
                 await self._withdraw_row(row)
-        self.store.set_run(run_id, "cancelled", error="cancelled by the operator")
+        await self.store.set_run(run_id, "cancelled", error="cancelled by the operator")
         log.info("run=%s cancelled", run_id)
 
     async def _withdraw_row(self, row: dict[str, Any]) -> None:
@@ -229,17 +241,16 @@ class Daemon:
                 if row["state"] == "taken" and not row["log_sha"]:
                     data = await self.driver.fetch_logs(Done(exp_id, nonce, row["done_sha"],
                                                              row["done_size"]))
-                    sha = self.store.put_log(data)
-                    self.store.note(run_id, exp_id, "raw_stored", log_sha=sha, size=len(data))
+                    await self.store.put_log(data, run_id=run_id, exp_id=exp_id)
                 await self.driver.withdraw(exp_id, nonce)
         except (DriverError, OSError, TimeoutError) as err:
             log.warning("run=%s exp=%s withdraw failed: %s", run_id, exp_id, err)
             return
-        self.store.step(run_id, exp_id, "withdrawn")
+        await self.store.step(run_id, exp_id, "withdrawn")
 
     async def _withdraw_orphans(self) -> None:
         assert self.store is not None
-        for row in self.store.given_without_run():
+        for row in await self.store.given_without_run():
             log.info("run=%s exp=%s withdrawing a 'ready' its run no longer watches",
                      row["run_id"], row["exp_id"])
             await self._withdraw_row(row)
@@ -274,7 +285,7 @@ class Daemon:
         assert self.store is not None
         while True:
             try:
-                self.store.require_space()
+                await self.store.require_space()
             except StoreFullError as err:
                 self._set_full(str(err))
             else:
@@ -291,100 +302,125 @@ class Daemon:
             self.notifier.send(WATCHDOG=1)
             await asyncio.sleep(self.notifier.watchdog_s)
 
-    def _status_line(self) -> str:
+    async def _status_line(self) -> str:
         if self._full:
             return f"{self._full}; {len(self._paused)} run(s) paused"
-        if self._current is None:
+        current = self._current
+        if current is None:
             return f"idle, {self._queue.qsize()} run(s) queued"
         assert self.store is not None
-        run = self.store.run(self._current)
-        return (f"run {self._current} ({run['campaign']}): {run['step'] or run['state']}, "
+        run = await self.store.run(current)
+        return (f"run {current} ({run['campaign']}): {run['step'] or run['state']}, "
                 f"{run['progress']['stored']}/{run['progress']['total']} logs")
 
     # ----------------------------------------------------------------- control requests
+    def _command_table(self) -> dict[str, Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]]:
+        """The control socket's commands: name → handler of the request."""
+        return {"ping": self._ping, "start": self._start, "status": self._status,
+                "cancel": lambda req: self._cancel(str(req.get("run_id"))),
+                "results": self._results, "list": self._list, "approve": self._approve,
+                "params_approve": self._params, "params_rollback": self._params}
+
     async def handle(self, req: dict[str, Any]) -> dict[str, Any]:
+        """Answer one control request (``cmd`` and its arguments) from the command table."""
         assert self.store is not None
-        cmd = req["cmd"]
-        if cmd == "ping":
-            return {"ok": True, "pid": os.getpid(),
-                    "robot": {"name": self.robot.name, "joints": self.robot.n}
-                    if self.robot else None}
-        if cmd == "start":
-            if self._full:
-                raise StoreFullError(self._full)
-            self.store.require_space()
-            trigger = req.get("trigger", "operator")
-            if str(req.get("campaign")) in self.cfg.campaigns:  # else create_run says so
-                await cp.preflight(self.cfg, self.store, self.ctx, str(req.get("campaign")))
-            run_id = cp.create_run(self.cfg, self.store, str(req.get("campaign")), trigger)
-            self._queue.put_nowait(run_id)
-            log.info("run=%s queued campaign=%s trigger=%s", run_id, req.get("campaign"), trigger)
-            return {"ok": True, "run_id": run_id}
-        if cmd == "status":
-            runs = ([self.store.run(req["run_id"])] if req.get("run_id")
-                    else self.store.runs(int(req.get("limit", 20))))
-            drift = [f.message for f in cp.drift_flags(self.store, self.robot.name)] \
-                if self.robot else []
-            return {"ok": True, "runs": runs, "current": self._current,
-                    "status": self._status_line(), "drift": drift}
-        if cmd == "cancel":
-            return await self._cancel(str(req.get("run_id")))
-        if cmd == "results":
-            return {"ok": True, "results": self.store.results(req.get("robot"),
-                                                              req.get("run_id"))}
-        if cmd == "list":
-            return {"ok": True, "campaigns": cp.describe_campaigns(self.cfg)}
-        if cmd == "approve":
-            name = str(req.get("campaign"))
-            if name not in self.cfg.campaigns:
-                raise ConfigError(f"campaign {name!r}: not in {self.cfg.path}")
-            programs = await cp.prepare_programs(self.cfg, self.store, self.ctx, name)
-            for exp_id, prog in programs:
-                self.store.approve(prog.sha256, name, exp_id, str(req.get("by", "operator")))
-            return {"ok": True, "approved": [{"experiment": e, "sha256": p.sha256,
-                                              "duration_s": p.duration_s}
-                                             for e, p in programs]}
-        if cmd in ("params_approve", "params_rollback"):
-            return await self._params(cmd, str(req.get("robot")), req.get("set"),
-                                      str(req.get("by", "operator")))
-        raise ConfigError(f"unknown command {cmd!r}")
+        table = self._command_table()
+        handler = table.get(req["cmd"])
+        if handler is None:
+            raise ConfigError(f"unknown command {req['cmd']!r} (known: "
+                              f"{', '.join(sorted(table))})")
+        return await handler(req)
+
+    async def _ping(self, req: dict[str, Any]) -> dict[str, Any]:
+        return {"ok": True, "pid": os.getpid(),
+                "robot": {"name": self.robot.name, "joints": self.robot.n}
+                if self.robot else None}
+
+    async def _start(self, req: dict[str, Any]) -> dict[str, Any]:
+        assert self.store is not None
+        if self._full:
+            raise StoreFullError(self._full)
+        await self.store.require_space()
+        trigger = req.get("trigger", "operator")
+        if str(req.get("campaign")) in self.cfg.campaigns:  # else create_run says so
+            await cp.preflight(self.cfg, self.store, self.ctx, str(req.get("campaign")))
+        run_id = await cp.create_run(self.cfg, self.store, str(req.get("campaign")), trigger)
+        self._queue.put_nowait(run_id)
+        log.info("run=%s queued campaign=%s trigger=%s", run_id, req.get("campaign"), trigger)
+        return {"ok": True, "run_id": run_id}
+
+    async def _status(self, req: dict[str, Any]) -> dict[str, Any]:
+        assert self.store is not None
+        runs = ([await self.store.run(req["run_id"])] if req.get("run_id")
+                else await self.store.runs(int(req.get("limit", 20))))
+        drift = [f.message for f in cp.drift_flags_of(await self.store.results(self.robot.name),
+                                                       self.robot.name)] \
+            if self.robot else []
+        return {"ok": True, "runs": runs, "current": self._current,
+                "status": await self._status_line(), "drift": drift}
+
+    async def _results(self, req: dict[str, Any]) -> dict[str, Any]:
+        assert self.store is not None
+        return {"ok": True, "results": await self.store.results(req.get("robot"),
+                                                                req.get("run_id"))}
+
+    async def _list(self, req: dict[str, Any]) -> dict[str, Any]:
+        return {"ok": True, "campaigns": cp.describe_campaigns(self.cfg)}
+
+    async def _approve(self, req: dict[str, Any]) -> dict[str, Any]:
+        assert self.store is not None
+        name = str(req.get("campaign"))
+        if name not in self.cfg.campaigns:
+            raise ConfigError(f"campaign {name!r}: not in {self.cfg.path}")
+        programs = await cp.prepare_programs(self.cfg, self.store, self.ctx, name)
+        for exp_id, prog in programs:
+            await self.store.approve(prog.sha256, name, exp_id, str(req.get("by", "operator")))
+        return {"ok": True, "approved": [{"experiment": e, "sha256": p.sha256,
+                                          "duration_s": p.duration_s}
+                                         for e, p in programs]}
 
     async def _cancel(self, run_id: str) -> dict[str, Any]:
         """A queued (or paused) run is dropped; the running one stops at its next step,
         after its 'ready' was withdrawn."""
         assert self.store is not None
-        state = self.store.run(run_id)["state"]
-        if state not in ("queued", "running"):
-            raise ConfigError(f"run {run_id} is {state}: nothing to cancel")
-        if run_id == self._current and self._run_task is not None:
-            self._cancelling.add(run_id)
-            self._run_task.cancel()
+        async with self._handover:
+            state = (await self.store.run(run_id))["state"]
+            if state not in ("queued", "running"):
+                raise ConfigError(f"run {run_id} is {state}: nothing to cancel")
+            started = run_id == self._current and self._run_task is not None
+            if started:
+                assert self._run_task is not None
+                self._cancelling.add(run_id)
+                self._run_task.cancel()
+            else:
+                if run_id in self._paused:
+                    self._paused.remove(run_id)
+                await self._finish_cancel(run_id)
+        if started:
             async with asyncio.timeout(60):
                 await self._run_ended.wait()
-        else:
-            if run_id in self._paused:
-                self._paused.remove(run_id)
-            await self._finish_cancel(run_id)
-        return {"ok": True, "run_id": run_id, "state": self.store.run(run_id)["state"],
+        return {"ok": True, "run_id": run_id, "state": (await self.store.run(run_id))["state"],
                 "message": f"run {run_id} cancelled; nothing of it is left for the "
                            "controller"}
 
-    async def _params(self, cmd: str, robot: str, ref: Any, by: str) -> dict[str, Any]:
+    async def _params(self, req: dict[str, Any]) -> dict[str, Any]:
         """Approve a parameter set for unattended uploads, or give the controller back the
         set it had before the one in use (byte for byte)."""
         assert self.store is not None
-        sets = self.store.param_sets(robot)
+        cmd, robot, ref = req["cmd"], str(req.get("robot")), req.get("set")
+        by = str(req.get("by", "operator"))
+        sets = await self.store.param_sets(robot)
         if not sets:
             raise ConfigError(f"robot {robot}: no parameter set stored yet")
         if cmd == "params_approve":
-            row = self.store.param_set(robot, str(ref)) if ref else sets[-1]
-            self.store.approve_param_set(row["sha256"], by)
+            row = await self.store.param_set(robot, str(ref)) if ref else sets[-1]
+            await self.store.approve_param_set(row["sha256"], by)
             return {"ok": True, "message": f"approved parameter set {row['version']} of "
                     f"{robot} ({row['sha256'][:16]}…) for unattended uploads"}
         if self._current is not None:
             raise ConfigError(f"rollback refused: run {self._current} is in progress; roll "
                               "back when it has ended")
-        active = self.store.active_param_sets(robot)
+        active = await self.store.active_param_sets(robot)
         if len(active) < 2:
             raise ConfigError(f"robot {robot}: the controller has had no earlier set to roll "
                               "back to")

@@ -8,18 +8,22 @@ from __future__ import annotations
 
 import abc
 import asyncio
+import concurrent.futures
 import hashlib
 import json
 import logging
+import threading
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Self
 
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError, RobidError
 from robid_link.jobs import FeedforwardTable, MotionProgram, ParameterSet, RobotInfo, check_name
+from robid_link.link.options import Options, Values
 
 __all__ = [
     "Driver",
+    "ThreadBridge",
     "Done",
     "FeedforwardSource",
     "parameter_bytes",
@@ -59,21 +63,107 @@ class Done:
     size: int | None = None
 
 
+class ThreadBridge:
+    """How a driver's threads (a serial reader, a watchdog observer, a CAN motion master and
+    its log writer) reach the event loop, the one way every driver uses.
+
+    ``call(fn, *args)`` runs ``fn`` on the loop from any thread; at most ``maxsize`` calls wait
+    there at once: a thread that outruns the loop waits for room (its own input buffers
+    back up) instead of growing the loop's queue without bound. ``await wait(future)`` awaits
+    a thread's ``concurrent.futures.Future`` (cancelling the wait leaves the future alone).
+    The driver binds the bridge to its loop on ``open`` and closes it with itself: calls made
+    after that are dropped and return False.
+    """
+
+    def __init__(self, name: str, maxsize: int = 1024) -> None:
+        self.name = name
+        self.maxsize = maxsize
+        self._room = threading.BoundedSemaphore(maxsize)
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._loop_thread: int | None = None
+        self._closed = threading.Event()
+
+    def bind(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Deliver to ``loop`` (called from the loop's thread)."""
+        self._loop, self._loop_thread = loop, threading.get_ident()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed.is_set()
+
+    def close(self) -> None:
+        """Drop every later call (and the ones still waiting for room); safe twice."""
+        self._closed.set()
+
+    def call(self, fn: Callable[..., object], *args: object) -> bool:
+        """Run ``fn(*args)`` on the loop, soon; False if the bridge is closed or unbound."""
+        loop = self._loop
+        if loop is None or self._closed.is_set():
+            return False
+        if threading.get_ident() == self._loop_thread:
+            try:
+                loop.call_soon(self._deliver, fn, args, False)
+            except RuntimeError:  # the loop has closed
+                return False
+            return True
+        while not self._room.acquire(timeout=0.1):
+            if self._closed.is_set():
+                return False
+        try:
+            loop.call_soon_threadsafe(self._deliver, fn, args, True)
+        except RuntimeError:  # the loop has closed meanwhile
+            self._room.release()
+            return False
+        return True
+
+    def _deliver(self, fn: Callable[..., object], args: tuple[object, ...], counted: bool
+                 ) -> None:
+        if counted:
+            self._room.release()
+        if not self._closed.is_set():
+            fn(*args)
+
+    async def wait(self, future: concurrent.futures.Future[Any]) -> Any:
+        """The result of a thread's future, awaited on the loop (one wake-up per future: it
+        is delivered even after ``close``, so no waiter hangs on a closed bridge)."""
+        loop = asyncio.get_running_loop()
+        done = asyncio.Event()
+
+        def wake(_: concurrent.futures.Future[Any]) -> None:
+            try:
+                loop.call_soon_threadsafe(done.set)
+            except RuntimeError:  # that loop has closed meanwhile
+                pass
+
+        future.add_done_callback(wake)
+        await done.wait()
+        return future.result()
+
+
 class Driver(abc.ABC):
     """Base of every controller driver (the daemon's side of the link).
 
-    Subclasses set ``name`` and ``capabilities`` and implement ``_open``, ``_close``,
-    ``_put_program``, ``_give_ready``, ``_wait_done``, ``_fetch_logs``; optionally
-    ``_upload_parameters`` and ``_acknowledge``. A ``CAP_FEEDFORWARD`` driver keeps the set it
-    was given and asks ``feedforward_table`` for its setpoints' torques when it gives.
+    Subclasses set ``name``, ``capabilities`` and ``options`` and implement ``_open``,
+    ``_close``, ``_put_program``, ``_give_ready``, ``_wait_done``, ``_fetch_logs``; optionally
+    ``_upload_parameters`` and ``_acknowledge``. The base checks the options into
+    ``self.config`` and owns ``self.bridge``, the way the driver's threads reach the loop. A
+    ``CAP_FEEDFORWARD`` driver keeps the set it was given and asks ``feedforward_table`` for
+    its setpoints' torques when it gives.
     """
 
     name: ClassVar[str] = "driver"
     capabilities: ClassVar[frozenset[str]] = frozenset()
-    #: option names the driver accepts (besides ``name``); others are a ConfigError
-    options: ClassVar[frozenset[str]] = frozenset()
+    #: the options the driver accepts (besides ``name``), declared once: ``__init__`` checks
+    #: the given ones into ``self.config``; per-joint vectors are checked by ``bind_robot``.
+    #: (A plain set of names is still accepted from older plug-ins: only unknown keys are
+    #: refused then.)
+    options: ClassVar[Options | frozenset[str]] = Options()
 
-    def __init__(self) -> None:
+    def __init__(self, **options: Any) -> None:
+        spec = type(self).options
+        self.config = (spec.parse(options, owner=self.name) if isinstance(spec, Options)
+                       else Values(options))
+        self.bridge = ThreadBridge(self.name)
         self._opened = False
         self._closed = False
         self.robot: RobotInfo | None = None
@@ -83,6 +173,9 @@ class Driver(abc.ABC):
         """The robot this link moves, given before ``open``: a driver checks its options
         against it (unit vectors per joint, axis counts) so a mismatch is refused before any
         motion, with the option's name."""
+        spec = type(self).options
+        if isinstance(spec, Options):
+            spec.check_joints(self.config, robot.n, robot.name)
         self._check_robot(robot)
         self.robot = robot
 
@@ -117,6 +210,7 @@ class Driver(abc.ABC):
         if self._closed:
             raise DriverError(f"{self.name}: driver was closed")
         if not self._opened:
+            self.bridge.bind(asyncio.get_running_loop())
             await self._open()
             self._opened = True
             log.info("driver=%s opened", self.name)
@@ -124,9 +218,13 @@ class Driver(abc.ABC):
     async def close(self) -> None:
         if self._opened and not self._closed:
             self._closed = True
-            await self._close()
+            try:
+                await self._close()
+            finally:
+                self.bridge.close()
             log.info("driver=%s closed", self.name)
         self._closed = True
+        self.bridge.close()
 
     async def __aenter__(self) -> Self:
         await self.open()

@@ -42,10 +42,16 @@ FAKE_MODULES = {"plant": "robid_link.fakes.plant", "controller": "robid_link.fak
 
 
 def _installed(builtin: dict[str, str], group: str) -> dict[str, str]:
-    table = dict(builtin)
+    """The built-ins plus the group's entry points. A name claimed by two different targets
+    (a plug-in shadowing a built-in, or two plug-ins) maps to every claim, joined by ' | ':
+    choosing it is refused (``_load``), never silently one of them."""
+    claims: dict[str, list[str]] = {name: [target] for name, target in builtin.items()}
     for ep in entry_points(group=group):
-        table.setdefault(ep.name, ep.value)
-    return table
+        dist = getattr(ep.dist, "name", None)
+        target = ep.value if dist in (None, "robid_link", "robid-link") else f"{ep.value} ({dist})"
+        if ep.value not in [c.partition(" (")[0] for c in claims.get(ep.name, [])]:
+            claims.setdefault(ep.name, []).append(target)
+    return {name: " | ".join(targets) for name, targets in claims.items()}
 
 
 def _shipped(table: dict[str, str]) -> dict[str, str]:
@@ -69,6 +75,9 @@ def _load(kind: str, key: str, name: str, table: dict[str, str], extra: str | No
     if name not in table:
         raise ConfigError(f"{key}: unknown {kind} {name!r} "
                           f"(available: {', '.join(sorted(table))})")
+    if " | " in table[name]:
+        raise ConfigError(f"{key}: {kind} name {name!r} is claimed by {table[name]}: rename "
+                          "the plug-in's entry point")
     module_name, _, attr = table[name].partition(":")
     try:
         module = importlib.import_module(module_name)

@@ -221,7 +221,7 @@ def _options(**over: Any) -> dict[str, Any]:
 
 @pytest.mark.parametrize("over, key", [
     ({"nodes": [1, 200, 3]}, r"driver\.nodes\[1\]: expected a node id in 1\.\.127"),
-    ({"nodes": [1, 1, 3]}, r"driver\.nodes: node ids repeat"),
+    ({"nodes": [1, 1, 3]}, r"driver\.nodes: expected a list without repeated values"),
     ({"eds": "/nonexistent/drives.eds"}, r"driver\.eds: .*file not found"),
     ({"eds": None}, r"driver\.eds: missing"),
     ({"sync_period_s": 0.0005}, r"driver\.sync_period_s: expected a number in \[0\.001"),
@@ -229,7 +229,7 @@ def _options(**over: Any) -> dict[str, Any]:
     ({"bitrate": "fast"}, r"driver\.bitrate"),
     ({"sync_echo": "0x6041:0"}, r"driver\.sync_echo: expected a manufacturer-specific object"),
     ({"sync_echo": "echo"}, r"driver\.sync_echo: expected .*'echo'"),
-    ({"max_missed": 500}, r"driver\.max_missed: expected a number in \[1, 200\]"),
+    ({"max_missed": 500}, r"driver\.max_missed: expected an integer in \[1, 200\]"),
 ])
 def test_bad_config_names_the_key(over: dict[str, Any], key: str) -> None:
     with pytest.raises(ConfigError, match=key):

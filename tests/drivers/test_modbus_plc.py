@@ -116,7 +116,7 @@ def test_nonce_tags() -> None:
 @pytest.mark.parametrize(("over", "match"), [
     ({"host": None}, r"driver\.host: missing"),
     ({"share": None}, r"driver\.share: missing"),
-    ({"port": 70000}, r"driver\.port: expected a number between 1 and 65535"),
+    ({"port": 70000}, r"driver\.port: expected an integer in \[1, 65535\]"),
     ({"device_id": "x"}, r"driver\.device_id: expected an integer"),
     ({"registers": {"colour": 3}}, r"driver\.registers\.colour: unknown register"),
     ({"registers": {"status": -1}}, r"driver\.registers\.status: expected an address"),

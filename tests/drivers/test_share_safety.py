@@ -17,7 +17,7 @@ from robid_link.jobs import MotionProgram
 from robid_link.link import cycle
 from robid_link.link.cycle import CyclePolicy, run_cycle
 from robid_link.link.driver import Done
-from robid_link.link.store import Store
+from robid_link.link.store import SqliteStore
 from robid_link.safeopen import NotRegularError, TooLargeError, read_regular
 
 
@@ -111,25 +111,23 @@ def test_malformed_done_is_one_failed_attempt_never_a_second_motion(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, garbage: bytes) -> None:
     monkeypatch.setattr(cycle, "new_nonce", lambda: "n1")
     driver = _driver(tmp_path)
-    store = Store(tmp_path / "state")
-    store.reserve_bytes = 0
-    run_id = store.create_run("c", "operator", {}, [("exp1", "custom")])
     program = _program()
 
     async def check(path: str) -> dict[str, int]:
         return {}
 
-    async def go() -> None:
-        async with driver:
+    async def go() -> tuple[list[dict], dict]:
+        async with SqliteStore(tmp_path / "state", reserve_bytes=0) as store, driver:
+            run_id = await store.create_run("c", "operator", {}, [("exp1", "custom")])
             (driver.sem / "exp1.n1.done").write_bytes(garbage)  # the current nonce's answer
-            await run_cycle(store, driver, run_id, "exp1", program,
-                            CyclePolicy(timeout_s=5, retries=3, backoff_s=0.01), check)
+            with pytest.raises(CycleError, match="not retried") as info:
+                await run_cycle(store, driver, run_id, "exp1", program,
+                                CyclePolicy(timeout_s=5, retries=3, backoff_s=0.01), check)
+            assert isinstance(info.value.__cause__, ProtocolError)
+            return await store.journal(run_id), await store.experiment(run_id, "exp1")
 
-    with pytest.raises(CycleError, match="not retried") as info:
-        asyncio.run(go())
-    assert isinstance(info.value.__cause__, ProtocolError)
-    givings = [j for j in store.journal(run_id) if j["step"] == "giving"]
+    journal, row = asyncio.run(go())
+    givings = [j for j in journal if j["step"] == "giving"]
     assert len(givings) == 1  # one motion, no re-run
-    assert store.experiment(run_id, "exp1")["state"] == "failed"
+    assert row["state"] == "failed"
     assert os.listdir(driver.sem) == []  # withdrawn and cleaned
-    store.close()

@@ -133,7 +133,7 @@ def wait_socket(path: Path, proc: subprocess.Popen[bytes] | None = None,
 async def wait_run(daemon: Any, run_id: str, timeout_s: float = 120.0) -> dict[str, Any]:
     async with asyncio.timeout(timeout_s):
         while True:
-            run = daemon.store.run(run_id)
+            run = await daemon.store.run(run_id)
             if run["state"] in ("completed", "failed"):
                 return run
             await asyncio.sleep(0.05)

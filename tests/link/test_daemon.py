@@ -47,7 +47,7 @@ def test_campaign_runs_to_completion(tmp_path: Path, controller: Any) -> None:
 
     async def body(d: Daemon) -> tuple[dict, list]:
         run = await start(d, "quick")
-        return run, d.store.results(run_id=run["run_id"])  # type: ignore[union-attr]
+        return run, await d.store.results(run_id=run["run_id"])  # type: ignore[union-attr]
 
     with controller() as ctrl:
         run, results = with_daemon(cfg, body)
@@ -88,7 +88,7 @@ def test_faults_are_retried_and_lose_nothing(tmp_path: Path, controller: Any, fa
         run = await start(d)
         store = d.store
         assert store is not None
-        return run, store.journal(run["run_id"]), store.log_count()
+        return run, await store.journal(run["run_id"]), await store.log_count()
 
     with controller(fault=fault) as ctrl:
         run, journal, n_logs = with_daemon(cfg, body)
@@ -131,7 +131,8 @@ def test_controller_dies_mid_program_then_comes_back(tmp_path: Path, controller:
                 await asyncio.sleep(0.02)
             await asyncio.to_thread(first.thread.join, 10)
         assert not first.thread.is_alive()  # the controller is dead, the daemon waits
-        while not any(j["step"] == "attempt_failed" for j in d.store.journal(ans["run_id"])):
+        while not any(j["step"] == "attempt_failed"
+                      for j in await d.store.journal(ans["run_id"])):  # type: ignore
             await asyncio.sleep(0.05)  # the take times out; the attempt is withdrawn
         with controller():  # restarted controller; the daemon's retry reaches it
             return await wait_run(d, ans["run_id"])
@@ -147,7 +148,7 @@ def test_bounded_retries_end_in_a_clear_failure(tmp_path: Path, controller: Any)
 
     async def body(d: Daemon) -> tuple[dict, int]:
         run = await start(d)
-        return run, d.store.log_count()  # type: ignore[union-attr]
+        return run, await d.store.log_count()  # type: ignore[union-attr]
 
     with controller(fault="corrupt_log", fault_count=10) as ctrl:
         run, n_logs = with_daemon(cfg, body)
@@ -175,7 +176,7 @@ def test_unsafe_program_never_reaches_the_share(tmp_path: Path, controller: Any)
     async def body(d: Daemon) -> str:
         with pytest.raises(UnsafeProgramError) as info:  # refused at start: no run at all
             await start(d, "wild")
-        assert d.store.runs() == []  # type: ignore[union-attr]
+        assert await d.store.runs() == []  # type: ignore[union-attr]
         return str(info.value)
 
     with controller() as ctrl:
@@ -239,8 +240,9 @@ def test_control_socket_mode_stale_file_and_commands(tmp_path: Path, controller:
         out["campaigns"] = [c["name"] for c in listed["campaigns"]]
         with pytest.raises(Exception, match="campaign 'nope': not in"):
             await asyncio.to_thread(request, sock, {"cmd": "start", "campaign": "nope"})
-        with pytest.raises(Exception, match="unknown command 'dance'"):
+        with pytest.raises(Exception, match="unknown command 'dance'") as unknown:
             await asyncio.to_thread(request, sock, {"cmd": "dance"})
+        out["unknown"], out["table"] = str(unknown.value), sorted(d._command_table())
         with pytest.raises(ConfigError, match="another daemon answers there"):
             from robid_link.link.control import ControlServer
 
@@ -255,6 +257,11 @@ def test_control_socket_mode_stale_file_and_commands(tmp_path: Path, controller:
     assert out["mode"] == 0o660 and out["pid"] == os.getpid()
     assert out["campaigns"] == ["one"]
     assert not sock.exists()  # removed on a clean stop
+    # one table of commands: an unknown one is answered with one line naming the known ones
+    assert out["table"] == ["approve", "cancel", "list", "params_approve", "params_rollback",
+                            "ping", "results", "start", "status"]
+    assert out["unknown"] == ("unknown command 'dance' (known: approve, cancel, list, "
+                              "params_approve, params_rollback, ping, results, start, status)")
 
 
 def test_an_internal_error_fails_the_run_not_the_daemon(tmp_path: Path, controller: Any,
@@ -298,8 +305,9 @@ def test_resume_after_a_failed_attempt_takes_back_its_ready(tmp_path: Path,
         store = d.store
         assert store is not None
         async with asyncio.timeout(60):
-            while store.experiment(run_id, "rigid_body")["state"] != "given":
-                assert store.run(run_id)["state"] != "failed", store.run(run_id)["error"]
+            while (await store.experiment(run_id, "rigid_body"))["state"] != "given":
+                run = await store.run(run_id)
+                assert run["state"] != "failed", run["error"]
                 await asyncio.sleep(0.02)
         gone = not stale.exists()  # taken back before the new attempt was given
         with controller():

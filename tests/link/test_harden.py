@@ -6,9 +6,11 @@ cleaned failed attempts)."""
 from __future__ import annotations
 
 import asyncio
+import inspect
 import logging
 import os
 import socket
+import threading
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -22,7 +24,7 @@ from robid_link.exceptions import ConfigError, DaemonUnreachable, StoreFullError
 from robid_link.link import campaign as cp
 from robid_link.link.control import request
 from robid_link.link.daemon import Daemon
-from robid_link.link.store import Store
+from robid_link.link.store import SqliteStore, Store
 
 from .conftest import QUICK, write_config
 
@@ -39,10 +41,21 @@ def with_daemon(cfg_path: Path, body: Callable[[Daemon], Awaitable[Any]]) -> Any
     return asyncio.run(go())
 
 
-async def until(pred: Callable[[], bool], timeout_s: float = 60.0) -> None:
+async def until(pred: Callable[[], Any], timeout_s: float = 60.0) -> None:
+    """Wait for ``pred()`` (a bool, or an awaitable of one: a store read) to hold."""
     async with asyncio.timeout(timeout_s):
-        while not pred():
+        while True:
+            got = pred()
+            if inspect.isawaitable(got):
+                got = await got
+            if got:
+                return
             await asyncio.sleep(0.05)
+
+
+async def state_is(d: Daemon, run_id: str, state: str) -> bool:
+    assert d.store is not None
+    return (await d.store.run(run_id))["state"] == state
 
 
 def _ready(tmp: Path) -> list[str]:
@@ -76,7 +89,7 @@ def test_cancel_withdraws_the_ready_of_a_running_run_and_drops_a_queued_one(
         await asyncio.sleep(0.3)
         assert d.store is not None
         status = await d.handle({"cmd": "status"})
-        return (d.store.run(first), d.store.run(second),
+        return (await d.store.run(first), await d.store.run(second),
                 [s["state"] for s in status["runs"]])
 
     first, second, states = with_daemon(cfg, body)
@@ -84,6 +97,45 @@ def test_cancel_withdraws_the_ready_of_a_running_run_and_drops_a_queued_one(
     assert second["experiments"][0]["attempt"] == 0  # never given
     assert first["experiments"][0]["state"] == "withdrawn"
     assert _ready(tmp_path) == []
+
+
+def test_a_run_cancelled_while_the_runner_takes_it_from_the_queue_never_moves(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The runner reads a queued run's state from the store (an await) before it starts it;
+    a cancel arriving then must win: the run ends cancelled, nothing of it left out."""
+    cfg = write_config(tmp_path, {"c": FRICTION})  # no controller: nobody answers
+    real_run = Store.run
+    target: dict[str, str] = {}
+    held, release = threading.Event(), threading.Event()
+
+    def run(store: Store, run_id: str) -> dict[str, Any]:  # on the store's thread
+        if run_id == target.get("second") and not held.is_set():
+            held.set()  # the runner's read of the queued run: hold it there
+            release.wait(30)
+        return real_run(store, run_id)
+
+    monkeypatch.setattr(Store, "run", run)
+
+    async def body(d: Daemon) -> tuple[dict, list[str], str | None]:
+        first = (await d.handle({"cmd": "start", "campaign": "c"}))["run_id"]
+        await until(lambda: bool(_ready(tmp_path)))
+        target["second"] = (await d.handle({"cmd": "start", "campaign": "c"}))["run_id"]
+        # the runner takes the second once the first ends (its answer waits behind the hold)
+        cancel_first = asyncio.create_task(d.handle({"cmd": "cancel", "run_id": first}))
+        await until(held.is_set)
+        cancel = asyncio.create_task(d.handle({"cmd": "cancel",
+                                               "run_id": target["second"]}))
+        for _ in range(20):
+            await asyncio.sleep(0)  # the cancel is under way while the runner is held
+        release.set()
+        await cancel_first
+        await cancel
+        await asyncio.sleep(0.5)  # room for a wrongly started run to show itself
+        assert d.store is not None
+        return (await d.store.run(target["second"]), _ready(tmp_path), d._current)
+
+    second, ready, current = with_daemon(cfg, body)
+    assert second["state"] == "cancelled" and ready == [] and current is None
 
 
 def test_a_ready_left_by_a_cancel_interrupted_by_a_kill_is_withdrawn_at_start(
@@ -138,7 +190,7 @@ def test_start_refuses_before_anything_is_given(tmp_path: Path, change: dict,
     async def body(d: Daemon) -> str:
         with pytest.raises(Exception) as info:
             await d.handle({"cmd": "start", "campaign": "c"})
-        assert d.store is not None and d.store.runs() == []
+        assert d.store is not None and await d.store.runs() == []
         return str(info.value)
 
     assert message in with_daemon(cfg, body)
@@ -161,8 +213,11 @@ def test_full_state_dir_pauses_refuses_serves_status_and_resumes(
     disk = _Disk(monkeypatch)
     disk.free = 1 << 40
     cfg = write_config(tmp_path, {"c": FRICTION})
-    with Store(tmp_path / "state") as store:  # a run left over, resumed on a full disk
-        run_id = cp.create_run(load_daemon_config(cfg), store, "c", "operator")
+    async def left_over() -> str:  # a run left over, resumed on a full disk
+        async with SqliteStore(tmp_path / "state") as store:
+            return await cp.create_run(load_daemon_config(cfg), store, "c", "operator")
+
+    run_id = asyncio.run(left_over())
     disk.free = 0
 
     async def body(d: Daemon) -> tuple[dict, str, dict]:
@@ -171,10 +226,10 @@ def test_full_state_dir_pauses_refuses_serves_status_and_resumes(
         with pytest.raises(StoreFullError, match="MiB free"):
             await d.handle({"cmd": "start", "campaign": "c"})
         status = await d.handle({"cmd": "status"})
-        paused = d.store.run(run_id)
+        paused = await d.store.run(run_id)
         disk.free = 1 << 40
-        await until(lambda: d.store.run(run_id)["state"] == "completed")  # type: ignore
-        return paused, status["status"], d.store.run(run_id)
+        await until(lambda: state_is(d, run_id, "completed"))
+        return paused, status["status"], await d.store.run(run_id)
 
     with caplog.at_level(logging.INFO, logger="robid"), controller():
         paused, line, done = with_daemon(cfg, body)
@@ -225,8 +280,8 @@ def test_internal_error_line_carries_its_cause(tmp_path: Path,
 
     async def body(d: Daemon) -> dict:
         ans = await d.handle({"cmd": "start", "campaign": "c"})
-        await until(lambda: d.store.run(ans["run_id"])["state"] == "failed")  # type: ignore
-        return d.store.run(ans["run_id"])  # type: ignore[union-attr]
+        await until(lambda: state_is(d, ans["run_id"], "failed"))
+        return await d.store.run(ans["run_id"])  # type: ignore[union-attr]
 
     with caplog.at_level(logging.ERROR, logger="robid.daemon"):
         run = with_daemon(cfg, body)

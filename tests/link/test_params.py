@@ -39,7 +39,7 @@ def test_sets_approval_rollback(tmp_path: Path, controller: Any) -> None:
         assert d.store is not None
         first = await _run(d)
         second = await _run(d)
-        sets = d.store.param_sets("arm3")
+        sets = await d.store.param_sets("arm3")
         in_use_before = ctrl.core.feedforward.sha256
         with pytest.raises(ConfigError, match="no parameter set matches 'zz'"):
             await d.handle({"cmd": "params_approve", "robot": "arm3", "set": "zz"})
@@ -49,8 +49,9 @@ def test_sets_approval_rollback(tmp_path: Path, controller: Any) -> None:
         night = await _run(d, "timer")
         return {"runs": (first, second, night), "sets": sets, "before": in_use_before,
                 "after": in_use_after, "back": back,
-                "uploads": d.store.uploads("arm3"), "final": ctrl.core.feedforward.sha256,
-                "all_sets": d.store.param_sets("arm3")}
+                "uploads": await d.store.uploads("arm3"),
+                "final": ctrl.core.feedforward.sha256,
+                "all_sets": await d.store.param_sets("arm3")}
 
     with controller() as ctrl:
         out = _daemon(cfg, body)
@@ -77,7 +78,7 @@ def test_an_unacknowledged_set_leaves_the_old_one(tmp_path: Path, controller: An
     async def body(d: Daemon) -> dict[str, Any]:
         assert d.store is not None
         run = await _run(d)
-        return {"run": run, "uploads": d.store.uploads("arm3")}
+        return {"run": run, "uploads": await d.store.uploads("arm3")}
 
     with controller(fault="no_param_ack") as ctrl:
         from robid_link.link import campaign

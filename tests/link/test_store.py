@@ -139,9 +139,9 @@ def test_a_full_disk_is_one_line_and_loses_nothing_already_stored(
     import os
 
     from robid_link.exceptions import StoreFullError
-    from robid_link.link import store as store_mod
+    from robid_link.link.store import files as store_mod
 
-    st = store_mod.Store(tmp_path / "state")
+    st = Store(tmp_path / "state")
     kept = st.put_log(b"t,q1\n0,1\n")
 
     def no_room(*a: object, **kw: object) -> None:

@@ -35,7 +35,7 @@ def test_tracking_after_upload_is_three_times_better(tmp_path: Path, arm3_robot:
     async def body(d: Daemon) -> tuple[dict[str, Any], list[dict[str, Any]]]:
         ans = await d.handle({"cmd": "start", "campaign": "cal"})
         run = await wait_run(d, ans["run_id"], 300)
-        return run, d.store.results(run_id=run["run_id"])  # type: ignore[union-attr]
+        return run, await d.store.results(run_id=run["run_id"])  # type: ignore[union-attr]
 
     async def go() -> Any:
         async with asyncio.timeout(400), Daemon(load_daemon_config(cfg), env={}) as d:

@@ -85,10 +85,6 @@ class Robot:
     def gravity(self) -> np.ndarray:
         return np.array(self.model.gravity.linear, dtype=float)
 
-    @property
-    def parameter_names(self) -> list[str]:
-        return standard_parameter_names(self.n)
-
     def pin_q(self, q: np.ndarray) -> np.ndarray:
         """Joint angles (…, n) → Pinocchio configuration (…, nq)."""
         q = np.asarray(q, dtype=float)

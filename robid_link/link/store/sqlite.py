@@ -1,29 +1,42 @@
-"""The daemon's store: SQLite (WAL, synchronous=FULL) for runs, experiments, the step journal,
-results and approvals; raw logs and programs as content-hashed files written and fsynced
-before their row. One daemon per ``state_dir``, enforced with ``flock``."""
+"""The SQLite store (WAL, synchronous=FULL) for runs, experiments, the step journal, results
+and approvals; raw logs and programs as content-hashed files written and fsynced before their
+row (``files.py``). One daemon per ``state_dir``, enforced with ``flock``.
+
+``Store`` is the blocking implementation (one of each query), used as it is by the operator
+commands that read while no daemon answers (``Store(state_dir, readonly=True)``);
+``SqliteStore`` is the daemon's: the same ``Store`` behind the async interface, every query,
+fsync and hash on one thread of its own, never on the event loop."""
 
 from __future__ import annotations
 
-import errno
+import asyncio
 import fcntl
-import hashlib
 import json
 import os
+import queue
 import sqlite3
+import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
-from robid_link.atomic import atomic_write, fsync_dir
-from robid_link.exceptions import ConfigError, RobidError, StoreFullError, StoreLockedError
+from robid_link.exceptions import ConfigError, StoreFullError, StoreLockedError
 from robid_link.jobs import MotionProgram
+from robid_link.link.store.base import (
+    RUN_STATES,
+    STEP_FIELDS,
+    AsyncStore,
+    acknowledged_sets,
+    pick_param_set,
+)
+from robid_link.link.store.files import CellFiles
 
-__all__ = ["Store", "RUN_STATES"]
+__all__ = ["Store", "SqliteStore", "RESERVE_BYTES"]
 
-RUN_STATES = ("queued", "running", "completed", "failed", "cancelled")
+T = TypeVar("T")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS runs (
@@ -61,7 +74,6 @@ CREATE TABLE IF NOT EXISTS param_uploads (
 
 #: free bytes the store keeps in reserve: below it no new motion starts
 RESERVE_BYTES = 64 << 20
-_FULL_ERRNOS = {errno.ENOSPC, errno.EDQUOT}
 
 
 class Store:
@@ -71,6 +83,7 @@ class Store:
     def __init__(self, state_dir: str | Path, *, readonly: bool = False,
                  reserve_bytes: int = RESERVE_BYTES) -> None:
         self.dir = Path(state_dir)
+        self.files = CellFiles(self.dir)
         self.reserve_bytes = reserve_bytes
         self.readonly = readonly
         self._lock_fd: int | None = None
@@ -80,12 +93,7 @@ class Store:
                 raise ConfigError(f"state_dir: {self.dir} holds no store yet")
             self.db = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=10.0)
         else:
-            try:
-                self.dir.mkdir(parents=True, exist_ok=True)
-                for sub in ("logs", "programs", "reports"):
-                    (self.dir / sub).mkdir(exist_ok=True)
-            except OSError as err:
-                raise ConfigError(f"state_dir: {self.dir}: {err.strerror}") from err
+            self.files.prepare()
             self._lock()
             self.db = sqlite3.connect(db, timeout=10.0, isolation_level=None)
             self.db.execute("PRAGMA journal_mode=WAL")
@@ -124,8 +132,7 @@ class Store:
 
     # ----------------------------------------------------------------- space
     def free_bytes(self) -> int:
-        st = os.statvfs(self.dir)
-        return st.f_bavail * st.f_frsize
+        return self.files.free_bytes()
 
     def require_space(self, need_bytes: int = 0, what: str = "a new run") -> None:
         """Refuse ``what`` (before any motion) unless ``need_bytes`` fit above the reserve."""
@@ -134,10 +141,6 @@ class Store:
             raise StoreFullError(f"state_dir: {self.dir} has {free >> 20} MiB free, "
                                  f"{(need_bytes + self.reserve_bytes) >> 20} MiB needed for "
                                  f"{what}: waiting for space")
-
-    def _full(self, err: BaseException) -> StoreFullError:
-        return StoreFullError(f"state_dir: {self.dir}: disk full while writing "
-                              f"({str(err).splitlines()[0]}): waiting for space")
 
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
@@ -154,7 +157,7 @@ class Store:
             if "full" in str(err) or "disk" in str(err):
                 with suppress(sqlite3.Error):
                     self.db.execute("ROLLBACK")
-                raise self._full(err) from err
+                raise self.files.full(err) from err
             raise
 
     # ----------------------------------------------------------------- runs
@@ -188,10 +191,6 @@ class Store:
                        "WHERE run_id = ?",
                        (state, error, step, state, now, state, now, run_id))
             self._journal(db, run_id, None, state, {"error": error} if error else {})
-
-    def set_step(self, run_id: str, step: str) -> None:
-        with self._tx() as db:
-            db.execute("UPDATE runs SET step = ? WHERE run_id = ?", (step, run_id))
 
     def run(self, run_id: str) -> dict[str, Any]:
         row = self.db.execute("SELECT * FROM runs WHERE run_id = ?", (run_id,)).fetchone()
@@ -242,8 +241,7 @@ class Store:
 
     def step(self, run_id: str, exp_id: str, state: str, **fields: Any) -> None:
         """Journal one step of an experiment and update its row, in one transaction."""
-        allowed = {"attempt", "nonce", "program_sha", "done_sha", "done_size", "log_sha", "error"}
-        bad = set(fields) - allowed
+        bad = set(fields) - STEP_FIELDS
         if bad:
             raise ValueError(bad)
         sets = ", ".join(f"{k} = ?" for k in fields)
@@ -272,37 +270,24 @@ class Store:
 
     # ----------------------------------------------------------------- raw logs
     def log_path(self, sha: str) -> Path:
-        return self.dir / "logs" / sha[:2] / f"{sha}.csv"
+        return self.files.log_path(sha)
 
-    def put_log(self, data: bytes) -> str:
-        """Store a raw log under its SHA-256 (file fsynced before its row); idempotent."""
-        sha = hashlib.sha256(data).hexdigest()
-        path = self.log_path(sha)
-        try:
-            if not (path.is_file() and path.stat().st_size == len(data)):
-                if not path.parent.is_dir():  # a new fan-out folder must survive a power cut
-                    path.parent.mkdir()
-                    fsync_dir(path.parent.parent)
-                atomic_write(path, data, 0o444)
-        except OSError as err:
-            if err.errno in _FULL_ERRNOS:
-                raise self._full(err) from err
-            raise
+    def put_log(self, data: bytes, *, run_id: str | None = None, exp_id: str | None = None
+                ) -> str:
+        """Store a raw log under its SHA-256 (file fsynced before its row); idempotent. With
+        ``run_id`` its 'raw_stored' journal line goes in the same transaction."""
+        sha = self.files.write_log(data)
         with self._tx() as db:
             db.execute("INSERT OR IGNORE INTO logs (sha256, size, stored) VALUES (?, ?, ?)",
                        (sha, len(data), time.time()))
+            if run_id is not None:
+                self._journal(db, run_id, exp_id, "raw_stored",
+                              {"log_sha": sha, "size": len(data)})
         return sha
 
     def check_log(self, sha: str) -> Path:
         """The stored log's path after re-hashing it (a damaged file is an error)."""
-        path = self.log_path(sha)
-        try:
-            got = hashlib.sha256(path.read_bytes()).hexdigest()
-        except FileNotFoundError as err:
-            raise RobidError(f"{path}: stored log missing") from err
-        if got != sha:
-            raise RobidError(f"{path}: stored log damaged (sha256 {got[:12]}…)")
-        return path
+        return self.files.check_log(sha)
 
     def log_count(self) -> int:
         return int(self.db.execute("SELECT COUNT(*) FROM logs").fetchone()[0])
@@ -310,42 +295,17 @@ class Store:
     # ----------------------------------------------------------------- programs
     def program_for(self, key: str) -> str | None:
         row = self.db.execute("SELECT sha256 FROM programs WHERE key = ?", (key,)).fetchone()
-        return row[0] if row and (self.dir / "programs" / row[0]).is_dir() else None
+        return row[0] if row and self.files.has_program(row[0]) else None
 
     def put_program(self, key: str, program: MotionProgram) -> str:
-        sha = program.sha256
-        folder = self.dir / "programs" / sha
-        if not folder.is_dir():
-            tmp = self.dir / "programs" / f".{sha}.{os.getpid()}.tmp"
-            try:
-                tmp.mkdir(exist_ok=True)
-                for suffix, data in program.files.items():
-                    atomic_write(tmp / suffix, data)
-                meta = {"exp_id": program.exp_id, "duration_s": program.duration_s,
-                        "meta": dict(program.meta)}
-                atomic_write(tmp / "program.json", json.dumps(meta).encode())
-                os.replace(tmp, folder)
-                fsync_dir(folder.parent)
-            except OSError as err:
-                if err.errno in _FULL_ERRNOS:
-                    raise self._full(err) from err
-                raise
+        sha = self.files.write_program(program)
         with self._tx() as db:
             db.execute("INSERT OR REPLACE INTO programs (key, sha256, created) VALUES (?, ?, ?)",
                        (key, sha, time.time()))
         return sha
 
     def load_program(self, sha: str) -> MotionProgram:
-        folder = self.dir / "programs" / sha
-        try:
-            meta = json.loads((folder / "program.json").read_text())
-            files = {p.name: p.read_bytes() for p in folder.iterdir() if p.name != "program.json"}
-        except (OSError, ValueError) as err:
-            raise RobidError(f"{folder}: stored program unreadable ({err})") from err
-        prog = MotionProgram(meta["exp_id"], files, meta["duration_s"], meta["meta"])
-        if prog.sha256 != sha:
-            raise RobidError(f"{folder}: stored program damaged (hash differs)")
-        return prog
+        return self.files.load_program(sha)
 
     # ----------------------------------------------------------------- approvals
     def approve(self, sha: str, campaign: str, exp_id: str, by: str) -> None:
@@ -400,12 +360,7 @@ class Store:
 
     def param_set(self, robot: str, ref: str) -> dict[str, Any]:
         """A set by version number or (a prefix of) its sha256."""
-        sets = self.param_sets(robot)
-        hits = [s for s in sets if str(s["version"]) == ref or s["sha256"].startswith(ref)]
-        if len(hits) != 1:
-            raise ConfigError(f"robot {robot}: {'no' if not hits else 'more than one'} "
-                              f"parameter set matches {ref!r}")
-        return hits[0]
+        return pick_param_set(self.param_sets(robot), robot, ref)
 
     def approve_param_set(self, sha: str, by: str) -> None:
         with self._tx() as db:
@@ -428,9 +383,196 @@ class Store:
     def active_param_sets(self, robot: str) -> list[str]:
         """The sets the controller acknowledged, oldest first: the last one is in use, the
         one before it is what a rollback restores."""
-        acked = [u["sha256"] for u in self.uploads(robot) if u["state"] == "acknowledged"]
-        out: list[str] = []
-        for sha in acked:
-            if not out or out[-1] != sha:
-                out.append(sha)
-        return out
+        return acknowledged_sets(self.uploads(robot))
+
+
+class _StoreThread:
+    """One thread that runs a store's calls in the order they were made. A call once made
+    runs to its end even when its caller is cancelled (the journal never half-knows a step,
+    and a later call sees its effect); the caller's future is settled from the loop."""
+
+    def __init__(self, name: str) -> None:
+        self._calls: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._serve, name=name, daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    async def call(self, fn: Callable[..., T], *args: Any, **kw: Any) -> T:
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[T] = loop.create_future()
+        self._calls.put((fn, args, kw, loop, future))
+        return await future
+
+    def _serve(self) -> None:
+        while (item := self._calls.get()) is not None:
+            fn, args, kw, loop, future = item
+            try:
+                result, error = fn(*args, **kw), None
+            except BaseException as err:  # noqa: BLE001 - handed to the caller
+                result, error = None, err
+            with suppress(RuntimeError):  # the caller's loop has closed: nobody waits
+                loop.call_soon_threadsafe(_settle, future, result, error)
+
+    def stop(self) -> None:
+        """Run every call already made, then end the thread (blocking)."""
+        self._calls.put(None)
+        self._thread.join()
+
+
+def _settle(future: asyncio.Future[Any], result: Any, error: BaseException | None) -> None:
+    if future.done():  # the caller was cancelled; the call itself has run
+        return
+    if error is not None:
+        future.set_exception(error)
+    else:
+        future.set_result(result)
+
+
+class SqliteStore(AsyncStore):
+    """The daemon's SQLite store: ``Store`` behind the async interface, every call on one
+    dedicated thread (queries, commits with synchronous=FULL, fsyncs, hashing), so the event
+    loop never waits on the disk. ``async with SqliteStore(state_dir) as store: ...``"""
+
+    def __init__(self, state_dir: str | Path, *, reserve_bytes: int = RESERVE_BYTES) -> None:
+        self.dir = Path(state_dir)
+        self._reserve_bytes = reserve_bytes
+        self._store: Store | None = None
+        self._thread: _StoreThread | None = None
+
+    @property
+    def reserve_bytes(self) -> int:  # type: ignore[override]
+        return self._reserve_bytes
+
+    @reserve_bytes.setter
+    def reserve_bytes(self, value: int) -> None:
+        self._reserve_bytes = value
+        if self._store is not None:
+            self._store.reserve_bytes = value
+
+    async def open(self) -> None:
+        if self._thread is not None:
+            return
+        thread = _StoreThread(f"robid-store-{self.dir.name}")
+        thread.start()
+        try:
+            self._store = await thread.call(Store, self.dir, reserve_bytes=self._reserve_bytes)
+        except BaseException:
+            await asyncio.to_thread(thread.stop)
+            raise
+        self._thread = thread
+
+    async def close(self) -> None:
+        thread, store = self._thread, self._store
+        self._thread = self._store = None
+        if thread is None:
+            return
+        try:
+            if store is not None:
+                await thread.call(store.close)
+        finally:  # shielded: a cancelled close still ends the thread
+            await asyncio.shield(asyncio.to_thread(thread.stop))
+
+    async def _call(self, name: str, *args: Any, **kw: Any) -> Any:
+        if self._thread is None or self._store is None:
+            raise RuntimeError(f"store {self.dir} is not open")
+        return await self._thread.call(getattr(self._store, name), *args, **kw)
+
+    # ----------------------------------------------------------------- space
+    async def free_bytes(self) -> int:
+        return int(await self._call("free_bytes"))
+
+    async def require_space(self, need_bytes: int = 0, what: str = "a new run") -> None:
+        await self._call("require_space", need_bytes, what)
+
+    # ----------------------------------------------------------------- runs
+    async def create_run(self, campaign: str, trigger: str, spec: dict[str, Any],
+                         experiments: list[tuple[str, str]]) -> str:
+        return str(await self._call("create_run", campaign, trigger, spec, experiments))
+
+    async def set_run(self, run_id: str, state: str, *, error: str | None = None,
+                      step: str | None = None) -> None:
+        await self._call("set_run", run_id, state, error=error, step=step)
+
+    async def run(self, run_id: str) -> dict[str, Any]:
+        return dict(await self._call("run", run_id))
+
+    async def runs(self, limit: int = 50) -> list[dict[str, Any]]:
+        return list(await self._call("runs", limit))
+
+    async def unfinished_runs(self) -> list[str]:
+        return list(await self._call("unfinished_runs"))
+
+    async def given_without_run(self) -> list[dict[str, Any]]:
+        return list(await self._call("given_without_run"))
+
+    # ----------------------------------------------------------------- experiments, journal
+    async def experiments(self, run_id: str) -> list[dict[str, Any]]:
+        return list(await self._call("experiments", run_id))
+
+    async def experiment(self, run_id: str, exp_id: str) -> dict[str, Any]:
+        return dict(await self._call("experiment", run_id, exp_id))
+
+    async def step(self, run_id: str, exp_id: str, state: str, **fields: Any) -> None:
+        await self._call("step", run_id, exp_id, state, **fields)
+
+    async def note(self, run_id: str, exp_id: str | None, step: str, **detail: Any) -> None:
+        await self._call("note", run_id, exp_id, step, **detail)
+
+    async def journal(self, run_id: str | None = None) -> list[dict[str, Any]]:
+        return list(await self._call("journal", run_id))
+
+    # ----------------------------------------------------------------- raw logs
+    async def put_log(self, data: bytes, *, run_id: str | None = None,
+                      exp_id: str | None = None) -> str:
+        return str(await self._call("put_log", data, run_id=run_id, exp_id=exp_id))
+
+    async def check_log(self, sha: str) -> Path:
+        return Path(await self._call("check_log", sha))
+
+    async def log_count(self) -> int:
+        return int(await self._call("log_count"))
+
+    # ----------------------------------------------------------------- programs, approvals
+    async def program_for(self, key: str) -> str | None:
+        sha = await self._call("program_for", key)
+        return None if sha is None else str(sha)
+
+    async def put_program(self, key: str, program: MotionProgram) -> str:
+        return str(await self._call("put_program", key, program))
+
+    async def load_program(self, sha: str) -> MotionProgram:
+        prog: MotionProgram = await self._call("load_program", sha)
+        return prog
+
+    async def approve(self, sha: str, campaign: str, exp_id: str, by: str) -> None:
+        await self._call("approve", sha, campaign, exp_id, by)
+
+    async def approved(self, sha: str) -> bool:
+        return bool(await self._call("approved", sha))
+
+    # ----------------------------------------------------------------- results
+    async def add_result(self, run_id: str, robot: str, kind: str,
+                         record: dict[str, Any]) -> None:
+        await self._call("add_result", run_id, robot, kind, record)
+
+    async def results(self, robot: str | None = None, run_id: str | None = None
+                      ) -> list[dict[str, Any]]:
+        return list(await self._call("results", robot, run_id))
+
+    # ----------------------------------------------------------------- parameter sets
+    async def add_param_set(self, doc: dict[str, Any], body: bytes) -> int:
+        return int(await self._call("add_param_set", doc, body))
+
+    async def param_sets(self, robot: str) -> list[dict[str, Any]]:
+        return list(await self._call("param_sets", robot))
+
+    async def approve_param_set(self, sha: str, by: str) -> None:
+        await self._call("approve_param_set", sha, by)
+
+    async def record_upload(self, robot: str, sha: str, run_id: str | None, state: str,
+                            error: str | None = None) -> None:
+        await self._call("record_upload", robot, sha, run_id, state, error)
+
+    async def uploads(self, robot: str) -> list[dict[str, Any]]:
+        return list(await self._call("uploads", robot))
