@@ -108,6 +108,7 @@ def _check_custom(opts: dict[str, Any], where: str) -> None:
 
 
 def _check_verify(opts: dict[str, Any], where: str) -> None:
+    _check_common(opts, where)
     sp = opts["speed"]
     if isinstance(sp, bool) or not isinstance(sp, int | float) or not 0 < sp <= 1:
         raise ConfigError(f"{where}.speed: expected a fraction of the limits in (0, 1], "
@@ -115,6 +116,7 @@ def _check_verify(opts: dict[str, Any], where: str) -> None:
 
 
 def _check_elasticity(opts: dict[str, Any], where: str) -> None:
+    _check_common(opts, where)
     joints = opts["joints"]
     if joints is not None and (not isinstance(joints, list) or not joints or not all(
             isinstance(j, int) and not isinstance(j, bool) and 1 <= j <= 64 for j in joints)):

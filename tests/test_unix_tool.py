@@ -151,6 +151,12 @@ def test_a_closed_pipe_ends_quietly():
      ["params rollback", "'3'"]),
     (["fake-controller", "--share", ".", "--robot", ARM3, "--fault-count", "2"],
      ["--fault-count", "--fault"]),
+    (["demo", "--driver", "nope"], ["--driver nope", "file_share"]),
+    (["elasticity", "--robot", ARM3, "--data", "x.csv", "--joints", "2,2"], ["--joints 2,2"]),
+    (["excite", "--robot", ARM3, "--out", "t.csv", "--kind", "elasticity", "--f-min", "70"],
+     ["--f-min 70", "--f-max 60"]),
+    (["excite", "--robot", ARM3, "--out", "t.csv", "--kind", "elasticity", "--rate", "100"],
+     ["--f-max 60", "--rate 100"]),
 ])
 def test_contradictory_options_are_refused_not_ignored(tmp_path, monkeypatch, capsys, argv,
                                                        names):
@@ -300,3 +306,62 @@ def test_the_cli_the_config_and_the_worker_agree_on_plausible_rates():
     from robid_link.ident.excite import excitation
 
     assert MIN_RATE_HZ == kinds.MIN_RATE_HZ == excitation.MIN_RATE_HZ
+
+
+# ----------------------------------------------------------------------------- noise
+
+_WORKER_JOBS = """
+import asyncio, multiprocessing, sys
+from robid_link.jobs import WORKER_PRELOAD, ProgramJob
+from robid_link.link.worker import run_in_worker
+
+async def main():
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(["robid_link.link.worker", *WORKER_PRELOAD])
+    for k in range(2):  # numba's parallel kernels make a named semaphore in each worker
+        job = ProgramJob(sys.argv[1], (), f"e{k}", "rigid_body", {
+            "duration_s": 10.0, "harmonics": 3, "base_hz": 0.1, "rate_hz": 100.0,
+            "evaluations": 10, "restarts": 1, "seed": k}, sys.argv[2], None)
+        print((await run_in_worker(ctx, job)).sha256[:12], flush=True)
+
+if __name__ == "__main__":
+    asyncio.run(main())
+"""
+
+
+def test_worker_processes_leave_no_leaked_semaphore_at_exit(tmp_path):
+    """The daemon and the demo printed multiprocessing's 'leaked semaphore' warnings at exit:
+    a worker that had answered was terminated before its own exit unregistered numba's lock."""
+    script = tmp_path / "jobs.py"
+    script.write_text(_WORKER_JOBS)
+    out = subprocess.run([sys.executable, str(script), ARM3, str(tmp_path)],
+                         capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert len(out.stdout.split()) == 2
+    assert "leaked semaphore" not in out.stderr and "resource_tracker" not in out.stderr, \
+        out.stderr
+
+
+@pytest.mark.parametrize(("options", "names"), [
+    ({"rate_hz": 1e-6}, ["experiments[0].rate_hz", "[10, 10000]"]),
+    ({"rate_hz": 5}, ["experiments[0].rate_hz"]),
+    ({"rate_hz": 100}, ["experiments[0].f_max_hz", "rate_hz 100"]),
+    ({"f_min_hz": 80}, ["experiments[0].f_min_hz", "f_max_hz 60"]),
+])
+def test_campaign_rates_are_plausible(tmp_path, options, names):
+    """A campaign's experiment rate, and a stepped sine's band below a fifth of it."""
+    import yaml
+
+    from robid_link.config import load_daemon_config
+
+    p = tmp_path / "d.yaml"
+    p.write_text(yaml.safe_dump({
+        "robot": ARM3, "state_dir": "s", "control_socket": "c.sock",
+        "driver": {"name": "file_share", "share": "share"},
+        "campaigns": {"a": {"experiments": [{"kind": "elasticity", **options}]}}}))
+    with pytest.raises(RobidError) as err:
+        load_daemon_config(p)
+    msg = str(err.value)
+    assert "\n" not in msg and msg.startswith(f"{p}: campaigns.a.")
+    for name in names:
+        assert name in msg, msg

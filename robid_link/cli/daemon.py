@@ -24,23 +24,40 @@ __all__ = ["COMMANDS"]
 
 
 def _daemon(args: argparse.Namespace) -> int:
+    """``robid daemon``: the config's keys, driver options and paths are checked here first
+    (one error line, before the daemon's logging starts); the daemon checks them again."""
     import asyncio
 
     from robid_link.config import load_daemon_config
+    from robid_link.link.checks import daemon_findings
     from robid_link.link.daemon import run_daemon
+    from robid_link.link.registry import make_driver
 
-    return asyncio.run(run_daemon(load_daemon_config(args.config)))
+    cfg = load_daemon_config(args.config)
+    problems = daemon_findings(cfg, type(make_driver(cfg.driver)).options)
+    if problems:
+        more = f" (and {len(problems) - 1} more: robid config check)" if problems[1:] else ""
+        raise RobidError(f"{cfg.path}: {problems[0].line}{more}")
+    return asyncio.run(run_daemon(cfg))
 
 
 def _config_check(args: argparse.Namespace) -> int:
-    """``robid config check``: one line per campaign, exit 1 when any would be refused."""
+    """``robid config check``: what the daemon's start checks, one line per path it needs and
+    per campaign (ok, or the key, file and problem); exit 1 when anything is wrong. Keys of
+    the wrong type or value are one error line (exit 2), as everywhere."""
     from robid_link.config import load_daemon_config
     from robid_link.link.campaign import check_config
+    from robid_link.link.checks import daemon_findings
     from robid_link.link.registry import make_driver
 
     cfg = load_daemon_config(args.config)
     driver = make_driver(cfg.driver)
-    bad = 0
+    findings = {f.key: f.line for f in daemon_findings(cfg, type(driver).options)}
+    paths = ["robot", "state_dir", "control_socket",
+             *(k for k in findings if k.startswith("driver."))]
+    for key in paths:
+        print(findings.get(key, f"{key}: ok"))
+    bad = len(findings)
     for name, reason in check_config(cfg, driver).items():
         print(f"{name}: {'ok' if reason is None else reason}")
         bad += reason is not None

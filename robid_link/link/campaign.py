@@ -16,14 +16,15 @@ from robid_link import jobs as jb
 from robid_link.config import CampaignDef, DaemonConfig, ExperimentDef
 from robid_link.exceptions import ApprovalError, ConfigError, RobidError, StoreFullError
 from robid_link.jobs import MotionProgram
+from robid_link.link.checks import ModelWatch, campaign_findings
 from robid_link.link.cycle import CyclePolicy, run_cycle
 from robid_link.link.driver import CAP_UPLOAD, Driver, FeedforwardSource, parameter_bytes
 from robid_link.link.store import AsyncStore, Store
 from robid_link.link.worker import run_here, run_in_worker
 
 __all__ = ["TRIGGERS", "plan", "check_capabilities", "create_run", "prepare_programs",
-           "preflight", "check_config", "describe_campaigns", "execute_run", "resonance_hints",
-           "feedforward_source", "drift_flags", "drift_flags_of"]
+           "preflight", "check_approved", "check_config", "describe_campaigns", "execute_run",
+           "resonance_hints", "feedforward_source", "drift_flags", "drift_flags_of"]
 
 log = logging.getLogger("robid.campaign")
 
@@ -73,9 +74,11 @@ def _check_driver_caps(cfg: DaemonConfig, name: str, caps: frozenset[str], drive
 
 
 def _model_job(cfg: DaemonConfig, name: str) -> jb.ModelCheckJob:
+    """The campaign's model check; first its files (model, custom trajectories) are there."""
     camp = cfg.campaigns[name]
-    if camp.model is not None and not camp.model.is_file():
-        raise ConfigError(f"campaigns.{name}.model: {camp.model}: file not found")
+    files = campaign_findings(cfg, name)
+    if files:
+        raise ConfigError(files[0].line)
     return jb.ModelCheckJob(str(camp.model) if camp.model else None, camp.add)
 
 
@@ -90,6 +93,20 @@ async def preflight(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: st
     model file and ``add:`` effects load, every program generates and passes the limits."""
     await run_in_worker(ctx, _model_job(cfg, campaign))
     await prepare_programs(cfg, store, ctx, campaign)
+
+
+async def check_approved(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: str
+                         ) -> None:
+    """An unattended (timer) run needs every program of the campaign approved: else there is
+    nothing to do, and ApprovalError says which program and how to approve it."""
+    programs = await prepare_programs(cfg, store, ctx, campaign)
+    missing = [(e, p) for e, p in programs if not await store.approved(p.sha256)]
+    if missing:
+        exp_id, prog = missing[0]
+        more = f" ({len(missing)} of {len(programs)} are not)" if len(missing) > 1 else ""
+        raise ApprovalError(f"campaign {campaign}: nothing to do unattended: the program of "
+                            f"experiment {exp_id} ({prog.sha256[:12]}) is not approved{more}; "
+                            f"run: robid campaign approve {campaign} --config {cfg.path}")
 
 
 def check_config(cfg: DaemonConfig, driver: Driver) -> dict[str, str | None]:
@@ -189,10 +206,11 @@ async def _generated(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: s
 
 
 async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: Any, run_id: str,
-                      n_joints: int, kill_hook: Callable[[str], None] = lambda step: None
-                      ) -> None:
+                      n_joints: int, kill_hook: Callable[[str], None] = lambda step: None,
+                      models: ModelWatch | None = None) -> None:
     """Run or resume ``run_id`` to completed/failed (logs are checked for ``n_joints``, the
-    robot's). Cancellation leaves it resumable."""
+    robot's). Cancellation leaves it resumable. ``models``: a model file edited since it was
+    last read is reloaded with a line in the log."""
     run = await store.run(run_id)
     camp = cfg.campaigns.get(run["campaign"])
     if camp is None:
@@ -211,7 +229,10 @@ async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx:
                                     f"{run['campaign']} --config {cfg.path}")
 
         # the identification's inputs, before the first motion (a config edited since start)
-        await run_in_worker(ctx, _model_job(cfg, run["campaign"]))
+        model = await run_in_worker(ctx, _model_job(cfg, run["campaign"]))
+        changed = models.seen(cfg, run["campaign"], model.effects) if models else None
+        if changed:
+            log.info("run=%s %s", run_id, changed)
 
         async def check(path: str) -> jb.LogCheck:
             return await run_in_worker(ctx, jb.LogCheckJob(path, n_joints))

@@ -16,9 +16,16 @@ from collections.abc import Awaitable, Callable, Mapping
 from typing import Any, TextIO
 
 from robid_link.config import DaemonConfig
-from robid_link.exceptions import ConfigError, DriverError, RobidError, StoreFullError
+from robid_link.exceptions import (
+    ApprovalError,
+    ConfigError,
+    DriverError,
+    RobidError,
+    StoreFullError,
+)
 from robid_link.jobs import WORKER_PRELOAD, RobotInfo, RobotInfoJob
 from robid_link.link import campaign as cp
+from robid_link.link.checks import ModelWatch, campaign_findings, daemon_findings
 from robid_link.link.control import ControlServer
 from robid_link.link.driver import Done
 from robid_link.link.notify import Notifier
@@ -107,6 +114,8 @@ class Daemon:
         self.ready = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
         self._stack: contextlib.AsyncExitStack | None = None
+        self.models = ModelWatch()
+        self._refused: set[str] = set()  # campaigns whose files were missing at start
 
     def stop(self) -> None:
         """Ask ``wait_stopped`` to return (the signal handlers of ``run_daemon`` call it)."""
@@ -122,11 +131,12 @@ class Daemon:
         cfg = self.cfg
         stack = contextlib.AsyncExitStack()
         try:
+            self.driver = make_driver(cfg.driver)
+            self._check_config()
             self.store = SqliteStore(cfg.state_dir)
             await self.store.open()
             stack.push_async_callback(self._closed_store)
             self.robot = await run_in_worker(self.ctx, RobotInfoJob(str(cfg.robot), cfg.lock))
-            self.driver = make_driver(cfg.driver)
             self.driver.bind_feedforward(cp.feedforward_source(cfg, self.ctx))
             cp.check_capabilities(cfg, self.driver)  # before anything can move
             self.driver.bind_robot(self.robot)
@@ -168,6 +178,22 @@ class Daemon:
         assert stack is not None
         await stack.aclose()
 
+    def _check_config(self) -> None:
+        """What ``robid config check`` checks besides the keys: a path the daemon needs is an
+        error (no start); a campaign's missing file a warning (its starts are refused)."""
+        cfg = self.cfg
+        problems = daemon_findings(cfg, type(self.driver).options)
+        if problems:
+            more = (f" (and {len(problems) - 1} more: robid config check --config {cfg.path})"
+                    if len(problems) > 1 else "")
+            raise ConfigError(f"{cfg.path}: {problems[0].line}{more}")
+        for name in cfg.campaigns:
+            for finding in campaign_findings(cfg, name):
+                log.warning("%s: campaign %s: its runs will be refused: %s", cfg.path, name,
+                            finding.line)
+                self._refused.add(name)
+            self.models.seen(cfg, name)
+
     async def _closed_store(self) -> None:
         assert self.store is not None
         await self.store.close()
@@ -198,7 +224,7 @@ class Daemon:
         assert self.store is not None and self.robot is not None
         self._run_task = asyncio.create_task(
             cp.execute_run(self.cfg, self.store, self.driver, self.ctx, run_id, self.robot.n,
-                           self._kill), name=f"robid-run-{run_id}")
+                           self._kill, self.models), name=f"robid-run-{run_id}")
 
     async def _execute(self, run_id: str) -> None:
         """Await the run's task; a cancel finishes it, a full state_dir pauses it."""
@@ -259,6 +285,8 @@ class Daemon:
         """One line per campaign a run of which would be refused (``start`` checks again)."""
         assert self.store is not None
         for name in self.cfg.campaigns:
+            if name in self._refused:
+                continue  # said at start
             try:
                 await cp.preflight(self.cfg, self.store, self.ctx, name)
             except StoreFullError as err:
@@ -342,8 +370,15 @@ class Daemon:
             raise StoreFullError(self._full)
         await self.store.require_space()
         trigger = req.get("trigger", "operator")
-        if str(req.get("campaign")) in self.cfg.campaigns:  # else create_run says so
-            await cp.preflight(self.cfg, self.store, self.ctx, str(req.get("campaign")))
+        name = str(req.get("campaign"))
+        if name in self.cfg.campaigns:  # else create_run says so
+            await cp.preflight(self.cfg, self.store, self.ctx, name)
+            if trigger == "timer":  # unattended: only approved programs, else nothing to do
+                try:
+                    await cp.check_approved(self.cfg, self.store, self.ctx, name)
+                except ApprovalError as err:
+                    log.warning("timer start refused: %s", err)
+                    raise
         run_id = await cp.create_run(self.cfg, self.store, str(req.get("campaign")), trigger)
         self._queue.put_nowait(run_id)
         log.info("run=%s queued campaign=%s trigger=%s", run_id, req.get("campaign"), trigger)
