@@ -28,7 +28,8 @@ from hypothesis import strategies as st
 from robid_link.cli import EXIT_INTERNAL, main
 from robid_link.exceptions import RobidError
 
-__all__ = ["SLOW", "EXAMPLES", "FUZZ", "COUNTS", "FAILURES", "check", "check_cli", "write",
+__all__ = ["SLOW", "EXAMPLES", "FUZZ", "COUNTS", "FAILURES", "check", "check_cli",
+           "check_report", "write",
            "not_a_number", "json_like", "set_path", "yaml_junk", "is_float", "VERDICTS"]
 
 SLOW = bool(os.environ.get("ROBID_VALIDATE"))
@@ -110,6 +111,29 @@ def check_cli(kind: str, argv: list[str], capsys: pytest.CaptureFixture[str],
         if rc != 2 or len(err) != 1 or not err[0].startswith("robid: error: "):
             raise _NotOneLine(f"exit {rc}, stderr {err!r}")
         raise RobidError(err[0])
+
+    check(kind, name, run)
+
+
+def check_report(kind: str, argv: list[str], capsys: pytest.CaptureFixture[str],
+                 name: Path | str) -> None:
+    """``robid config check``'s report: exit 1 and a line naming ``name`` (or, for a config
+    that does not load, exit 2 and one ``robid: error:`` line naming it)."""
+
+    def run() -> None:
+        rc = main([str(a) for a in argv])
+        out = capsys.readouterr()
+        err = [ln for ln in out.err.strip().splitlines() if not ln.startswith("robid: warning:")]
+        said = [ln for ln in out.out.splitlines() if not ln.endswith(": ok")]
+        if rc == 0:
+            return
+        if rc == EXIT_INTERNAL:
+            raise _Internal(f"{' '.join(map(str, argv))[:120]}: {err}")
+        if rc == 2 and len(err) == 1 and err[0].startswith("robid: error: "):
+            raise RobidError(err[0])
+        if rc == 1 and said and not err:
+            raise RobidError(next((ln for ln in said if str(name) in ln), said[0]))
+        raise _NotOneLine(f"exit {rc}, stdout {out.out[-300:]!r}, stderr {err!r}")
 
     check(kind, name, run)
 

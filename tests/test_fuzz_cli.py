@@ -26,6 +26,7 @@ from .fuzzing import (
     SLOW,
     VERDICTS,
     check_cli,
+    check_report,
     is_float,
     json_like,
     not_a_number,
@@ -393,6 +394,140 @@ def test_fuzz_cli_config_keys(cell, capsys, case, command):
     template, _ = COMMANDS[command]
     check_cli(f"CLI config {key.split('.')[0]}", _argv(template, {**cell, "config": p}),
               capsys, key)
+
+
+# ----------------------------------------------------------------------------- drivers
+
+def _driver_bases(cell: dict[str, Path]) -> dict[str, dict[str, Any]]:
+    """A valid ``driver:`` mapping of each built-in driver (its required options)."""
+    work = cell["work"]
+    creds = work / "rws.credentials"
+    if not creds.exists():
+        creds.write_text("user: a\npassword: b\n")
+        creds.chmod(0o600)
+    eds = write(work / "drives.eds", "[FileInfo]\n")
+    share = str(cell["share"])
+    return {"file_share": {"share": share},
+            "modbus_plc": {"host": "127.0.0.1", "share": share},
+            "serial_line": {"port": "/dev/ttyUSB0"},
+            "abb_rws": {"version": 2, "url": "https://127.0.0.1:1",
+                        "credentials_file": str(creds)},
+            "canopen_drives": {"nodes": [1, 2, 3], "counts_per_rad": [1000, 1000, 1000],
+                               "eds": str(eds)}}
+
+
+def driver_case() -> st.SearchStrategy[tuple[str, str, Any]]:
+    """(driver, option, bad value) over every option of every built-in driver."""
+    from robid_link.link.registry import BUILTIN_DRIVERS, driver_class
+
+    keys = [(d, k) for d in sorted(BUILTIN_DRIVERS) for k in driver_class(d).options]
+    bad = st.one_of(json_like, not_a_number, st.sampled_from(
+        [-1, 0, 1e12, "", "x", [], {}, True, "/proc/none", 70_000, [0], [1, 1, 1]]))
+    return st.tuples(st.sampled_from(keys), bad).map(lambda m: (*m[0], m[1]))
+
+
+def _driver_refuses(options: dict[str, Any]) -> bool:
+    from robid_link.exceptions import RobidError
+    from robid_link.link.registry import make_driver
+
+    try:
+        make_driver(options)
+    except RobidError:
+        return True
+    return False
+
+
+@FUZZ
+@given(case=driver_case())
+def test_fuzz_cli_driver_options(cell, capsys, case):
+    """A driver option of the wrong type or range (the TypeError of issue 25 among them):
+    config check and the daemon refuse it in one line naming ``driver.<key>``."""
+    driver, key, value = case
+    options = {"name": driver, **_driver_bases(cell)[driver], key: value}
+    try:
+        text = yaml.safe_dump({**_config(cell["work"]), "driver": options})
+    except yaml.YAMLError:
+        text = ""
+    assume(text and _driver_refuses(options))
+    p = write(cell["work"] / "bad-driver.yaml", text)
+    check_cli(f"CLI driver {driver}", ["config", "check", "--config", p], capsys, f"driver.{key}")
+
+
+# ----------------------------------------------------------------------------- config paths
+
+def _quick_config(cell: dict[str, Path]) -> dict[str, Any]:
+    """A config whose check is quick: one campaign of a custom trajectory and a model."""
+    return {**_config(cell["work"]), "campaigns": {"a": {
+        "experiments": [{"kind": "custom", "id": "path", "trajectory": str(cell["traj"])}],
+        "model": str(cell["model"])}}}
+
+
+PATH_KEYS = {  # key → (its place in the config, what it must be)
+    "robot": (("robot",), "file"), "state_dir": (("state_dir",), "folder"),
+    "control_socket": (("control_socket",), "socket"), "driver.share": (("driver", "share"),
+                                                                       "folder"),
+    "campaigns.a.model": (("campaigns", "a", "model"), "file"),
+    "campaigns.a.experiments.path.trajectory": (
+        ("campaigns", "a", "experiments", 0, "trajectory"), "file")}
+
+
+def _bad_path(work: Path, want: str, how: str, k: int) -> Path:
+    folder = work / "paths"
+    folder.mkdir(exist_ok=True)
+    if how == "missing":
+        return folder / f"missing-{k}" / "x.yaml" if k % 2 else folder / f"missing-{k}.yaml"
+    if how == "fifo":
+        return _fifo(folder, folder, ".yaml", k)
+    if how == "device":
+        return Path(os.devnull)
+    if how == "folder":
+        return _folder(folder, folder, ".yaml", k)
+    if how == "file":
+        return write(folder / "a-file", "x")
+    if how == "below a file":
+        return write(folder / "a-file", "x") / "x"
+    return Path("/proc/robid/x")  # cannot be made, not even by root
+
+
+@FUZZ
+@given(key=st.sampled_from(sorted(PATH_KEYS)), how=st.sampled_from(
+    ["missing", "fifo", "device", "folder", "file", "below a file", "/proc"]),
+    k=st.integers(0, 1000))
+def test_fuzz_cli_config_paths(cell, capsys, key, how, k):
+    """Every path of the config, spoilt: config check says which key, which path, what."""
+    place, want = PATH_KEYS[key]
+    # what it must be is no spoiling; a missing state_dir or socket (and folder) is made
+    assume((want, how) not in (("file", "file"), ("folder", "folder"), ("socket", "folder"))
+           and not (key in ("state_dir", "control_socket") and how == "missing"))
+    bad = _bad_path(cell["work"], want, how, k)
+    doc = set_path(_quick_config(cell), place, str(bad))
+    p = write(cell["work"] / "paths.yaml", yaml.safe_dump(doc))
+    check_report(f"CLI config check {key}", ["config", "check", "--config", p], capsys, bad)
+
+
+# ----------------------------------------------------------------------------- bags
+
+@FUZZ
+@given(kind=st.sampled_from(("sqlite3", "mcap", "mcap-file", "ros1")),
+       mutation=st.sampled_from(("drop_joint", "no_effort", "nan", "backwards", "few",
+                                 "other_type", "two_topics", "truncate", "empty", "topic")),
+       command=st.sampled_from(("identify", "diagnose", "elasticity")), k=st.integers(0, 999))
+def test_fuzz_cli_bags(cell, capsys, kind, mutation, command, k):
+    """ROS recordings through the commands that read logs (a bag folder, .mcap, .bag)."""
+    import shutil
+
+    from .test_fuzz import _write_bag
+
+    folder = cell["work"] / "bags"
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir()
+    bag = _write_bag(folder, kind, "none" if mutation == "topic" else mutation, k, k)
+    argv = [command, "--robot", ARM3, "--data", bag]
+    name: Path | str = bag
+    if mutation == "topic":  # a sound recording, a topic it does not hold
+        argv += ["--topic", f"/arm{k}/joint_states"]
+        name = f"/arm{k}/joint_states"
+    check_cli(f"CLI bag ({kind})", argv, capsys, name)
 
 
 # ----------------------------------------------------------------------------- the tally
