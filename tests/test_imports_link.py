@@ -67,11 +67,11 @@ def _graph() -> dict[str, set[str]]:
 def test_config_and_neutral_modules_import_no_wing_back() -> None:
     """config imports no wing, only neutral modules and the door (``jobs``: the file-name rule
     of experiment ids; ``kinds``: the experiment kinds' options); the door imports only
-    neutral modules; yamlio, safeyaml, atomic and exceptions import nothing of the package but
-    each other. (Import circles: ``test_architecture.py``.)"""
+    neutral modules; yamlio, safeyaml, safeopen, atomic and exceptions import nothing of the
+    package but each other. (Import circles: ``test_architecture.py``.)"""
     graph = _graph()
     neutral = {"robid_link.yamlio", "robid_link.safeyaml", "robid_link.atomic",
-               "robid_link.exceptions"}
+               "robid_link.exceptions", "robid_link.safeopen"}
     door = {"robid_link.jobs", "robid_link.kinds"}
     assert graph["robid_link.config"] <= neutral | door
     for module in door:

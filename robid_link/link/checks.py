@@ -9,6 +9,7 @@ starts and warns).
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
 import stat
@@ -49,7 +50,7 @@ def _readable(path: Path, what: str) -> str | None:
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except OSError as err:
-        return f"{what} cannot be read ({err.strerror or err})"
+        return f"{what} cannot be read ({err.strerror or err}{_as_whom(err)})"
     os.close(fd)
     return None
 
@@ -65,13 +66,25 @@ def _writable_folder(path: Path) -> str | None:
                 else f"cannot be created: {existing} is not a folder")
     try:
         fd, probe = tempfile.mkstemp(dir=existing, prefix=".robid-probe-")
-    except OSError as err:
-        reason = err.strerror or str(err)
+    except OSError as err:  # as whom: config check may run as another user than the daemon
+        reason = f"{err.strerror or err}{_as_whom(err)}"
         return (f"cannot write in it ({reason})" if existing == path
                 else f"cannot be created: cannot write in {existing} ({reason})")
     os.close(fd)
     os.unlink(probe)
     return None
+
+
+def _as_whom(err: OSError) -> str:
+    """For a permission error: the user the check ran as (the daemon's may differ)."""
+    if err.errno not in (errno.EACCES, errno.EPERM):
+        return ""
+    try:
+        import pwd
+
+        return f", as user {pwd.getpwuid(os.geteuid()).pw_name}"
+    except (ImportError, KeyError):
+        return f", as uid {os.geteuid()}"
 
 
 def _socket_problem(path: Path) -> str | None:
