@@ -4,7 +4,8 @@ Sections: the file-share give→take hand-off (inotify, polling, the original 1 
 link against the file share (hand-off, log transfer, `--only rws`); the
 batched regressor against a per-sample loop over Pinocchio's computeJointTorqueRegressor; the
 closed-loop plant; diagnose against identify; robid elasticity against identify on a log of the
-same length; identify end-to-end on 1,000,000 samples.
+same length; the demo's report.html (size, first render in Chromium); the web page's
+/api/runs with 1,000 runs; identify end-to-end on 1,000,000 samples.
 """
 
 from __future__ import annotations
@@ -154,7 +155,7 @@ def main() -> int:
     ap.add_argument("--samples", type=int, default=1_000_000)
     ap.add_argument("--only", choices=("identify", "regressor", "plant", "diagnose", "handoff",
                                         "canopen", "rws", "consistent", "modbus", "serial",
-                                        "elasticity"))
+                                        "elasticity", "report", "web"))
     args = ap.parse_args()
     print("robid_link benchmarks (2-core machine; ratios are against baselines run here)\n")
     if args.only in (None, "handoff"):
@@ -212,6 +213,16 @@ def main() -> int:
 
         report_elasticity(bench_elasticity(
             ROBOT, ROBOT.parent / "industrial6.elastic.truth.yaml", _make_npz))
+    if args.only in (None, "report"):  # issue 20: the demo's report.html
+        from benchmarks.report import bench_report
+        from benchmarks.report import report as report_page
+
+        report_page(bench_report())
+    if args.only in (None, "web"):  # issue 20: the operator's page
+        from benchmarks.web import bench_web
+        from benchmarks.web import report as report_web
+
+        report_web(bench_web())
     if args.only in (None, "identify"):
         r = bench_identify(args.samples)
         print(f"identify end to end, {r['samples']:,} samples at 1 kHz, 6 axes, no decimation: "

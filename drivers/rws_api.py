@@ -1,7 +1,7 @@
 """ABB Robot Web Services as robid uses them: the resource paths and encodings of RWS 1.0
 (IRC5, RobotWare 6) and 2.0 (OmniCore, RobotWare 7) in one table, and the robid RAPID names.
 
-Shared by the driver (``abb_rws.py``) and the fake controller (``fakes/rws_peer.py``), like the
+Shared by the driver (``abb_rws.py``) and the fake controller (``fakes/rws/peer.py``), like the
 file-share names: the peer serves exactly what this table names, nothing more.
 """
 

@@ -17,13 +17,14 @@ from robid_link.kinds import KIND_OPTIONS, experiment_options
 from robid_link.yamlio import check_keys, read_yaml_mapping, yaml_type
 
 __all__ = ["load_daemon_config", "DaemonConfig", "CampaignDef",
-           "ExperimentDef"]
+           "ExperimentDef", "WebConfig"]
 
 
 # ----------------------------------------------------------------------------- daemon config
 
 _DAEMON_REQUIRED = ("robot", "state_dir", "control_socket", "driver", "campaigns")
-_DAEMON_OPTIONAL = ("lock", "socket_mode", "worker_start_method", "log_level")
+_DAEMON_OPTIONAL = ("lock", "socket_mode", "worker_start_method", "log_level", "web")
+_WEB_OPTIONAL = ("listen", "tls_cert", "tls_key", "token", "token_file")
 _CAMPAIGN_OPTIONAL = ("identify", "diagnose", "model", "add", "method", "retries", "backoff_s",
                       "timeout_s", "reduced_speed_first", "cutoff_hz", "motor_side", "upload")
 
@@ -56,6 +57,19 @@ class CampaignDef:
 
 
 @dataclass(frozen=True)
+class WebConfig:
+    """``web:``: the operator's page. ``listen`` HOST:PORT (the daemon serves it when set);
+    TLS certificate and key; the token actions need (given, or in ``token_file``, by default
+    ``web.token`` in the state dir, mode 0600)."""
+
+    listen: str | None = None
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
+    token: str | None = None
+    token_file: Path | None = None
+
+
+@dataclass(frozen=True)
 class DaemonConfig:
     path: Path
     robot: Path
@@ -67,6 +81,7 @@ class DaemonConfig:
     socket_mode: int = 0o660
     worker_start_method: str = "forkserver"
     log_level: str = "info"
+    web: WebConfig = WebConfig()
 
     @property
     def base_dir(self) -> Path:
@@ -164,6 +179,23 @@ def _campaign(name: str, raw: Any, base: Path) -> CampaignDef:
         upload=raw.get("upload", False))
 
 
+def _web(raw: Any, base: Path) -> WebConfig:
+    if raw is None:
+        return WebConfig()
+    check_keys(raw, "web", optional=_WEB_OPTIONAL)
+    for key in ("listen", "token"):
+        if raw.get(key) is not None and (not isinstance(raw[key], str) or not raw[key]):
+            raise ConfigError(f"web.{key}: expected text, got {raw[key]!r}")
+    if raw.get("token") is not None and len(raw["token"]) < 16:
+        raise ConfigError("web.token: at least 16 characters (a guessable token guards "
+                          "nothing)")
+    if raw.get("token") and raw.get("token_file"):
+        raise ConfigError("web: give token or token_file, not both")
+    paths = {k: _path(base, raw[k], f"web.{k}") if raw.get(k) else None
+             for k in ("tls_cert", "tls_key", "token_file")}
+    return WebConfig(listen=raw.get("listen"), token=raw.get("token"), **paths)
+
+
 def load_daemon_config(path: str | Path) -> DaemonConfig:
     """Read and validate the daemon's config; every error names the file and key path."""
     p = Path(path)
@@ -218,4 +250,5 @@ def _daemon_config(p: Path, doc: dict[str, Any]) -> DaemonConfig:
         state_dir=_path(base, doc["state_dir"], "state_dir"),
         control_socket=_path(base, doc["control_socket"], "control_socket"),
         driver=driver, campaigns={n: _campaign(n, c, base) for n, c in camps.items()},
-        lock=tuple(lock), socket_mode=mode, worker_start_method=start, log_level=level)
+        lock=tuple(lock), socket_mode=mode, worker_start_method=start, log_level=level,
+        web=_web(doc.get("web"), base))

@@ -4,7 +4,8 @@ A temporary share and state dir; the fake controller (a thread) over a simulated
 whose truth holds an effect the default model does not know; the daemon; one campaign
 (excitation → generate/give/take/load → identification → diagnosis) started over the control
 socket with a progress display; then the suggested effect is added to the model file and the
-stored logs are identified again: the error ladder. Report files go to ``--out``.
+stored logs are identified again: the error ladder. Report files go to ``--out``; its
+report.html is the first run's, with the error ladder and the verification's tracking added.
 """
 
 from __future__ import annotations
@@ -172,7 +173,8 @@ def run_demo(work: Path, out: Path, json_path: str | None = None,
                         history=model_file)
         files += final.report_files["identify"]
         final_rmse = final.result.rmse.tolist()
-    files.append(history_figure(read_history(model_file), out / "error_ladder.png"))
+    ladder = read_history(model_file)
+    files.append(history_figure(ladder, out / "error_ladder.png"))
     print("\n  error ladder, validation RMSE per joint [N·m]:")
     print("    default model : " + " ".join(f"{x:7.3f}" for x in first["rmse"]))
     if spec is not None:
@@ -180,6 +182,9 @@ def run_demo(work: Path, out: Path, json_path: str | None = None,
     if cal is not None and cal["run"]["state"] != "completed":
         raise RobidError(f"demo calibration failed: {cal['run']['error']}")
     tracking = _tracking(cal["results"]) if cal is not None else None
+    from robid_link.ident.report.html import add_to_report
+
+    page = add_to_report(out / "report.html", history=ladder, tracking=tracking)
     if tracking:
         from robid_link.ident.report.figures import tracking_figure
 
@@ -192,6 +197,7 @@ def run_demo(work: Path, out: Path, json_path: str | None = None,
               f"{b['tool_max_mm']:.3f} → {a['tool_max_mm']:.3f} mm, after the stop "
               f"{b['residual_mm']:.3f} → {a['residual_mm']:.3f} mm")
     print(f"\nrobid demo: run {run['run_id']} completed; {len(files)} report files in {out}/")
+    print(f"  open the report: {page}")
     if json_path:
         write_json(json_path, {"run": run, "results": doc["results"], "hidden": HIDDEN,
                                "model": model.labels(), "final_rmse": final_rmse,

@@ -516,6 +516,8 @@ class IdentifyJob(Job):
     motor_side: bool
     upload: bool
     resonance_hints: tuple[ResonanceHint, ...]
+    #: the daemon campaign whose run this is (named in the report)
+    campaign: str | None = None
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,6 @@
 """The built wheel installs only under ``robid_link`` (no top-level ``drivers``/``fakes``) and
-ships what ``robid demo`` and the systemd route need: examples, units, fakes, drivers."""
+ships what ``robid demo`` and the systemd route need: examples, units, fakes, drivers, the
+report's template and scripts."""
 
 from __future__ import annotations
 
@@ -10,7 +11,14 @@ NEEDED = ("robid_link/examples/robots/industrial6.yaml", "robid_link/examples/li
           "robid_link/systemd/robid-link.service", "robid_link/fakes/plant.py",
           "robid_link/fakes/controller.py", "robid_link/drivers/file_share.py",
           "robid_link/drivers/rapid.py", "robid_link/cli/__init__.py",
-          "robid_link/cli/__main__.py", "robid_link/py.typed")
+          "robid_link/cli/__main__.py", "robid_link/py.typed",
+          "robid_link/ident/report/templates/report.html.j2",
+          "robid_link/ident/report/static/uPlot.iife.min.js",
+          "robid_link/ident/report/static/report.js",
+          "robid_link/ident/report/static/LICENSE.uPlot",
+          "robid_link/web/templates/runs.html.j2", "robid_link/web/server.py",
+          "robid_link/fakes/canopen/cia402_drive.eds", "robid_link/fakes/rws/peer.py",
+          "robid_link/drivers/canopen/drives.py")
 
 
 def main(path: str) -> int:

@@ -27,6 +27,33 @@ ROBOTS = ROOT / "examples" / "robots"
 KUKA = ROOT.parent / "shared" / "data" / "kuka_lwr4"
 
 
+# ----------------------------------------------------------------------------- test kinds
+
+#: every test is a unit test (one part, in-process fakes) unless its file is listed here:
+#: contract tests run one interface against every implementation (each driver with its peer,
+#: the golden transcripts); end-to-end tests run the daemon, a peer in another process, a
+#: browser or a real server. `pytest -m unit` is the quick loop; `make test` runs them all.
+TEST_KINDS = {
+    "contract": ("drivers/test_contract.py", "drivers/test_golden_*.py"),
+    "e2e": ("link/test_end_to_end*.py", "drivers/test_*_end_to_end.py",
+            "link/test_harden_process.py", "link/test_verify_campaign.py",
+            "link/test_daemon_properties.py", "browser/test_*.py", "test_examples.py"),
+}
+
+
+def kind_of(path: Path) -> str:
+    """The kind of a test file (``unit``, ``contract`` or ``e2e``) by ``TEST_KINDS``."""
+    rel = path.resolve().relative_to(ROOT / "tests")
+    kinds = [k for k, globs in TEST_KINDS.items() if any(rel.match(g) for g in globs)]
+    assert len(kinds) <= 1, f"{rel}: listed as {kinds}"
+    return kinds[0] if kinds else "unit"
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        item.add_marker(getattr(pytest.mark, kind_of(item.path)))
+
+
 @pytest.fixture(scope="session")
 def arm3() -> Robot:
     return load_robot(ROBOTS / "arm3.yaml")

@@ -33,9 +33,10 @@ def test_identify_json_and_report(arm3_log, tmp_path, capsys):
     assert set(p) >= {"name", "value", "std", "expression"}
     assert any(q["expression"] == "zz_2 + 0.16·m_3" for q in doc["parameters"])
     assert {f.name for f in out_dir.iterdir()} >= {
-        "summary.txt", "parameters.csv", "parameters.yaml", "torque_joint1.png"}
+        "summary.txt", "parameters.csv", "parameters.yaml", "torque_joint1.png", "report.html"}
     text = capsys.readouterr().out
     assert "relative error" in text and "zz_2 + 0.16·m_3" in text
+    assert f"report: {out_dir / 'report.html'}" in text
 
 
 @pytest.mark.parametrize("method", ["wls", "irls"])
@@ -159,5 +160,12 @@ def test_demo_runs_the_whole_job_through_the_daemon(tmp_path):
     before = next(r["record"]["rmse"] for r in doc["results"] if r["kind"] == "identify")
     assert doc["final_rmse"][0] < 0.7 * before[0]
     for name in ("summary.txt", "diagnose.json", "error_ladder.png", "daemon.log",
-                 "model.yaml", "residual_joint1.png"):
+                 "model.yaml", "residual_joint1.png", "report.html"):
         assert (tmp_path / "rep" / name).is_file(), name
+    assert out.stdout.rstrip().endswith(f"open the report: {tmp_path / 'rep' / 'report.html'}")
+    from robid_link.ident.report.html import read_report_data
+
+    page = read_report_data(tmp_path / "rep" / "report.html")  # the diagnosis, then the ladder
+    assert page["diagnosis"]["suggestions"][0]["label"] == "ripple@1"
+    assert [r["label"] for r in page["ladder"]["rungs"]][-1] == "v2: +ripple@1"
+    assert set(page["tracking"]["phases"]) == {"before", "after"}

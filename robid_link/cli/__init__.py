@@ -18,14 +18,14 @@ from pathlib import Path
 from typing import Any
 
 from robid_link import __version__
-from robid_link.cli import analyse, campaign, daemon, demo, params, robot, runs
+from robid_link.cli import analyse, campaign, daemon, demo, params, robot, runs, web
 from robid_link.cli.types import Command, OneLineParser, error_line
 from robid_link.exceptions import RobidError
 
 __all__ = ["main", "GROUPS", "EXIT_INTERNAL"]
 
 #: the command groups, in the order ``robid --help`` lists their commands
-GROUPS = (analyse, robot, demo, daemon, campaign, runs, params)
+GROUPS = (analyse, robot, demo, daemon, campaign, runs, params, web)
 
 
 def _add(sub: Any, command: Command) -> None:

@@ -99,7 +99,7 @@ def _identify_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
                    help="write the result as JSON")
     p.add_argument("--out", metavar="DIR", type=output_path("dir"),
-                   help="write figures, parameter table and YAML")
+                   help="write report.html, figures, parameter table and YAML")
 
 
 def _fs_check(args: argparse.Namespace) -> None:
@@ -130,7 +130,8 @@ def _identify(args: argparse.Namespace) -> int:
                   else None, report_dir=args.out, history=args.model or None)
     print(job.result.summary())
     if args.out:
-        print(f"\n  wrote {len(job.report_files['identify'])} files to {args.out}")
+        print(f"\n  wrote {len(job.report_files['identify'])} files to {args.out}; report: "
+              f"{job.report_html}")
     if args.export_urdf:  # issue 15 item 6
         from robid_link.ident.model.urdf_export import export_urdf
 
@@ -148,7 +149,7 @@ def _diagnose_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
                    help="write the diagnosis as JSON")
     p.add_argument("--out", metavar="DIR", type=output_path("dir"),
-                   help="write residual figures per joint")
+                   help="write report.html and residual figures per joint")
 
 
 def _diagnose(args: argparse.Namespace) -> int:
@@ -163,7 +164,8 @@ def _diagnose(args: argparse.Namespace) -> int:
     assert dg is not None  # "diagnose" was asked for
     print(dg.summary())
     if args.out:
-        print(f"  wrote {len(job.report_files['diagnose'])} figures to {args.out}")
+        print(f"  wrote {len(job.report_files['diagnose'])} figures to {args.out}; report: "
+              f"{job.report_html}")
     if dg.suggestions and args.model:
         s = dg.suggestions[0]
         print(f"  next: robid model add {args.model} {s.label()}")
@@ -249,7 +251,8 @@ def _elasticity_options(p: argparse.ArgumentParser) -> None:
                    help="logs on the motor side: results in motor units (no conversion)")
     p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
                    help="write the result as JSON")
-    p.add_argument("--out", metavar="DIR", type=output_path("dir"), help="Bode figures")
+    p.add_argument("--out", metavar="DIR", type=output_path("dir"),
+                   help="write report.html and Bode figures")
 
 
 def _elasticity(args: argparse.Namespace) -> int:
@@ -288,7 +291,10 @@ def _elasticity(args: argparse.Namespace) -> int:
         write_json(args.json, res.to_dict())
     if args.out:
         paths = elasticity_figures(res, args.out)
-        print(f"\n  wrote {len(paths)} figure(s) to {args.out}")
+        from robid_link.ident.report.html import write_html_report
+
+        page = write_html_report(args.out, elasticity=res, robot=robot)
+        print(f"\n  wrote {len(paths)} figure(s) to {args.out}; report: {page}")
     return 0
 
 

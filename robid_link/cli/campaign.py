@@ -7,7 +7,7 @@ import argparse
 import sys
 from typing import TYPE_CHECKING
 
-from robid_link.cli.runs import format_results, wait_for_run
+from robid_link.cli.runs import format_results, report_lines, wait_for_run
 from robid_link.cli.types import Command, config_option, output_path
 from robid_link.exceptions import ApprovalError, DaemonUnreachable
 from robid_link.link.control import PREFLIGHT_TIMEOUT_S, request
@@ -68,6 +68,8 @@ def _start(args: argparse.Namespace) -> int:
 
         write_json(args.json, {"run": run, "results": results["results"]})
     print(format_results(results["results"]))
+    for line in report_lines(cfg.state_dir, [run_id]):
+        print(line)
     return 0 if run["state"] == "completed" else 1
 
 

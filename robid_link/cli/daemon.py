@@ -24,8 +24,10 @@ __all__ = ["COMMANDS"]
 
 
 def _daemon(args: argparse.Namespace) -> int:
-    """``robid daemon``: the config's keys, driver options and paths are checked here first
-    (one error line, before the daemon's logging starts); the daemon checks them again."""
+    """The daemon, with the operator's page as a service when the config has ``web.listen``
+    (the CLI hands it over: the link never imports the web room). The config's keys, driver
+    options and paths are checked here first (one error line, before the daemon's logging
+    starts); the daemon checks them again."""
     import asyncio
 
     from robid_link.config import load_daemon_config
@@ -38,7 +40,12 @@ def _daemon(args: argparse.Namespace) -> int:
     if problems:
         more = f" (and {len(problems) - 1} more: robid config check)" if problems[1:] else ""
         raise RobidError(f"{cfg.path}: {problems[0].line}{more}")
-    return asyncio.run(run_daemon(cfg))
+    services = []
+    if cfg.web.listen:
+        from robid_link.web.command import daemon_service
+
+        services.append(daemon_service(cfg))
+    return asyncio.run(run_daemon(cfg, services))
 
 
 def _config_check(args: argparse.Namespace) -> int:

@@ -21,7 +21,7 @@ from robid_link.cli.types import (
 from robid_link.exceptions import DaemonUnreachable, RobidError
 from robid_link.link.control import request
 
-__all__ = ["COMMANDS", "wait_for_run", "format_runs", "format_results"]
+__all__ = ["COMMANDS", "wait_for_run", "format_runs", "format_results", "report_lines"]
 
 
 def _unreachable(err: DaemonUnreachable) -> str:
@@ -138,6 +138,18 @@ def format_results(results: list[dict[str, Any]]) -> str:
 
 # --------------------------------------------------------------------------------- status
 
+def report_lines(state_dir: Path, run_ids: list[str], most: int = 5) -> list[str]:
+    """``report RUN: PATH`` of the first ``most`` of these runs that have a report.html."""
+    out = []
+    for run_id in dict.fromkeys(run_ids):
+        page = state_dir / "reports" / run_id / "report.html"
+        if page.is_file():
+            out.append(f"report {run_id}: {page}")
+        if len(out) == most:
+            break
+    return out
+
+
 def _robot_name(cfg: Any) -> str:
     """The robot's name as the store records it (the description's name, else the stem)."""
     from robid_link.ident.model.robot import load_robot
@@ -175,6 +187,9 @@ def _status(args: argparse.Namespace) -> int:
                                "drift": ans.get("drift", [])})
     print(f"daemon: {ans['status']}")
     print(format_runs(ans["runs"]))
+    for line in report_lines(cfg.state_dir, [r["run_id"] for r in ans["runs"]
+                                             if r["state"] == "completed"]):
+        print(line)
     for line in ans.get("drift", []):
         print(f"drift: {line}")
     return 0
@@ -226,6 +241,8 @@ def _results(args: argparse.Namespace) -> int:
     if args.trend or args.compare:
         return _drift(args, res)
     print(format_results(res))
+    for line in report_lines(cfg.state_dir, [r["run_id"] for r in reversed(res)]):
+        print(line)
     return 0
 
 

@@ -100,6 +100,7 @@ def identify(job: jb.IdentifyJob) -> jb.IdentifyOutcome:
                             method=job.method, motor_side=job.motor_side,
                             json_files={k: out / f"{k}.json" for k in analyses},
                             report_dir=out, history=job.model or None, run_id=job.run_id,
+                            campaign=job.campaign,
                             resonance_hints={h.joint: h for h in job.resonance_hints})
     notes = sorted({f"{w.category.__name__}: {w.message}" for w in caught})
     records, doc, summaries = done.records, done.docs["identify"], done.summaries()

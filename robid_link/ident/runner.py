@@ -1,5 +1,6 @@
 """One identification job: identify → JSON and report files → history → maybe diagnose (→ its
-JSON and figures). The CLI, the daemon's worker and the demo all run their analyses here.
+JSON and figures) → report.html. The CLI, the daemon's worker and the demo all run their
+analyses here.
 """
 
 from __future__ import annotations
@@ -10,12 +11,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from robid_link.ident.data.logs import Log
-from robid_link.ident.diagnosis.history import append_record, result_record
+from robid_link.ident.diagnosis.history import append_record, read_history, result_record
 from robid_link.ident.fit.identify import identify
 from robid_link.ident.fit.results import IdentResult
 from robid_link.ident.model.effects import Model
 from robid_link.ident.model.robot import Robot
 from robid_link.ident.report.figures import residual_figures, write_json, write_report
+from robid_link.ident.report.html import write_html_report
 
 if TYPE_CHECKING:  # diagnose (scipy.stats) is imported only when a job diagnoses
     from robid_link.ident.diagnosis.diagnose import Diagnosis
@@ -30,13 +32,14 @@ ANALYSES = ("identify", "diagnose")
 @dataclass
 class JobOutcome:
     """What a job produced: the fitted result, the diagnosis, their JSON documents and
-    history records (by analysis), and the report files written."""
+    history records (by analysis), the report files written, and report.html."""
 
     result: IdentResult
     diagnosis: Diagnosis | None = None
     docs: dict[str, dict[str, Any]] = field(default_factory=dict)
     records: dict[str, dict[str, Any]] = field(default_factory=dict)
     report_files: dict[str, list[Path]] = field(default_factory=dict)
+    report_html: Path | None = None
 
     def summaries(self) -> list[str]:
         out = [self.result.summary()] if "identify" in self.docs else []
@@ -49,17 +52,18 @@ def run_job(robot: Robot, data: Sequence[Log], model: Model, *,
             interval: int = 1, method: str = "ols", weight: str = "bisquare",
             motor_side: bool = False, json_files: Mapping[str, str | Path] | None = None,
             report_dir: str | Path | None = None, history: str | Path | None = None,
-            run_id: str | None = None,
+            run_id: str | None = None, campaign: str | None = None,
             resonance_hints: Mapping[int, ResonanceHint] | None = None) -> JobOutcome:
     """Run the ``analyses`` (``identify``, ``diagnose``) on one set of inputs.
 
     The model is fitted once: a diagnosis reuses the identification (see ``diagnose``).
     ``json_files`` maps an analysis to the file its JSON document goes to; ``report_dir``
-    gets identify's report files and the diagnosis' residual figures; ``history`` (a model
-    file) gets one record per analysis, after all of them ran (once per ``run_id`` of a
-    daemon run, so a run resumed after a crash adds no second record). ``resonance_hints``:
-    per joint, what the diagnosis tells of an unexplained resonance (the daemon's campaign
-    language; without, the generic advice).
+    gets identify's report files, the diagnosis' residual figures and, last, report.html (with
+    the model file's error ladder); ``history`` (a model file) gets one record per analysis,
+    after all of them ran (once per ``run_id`` of a daemon run, so a run resumed after a crash
+    adds no second record); ``run_id`` and ``campaign`` name a daemon run in the report.
+    ``resonance_hints``: per joint, what the diagnosis tells of an
+    unexplained resonance (the daemon's campaign language; without, the generic advice).
     """
     unknown = set(analyses) - set(ANALYSES)
     if unknown or not analyses:
@@ -96,4 +100,9 @@ def run_job(robot: Robot, data: Sequence[Log], model: Model, *,
     if history is not None:
         for rec in out.records.values():
             append_record(history, rec)
+    if report_dir is not None:
+        run = {"run_id": run_id, "campaign": campaign} if run_id else None
+        out.report_html = write_html_report(
+            report_dir, result=res, diagnosis=out.diagnosis, model_file=history, run=run,
+            history=read_history(history) if history else None)
     return out

@@ -335,7 +335,8 @@ async def _identify(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: A
         report_dir=str(store.dir / "reports" / run_id),
         model=str(camp.model) if camp.model else None, add=camp.add, method=camp.method,
         diagnose=camp.diagnose, cutoff_hz=camp.cutoff_hz, motor_side=camp.motor_side,
-        upload=camp.upload, resonance_hints=resonance_hints(cfg, camp.name, n_joints))
+        upload=camp.upload, resonance_hints=resonance_hints(cfg, camp.name, n_joints),
+        campaign=camp.name)
     kill_hook("identifying")
     out: jb.IdentifyOutcome = await run_in_worker(
         ctx, job, on_start=lambda: kill_hook("identify_started"))

@@ -12,7 +12,8 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping, Sequence
+from contextlib import AbstractAsyncContextManager
 from typing import Any, TextIO
 
 from robid_link.config import DaemonConfig
@@ -465,11 +466,16 @@ class Daemon:
                 f"({active[-2][:16]}…), acknowledged by the controller"}
 
 
-async def run_daemon(cfg: DaemonConfig) -> int:
-    """``robid daemon``: serve until SIGTERM or SIGINT."""
+async def run_daemon(cfg: DaemonConfig,
+                     services: Sequence[Callable[[Daemon], AbstractAsyncContextManager[Any]]]
+                     = ()) -> int:
+    """``robid daemon``: serve until SIGTERM or SIGINT; each of ``services`` (the operator's
+    web page) is entered with the ready daemon and left before it stops."""
     setup_logging(cfg.log_level)
     loop = asyncio.get_running_loop()
-    async with Daemon(cfg) as daemon:
+    async with Daemon(cfg) as daemon, contextlib.AsyncExitStack() as extras:
+        for service in services:
+            await extras.enter_async_context(service(daemon))
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, daemon.stop)
         try:

@@ -23,7 +23,7 @@ PEER_ENTRY_POINT_GROUP = "robid_link.fake_peers"
 BUILTIN_DRIVERS: dict[str, tuple[str, str | None]] = {
     "file_share": ("robid_link.drivers.file_share:FileShareDriver", None),
     "abb_rws": ("robid_link.drivers.abb_rws:AbbRwsDriver", "rws"),
-    "canopen_drives": ("robid_link.drivers.canopen_drives:CanopenDrivesDriver", "can"),
+    "canopen_drives": ("robid_link.drivers.canopen.drives:CanopenDrivesDriver", "can"),
     "modbus_plc": ("robid_link.drivers.modbus_plc:ModbusPlcDriver", "modbus"),
     "serial_line": ("robid_link.drivers.serial_line:SerialLineDriver", "serial"),
 }
@@ -31,8 +31,8 @@ BUILTIN_DRIVERS: dict[str, tuple[str, str | None]] = {
 #: the fake controller side of each built-in driver's protocol (tests, demo, fake-controller)
 BUILTIN_PEERS: dict[str, str] = {
     "file_share": "robid_link.fakes.file_share_peer:FileSharePeer",
-    "abb_rws": "robid_link.fakes.rws_peer:RwsPeer",
-    "canopen_drives": "robid_link.fakes.cia402_peer:Cia402Peer",
+    "abb_rws": "robid_link.fakes.rws.peer:RwsPeer",
+    "canopen_drives": "robid_link.fakes.canopen.peer:Cia402Peer",
     "modbus_plc": "robid_link.fakes.modbus_peer:ModbusPeer",
     "serial_line": "robid_link.fakes.serial_peer:SerialPeer",
 }

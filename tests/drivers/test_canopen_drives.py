@@ -16,9 +16,9 @@ import can
 import numpy as np
 import pytest
 
-from robid_link.drivers.canopen_drives import CanopenDrivesDriver
+from robid_link.drivers.canopen.drives import CanopenDrivesDriver
 from robid_link.exceptions import ConfigError, DriverError
-from robid_link.fakes.cia402_peer import EDS
+from robid_link.fakes.canopen.peer import EDS
 from robid_link.fakes.controller import default_truth, make_peer
 from robid_link.ident.excite import excitation as ex
 from robid_link.ident.excite import program as pg

@@ -135,9 +135,28 @@ class TestContract:
                                                      tmp_path: Path,
                                                      robot: Robot, program: MotionProgram,
                                                      fault: str) -> None:
-        with cell(name, tmp_path, robot, variant, fault=fault) as (driver, _):
-            arr = _parse(_cycle(driver, program))
-        assert np.all(np.isfinite(arr))
+        """A stale answer (another nonce) shows first, or the answer comes twice: the take
+        returns this attempt's own answer, and a duplicate is never taken as the answer of
+        the next attempt (a retry under a new nonce runs the program again)."""
+        with cell(name, tmp_path, robot, variant, fault=fault) as (driver, peer):
+            async def go() -> tuple[Done, bytes, Done, bytes]:
+                async with driver:
+                    await driver.put_program(program)
+                    out: list[Any] = []
+                    for nonce in ("n1", "n2"):
+                        await driver.give_ready("exp1", nonce)
+                        done = await driver.take_done("exp1", nonce, timeout_s=30)
+                        out += [done, await driver.fetch_logs(done)]
+                        await driver.acknowledge(done)
+                    return out[0], out[1], out[2], out[3]
+
+            first, log1, second, log2 = asyncio.run(go())
+        assert (first.exp_id, first.nonce, second.nonce) == ("exp1", "n1", "n2")
+        for data in (log1, log2):
+            arr = _parse(data)
+            assert np.all(np.isfinite(arr))
+            assert np.abs(arr[:, 1:4]).max() == pytest.approx(0.05, abs=0.01)
+        assert len(peer.core.handled) == 2  # the second take waited for the second run
 
     @pytest.mark.parametrize("fault", ["truncated_log", "corrupt_log"])
     def test_checksum_catches_a_damaged_log(self, name: str, variant: dict[str, Any],

@@ -21,7 +21,7 @@ import aiohttp
 import pytest
 from yarl import URL
 
-from robid_link.fakes.rws_peer import RwsPeer
+from robid_link.fakes.rws.peer import RwsPeer
 from robid_link.ident.model.robot import Robot
 from robid_link.jobs import RobotInfo
 from robid_link.link import registry

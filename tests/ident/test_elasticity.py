@@ -193,6 +193,7 @@ def test_cli_elasticity_json_and_figure(plant_log):
     assert j["joint"] == 1 and set(j["std"]) == {"jm", "ja", "k", "d", "ba"}
     assert j["k"] == pytest.approx(TRUE["k"], rel=0.01)
     assert (tmp / "figs" / "elasticity_1.png").is_file()
+    assert 'data-figure="bode"' in (tmp / "figs" / "report.html").read_text("utf-8")
 
 
 def test_cli_excite_elasticity_header(tmp_path):

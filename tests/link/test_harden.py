@@ -245,8 +245,10 @@ def test_full_disk_while_recording_a_failure_does_not_crash_the_daemon(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     cfg = write_config(tmp_path, {"c": FRICTION})
     real = Store.set_run
+    attempted: list[str] = []
 
     def set_run(store: Store, run_id: str, state: str, **kw: Any) -> None:
+        attempted.append(state)
         if state == "failed":
             raise StoreFullError("state_dir: disk full while writing: waiting for space")
         real(store, run_id, state, **kw)
@@ -263,7 +265,11 @@ def test_full_disk_while_recording_a_failure_does_not_crash_the_daemon(
         return await d.handle({"cmd": "status", "run_id": ans["run_id"]})
 
     status = with_daemon(cfg, body)  # the daemon lived on to answer
+    assert "failed" in attempted  # the failure was recorded, and that write hit the full disk
     assert status["ok"]
+    (run,) = status["runs"]
+    # nothing claims the run failed (the write did not land): it stays unfinished, to resume
+    assert run["state"] in ("queued", "running"), run["state"]
 
 
 # ------------------------------------------------------------------- 11: messages

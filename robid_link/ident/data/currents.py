@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -22,8 +22,8 @@ from robid_link.ident.model.effects import Block
 from robid_link.ident.model.known import KnownTorque, known_torque_total
 from robid_link.ident.model.robot import Robot
 
-__all__ = ["torque_from_currents", "subtract_known_torques", "identify_current_gains",
-           "unidentifiable_gains"]
+__all__ = ["torque_from_currents", "without_known_torques", "CurrentGains",
+           "identify_current_gains", "with_currents", "unidentifiable_gains"]
 
 
 def _gain_key(robot: Robot) -> str:
@@ -57,24 +57,30 @@ def _current_columns(prep: Prepared, motors: np.ndarray, raw: np.ndarray) -> np.
     return raw[:, None, motors] * m[motors].T[None, :, :]
 
 
-def subtract_known_torques(pb: Problem, known: Sequence[KnownTorque]) -> list[str]:
-    """τ − τ_known on every prepared log (raw and filtered torques alike; the known torque
-    is evaluated on the filtered states, as the regressor columns are)."""
+def without_known_torques(pb: Problem, known: Sequence[KnownTorque]) -> Problem:
+    """The problem with τ − τ_known on every prepared log (raw and filtered torques alike;
+    the known torque is evaluated on the filtered states, as the regressor columns are)."""
     if not known:
-        return []
-    for prep in (*pb.preps, *pb.vpreps):
-        tk = np.zeros_like(prep.tau)
-        for seg in prep.log.segments:
-            if seg.stop - seg.start < 3 * prep.filt.settle:
-                continue  # not prepared (too short to filter), never used
-            tk[seg] = known_torque_total(tuple(known), prep.q[seg], prep.qd[seg], prep.qdd[seg])
-            prep.tau_f[seg] -= prep.filt.apply(tk[seg])
-        prep.log = replace(prep.log, tau=prep.log.tau - tk)
-        prep.tau_known = tk
+        return pb
+    preps = [_without_known(prep, known) for prep in pb.preps]
+    vpreps = [_without_known(prep, known) for prep in pb.vpreps]
     fixed = [kt.label + (f" (identified: {', '.join(kt.identify)})" if kt.identify else "")
              for kt in known]
-    return [f"known torque(s) {'; '.join(fixed)}: subtracted from the measured torque before "
-            "identification and added back in predictions"]
+    return pb.with_preps(preps, vpreps, [
+        f"known torque(s) {'; '.join(fixed)}: subtracted from the measured torque before "
+        "identification and added back in predictions"])
+
+
+def _without_known(prep: Prepared, known: Sequence[KnownTorque]) -> Prepared:
+    tk = np.zeros_like(prep.tau)
+    tau_f = prep.tau_f.copy(order="K")  # the same memory layout: the same sums
+    for seg in prep.log.segments:
+        if seg.stop - seg.start < 3 * prep.filt.settle:
+            continue  # not prepared (too short to filter), never used
+        tk[seg] = known_torque_total(tuple(known), prep.q[seg], prep.qd[seg], prep.qdd[seg])
+        tau_f[seg] -= prep.filt.apply(tk[seg])
+    return replace(prep, log=replace(prep.log, tau=prep.log.tau - tk), tau_f=tau_f,
+                   tau_known=tk)
 
 
 def unidentifiable_gains(robot: Robot, blocks: Sequence[Block], known: Sequence[KnownTorque],
@@ -97,11 +103,27 @@ def unidentifiable_gains(robot: Robot, blocks: Sequence[Block], known: Sequence[
     return [int(motors[k]) for k in np.flatnonzero(part > 1e-6)]
 
 
+@dataclass(frozen=True)
+class CurrentGains:
+    """Identified current → torque gains of the drives logged without one."""
+
+    motors: np.ndarray  # 0-based drives whose gain was identified
+    gains: np.ndarray  # N·m/A on the logs' side
+    std: np.ndarray
+    side: str  # "motor" (motor-side logs) or "joint"
+
+    def notes(self) -> list[str]:
+        return [f"current_gain of joint {m + 1} identified: {g:.6g} N·m/A ({self.side} side, "
+                f"std {100 * s / abs(g):.2g} %)"
+                for m, g, s in zip(self.motors, self.gains, self.std, strict=True)]
+
+
 def identify_current_gains(pb: Problem, design: Design, known: Sequence[KnownTorque]
-                           ) -> list[str]:
+                           ) -> CurrentGains | None:
     """Estimate the gains left out, with the model's base parameters, on the training rows
-    (parallel-filtered, like the torques); then every log's torque is completed with them.
-    Refused, naming the drive, when the data cannot fix a gain.
+    (parallel-filtered, like the torques); ``with_currents`` then completes every log's
+    torque with them. None when no log holds a current. Refused, naming the drive, when the
+    data cannot fix a gain.
 
     The fit is in motor space with the current as the measured quantity (output error:
     i_m = (1/K_m)·(A θ − z)_m, A = M⁻¹ W): an equation-error fit (K_m·i_m = …) would put the
@@ -110,7 +132,7 @@ def identify_current_gains(pb: Problem, design: Design, known: Sequence[KnownTor
     per-motor Gram matrices (one pass over the data)."""
     preps = [p for p in (*pb.preps, *pb.vpreps) if p.log.currents is not None]
     if not preps:
-        return []
+        return None
     masks = [(p in pb.preps, p.log.current) for p in preps if p.log.current is not None]
     motors = np.flatnonzero(np.any([m for _, m in masks], axis=0))
     trained = np.any([m for tr, m in masks if tr] or [np.zeros(pb.robot.n, bool)], axis=0)
@@ -130,18 +152,23 @@ def identify_current_gains(pb: Problem, design: Design, known: Sequence[KnownTor
     filt = pb.preps[0].filt
     # filtered rows are correlated over about fs / (2 fc) samples: fewer independent rows
     corr = max(1.0, filt.fs / pb.interval / (2.0 * filt.cutoff_hz)) if filt.active else 1.0
-    theta, gains, std = _fit_gains(grams, rows / corr, motors, design.p)
-    for prep in (*pb.preps, *pb.vpreps):
-        if prep.log.currents is None:
-            continue
-        add = np.einsum("snu,u->sn", _current_columns(prep, motors, prep.log.currents), gains)
-        for seg in prep.log.segments:
-            if seg.stop - seg.start >= 3 * prep.filt.settle:
-                prep.tau_f[seg] += prep.filt.apply(add[seg])
-        prep.log = replace(prep.log, tau=prep.log.tau + add, currents=None, current=None)
-    side = "motor" if pb.transmission is not None else "joint"
-    return [f"current_gain of joint {m + 1} identified: {g:.6g} N·m/A ({side} side, std "
-            f"{100 * s / abs(g):.2g} %)" for m, g, s in zip(motors, gains, std, strict=True)]
+    _, gains, std = _fit_gains(grams, rows / corr, motors, design.p)
+    return CurrentGains(motors, gains, std, "motor" if pb.transmission is not None else "joint")
+
+
+def with_currents(prep: Prepared, found: CurrentGains) -> Prepared:
+    """The prepared log with its logged currents turned into torque by the identified gains
+    (raw and filtered torque completed); unchanged when it logs no current."""
+    if prep.log.currents is None:
+        return prep
+    add = np.einsum("snu,u->sn", _current_columns(prep, found.motors, prep.log.currents),
+                    found.gains)
+    tau_f = prep.tau_f.copy(order="K")  # the same memory layout: the same sums
+    for seg in prep.log.segments:
+        if seg.stop - seg.start >= 3 * prep.filt.settle:
+            tau_f[seg] += prep.filt.apply(add[seg])
+    return replace(prep, log=replace(prep.log, tau=prep.log.tau + add, currents=None,
+                                     current=None), tau_f=tau_f)
 
 
 def _motor_grams(pb: Problem, design: Design) -> tuple[np.ndarray, int]:

@@ -176,9 +176,11 @@ def _sosfiltfilt(sos: np.ndarray, zi: np.ndarray, x: np.ndarray, padlen: int,
     return out
 
 
-@dataclass
+@dataclass(frozen=True)
 class Prepared:
-    """One log after filtering: states for the regressor, raw and filtered torques."""
+    """One log after filtering: states for the regressor, raw and filtered torques. Frozen:
+    a step that changes a torque (known torques, drive currents, the model's predictions)
+    returns a new one (``dataclasses.replace``) and ``Problem.with_preps`` re-points pieces."""
 
     log: Log
     q: np.ndarray
@@ -225,8 +227,10 @@ class Piece:
         return self.hi - self.lo
 
 
-def prepare(log: Log, cutoff_hz: float | None, interval: int = 1) -> Prepared:
-    """Filter positions, derive velocities/accelerations, filter torques (per segment)."""
+def prepare(log: Log, cutoff_hz: float | None, interval: int = 1,
+            transmission: np.ndarray | None = None) -> Prepared:
+    """Filter positions, derive velocities/accelerations, filter torques (per segment).
+    A note (cutoff lowered for decimation) goes to the prepared log's copy, never to ``log``."""
     fs = log.fs
     fc = DEFAULT_CUTOFF_HZ if cutoff_hz is None else float(cutoff_hz)
     if fc <= 0:
@@ -235,7 +239,8 @@ def prepare(log: Log, cutoff_hz: float | None, interval: int = 1) -> Prepared:
         fc = min(fc, 0.4 * fs / 2.0)
     if interval > 1 and fc > 0.8 * fs / (2 * interval):
         fc = 0.8 * fs / (2 * interval)  # anti-alias before decimation
-        log.notes.append(f"cutoff lowered to {fc:.3g} Hz for --interval {interval}")
+        log = replace(log, notes=[*log.notes,
+                                  f"cutoff lowered to {fc:.3g} Hz for --interval {interval}"])
     filt = ZeroPhaseFilter(fc, fs)
     q = np.empty_like(log.q)
     qd = np.empty_like(log.q)
@@ -249,7 +254,7 @@ def prepare(log: Log, cutoff_hz: float | None, interval: int = 1) -> Prepared:
         qd[seg] = filt.apply(log.qd[seg]) if log.qd is not None else np.gradient(q[seg], dt, axis=0)
         qdd[seg] = np.gradient(qd[seg], dt, axis=0)
         tau_f[seg] = filt.apply(log.tau[seg])
-    return Prepared(log, q, qd, qdd, tau_f, filt)
+    return Prepared(log, q, qd, qdd, tau_f, filt, transmission)
 
 
 #: a sample moves when some joint's filtered speed exceeds this fraction of its typical speed
@@ -378,9 +383,10 @@ def check_counts(n_rows: int, n_params: int, where: str) -> None:
                         f"need at least {5 * n_params} (longer log or smaller --interval)")
 
 
-@dataclass
+@dataclass(frozen=True)
 class Problem:
-    """Everything the estimators and the diagnosis share for one set of inputs."""
+    """Everything the estimators and the diagnosis share for one set of inputs. Frozen: the
+    identification's steps each return a new one (``with_preps``, ``dataclasses.replace``)."""
 
     robot: Robot
     model: Model
@@ -395,6 +401,19 @@ class Problem:
     notes: list[str]
     transmission: np.ndarray | None = None
 
+    def with_preps(self, preps: Sequence[Prepared], vpreps: Sequence[Prepared],
+                   notes: Sequence[str] = ()) -> Problem:
+        """The same problem on new prepared logs (one for each of ``preps`` and ``vpreps``, in
+        order), its training and validation pieces pointing at them; ``notes`` appended."""
+        fresh = {id(old): new for old, new in zip((*self.preps, *self.vpreps),
+                                                  (*preps, *vpreps), strict=True)}
+
+        def moved(pieces: Sequence[Piece]) -> list[Piece]:
+            return [replace(pc, prep=fresh[id(pc.prep)]) for pc in pieces]
+
+        return replace(self, train=moved(self.train), valid=moved(self.valid),
+                       preps=list(preps), vpreps=list(vpreps), notes=[*self.notes, *notes])
+
 
 def build_problem(robot: Robot, data: Sequence[Log], model: Model, *,
                   validate: Sequence[Log] | None = None, cutoff_hz: float | None = None,
@@ -407,13 +426,11 @@ def build_problem(robot: Robot, data: Sequence[Log], model: Model, *,
     if shift:
         data = [shift_torque(lg, shift) for lg in data]
         validate = [shift_torque(lg, shift) for lg in validate or ()] or None
-    preps = [prepare(lg, cutoff_hz, interval) for lg in data]
-    vpreps = [prepare(lg, cutoff_hz, 1) for lg in validate or ()]
-    for prep in (*preps, *vpreps):
-        prep.transmission = transmission
+    preps = [prepare(lg, cutoff_hz, interval, transmission) for lg in data]
+    vpreps = [prepare(lg, cutoff_hz, 1, transmission) for lg in validate or ()]
     spans = None if vpreps else [motion_span(pr) for pr in preps]
     train, valid = split(preps, vpreps or None, spans=spans)
-    notes = [n for lg in [*data, *(validate or ())] for n in lg.notes]
+    notes = [n for pr in (*preps, *vpreps) for n in pr.log.notes]
     fs = preps[0].filt.fs
     fc = preps[0].filt.cutoff_hz
     block_len = max(1, math.ceil(2.0 * fs / interval / fc))

@@ -25,7 +25,7 @@ from robid_link.ident.model.robot import Robot
 
 __all__ = ["two_mass_frf", "coupled_frf", "gravity_stiffness", "JointElasticity",
            "CoupledElasticity", "ElasticityResult", "fit_two_mass", "fit_coupled",
-           "identify_elasticity", "elasticity_figures"]
+           "identify_elasticity", "elasticity_figures", "bode_cells"]
 
 _T = TypeVar("_T")
 _NAMES = ("jm", "ja", "k", "d", "ba")
@@ -555,6 +555,25 @@ def _merged_frf(logs: Sequence[Log], target: tuple[int, ...],
 # ----------------------------------------------------------------------------- figures
 
 
+def bode_cells(res: ElasticityResult, frf: Frf
+               ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """(model frequencies, [(measured, model)] per cell): motor acceleration over torque of one
+    fitted FRF, measured at its points and of the fit on 400 log-spaced frequencies; one cell
+    for a joint, H11, H12, H21, H22 (row major) for a pair."""
+    by_joint = {j.joint: j for j in res.joints}
+    fine = np.geomspace(frf.f_hz[0], frf.f_hz[-1], 400)
+    s2 = -(2 * np.pi * fine) ** 2
+    if len(frf.joints) == 1:
+        p = by_joint[frf.joints[0]]
+        return fine, [(frf.accel, s2 * two_mass_frf(fine, p.jm, p.ja, p.k, p.d, p.ba, p.kg))]
+    a, b = (by_joint[j] for j in frf.joints)
+    assert res.coupled is not None
+    model = s2[:, None, None] * coupled_frf(fine, (a.jm, b.jm), (a.ja, b.ja), res.coupled.jcop,
+                                            (a.k, b.k), (a.d, b.d), (a.ba, b.ba),
+                                            np.array(res.coupled.kg))
+    return fine, [(frf.accel[:, r, c], model[:, r, c]) for r in range(2) for c in range(2)]
+
+
 def elasticity_figures(res: ElasticityResult, out_dir: str | Path) -> list[Path]:
     """Bode magnitude and phase of q̈m/τ per fitted FRF: measured circles shaded by coherence,
     the model as a line, parameters and resonances under the plot; the 2×2 grid for a pair."""
@@ -569,21 +588,13 @@ def elasticity_figures(res: ElasticityResult, out_dir: str | Path) -> list[Path]
     by_joint = {j.joint: j for j in res.joints}
     paths = []
     for frf in res.frfs:
-        fine = np.geomspace(frf.f_hz[0], frf.f_hz[-1], 400)
-        s2 = -(2 * np.pi * fine) ** 2
-        if len(frf.joints) == 1:
-            p = by_joint[frf.joints[0]]
-            cells = {(0, 0): (frf.accel, s2 * two_mass_frf(fine, p.jm, p.ja, p.k, p.d, p.ba, p.kg))}
-            text = _param_text([p])
-        else:
-            a, b = (by_joint[j] for j in frf.joints)
+        fine, pairs = bode_cells(res, frf)
+        cells = dict(zip([(0, 0)] if len(pairs) == 1 else [(0, 0), (0, 1), (1, 0), (1, 1)],
+                         pairs, strict=True))
+        text = _param_text([by_joint[j] for j in frf.joints])
+        if len(frf.joints) == 2:
             assert res.coupled is not None
-            model = s2[:, None, None] * coupled_frf(fine, (a.jm, b.jm), (a.ja, b.ja),
-                                                    res.coupled.jcop, (a.k, b.k), (a.d, b.d),
-                                                    (a.ba, b.ba), np.array(res.coupled.kg))
-            cells = {(r, c): (frf.accel[:, r, c], model[:, r, c]) for r in range(2)
-                     for c in range(2)}
-            text = _param_text([a, b]) + f"\nJcop {res.coupled.jcop:.4g}"
+            text += f"\nJcop {res.coupled.jcop:.4g}"
         nr, nc = (1, 1) if len(cells) == 1 else (2, 2)
         fig = plt.figure(figsize=(6.5 * nc, 5.5 * nr))
         grid = fig.add_gridspec(2 * nr, nc, height_ratios=[2, 1] * nr, hspace=0.6)

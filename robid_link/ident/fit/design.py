@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -25,7 +26,6 @@ from robid_link.ident.model.robot import Robot
 
 __all__ = [
     "Design",
-    "attach_predictions",
     "base_set_for",
     "block_columns",
     "design_chunks",
@@ -33,6 +33,7 @@ __all__ = [
     "predict_torque",
     "random_states",
     "structural_mask",
+    "with_predictions",
 ]
 
 
@@ -216,14 +217,16 @@ def predict_torque(design: Design, prep: Prepared, theta: np.ndarray,
     return out
 
 
-def attach_predictions(robot: Robot, preps: Sequence[Prepared], design: Design,
-                       theta: np.ndarray) -> None:
-    """The current model's rigid torque and torque rate on every sample (effects that depend
-    on the model's own torque — load friction, delay, the diagnosis' candidates — read them)."""
+def with_predictions(robot: Robot, preps: Sequence[Prepared], design: Design,
+                     theta: np.ndarray) -> list[Prepared]:
+    """The prepared logs with the current model's torque, rigid torque and torque rate on
+    every sample (effects that depend on the model's own torque — load friction, delay, the
+    diagnosis' candidates — read them); the given ones are left as they are."""
     blocks = design.blocks
     n_rigid = 10 * robot.n if blocks and blocks[0].effect.name == "rigid_body" else 0
     rigid_theta = theta.copy()
     rigid_theta[np.asarray(design.cols) >= n_rigid] = 0.0
+    out = []
     for prep in preps:
         n = len(prep.log)
         full = np.zeros((n, robot.n))
@@ -233,6 +236,6 @@ def attach_predictions(robot: Robot, preps: Sequence[Prepared], design: Design,
             c = design.compact(prep.states(a, b))
             full[a:b] = design.predict(c, theta)
             rigid[a:b] = design.predict(c, rigid_theta)
-        prep.tau_rigid = rigid
-        prep.tau_model = full
-        prep.tau_rate = np.gradient(full, 1.0 / prep.filt.fs, axis=0)
+        out.append(replace(prep, tau_rigid=rigid, tau_model=full,
+                           tau_rate=np.gradient(full, 1.0 / prep.filt.fs, axis=0)))
+    return out

@@ -19,7 +19,7 @@ from typing import Any
 import can
 import numpy as np
 
-from robid_link.drivers.cia402 import (
+from robid_link.drivers.canopen.cia402 import (
     CW_ENABLE,
     CW_QUICK_STOP,
     CW_SHUTDOWN,

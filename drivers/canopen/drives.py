@@ -26,7 +26,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from robid_link.atomic import atomic_write
-from robid_link.drivers.cia402 import (
+from robid_link.drivers.canopen.cia402 import (
     CW_ENABLE,
     CW_FAULT_RESET,
     CW_SHUTDOWN,
@@ -42,9 +42,9 @@ from robid_link.drivers.cia402 import (
     error_words,
     tpdo_maps,
 )
-from robid_link.drivers.cia402_feedforward import KeptParameterSet, torque_offsets
-from robid_link.drivers.cia402_master import Axis, Job, SyncMaster, quintic, ramp_to_rest
-from robid_link.drivers.cia402_record import BlfTap, log_bytes
+from robid_link.drivers.canopen.feedforward import KeptParameterSet, torque_offsets
+from robid_link.drivers.canopen.master import Axis, Job, SyncMaster, quintic, ramp_to_rest
+from robid_link.drivers.canopen.record import BlfTap, log_bytes
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.jobs import MotionProgram, RobotInfo
 from robid_link.link.driver import CAP_FEEDFORWARD, CAP_UPLOAD, Done, Driver

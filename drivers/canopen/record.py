@@ -16,7 +16,7 @@ from typing import Any
 
 import can
 
-from robid_link.drivers.cia402_master import Axis, Job
+from robid_link.drivers.canopen.master import Axis, Job
 
 __all__ = ["BlfTap", "log_bytes"]
 

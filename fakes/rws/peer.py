@@ -31,8 +31,8 @@ from aiohttp import WSMsgType, web
 from robid_link.atomic import atomic_write
 from robid_link.exceptions import RobidError
 from robid_link.fakes.controller import ControllerCore, Peer
-from robid_link.fakes.rws_login import Login, tls_context, write_credentials
-from robid_link.fakes.rws_resources import (
+from robid_link.fakes.rws.login import Login, tls_context, write_credentials
+from robid_link.fakes.rws.resources import (
     DIALECTS,
     PATH_MODULE,
     ROBID_MODULE,

@@ -26,7 +26,8 @@ import canopen
 import numpy as np
 
 from robid_link.exceptions import RobidError
-from robid_link.fakes.cia402_tables import (
+from robid_link.fakes.canopen.socketcand_server import SocketcandServer
+from robid_link.fakes.canopen.tables import (
     COB_EMCY,
     COB_NMT,
     COB_RPDO1,
@@ -46,13 +47,12 @@ from robid_link.fakes.cia402_tables import (
     next_state,
 )
 from robid_link.fakes.controller import ControllerCore, Peer
-from robid_link.fakes.socketcand_server import SocketcandServer
 
 __all__ = ["Cia402Peer", "EDS"]
 
 log = logging.getLogger("robid.fake_controller")
 
-EDS = Path(str(resources.files("robid_link.fakes") / "cia402_drive.eds"))
+EDS = Path(str(resources.files("robid_link.fakes.canopen") / "cia402_drive.eds"))
 
 #: seven-point quadratic fit at the centre: value, first and second derivative weights
 _SG_D1 = np.array([-3, -2, -1, 0, 1, 2, 3]) / 28.0

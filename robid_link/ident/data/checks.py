@@ -1,0 +1,159 @@
+"""The logs checked against the robot: saturation, position units and offsets, sign and scale
+against the a-priori model, and validation motions outside the training ranges.
+
+Each check returns its messages; ``data_checks`` (identify's step) warns them.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from robid_link.exceptions import DataWarning, ExcitationWarning
+from robid_link.ident.data.preprocess import Piece, Prepared, Problem
+from robid_link.ident.model.regressor import rigid_regressor
+from robid_link.ident.model.robot import Robot
+
+__all__ = ["data_checks", "sanity_checks", "extrapolation"]
+
+
+def data_checks(pb: Problem, stacklevel: int = 3) -> list[str]:
+    """The checks' notes, each also warned (``DataWarning``, then ``ExcitationWarning``) at
+    ``stacklevel`` (default: the caller of the function that calls this step)."""
+    out = sanity_checks(pb, nominal=pb.robot.nominal is not None)
+    for msg in out:
+        warnings.warn(msg, DataWarning, stacklevel=stacklevel)
+    if not pb.valid:
+        return out
+    outside = extrapolation(pb)
+    for msg in outside:
+        warnings.warn(msg, ExcitationWarning, stacklevel=stacklevel)
+    return out + outside
+
+
+def _ranges(pieces: Sequence[Piece]) -> np.ndarray:
+    lo = np.full((3, pieces[0].prep.q.shape[1]), np.inf)
+    hi = -lo
+    for pc in pieces:
+        for k, arr in enumerate((pc.prep.q, pc.prep.qd, pc.prep.qdd)):
+            a = arr[pc.lo: pc.hi]
+            lo[k] = np.minimum(lo[k], a.min(axis=0))
+            hi[k] = np.maximum(hi[k], a.max(axis=0))
+    return np.stack((lo, hi))
+
+
+def extrapolation(pb: Problem) -> list[str]:
+    """Where the validation rows leave the training ranges of q, q̇, q̈ (> 5 % of the span)."""
+    tr, va = _ranges(pb.train), _ranges(pb.valid)
+    span = np.maximum(tr[1] - tr[0], 1e-9)
+    out = []
+    for k, qty in enumerate(("q", "qd", "qdd")):
+        excess = np.maximum(va[1][k] - tr[1][k], tr[0][k] - va[0][k]) / span[k]
+        for j in np.flatnonzero(excess > 0.05):
+            out.append(f"validation leaves the training range of {qty}{j + 1} by "
+                       f"{100 * excess[j]:.0f} % of its span: the model extrapolates there")
+    return out
+
+
+def sanity_checks(pb: Problem, nominal: bool) -> list[str]:
+    """Torque saturation, and sign/scale of each joint against the a-priori model."""
+    robot = pb.robot
+    out = []
+    for prep in pb.preps:
+        tau = prep.log.tau
+        name = Path(prep.log.path).name
+        if pb.transmission is None:
+            out += _position_checks(robot, prep.log.q, name)
+        peak = np.abs(tau).max(axis=0)
+        flat = max(5, int(0.05 * prep.filt.fs))  # a clipped signal sits flat at its peak
+        for j in range(robot.n):
+            at_peak = np.abs(tau[:, j]) >= peak[j] - 1e-9 * max(peak[j], 1.0)
+            limit = robot.limits.tau_max[j]
+            if peak[j] > 0 and _longest_run(at_peak) >= flat:
+                out.append(f"{name}: tau{j + 1} sits flat at {peak[j]:.3g} N·m "
+                           f"({100 * at_peak.mean():.1f} % of samples): saturation?")
+            elif np.isfinite(limit) and peak[j] >= 0.98 * limit:
+                out.append(f"{name}: tau{j + 1} reaches {peak[j]:.3g} N·m, at or above its "
+                           f"limit {limit:.3g} N·m: saturation or a wrong limit?")
+        if nominal:
+            step = max(1, len(prep.log) // 4000)
+            trim = prep.filt.settle
+            sl = slice(trim, len(prep.log) - trim, step)
+            pred = rigid_regressor(robot, prep.q[sl], prep.qd[sl], prep.qdd[sl]) @ robot.nominal
+            meas = prep.tau_f[sl]
+            for j in range(robot.n):
+                sp, sm = pred[:, j].std(), meas[:, j].std()
+                if sp < 1e-9 or sm < 1e-9:
+                    continue
+                r = np.corrcoef(pred[:, j], meas[:, j])[0, 1]
+                ratio = sm / sp
+                if r < -0.5:
+                    out.append(f"{name}: tau{j + 1} has the opposite sign of the a-priori model "
+                               f"(correlation {r:.2f}): sign convention?")
+                elif r > 0.5 and not 1 / 3 < ratio < 3:
+                    out.append(f"{name}: tau{j + 1} is {ratio:.3g}× the a-priori model's "
+                               f"torque: {_scale_cause(robot, prep, sl, pred, j, ratio)}")
+    return out
+
+
+def _position_checks(robot: Robot, q: np.ndarray, name: str) -> list[str]:
+    """Joint positions far outside the robot's limits, with the likely cause: a motor-side
+    log (positions/ratio inside the limits), degrees, or an encoder offset."""
+    lim = robot.limits
+    ratios = (np.abs(np.diag(robot.transmission)) if robot.transmission is not None
+              else np.ones(robot.n))
+    out = []
+    for j in range(robot.n):
+        lo, hi = float(lim.q_min[j]), float(lim.q_max[j])
+        if not (np.isfinite(lo) and np.isfinite(hi)) or hi <= lo:
+            continue
+        qmin, qmax = float(q[:, j].min()), float(q[:, j].max())
+        margin = 0.05 * (hi - lo)
+        if qmin >= lo - margin and qmax <= hi + margin:
+            continue
+        where = (f"{name}: q{j + 1} spans [{qmin:.4g}, {qmax:.4g}] against its limits "
+                 f"[{lo:.4g}, {hi:.4g}]")
+        ratio = float(ratios[j])
+        if ratio > 1.5 and qmin / ratio >= lo - margin and qmax / ratio <= hi + margin:
+            out.append(f"{where}: looks motor-side (divided by the gear ratio {ratio:.4g} it "
+                       "fits): use --motor-side")
+        elif math.radians(qmin) >= lo - margin and math.radians(qmax) <= hi + margin and \
+                qmax - qmin > math.pi:
+            out.append(f"{where}: looks like degrees (the log must be in rad)")
+        elif qmax - qmin <= hi - lo + margin:
+            out.append(f"{where}: the range fits but is shifted: an encoder offset "
+                       "(transmission.offsets)?")
+        else:
+            out.append(f"{where}: wrong units or gear ratio?")
+    return out
+
+
+def _scale_cause(robot: Robot, prep: Prepared, sl: slice, pred: np.ndarray, j: int,
+                 ratio: float) -> str:
+    """Why a joint's measured torque is ``ratio``× the a-priori model's: when the model plus
+    viscous and Coulomb friction and a rotor inertia (which the a-priori model lacks) explain
+    the measurement, say that, not 'units'."""
+    qd, qdd, meas = prep.qd[sl, j], prep.qdd[sl, j], prep.tau_f[sl, j]
+    cols = np.column_stack([pred[:, j], qd, np.sign(qd), qdd, np.ones_like(qd)])
+    coef, *_ = np.linalg.lstsq(cols, meas, rcond=None)
+    r2 = 1.0 - float(np.var(meas - cols @ coef)) / max(float(np.var(meas)), 1e-300)
+    if 0.5 < coef[0] < 2.0 and r2 > 0.9:
+        return (f"the a-priori model lacks friction and rotor inertia (with them it explains "
+                f"{100 * r2:.0f} % of the torque at scale {coef[0]:.2f}), not a unit error")
+    tx = robot.transmission
+    if tx is not None and abs(abs(tx[j, j]) / max(ratio, 1e-12) - 1) < 0.3 or \
+            tx is not None and abs(ratio * abs(tx[j, j]) - 1) < 0.3:
+        return f"near the gear ratio {abs(tx[j, j]):.4g}: a motor-side torque (--motor-side)?"
+    return "gear ratio or units?"
+
+
+def _longest_run(mask: np.ndarray) -> int:
+    if not mask.any():
+        return 0
+    edges = np.diff(np.concatenate(([0], mask.astype(np.int8), [0])))
+    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    return int((stops - starts).max())

@@ -1,0 +1,117 @@
+"""The fitted model's residual where a diagnosis looks: the prepared logs with the model's own
+torque, the rows candidates are profiled and scored on, and the residual on decimated rows
+(evidence, profiling, the residual figures)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from robid_link.ident.data.preprocess import Piece, Prepared, Problem, filter_windows, split
+from robid_link.ident.diagnosis.hyperparams import ProfileRows
+from robid_link.ident.fit.design import Design, base_set_for, with_predictions
+from robid_link.ident.fit.results import IdentResult
+from robid_link.ident.model.effects import States
+from robid_link.ident.model.regressor import BaseSet
+from robid_link.ident.model.robot import Robot
+
+__all__ = ["ResidualPool", "residual_pool", "residual_rows", "profile_rows", "residual_dict",
+           "PROFILE_ROWS", "RESIDUAL_ROWS"]
+
+#: rows (spread over the log) on which hyper-parameters are profiled
+PROFILE_ROWS = 3000
+#: about this many decimated rows carry the residual (evidence and profiling)
+RESIDUAL_ROWS = 12000
+
+
+@dataclass(frozen=True)
+class ResidualPool:
+    """The fitted model and its residual, where the candidates are profiled and scored."""
+
+    problem: Problem
+    design: Design
+    base: BaseSet  # the model's structural base set (identify's)
+    theta: np.ndarray  # identify's estimate of the base parameters
+    preps: list[Prepared]  # the training, then the validation logs, with the model's torque
+    pieces: list[Piece]  # rows candidates are profiled and cross-validated on
+    vpieces: list[Piece]  # the validation logs' rows (transfer); empty without
+    step: int  # decimation of the residual rows
+    resid: np.ndarray  # (rows, n): the residual of the filtered torque …
+    raw: np.ndarray  # … and of the raw torque
+    states: States  # the states of those rows
+
+
+def residual_pool(robot: Robot, result: IdentResult) -> ResidualPool:
+    """The model's predictions on copies of the result's prepared logs, and its residual.
+    With validation logs, candidates are profiled and cross-validated on the training logs
+    and then scored on the validation logs (a new motion); without, all the data is one
+    pool."""
+    pb, design = result.problem, result.design
+    if pb is None or design is None:
+        raise ValueError("diagnose needs a result from identify (it keeps the fitted problem)")
+    base, _ = base_set_for(robot, pb.blocks, pb.transmission)
+    theta = np.asarray(result.theta)  # same model, same base set: identify's estimate
+    preps = with_predictions(robot, [*pb.preps, *pb.vpreps], design, theta)
+    pieces, _ = split(preps[: len(pb.preps)] if pb.vpreps else preps, None, holdout=0.0)
+    vpieces = split(preps[len(pb.preps):], None, holdout=0.0)[0] if pb.vpreps else []
+    step = max(1, sum(len(p) for p in pieces) // RESIDUAL_ROWS)
+    resid, raw, states = residual_rows(pieces, step)
+    return ResidualPool(pb, design, base, theta, preps, pieces, vpieces, step, resid, raw,
+                        states)
+
+
+def residual_rows(pieces: Sequence[Piece], step: int
+                  ) -> tuple[np.ndarray, np.ndarray, States]:
+    """The model's residual on decimated rows, of the filtered and of the raw torque, with
+    the states of those rows. Filtering is linear, so filtering the raw residual (τ − Xθ with
+    the model's prediction from ``with_predictions``) equals the parallel-filtered residual
+    τ_f − X_f·θ, at the cost of n columns instead of the design's."""
+    res: list[np.ndarray] = []
+    raw: list[np.ndarray] = []
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("q", "qd", "qdd", "t", "tr", "rate")}
+    for pc in pieces:
+        prep, model = pc.prep, pc.prep.tau_model
+        if model is None:
+            raise ValueError("residual_rows needs the model's torque on the logs "
+                             "(with_predictions)")
+        for a, b, ca, cb, at_edge in filter_windows(pc, step):
+            filtered = prep.filt.apply(prep.tau[ca:cb] - model[ca:cb], edges=at_edge)
+            idx = np.arange(a, b, step)
+            res.append(filtered[a - ca: b - ca: step])
+            raw.append(prep.tau[idx] - model[idx])
+            parts["q"].append(prep.q[idx])
+            parts["qd"].append(prep.qd[idx])
+            parts["qdd"].append(prep.qdd[idx])
+            parts["t"].append(prep.log.t[idx] - prep.log.t[0])
+            if prep.tau_rigid is not None and prep.tau_rate is not None:
+                parts["tr"].append(prep.tau_rigid[idx])
+                parts["rate"].append(prep.tau_rate[idx])
+    cat = {k: np.concatenate(v) for k, v in parts.items() if v}
+    st = States(cat["q"], cat["qd"], cat["qdd"], cat["t"], pieces[0].prep.transmission,
+                cat.get("tr"), cat.get("rate"))
+    return np.concatenate(res), np.concatenate(raw), st
+
+
+def profile_rows(robot: Robot, pool: ResidualPool) -> ProfileRows:
+    """About PROFILE_ROWS of the residual rows, spread over the whole log, with the model's
+    dense regressor on them: where hyper-parameters are profiled and candidates screened."""
+    states = pool.states
+    every = max(1, len(states) // PROFILE_ROWS)
+
+    def thin(a: np.ndarray | None) -> np.ndarray | None:
+        return None if a is None else a[::every]
+
+    sub_states = States(states.q[::every], states.qd[::every], states.qdd[::every],
+                        thin(states.t), states.transmission, thin(states.tau_rigid),
+                        thin(states.tau_rate))
+    return ProfileRows(robot, sub_states, pool.raw[::every], pool.resid[::every],
+                       pool.design.expand(pool.design.compact(sub_states)))
+
+
+def residual_dict(pool: ResidualPool) -> dict[str, np.ndarray]:
+    """What the residual figures plot."""
+    st = pool.states
+    return {"r": pool.resid, "q": st.q, "qd": st.qd, "qdd": st.qdd, "t": st.t,
+            "fs": np.array(pool.problem.preps[0].filt.fs / pool.step)}

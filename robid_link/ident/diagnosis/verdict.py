@@ -1,0 +1,224 @@
+"""What a diagnosis returns and what decides it: the suggestion and diagnosis records (summary,
+JSON), the thresholds a candidate must pass, the doubts about a model with nothing missing,
+and the ranking of the suggestions (physics first, then fewer parameters)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from robid_link.ident.fit.results import IdentResult
+from robid_link.ident.model.effects import effect_label
+
+__all__ = ["Suggestion", "Diagnosis", "Verdicts", "GAIN_MIN", "P_MAX", "TRANSFER_MIN",
+           "judge", "rank", "result_doubts", "not_transferring_note", "physics_order",
+           "prefer_simpler"]
+
+#: a suggestion must cut its joint's held-out RMSE by at least this fraction …
+GAIN_MIN = 0.05
+#: … and be significant at this level (Wald test with the long-run-variance covariance)
+P_MAX = 1e-3
+#: on the validation logs a suggestion must cut its rows' RMSE by this fraction, and not raise
+#: the other joints' (it shares the rigid-body parameters), else it does not transfer
+TRANSFER_MIN = 0.01
+#: extrapolation notes (validation outside the training ranges) that make a verdict doubtful
+EXTRAPOLATION_MAX = 3
+#: spring and ripple within this fraction of each other: physics decides (does it repeat?)
+NEAR_EQUAL = 0.05
+#: correlation of the residual with itself one period on, above which it repeats (ripple)
+REPEAT_MIN = 0.5
+#: suggestions spelled out in the terminal summary (all of them go to the JSON)
+SUMMARY_MAX = 5
+
+
+@dataclass
+class Suggestion:
+    effect: str
+    joint: int | None  # from 1; None for a global effect
+    rmse: list[float]  # held-out (CV) RMSE per joint with the effect added
+    gain: float
+    p_value: float
+    evidence: str
+    fields: dict[str, float] = field(default_factory=dict)
+    hypers: dict[str, float] = field(default_factory=dict)
+    side: str | None = None  # "joint" / "motor" when the effect names its side
+    #: relative cut of the validation logs' RMSE on the effect's rows (None: no such logs)
+    transfer: float | None = None
+
+    def label(self) -> str:
+        return effect_label(self.effect, self.joint, self.side)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"effect": self.effect, "joint": self.joint, "side": self.side,
+                "label": self.label(), "rmse": self.rmse, "gain": self.gain,
+                "transfer_gain": self.transfer, "p_value": self.p_value,
+                "evidence": self.evidence, **self.fields, "hyper_parameters": self.hypers}
+
+
+@dataclass
+class Diagnosis:
+    result: IdentResult
+    effects: list[str]
+    rmse_cv: list[float] | None  # None: no candidate needed scoring (no union pass)
+    suggestions: list[Suggestion]
+    rejected: list[Suggestion]
+    absorbed: list[dict[str, Any]]
+    unexplained: list[dict[str, Any]]
+    notes: list[str]
+    residuals: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    #: suggestions that won the cross-validation but not on the validation logs
+    not_transferring: list[Suggestion] = field(default_factory=list)
+    #: why the model cannot be called adequate though nothing is missing
+    doubts: list[str] = field(default_factory=list)
+
+    @property
+    def verdict(self) -> str:
+        if self.suggestions:
+            return "missing_effect"
+        return "doubtful" if self.doubts else "adequate"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"effects": self.effects, "joints": self.result.joints,
+                "rmse": [float(x) for x in self.result.rmse], "rmse_cv": self.rmse_cv,
+                "relative_error": self.result.to_dict()["relative_error"],
+                "verdict": self.verdict,
+                "suggestions": [s.as_dict() for s in self.suggestions],
+                "not_useful": [s.as_dict() for s in self.rejected],
+                "not_transferring": [s.as_dict() for s in self.not_transferring],
+                "doubts": self.doubts,
+                "absorbed": self.absorbed, "unexplained": self.unexplained,
+                "notes": self.notes}
+
+    def summary(self) -> str:
+        joints = self.result.joints
+        lines = [f"robid diagnose — {self.result.robot}: model [{', '.join(self.effects)}]",
+                 "  held-out RMSE per joint [N·m]: " + ", ".join(
+                     f"{j['joint']}: {r:.3g}" for j, r in zip(joints, self.result.rmse,
+                                                              strict=True)),
+                 f"  verdict: {self.verdict}"]
+        if self.suggestions:
+            lines.append("  suggestions, best first:")
+            for k, s in enumerate(self.suggestions[:SUMMARY_MAX], 1):
+                lines.append(f"   {k}. {s.label():<22} gain {100 * s.gain:5.1f} %   {s.evidence}")
+            if len(self.suggestions) > SUMMARY_MAX:
+                rest = self.suggestions[SUMMARY_MAX:]
+                lines.append(f"   … and {len(rest)} more, weaker ("
+                             + ", ".join(s.label() for s in rest[:8])
+                             + (", …" if len(rest) > 8 else "") + "; all in the JSON)")
+        for s in self.not_transferring[:SUMMARY_MAX]:
+            lines.append(f"  does not transfer: {s.label()} (cross-validated gain "
+                         f"{100 * s.gain:.1f} %, on the validation logs "
+                         f"{100 * (s.transfer or 0.0):+.1f} %)")
+        for d in self.doubts:
+            lines.append(f"  doubt: {d}")
+        for u in self.unexplained:
+            lines.append(f"  unexplained: {u['text']}")
+        if self.absorbed:
+            lines.append("  absorbed (no new information): " + ", ".join(
+                f"{a['effect']} by {', '.join(a['by'][:3])}" for a in self.absorbed[:6]))
+        lines += [f"  [{i}] {n}" for i, n in enumerate(self.notes, 1)]
+        return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class Verdicts:
+    """The scored candidates by what became of them."""
+
+    suggested: list[Suggestion]  # pass the gain and the test (and transfer, if tested)
+    rejected: list[Suggestion]  # too small a gain, or not significant
+    not_transferring: list[Suggestion]  # pass, but not on the validation logs
+
+
+def judge(scored: list[Suggestion]) -> Verdicts:
+    """Suggested when the gain is at least GAIN_MIN at p ≤ P_MAX — unless, on validation
+    logs, it raises the error or cuts its own rows' by under TRANSFER_MIN; in candidate
+    order."""
+    good, bad, lost = [], [], []
+    for sug in scored:
+        if sug.gain >= GAIN_MIN and sug.p_value <= P_MAX:
+            if sug.transfer is not None and (sug.transfer <= 0.0 or
+                                             sug.fields["transfer_own"] < TRANSFER_MIN):
+                lost.append(sug)
+            else:
+                good.append(sug)
+        else:
+            bad.append(sug)
+    return Verdicts(good, bad, lost)
+
+
+def rank(v: Verdicts) -> Verdicts:
+    """Suggestions by what transfers to the validation logs when there are some, else by
+    the cross-validated gain; then physics, then fewer parameters among equivalents. The
+    others by gain."""
+    good = sorted(v.suggested, key=lambda s: -(s.transfer if s.transfer is not None
+                                               else s.gain))
+    return Verdicts(prefer_simpler(physics_order(good)),
+                    sorted(v.rejected, key=lambda s: -s.gain),
+                    sorted(v.not_transferring, key=lambda s: -s.gain))
+
+
+def not_transferring_note(lost: list[Suggestion]) -> list[str]:
+    if not lost:
+        return []
+    return [f"{', '.join(s.label() for s in lost[:6])} won the cross-validation but "
+            "did not cut the error on the validation logs: not suggested"]
+
+
+def result_doubts(result: IdentResult) -> list[str]:
+    """Why a model with nothing missing still cannot be called adequate."""
+    out = []
+    extrap = [n for n in result.notes if "the model extrapolates" in n]
+    if len(extrap) >= EXTRAPOLATION_MAX:
+        out.append(f"{len(extrap)} extrapolation warnings: the validation motion leaves the "
+                   "training ranges, so its error says little about the model")
+    try:
+        val, nom = result.validation, result.nominal
+    except (AttributeError, ValueError):  # no held-out rows
+        return out
+    if (val is not None and nom is not None and val.relative_error is not None
+            and nom.relative_error is not None and val.relative_error > nom.relative_error):
+        out.append(f"held-out relative error {100 * val.relative_error:.3g} % is above the "
+                   f"a-priori (CAD) model's {100 * nom.relative_error:.3g} %")
+    return out
+
+
+def physics_order(good: list[Suggestion]) -> list[Suggestion]:
+    """A spring and a ripple on one joint within NEAR_EQUAL of each other: what physics says
+    of each decides — cogging repeats along the angle, a spring does not."""
+    out = list(good)
+    for i, a in enumerate(out):
+        for k in range(i + 1, len(out)):
+            b = out[k]
+            if a.joint != b.joint or {a.effect, b.effect} != {"spring", "ripple"}:
+                continue
+            near = abs(a.fields["rmse_after"] - b.fields["rmse_after"]) <= NEAR_EQUAL * max(
+                a.fields["rmse_after"], b.fields["rmse_after"], 1e-12)
+            ripple = a if a.effect == "ripple" else b
+            repeats = ripple.fields.get("repeat", 0.0) >= REPEAT_MIN
+            if near and (a is ripple) != repeats:
+                out[i], out[k] = b, a
+            break
+    return out
+
+
+def prefer_simpler(good: list[Suggestion]) -> list[Suggestion]:
+    """Among near-equal explanations on one joint, the one with fewer parameters first."""
+    order = {"offset": 1, "viscous": 1, "friction": 1, "coulomb": 1, "armature": 1,
+             "load_friction": 1, "stribeck": 1, "presliding": 1, "coulomb_asymmetric": 2,
+             "ripple": 2, "friction_drift": 2, "friction_power": 3, "spring": 9, "delay": 1}
+    out = list(good)
+    swapped = True
+    while swapped:  # bubble until stable: equivalents may come in any order
+        swapped = False
+        for i in range(len(out) - 1):
+            a, b = out[i], out[i + 1]
+            close = abs(a.fields["rmse_after"] - b.fields["rmse_after"]) <= 0.01 * max(
+                a.fields["rmse_after"], 1e-12)  # equivalent: the same error left, within 1 %
+            if {a.effect, b.effect} == {"spring", "ripple"}:
+                continue  # physics decides those (physics_order)
+            if a.joint == b.joint and close and order.get(b.effect, 9) < order.get(a.effect, 9):
+                out[i], out[i + 1] = b, a
+                swapped = True
+    return out

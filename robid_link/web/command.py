@@ -1,0 +1,59 @@
+"""``robid web`` (the page read-only from a config's state dir) and the daemon's own page."""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+from collections.abc import Callable
+from contextlib import AbstractAsyncContextManager
+from typing import Any
+
+from robid_link.config import DaemonConfig, load_daemon_config
+from robid_link.exceptions import RobidError
+from robid_link.link.store import Store
+from robid_link.web.server import DEFAULT_LISTEN, WebServer
+
+__all__ = ["run_web", "daemon_service", "robot_name"]
+
+
+def robot_name(cfg: DaemonConfig) -> str:
+    """The config's robot as the store names it (the robot file's stem if it cannot load)."""
+    from robid_link.ident.model.robot import load_robot
+
+    try:
+        return load_robot(cfg.robot, cfg.lock).name
+    except RobidError:
+        return cfg.robot.stem
+
+
+def run_web(config: str, listen: str | None) -> int:
+    """Serve the state dir of ``config`` read-only until SIGINT or SIGTERM."""
+    cfg = load_daemon_config(config)
+    with Store(cfg.state_dir, readonly=True):  # refuses a state dir without a store now
+        pass
+    server = WebServer(cfg, listen or cfg.web.listen or DEFAULT_LISTEN, robot_name(cfg))
+
+    async def serve() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        async with server:
+            print(f"robid web: {cfg.state_dir} at {server.url} (read-only; Ctrl-C stops)",
+                  flush=True)
+            await stop.wait()
+
+    asyncio.run(serve())
+    return 0
+
+
+def daemon_service(cfg: DaemonConfig) -> Callable[[Any], AbstractAsyncContextManager[Any]]:
+    """The daemon's page (``web.listen``): the daemon's own requests as its actions; the
+    token file is made in the state dir on the first start."""
+    assert cfg.web.listen is not None
+
+    def start(daemon: Any) -> AbstractAsyncContextManager[Any]:
+        return WebServer(cfg, cfg.web.listen or DEFAULT_LISTEN, daemon.robot.name,
+                         actions=daemon.handle, create_token=True)
+
+    return start

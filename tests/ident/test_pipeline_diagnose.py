@@ -1,0 +1,421 @@
+"""diagnose()'s steps, each alone: the fitted model's residual, the candidates and their two
+screens, the union pass (cross-validation, Wald test, gain), transfer, verdict and ranking,
+the evidence. Small inputs: arm3 with one hidden effect, or records written by hand."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from robid_link.exceptions import ConditioningWarning, DataWarning, ExcitationWarning
+from robid_link.fakes.plant import perturbed_inertials
+from robid_link.ident.diagnosis import diagnose as diagnose_module
+from robid_link.ident.diagnosis.candidates import (
+    SCREEN_MIN,
+    Candidate,
+    InSample,
+    Structural,
+    catalog_candidates,
+    coupled_sides,
+    drop_slow_ripples,
+    insample_screen,
+    profile_candidates,
+    refine_survivors,
+    screen_notes,
+    structural_screen,
+)
+from robid_link.ident.diagnosis.evidence import Signatures, evidence_sentence
+from robid_link.ident.diagnosis.hyperparams import screen
+from robid_link.ident.diagnosis.residuals import profile_rows, residual_dict, residual_pool
+from robid_link.ident.diagnosis.scoring import (
+    FOLDS,
+    cross_validation,
+    fold_masks,
+    one_motion_note,
+    score_candidate,
+    suggestion,
+    union_design,
+)
+from robid_link.ident.diagnosis.transfer import (
+    model_transfer_doubts,
+    transfer_scorer,
+    with_transfer,
+)
+from robid_link.ident.diagnosis.verdict import (
+    GAIN_MIN,
+    P_MAX,
+    Diagnosis,
+    Suggestion,
+    judge,
+    not_transferring_note,
+    rank,
+    result_doubts,
+)
+from robid_link.ident.fit.design import base_set_for
+from robid_link.ident.fit.identify import identify, load_logs
+from robid_link.ident.fit.results import ErrorStats, HeldOut
+from robid_link.ident.model.effects import DEFAULT_MODEL, REGISTRY, Block, Model
+
+from ..conftest import simulate
+
+VISCOUS = {"name": "viscous", "fv": 2.0}
+COULOMB = {"name": "coulomb", "fc": 1.5}
+RIPPLE = {"name": "ripple", "joint": 1, "amplitude": 0.6, "period": 0.1}
+
+
+def _quiet() -> None:
+    warnings.simplefilter("ignore", ConditioningWarning)
+    warnings.simplefilter("ignore", ExcitationWarning)
+    warnings.filterwarnings("ignore", r".*(the a-priori model's torque|has the opposite sign of "
+                            r"the a-priori model)", DataWarning)
+
+
+def _block(name: str, joint: int | None, side: str | None = None, **opts) -> Block:
+    return Block(REGISTRY[name], None if joint is None else joint - 1, opts, side)
+
+
+def _fit(robot, path, model=DEFAULT_MODEL, validate=None, method="ols"):
+    with warnings.catch_warnings():
+        _quiet()
+        return identify(robot, load_logs(robot, [path]), model, method=method,
+                        validate=None if validate is None else load_logs(robot, [validate]))
+
+
+@pytest.fixture(scope="module")
+def ripple(arm3, tmp_path_factory):
+    """arm3 with a cogging ripple hidden on joint 1 (0.6 N·m every 0.1 rad): the default
+    model's fit, its residual pool and the profiling rows."""
+    path = tmp_path_factory.mktemp("ripple") / "ripple.csv"
+    simulate(arm3, path, noise=0.3, seed=5, duration=40.0, rate=250.0,
+             effects=(VISCOUS, COULOMB, RIPPLE))
+    result = _fit(arm3, path)
+    pool = residual_pool(arm3, result)
+    return SimpleNamespace(path=path, result=result, pool=pool, rows=profile_rows(arm3, pool))
+
+
+@pytest.fixture(scope="module")
+def union(arm3, ripple):
+    """The union of the model and two candidates: offset@3 (nothing there) and ripple@1."""
+    kept = [Candidate(_block("offset", 3), [0]), Candidate(_block("ripple", 1, period=0.1), [0, 1])]
+    return union_design(arm3, ripple.pool, kept)
+
+
+# ----------------------------------------------------------------------------- fit or reuse
+
+
+def test_fit_or_reuse_reuses_a_result_of_the_method(arm3, ripple, monkeypatch):
+    calls = []
+    real = diagnose_module.identify
+    monkeypatch.setattr(diagnose_module, "identify",
+                        lambda *a, **k: calls.append(k["method"]) or real(*a, **k))
+    logs = load_logs(arm3, [ripple.path])
+    kw = {"validate": None, "cutoff_hz": None, "interval": 1, "motor_side": False}
+    res = ripple.result
+    assert diagnose_module.fit_or_reuse(arm3, logs, DEFAULT_MODEL, res, method="ols",
+                                        **kw) is res
+    assert diagnose_module.fit_or_reuse(arm3, logs, DEFAULT_MODEL, res, method="irls",
+                                        **kw) is res  # scored on OLS residuals anyway
+    assert calls == []
+    with warnings.catch_warnings():
+        _quiet()
+        other = diagnose_module.fit_or_reuse(arm3, logs, DEFAULT_MODEL, res, method="wls",
+                                             **kw)
+    assert other.method == "wls" and calls == ["wls"]
+
+
+# ----------------------------------------------------------------------------- residuals
+
+
+def test_residual_pool_holds_the_models_residual_and_leaves_the_result_alone(ripple):
+    pool, result = ripple.pool, ripple.result
+    assert result.problem.preps[0].tau_model is None  # the result's logs untouched
+    prep = pool.preps[0]
+    assert prep.tau_model is not None and pool.vpieces == []
+    pc = pool.pieces[0]
+    first = pc.lo + (-(pc.lo - pc.ctx_lo) % pool.step)
+    np.testing.assert_allclose(pool.raw[0], prep.tau[first] - prep.tau_model[first])
+    np.testing.assert_allclose(pool.states.q[0], prep.q[first])
+    assert pool.resid.shape == pool.raw.shape == (len(pool.states), 3)
+    # the hidden ripple is joint 1's residual; the others are at the noise
+    raw_rms = np.sqrt(np.mean(pool.raw**2, axis=0))
+    assert raw_rms[0] > 1.2 * raw_rms[1] and raw_rms[0] > 1.2 * raw_rms[2]
+    figs = residual_dict(pool)
+    assert figs["r"] is pool.resid and float(figs["fs"]) == pytest.approx(250.0 / pool.step)
+
+
+def test_profile_rows_are_spread_over_the_log(ripple):
+    rows, pool = ripple.rows, ripple.pool
+    assert 3000 <= len(rows.states) < 6000
+    assert rows.states.t[-1] > 0.9 * pool.states.t[-1]
+    assert rows.model_cols.shape == (len(rows.states), 3, pool.design.p)
+
+
+# ----------------------------------------------------------------------------- candidates
+
+
+def test_catalog_candidates_are_the_effects_not_in_the_model(arm3, industrial6):
+    keys = [b.key for b in catalog_candidates(arm3, DEFAULT_MODEL, None)]
+    assert not [k for k in keys if k.split("@")[0] in ("viscous", "coulomb", "rigid_body")]
+    assert {"armature@1", "armature@2", "armature@3", "offset@3", "ripple@1"} <= set(keys)
+    assert keys.count("delay") == 1  # a global effect once
+    with_asym = Model.parse(["rigid_body", "viscous", "coulomb_asymmetric@1"])
+    keys = [b.key for b in catalog_candidates(arm3, with_asym, None)]
+    # coulomb_asymmetric replaces Coulomb and an offset: neither is new on joint 1
+    assert "offset@1" not in keys and "coulomb@1" not in keys and "offset@2" in keys
+    # the coupled wrist (motor 6 turns with joints 5 and 6): the motor's friction is new
+    assert coupled_sides(industrial6, None) == [("motor", 5)]
+    assert coupled_sides(industrial6, industrial6.transmission) == [("joint", 4), ("joint", 5)]
+    keys = [b.key for b in catalog_candidates(industrial6, DEFAULT_MODEL, None)]
+    assert {"viscous@m6", "coulomb@m6", "stribeck@m6"} <= set(keys)
+
+
+def test_profile_candidates_chooses_the_ripple_period(ripple):
+    armature = _block("armature", 1)
+    chosen, profiled = profile_candidates(ripple.rows, [_block("ripple", 1), armature])
+    assert profiled == {"ripple@1"}
+    assert chosen[0].opts["period"] == pytest.approx(0.1, rel=0.02)
+    assert chosen[1] is armature  # nothing to profile
+
+
+def test_drop_slow_ripples_leaves_a_slow_period_to_the_spring(ripple):
+    span = float(np.ptp(ripple.pool.states.q[:, 0]))
+    fast, slow = _block("ripple", 1, period=0.1), _block("ripple", 1, period=0.6 * span)
+    offset = _block("offset", 1)
+    kept = drop_slow_ripples([fast, slow, offset], ripple.pool.states)
+    assert [id(b) for b in kept] == [id(fast), id(offset)]
+
+
+def test_structural_screen_reports_what_absorbs_a_candidate(arm3):
+    blocks = DEFAULT_MODEL.blocks(arm3)
+    base, _ = base_set_for(arm3, blocks)
+    cands = [_block("armature", 1), _block("armature", 3), _block("offset", 3),
+             _block("ripple", 1, period=0.1)]
+    out = structural_screen(arm3, blocks, base, None, cands)
+    # joint 1's rotor inertia turns with the link's: only zz_1 could tell them apart
+    assert out.absorbed == [{"effect": "armature@1", "by": ["zz_1"]}]
+    assert [(c.block.key, c.new) for c in out.new] == [("armature@3", [0]), ("offset@3", [0]),
+                                                       ("ripple@1", [0, 1])]
+    assert out.silent == []
+
+
+def test_insample_screen_drops_a_candidate_that_cannot_remove_five_percent(arm3, ripple):
+    offset, rip = _block("offset", 2), _block("ripple", 1, period=0.1)
+    assert screen(ripple.rows, offset) < SCREEN_MIN < screen(ripple.rows, rip)
+    out = insample_screen(ripple.rows, [Candidate(offset, [0]), Candidate(rip, [0, 1])])
+    assert [c.block for c in out.kept] == [rip] and out.dropped == 1
+    assert SCREEN_MIN == pytest.approx(1 - (1 - GAIN_MIN / 2) ** 2)
+
+
+def test_refine_survivors_moves_only_the_profiled(ripple):
+    off = Candidate(_block("ripple", 1, period=0.1005), [0, 1])
+    armature = Candidate(_block("armature", 3), [0])
+    fine = refine_survivors(ripple.rows, [off, armature], {"ripple@1"})
+    assert abs(fine[0].block.opts["period"] - 0.1) < 0.5 * abs(0.1005 - 0.1)
+    assert fine[0].new == [0, 1] and fine[1] is armature
+    assert off.block.opts["period"] == 0.1005  # the given candidate as it was
+    assert refine_survivors(ripple.rows, [off], set())[0] is off
+
+
+def test_screen_notes_count_what_was_not_scored():
+    notes = screen_notes(Structural([], [], ["presliding@2"]), InSample([], 2))
+    assert notes == ["presliding@2: no column on the data's states at any hyper-parameter "
+                     "tried (not scored)",
+                     "2 candidate(s) explain under 5 % of their joint's filtered residual "
+                     "even in-sample and were not scored"]
+    assert screen_notes(Structural([], [], []), InSample([], 0)) == []
+
+
+# ----------------------------------------------------------------------------- union pass
+
+
+def test_union_design_puts_the_candidates_after_the_model(arm3, ripple, union):
+    base = ripple.pool.base
+    n, s = base.rank, len(base.names)
+    assert union.n_model == n and union.design.p == n + 3
+    assert [list(p) for p in union.positions] == [[n], [n + 1, n + 2]]
+    # standard columns: the model's, then offset@3's one, then ripple@1's two
+    assert list(union.design.cols[n:]) == [s, s + 1, s + 2]
+    assert list(union.design.cols[:n]) == list(base.independent)
+    assert union.keep >= 1 and union.block_len >= 1
+
+
+def test_fold_masks_hold_out_each_block_once_with_a_gap():
+    folds = fold_masks(40, FOLDS)
+    held = np.array([h for h, _ in folds])
+    assert np.array_equal(held.sum(axis=0), np.ones(40))
+    for h, tr in folds:
+        idx = np.flatnonzero(h)
+        gap = {idx[0] - 1, idx[-1] + 1} & set(range(40))
+        assert not (h & tr).any() and not tr[list(gap)].any()
+        assert tr.sum() == 40 - h.sum() - len(gap)
+
+
+def test_fold_cv_equals_a_refit_per_fold(ripple, union):
+    cv = cross_validation(union, ripple.pool)
+    g, p = cv.grams.g, cv.grams.p
+    cand = union.positions[1]
+    idx = np.concatenate((np.arange(union.n_model), cand))
+    sse = np.zeros(3)
+    counts = np.zeros(3)
+    for h, tr in fold_masks(g.shape[1], FOLDS):
+        a = g[:, tr].sum(axis=(0, 1))
+        d = 1.0 / np.sqrt(np.diag(a)[idx])
+        theta = d * np.linalg.lstsq(a[np.ix_(idx, idx)] * np.outer(d, d), a[idx, p] * d,
+                                    rcond=None)[0]
+        v = np.concatenate((-theta, [1.0]))
+        held = g[:, h].sum(axis=1)
+        sub = np.concatenate((idx, [p]))
+        sse += np.einsum("i,jik,k->j", v, held[:, sub[:, None], sub[None, :]], v)
+        counts += held[:, p + 1, p + 1]
+    np.testing.assert_allclose(cv.rmse(cand), np.sqrt(sse / counts), rtol=1e-6)
+    np.testing.assert_allclose(cv.base, cv.rmse(np.zeros(0, dtype=int)))
+
+
+def test_score_candidate_gain_and_test(arm3, ripple, union):
+    cv = cross_validation(union, ripple.pool)
+    offset, rip = (score_candidate(arm3, cv, union, k) for k in (0, 1))
+    assert rip.rows == [0] and rip.gain > 0.5 and rip.p_value < 1e-12
+    assert rip.gain == pytest.approx(1 - rip.after / rip.before)
+    assert rip.coef.shape == (2,)
+    assert np.hypot(*rip.coef) == pytest.approx(0.6, rel=0.1)  # the hidden amplitude
+    assert offset.rows == [2] and offset.gain < GAIN_MIN
+
+
+def test_suggestion_states_its_evidence_in_its_fields(arm3, ripple, union):
+    cv = cross_validation(union, ripple.pool)
+    score = score_candidate(arm3, cv, union, 1)
+    sig = Signatures(arm3, ripple.pool.states, ripple.pool.resid)
+    sug = suggestion(union.blocks[1], score, sig)
+    assert (sug.effect, sug.joint, sug.label()) == ("ripple", 1, "ripple@1")
+    assert sug.gain == score.gain and sug.fields["gain"] == round(score.gain, 4)
+    assert sug.fields["repeat"] > 0.5 and sug.hypers == {"period": 0.1}
+    assert "the residual repeats every period" in sug.evidence
+    assert f"{sug.fields['rmse_before']:.4g} → {sug.fields['rmse_after']:.4g} N·m" in sug.evidence
+    assert sig.of(union.blocks[1]) is sig.of(_block("spring", 1))  # one R² per joint
+    assert sig.of(_block("delay", None)) == {}
+
+
+def test_evidence_sentence_of_an_offset_and_a_delay():
+    text, fields = evidence_sentence(_block("offset", 3), 0.5, 0.4, {}, np.array([0.8]))
+    assert text == ("joint 3: a constant torque; cross-validated RMSE of the filtered torque "
+                    "0.5 → 0.4 N·m")
+    assert fields == {"rmse_before": 0.5, "rmse_after": 0.4}
+    text, fields = evidence_sentence(_block("delay", None), 0.5, 0.2, {}, np.array([0.01]))
+    assert text.startswith("the torque log is shifted by 10 ms") and fields["seconds"] == 0.01
+
+
+# ----------------------------------------------------------------------------- transfer
+
+
+@pytest.fixture(scope="module")
+def springs(arm3, tmp_path_factory):
+    """A model with a spring the robot has not, fitted on one motion, validated on another."""
+    d = tmp_path_factory.mktemp("springs")
+    train, valid = d / "a.csv", d / "b.csv"
+    inertials = perturbed_inertials(arm3, 105)  # one robot, two motions
+    simulate(arm3, train, noise=0.3, seed=5, duration=30.0, rate=250.0, inertials=inertials)
+    simulate(arm3, valid, noise=0.3, seed=8, duration=20.0, rate=250.0, inertials=inertials)
+    model = Model.parse(["rigid_body", "viscous", "coulomb", "spring@1"])
+    pool = residual_pool(arm3, _fit(arm3, train, model, validate=valid))
+    return pool, union_design(arm3, pool, [Candidate(_block("offset", 3), [0])])
+
+
+def test_model_transfer_doubts_name_an_effect_that_raises_the_validation_error(arm3, springs):
+    pool, union = springs
+    assert pool.vpieces and all(any(pc.prep is p for p in pool.preps[1:])
+                                for pc in pool.vpieces)
+    transfer = transfer_scorer(union, pool)
+    doubts = model_transfer_doubts(arm3, pool.problem, transfer, pool.base.independent)
+    assert len(doubts) == 1 and doubts[0].startswith("spring@1 raises the validation logs' "
+                                                     "error")
+
+
+def test_with_transfer_adds_the_validation_figures(arm3, springs):
+    pool, union = springs
+    transfer = transfer_scorer(union, pool)
+    score = score_candidate(arm3, cross_validation(union, pool), union, 0)
+    sug = suggestion(union.blocks[0], score, Signatures(arm3, pool.states, pool.resid))
+    out = with_transfer(sug, score, transfer, union.positions[0])
+    assert sug.transfer is None and "validation_before" not in sug.fields  # not changed
+    f = out.fields
+    assert list(f)[-4:] == ["validation_before", "validation_after", "transfer_gain",
+                            "transfer_own"]
+    assert out.transfer == pytest.approx(f["transfer_gain"], abs=5e-5)
+    assert f["transfer_own"] == pytest.approx(
+        1 - f["validation_after"] / f["validation_before"], abs=1e-3)
+    assert out.evidence.startswith(sug.evidence + "; on the validation logs ")
+
+
+# ----------------------------------------------------------------------------- verdict
+
+
+def _sug(effect="offset", joint=1, gain=0.2, p=1e-6, after=0.3, transfer=None, **fields):
+    f = {"rmse_after": after, **fields}
+    if transfer is not None:
+        f.setdefault("transfer_own", transfer)
+    return Suggestion(effect, joint, [after], gain, p, "", f, {}, None, transfer)
+
+
+def test_judge_needs_the_gain_the_test_and_the_transfer():
+    good, small, weak = _sug(), _sug(gain=GAIN_MIN / 2), _sug(p=10 * P_MAX)
+    lost, lost_own = _sug(transfer=-0.01), _sug(transfer=0.2, transfer_own=0.005)
+    v = judge([good, small, weak, lost, lost_own])
+    assert v.suggested == [good] and v.rejected == [small, weak]
+    assert v.not_transferring == [lost, lost_own]
+    assert not_transferring_note([lost]) == [
+        "offset@1 won the cross-validation but did not cut the error on the validation "
+        "logs: not suggested"]
+    assert not_transferring_note([]) == []
+
+
+def test_rank_prefers_transfer_then_physics_then_fewer_parameters():
+    a, b = _sug(gain=0.3, transfer=0.1), _sug(gain=0.2, transfer=0.4)
+    assert rank(judge([a, b])).suggested == [b, a]  # by transfer when there is one
+    asym = _sug("coulomb_asymmetric", 3, gain=0.3, after=0.300)
+    offset = _sug("offset", 3, gain=0.29, after=0.302)  # the same error left, within 1 %
+    assert rank(judge([asym, offset])).suggested == [offset, asym]
+    spring = _sug("spring", 1, gain=0.4, after=0.30)
+    cogging = _sug("ripple", 1, gain=0.39, after=0.31, repeat=0.9)
+    assert rank(judge([spring, cogging])).suggested == [cogging, spring]  # it repeats
+    smooth = _sug("ripple", 1, gain=0.41, after=0.30, repeat=0.1)
+    assert rank(judge([smooth, spring])).suggested == [spring, smooth]
+    assert rank(judge([_sug(gain=0.01), _sug(gain=0.03)])).rejected[0].gain == 0.03
+
+
+def test_verdict_is_doubtful_when_the_validation_error_is_above_cads(arm3, ripple):
+    res = replace(ripple.result, notes=[])
+    res.held_out = HeldOut(ErrorStats(np.ones(3), np.ones(3), np.ones(3), 10, 0.12),
+                           ErrorStats(np.ones(3), np.ones(3), np.ones(3), 10, 0.10), [])
+    doubts = result_doubts(res)
+    assert doubts == ["held-out relative error 12 % is above the a-priori (CAD) model's 10 %"]
+    dg = Diagnosis(res, ["rigid_body"], None, [], [], [], [], [], doubts=doubts)
+    assert dg.verdict == "doubtful" and dg.to_dict()["doubts"] == doubts
+    assert Diagnosis(res, [], None, [_sug()], [], [], [], [], doubts=doubts).verdict == \
+        "missing_effect"
+    res.held_out = HeldOut(res.held_out.nominal, res.held_out.validation, [])  # below CAD
+    assert result_doubts(res) == []
+    assert Diagnosis(res, [], None, [], [], [], [], []).verdict == "adequate"
+
+
+def test_three_extrapolation_warnings_make_a_doubt(ripple):
+    warn = "validation leaves the training range of q1 by 9 % of its span: the model " \
+           "extrapolates there"
+    res = replace(ripple.result, notes=[warn] * 3)
+    res.held_out = HeldOut(None, None, [])
+    assert result_doubts(res) == ["3 extrapolation warnings: the validation motion leaves "
+                                  "the training ranges, so its error says little about the "
+                                  "model"]
+    assert result_doubts(replace(res, notes=[warn] * 2)) == []
+
+
+def test_one_motion_note(arm3, ripple, tmp_path):
+    logs = load_logs(arm3, [ripple.path])
+    note = [f"all data is one motion: candidates are scored by blocked cross-validation over "
+            f"the log ({FOLDS} folds), not on a new motion"]
+    assert one_motion_note(logs) == note and one_motion_note(logs * 2) == note
+    other = simulate(arm3, tmp_path / "o.csv", seed=6, duration=5.0, rate=250.0)
+    assert one_motion_note([*logs, *load_logs(arm3, [other.path])]) == []
