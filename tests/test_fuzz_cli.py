@@ -161,6 +161,7 @@ COMMANDS: dict[str, tuple[list[str], dict[str, tuple[str, ...]]]] = {
     "results": (["results", "--config", "{config}"], {"config": _YAML}),
     "params": (["params", "show", "--config", "{config}", "--robot", "arm3"],
                {"config": _YAML}),
+    "web": (["web", "--config", "{config}"], {"config": _YAML}),
 }
 
 
@@ -254,6 +255,7 @@ OPTIONS: dict[str, tuple[list[str], str]] = {
     "--sigma": (_RESULTS, "float"),
     "--min-change": (_RESULTS, "float"),
     "--trigger": (["campaign", "start", "a", "--config", "{config}"], "word"),
+    "--listen": (["web", "--config", "{config}"], "word"),
 }
 
 
@@ -289,11 +291,14 @@ def option_case() -> st.SearchStrategy[tuple[str, str]]:
 def test_fuzz_cli_options(cell, capsys, case):
     option, value = case
     before, kind = OPTIONS[option]
-    if (option, value) in (("--weight", "andrews"), ("--weight", "bisquare"), ("--fault", "")):
-        return  # a valid choice; no fault at all (the fake controller would serve)
+    if (option, value) in (("--weight", "andrews"), ("--weight", "bisquare"), ("--fault", ""),
+                           ("--listen", "")):
+        return  # a valid choice; nothing given (the fake controller or the page would serve)
     # nargs="+" (--q, --pose): a bad value among good ones, else a count the robot has not
     extra = ["0", value] if kind == "floats" else [value]
-    check_cli(f"CLI {option}", [*_argv(before, cell), option, *extra], capsys, option)
+    # the page's address is web.listen in the config, --listen on the command line
+    name = "listen" if option == "--listen" else option
+    check_cli(f"CLI {option}", [*_argv(before, cell), option, *extra], capsys, name)
 
 
 #: options that another option or the chosen mode makes meaningless: (argv, option named)
@@ -347,7 +352,8 @@ def config_key_case() -> st.SearchStrategy[tuple[tuple[Any, ...], Any, str]]:
     top = [(("robot",), "robot"), (("state_dir",), "state_dir"),
            (("control_socket",), "control_socket"), (("driver",), "driver"),
            (("campaigns",), "campaigns"), (("lock",), "lock"), (("socket_mode",), "socket_mode"),
-           (("worker_start_method",), "worker_start_method"), (("log_level",), "log_level")]
+           (("worker_start_method",), "worker_start_method"), (("log_level",), "log_level"),
+           (("web",), "web")]
     camp = [(("campaigns", "a", k), f"campaigns.a.{k}") for k in (
         "experiments", "identify", "diagnose", "model", "add", "method", "retries",
         "backoff_s", "timeout_s", "reduced_speed_first", "cutoff_hz", "motor_side", "upload")]

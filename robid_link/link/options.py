@@ -117,7 +117,7 @@ class Number(Option):
 
     def convert(self, key: str, value: Any) -> float:
         if (isinstance(value, bool) or not isinstance(value, int | float)
-                or not math.isfinite(value)
+                or abs(value) > 1e300 or not math.isfinite(value)  # 10**400: no float
                 or (self.low is not None and value < self.low)
                 or (self.above is not None and not value > self.above)
                 or (self.high is not None and value > self.high)):

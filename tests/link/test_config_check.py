@@ -258,3 +258,14 @@ def test_the_nightly_unit_documents_its_nothing_to_do_status():
     assert unit["Service"]["RestartPreventExitStatus"] == str(EXIT_NOTHING_TO_DO)
     assert "SuccessExitStatus" not in unit["Service"]
     assert f"status={EXIT_NOTHING_TO_DO}/NOTCONFIGURED" in text
+
+
+def test_a_driver_number_beyond_any_float_is_one_line(tmp_path, capsys):
+    """The fuzz found it: 10**400 for a number option was an OverflowError traceback."""
+    cfg = write_config(tmp_path, {"one": ONE})
+    doc = yaml.safe_load(cfg.read_text())
+    doc["driver"]["poll_interval_s"] = 10 ** 400
+    cfg.write_text(yaml.safe_dump(doc))
+    assert main(["config", "check", "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "driver.poll_interval_s: expected a number >= 0, got 1000" in err[0]
