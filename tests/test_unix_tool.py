@@ -365,3 +365,43 @@ def test_campaign_rates_are_plausible(tmp_path, options, names):
     assert "\n" not in msg and msg.startswith(f"{p}: campaigns.a.")
     for name in names:
         assert name in msg, msg
+
+
+# ------------------------------------------------------- messages that did not name their object
+
+def test_elasticity_analysis_errors_name_the_log(tmp_path, arm3, capsys):
+    """The stepped-sine analysis works on arrays: a log without steps is named."""
+    from .conftest import simulate
+
+    log = simulate(arm3, tmp_path / "plain.csv", duration=4.0, rate=200.0).path
+    one_error(["elasticity", "--robot", ARM3, "--data", str(log)], capsys, str(log),
+              "no sinusoidal steps")
+    one_error(["elasticity", "--robot", ARM3, "--data", str(log), "--joint", "1"], capsys,
+              str(log))
+
+
+def test_a_damaged_parameter_set_is_named_by_its_hash():
+    from robid_link.jobs import PARAMETER_SET_FORMAT, ParameterSet
+
+    with pytest.raises(RobidError, match=r"^parameter set 0123456789ab: content does not "
+                                         r"match its sha256"):
+        ParameterSet.from_doc({"format": PARAMETER_SET_FORMAT, "sha256": "0123456789abcdef"})
+
+
+def test_an_experiment_beyond_the_robot_names_the_experiment(arm3):
+    from robid_link.ident.excite.experiments import experiment_trajectory
+
+    with pytest.raises(RobidError, match=r"^experiment sweep: joints: 7 is not a joint of arm3"):
+        experiment_trajectory(arm3, "friction", {"joints": [7]}, None, "experiment sweep")
+
+
+def test_consistent_without_inertials_names_the_robot_file(tmp_path, capsys):
+    robot = tmp_path / "bare.yaml"  # two joints, no inertial: entries
+    robot.write_text("joints:\n" + "  - {alpha: 0, a: 0.3, theta: 0, d: 0, limits: "
+                     "{q: [-3, 3]}}\n" * 2)
+    t = np.arange(600) / 100.0
+    q = np.column_stack([np.sin(t), np.cos(0.7 * t)])
+    np.savetxt(tmp_path / "two.csv", np.column_stack([t, q, q]), delimiter=",",
+               header="t,q1,q2,tau1,tau2", comments="", fmt="%.6f")
+    one_error(["identify", "--robot", str(robot), "--data", str(tmp_path / "two.csv"),
+               "--method", "consistent"], capsys, str(robot), "no", "inertials")

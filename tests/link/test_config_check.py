@@ -167,21 +167,28 @@ def test_the_daemon_warns_at_start_about_a_campaign_with_a_missing_file(
         tmp_path, caplog, controller):
     """It starts (the other campaigns are fine), says so at once, and refuses that campaign's
     start in one line naming the key and the file."""
-    cfg = write_config(tmp_path, {"one": ONE, "broken": {**ONE, "model": "gone.yaml"}})
+    cfg = write_config(tmp_path, {"one": ONE, "broken": {**ONE, "model": "gone.yaml"},
+                                  "custom": {"experiments": [{"kind": "custom", "id": "path",
+                                                              "trajectory": "gone.csv"}]}})
 
-    async def body() -> str:
+    async def body() -> list[str]:
         async with asyncio.timeout(120), Daemon(load_daemon_config(cfg), env={}) as d:
-            with pytest.raises(ConfigError) as refused:
-                await d.handle({"cmd": "start", "campaign": "broken"})
-            return str(refused.value)
+            refused = []
+            for name in ("broken", "custom"):
+                with pytest.raises(ConfigError) as err:
+                    await d.handle({"cmd": "start", "campaign": name})
+                refused.append(str(err.value))
+            return refused
 
     with caplog.at_level(logging.WARNING, logger="robid"), controller():
         refused = asyncio.run(body())
-    gone = tmp_path / "gone.yaml"
-    warned = [r.getMessage() for r in caplog.records if "broken" in r.getMessage()]
-    assert warned == [f"{cfg.resolve()}: campaign broken: its runs will be refused: "
-                      f"campaigns.broken.model: {gone}: model file not found"]
-    assert refused == f"campaigns.broken.model: {gone}: model file not found"
+    model = f"campaigns.broken.model: {tmp_path / 'gone.yaml'}: model file not found"
+    custom = (f"campaigns.custom.experiments.path.trajectory: {tmp_path / 'gone.csv'}: "
+              "trajectory file not found")
+    warned = [r.getMessage() for r in caplog.records if "will be refused" in r.getMessage()]
+    assert warned == [f"{cfg.resolve()}: campaign broken: its runs will be refused: {model}",
+                      f"{cfg.resolve()}: campaign custom: its runs will be refused: {custom}"]
+    assert refused == [model, custom]
 
 
 # ----------------------------------------------------------------------------- model reload
