@@ -417,7 +417,7 @@ def urdf_tree_bad() -> st.SearchStrategy[str]:
                 + "".join(joint.format(i, names[a], names[b], extra if i == 0 else "")
                           for i, (a, b) in enumerate(edges)) + "</robot>")
 
-    chain = st.integers(2, 6)
+    chain = st.integers(2, 12)
     return st.one_of(
         chain.flatmap(lambda n: st.integers(1, n).map(lambda k: robot(n, [
             (i, i + 1) for i in range(n)] + [(k, k)]))),  # parent = child
