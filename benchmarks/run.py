@@ -1,7 +1,8 @@
 """`make bench`: figures printed as ratios against baselines measured in the same run.
 
 Sections: the file-share give→take hand-off (inotify, polling, the original 1 s loop); the RWS
-link against the file share (hand-off, log transfer, `--only rws`); the
+link against the file share (hand-off, log transfer, `--only rws`); a 500 Hz RTDE stream of
+`--rtde-seconds` while identification runs (`--only rtde`: packages lost, inter-arrival); the
 batched regressor against a per-sample loop over Pinocchio's computeJointTorqueRegressor; the
 closed-loop plant; diagnose against identify; robid elasticity against identify on a log of the
 same length; the demo's report.html (size, first render in Chromium); the web page's
@@ -155,7 +156,9 @@ def main() -> int:
     ap.add_argument("--samples", type=int, default=1_000_000)
     ap.add_argument("--only", choices=("identify", "regressor", "plant", "diagnose", "handoff",
                                         "canopen", "rws", "consistent", "modbus", "serial",
-                                        "elasticity", "report", "web"))
+                                        "elasticity", "report", "web", "rtde"))
+    ap.add_argument("--rtde-seconds", type=float, default=600.0,
+                    help="length of the RTDE stream under load (default 600: 10 minutes)")
     args = ap.parse_args()
     print("robid_link benchmarks (2-core machine; ratios are against baselines run here)\n")
     if args.only in (None, "handoff"):
@@ -186,6 +189,11 @@ def main() -> int:
         from benchmarks.modbus_serial import report
 
         report(args.only)
+    if args.only in (None, "rtde"):  # issue 19: Universal Robots over RTDE
+        from benchmarks.rtde import bench_rtde
+        from benchmarks.rtde import report as report_rtde
+
+        report_rtde(bench_rtde(args.rtde_seconds))
     if args.only in (None, "regressor"):
         r = bench_regressor(100_000, 2048)
         print(f"regressor, 6 axes: {r['ours_us_per_sample']:.2f} µs/sample vs per-sample "

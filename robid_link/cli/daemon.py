@@ -76,7 +76,7 @@ def _config_check(args: argparse.Namespace) -> int:
 def _fake_controller_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--driver", default="file_share",
                    help="the driver whose controller side to play (file_share, abb_rws, "
-                   "canopen_drives, modbus_plc, serial_line, or a plug-in's)")
+                   "canopen_drives, modbus_plc, serial_line, ur_rtde, or a plug-in's)")
     p.add_argument("--share", "--workdir", dest="workdir", required=True, metavar="DIR",
                    help="the peer's folder: the share (file_share, modbus_plc) or the "
                    "controller's file system")

@@ -18,7 +18,7 @@ def _demo_options(p: argparse.ArgumentParser) -> None:
                    help="report folder (default demo-out)")
     p.add_argument("--driver", default="file_share",
                    help="the controller link to run the demo over (its fake peer plays the "
-                   "cell): file_share, abb_rws, canopen_drives, modbus_plc, serial_line")
+                   "cell): file_share, abb_rws, canopen_drives, modbus_plc, serial_line, ur_rtde")
 
 
 def _demo(args: argparse.Namespace) -> int:

@@ -49,14 +49,19 @@ def _show(value: Any) -> str:
     return text if len(text) <= _SHOWN else text[: _SHOWN - 1] + "…"
 
 
+def _num(x: float) -> str:
+    """A bound as a person writes it: 50000000, not 5e+07; 0.001, 1e-06."""
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:g}"
+
+
 def _bounds(low: float | None, high: float | None, above: float | None) -> str:
     if above is not None:
-        return f" in ({above:g}, {high:g}]" if high is not None else f" > {above:g}"
+        return f" in ({_num(above)}, {_num(high)}]" if high is not None else f" > {_num(above)}"
     if low is not None and high is not None:
-        return f" in [{low:g}, {high:g}]"
+        return f" in [{_num(low)}, {_num(high)}]"
     if low is not None:
-        return f" >= {low:g}"
-    return f" <= {high:g}" if high is not None else ""
+        return f" >= {_num(low)}"
+    return f" <= {_num(high)}" if high is not None else ""
 
 
 class Option:

@@ -26,6 +26,7 @@ BUILTIN_DRIVERS: dict[str, tuple[str, str | None]] = {
     "canopen_drives": ("robid_link.drivers.canopen.drives:CanopenDrivesDriver", "can"),
     "modbus_plc": ("robid_link.drivers.modbus_plc:ModbusPlcDriver", "modbus"),
     "serial_line": ("robid_link.drivers.serial_line:SerialLineDriver", "serial"),
+    "ur_rtde": ("robid_link.drivers.ur.rtde_driver:UrRtdeDriver", None),
 }
 
 #: the fake controller side of each built-in driver's protocol (tests, demo, fake-controller)
@@ -35,6 +36,7 @@ BUILTIN_PEERS: dict[str, str] = {
     "canopen_drives": "robid_link.fakes.canopen.peer:Cia402Peer",
     "modbus_plc": "robid_link.fakes.modbus_peer:ModbusPeer",
     "serial_line": "robid_link.fakes.serial_peer:SerialPeer",
+    "ur_rtde": "robid_link.fakes.ur.peer:UrRtdePeer",
 }
 
 #: fakes the product uses by name: the simulated robot and the protocol-neutral controller

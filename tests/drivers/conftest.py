@@ -18,9 +18,11 @@ ARM3 = Path(__file__).resolve().parents[2] / "examples" / "robots" / "arm3.yaml"
 
 def bump_program(robot: Robot, seconds: float, peak_rad: float) -> MotionProgram:
     """A sin² bump of ``seconds`` at 100 Hz from rest to rest, ``peak_rad`` on joint 1 (−1×,
-    0.5× on joints 2 and 3): the program the driver tests hand to their peers."""
+    0.5× on joints 2 and 3, the pattern repeated on further joints): the program the driver
+    tests hand to their peers."""
     t = np.arange(0.0, seconds, 0.01)
-    q = peak_rad * np.sin(np.pi * t / seconds)[:, None] ** 2 * np.array([1.0, -1.0, 0.5])
+    weights = np.resize(np.array([1.0, -1.0, 0.5]), robot.n)
+    q = peak_rad * np.sin(np.pi * t / seconds)[:, None] ** 2 * weights
     return pg.make_program(robot, ex.Trajectory(t, q, 100.0, "custom", robot.name), "exp1")
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import hashlib
 import importlib.metadata as md
 import io
@@ -20,14 +21,40 @@ import pytest
 
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.fakes.controller import default_truth, make_peer
-from robid_link.ident.model.robot import Robot
+from robid_link.ident.model.robot import Robot, load_robot
 from robid_link.jobs import MotionProgram, RobotInfo
 from robid_link.link import registry
 from robid_link.link.driver import Done, Driver
 
-ARM3 = Path(__file__).resolve().parents[2] / "examples" / "robots" / "arm3.yaml"
+from .conftest import bump_program
+
+ROBOTS = Path(__file__).resolve().parents[2] / "examples" / "robots"
 NAMES = sorted(set(registry.available_drivers()) & set(registry.available_peers()))
 RATE_HZ = 200.0
+
+
+@functools.cache
+def _robot_of(name: str | None) -> Robot:
+    """The contract's robot: arm3, or the one a peer's protocol needs (``contract_robot``:
+    a UR controller moves six joints)."""
+    cls = registry.peer_class(name) if name else None
+    return load_robot(ROBOTS / getattr(cls, "contract_robot", "arm3.yaml"))
+
+
+def _param(request: pytest.FixtureRequest) -> str | None:
+    callspec = getattr(request.node, "callspec", None)
+    return callspec.params.get("name") if callspec else None
+
+
+@pytest.fixture
+def robot(request: pytest.FixtureRequest) -> Robot:
+    return _robot_of(_param(request))
+
+
+@pytest.fixture
+def program(robot: Robot) -> MotionProgram:
+    """The contract suite's program (0.6 s, 5 cm peaks) for the driver's robot."""
+    return bump_program(robot, 0.6, 0.05)
 
 
 def _variants() -> list[Any]:
@@ -77,9 +104,13 @@ def _cycle(driver: Driver, program: MotionProgram, timeout_s: float = 30.0) -> b
 
 
 def _parse(data: bytes) -> np.ndarray:
-    head = data.split(b"\n", 1)[0].decode()
-    assert head == "t,q1,q2,q3,tau1,tau2,tau3"
-    return np.loadtxt(io.BytesIO(data), delimiter=",", skiprows=1, ndmin=2)
+    """t, q…, τ… of a log in the house layout (speeds, when a link logs them, dropped)."""
+    head = data.split(b"\n", 1)[0].decode().split(",")
+    n = sum(1 for h in head if h.startswith("tau"))
+    q, qd, tau = ([f"{k}{j}" for j in range(1, n + 1)] for k in ("q", "qd", "tau"))
+    assert head in (["t", *q, *tau], ["t", *q, *qd, *tau]), head
+    arr = np.loadtxt(io.BytesIO(data), delimiter=",", skiprows=1, ndmin=2)
+    return np.hstack([arr[:, : 1 + n], arr[:, -n:]])
 
 
 @pytest.mark.parametrize("name, variant", _variants())
