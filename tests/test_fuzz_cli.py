@@ -444,7 +444,18 @@ def _driver_bases(cell: dict[str, Path]) -> dict[str, dict[str, Any]]:
             "abb_rws": {"version": 2, "url": "https://127.0.0.1:1",
                         "credentials_file": str(creds)},
             "canopen_drives": {"nodes": [1, 2, 3], "counts_per_rad": [1000, 1000, 1000],
-                               "eds": str(eds)}}
+                               "eds": str(eds)},
+            "ur_rtde": {"host": "127.0.0.1"}}
+
+
+def test_every_built_in_driver_has_a_valid_base(cell):
+    """The driver fuzz spoils one option of a valid mapping: a new driver needs its own."""
+    from robid_link.link.registry import BUILTIN_DRIVERS, make_driver
+
+    bases = _driver_bases(cell)
+    assert set(bases) == set(BUILTIN_DRIVERS)
+    for name, options in bases.items():
+        make_driver({"name": name, **options})
 
 
 def driver_case() -> st.SearchStrategy[tuple[str, str, Any]]:
