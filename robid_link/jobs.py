@@ -376,7 +376,8 @@ class ParameterSet(Record):
         except (TypeError, ValueError) as err:
             raise ModelError(f"{name}: not canonical JSON ({err})") from err
         if doc.get("sha256") != sha:
-            raise ModelError(f"{name}: content does not match its sha256 (damaged)")
+            # short: a controller's refusal quotes it in an 80-character RAPID string
+            raise ModelError(f"{name}: damaged (sha256 mismatch)")
         return cls(dict(doc))
 
     def check(self, n_joints: int) -> None:

@@ -136,7 +136,8 @@ def _check_elasticity(opts: dict[str, Any], where: str) -> None:
     _bounded(opts, where, "f_max_hz", 1e-3, 500.0)
     lo, hi = opts["f_min_hz"], opts["f_max_hz"]
     if lo >= hi:
-        raise ConfigError(f"{where}.f_min_hz: {lo:g} Hz is not below f_max_hz {hi:g} Hz")
+        raise ConfigError(f"{where}.f_min_hz: expected a frequency below f_max_hz {hi:g} Hz, "
+                          f"got {lo:g}")
     if isinstance(opts.get("rate_hz"), int | float) and hi > 0.2 * opts["rate_hz"]:
         raise ConfigError(f"{where}.f_max_hz: {hi:g} Hz is above 20 % of rate_hz "
                           f"{opts['rate_hz']:g} (the sines need ≥ 5 samples a period)")

@@ -383,8 +383,8 @@ def test_elasticity_analysis_errors_name_the_log(tmp_path, arm3, capsys):
 def test_a_damaged_parameter_set_is_named_by_its_hash():
     from robid_link.jobs import PARAMETER_SET_FORMAT, ParameterSet
 
-    with pytest.raises(RobidError, match=r"^parameter set 0123456789ab: content does not "
-                                         r"match its sha256"):
+    with pytest.raises(RobidError, match=r"^parameter set 0123456789ab: damaged \(sha256 "
+                                         r"mismatch\)"):
         ParameterSet.from_doc({"format": PARAMETER_SET_FORMAT, "sha256": "0123456789abcdef"})
 
 

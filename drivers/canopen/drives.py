@@ -129,7 +129,7 @@ class CanopenDrivesDriver(Driver):
         counts_per_rad=Vector(Number(above=0), per_joint=True,
                               hint="encoder counts per joint radian, one per joint"),
         rated_torque_nm=Vector(Number(above=0), None, per_joint=True),
-        eds=File(exists=True, hint="the drives' EDS file"), record_dir=Folder(None),
+        eds=File(exists=True, hint="the drives' EDS file"), record_dir=Folder(None, created=True),
         following_error_rad=Number(0.15, low=1e-6),
         heartbeat_ms=Integer(100, low=1, high=65535),
         heartbeat_timeout_s=Number(0.35, low=0.001), boot_timeout_s=Number(2.0, low=0.01),

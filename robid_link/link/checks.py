@@ -128,9 +128,9 @@ def daemon_findings(cfg: DaemonConfig, driver_options: Mapping[str, Option] | No
     for key, path, spec in _option_paths(driver_options or {}, cfg.driver):
         if isinstance(spec, File):
             problem = _readable(path, "file")
-        elif not path.is_dir():
+        elif not path.is_dir() and not (isinstance(spec, Folder) and spec.created):
             problem = "folder not found" if not os.path.lexists(path) else "is not a folder"
-        else:
+        else:  # there, or made by the driver: files can be written in it
             problem = _writable_folder(path)
         if problem:
             out.append(Finding(f"driver.{key}", f"driver.{key}: {path}: {problem}"))

@@ -262,9 +262,16 @@ class File(_PathOption):
 
 
 class Folder(_PathOption):
-    """A folder path; ``exists``: the folder must be there."""
+    """A folder path; ``exists``: the folder must be there when the config is read;
+    ``created``: the driver makes it when missing (else it must be there when the driver opens:
+    ``robid config check`` and the daemon's start say so first)."""
 
     kind = "folder"
+
+    def __init__(self, default: Any = REQUIRED, *, exists: bool = False, created: bool = False,
+                 hint: str = "") -> None:
+        super().__init__(default, exists=exists, hint=hint)
+        self.created = created
 
     def _found(self, path: Path) -> bool:
         return path.is_dir()

@@ -164,7 +164,7 @@ def test_set_kept_by_a_restarted_driver_and_refused_set_changes_nothing(
         async def first() -> None:
             async with make() as driver:
                 await driver.upload_parameters(doc, timeout_s=10)
-                for wrong, why in ((bad, "does not match its sha256"),
+                for wrong, why in ((bad, r"damaged \(sha256 mismatch\)"),
                                    (other, "for robot another")):
                     with pytest.raises(DriverError, match=f"parameter set refused: .*{why}"):
                         await driver.upload_parameters(wrong, timeout_s=10)

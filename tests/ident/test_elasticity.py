@@ -232,7 +232,7 @@ def test_campaign_kind_and_worker(plant_log):
     joint = out.results[0]["result"]["joints"][0]
     assert joint["joint"] == 1 and joint["k"] == pytest.approx(TRUE["k"], rel=0.01)
     assert joint["measures"] == {"experiment": "stiff", "kind": "elasticity"}
-    for bad, key in [({"steps": 2}, "steps"), ({"f_min_hz": 80.0}, "f_max_hz"),
+    for bad, key in [({"steps": 2}, "steps"), ({"f_min_hz": 80.0}, "f_min_hz"),
                      ({"joints": [0]}, "joints"), ({"pose_deg": "up"}, "pose_deg"),
                      ({"pairs": [[2, 2]]}, "pairs"), ({"pairs": [2, 3]}, "pairs")]:
         with pytest.raises(ConfigError, match=rf"e\.{key}: expected"):

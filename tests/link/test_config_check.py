@@ -276,3 +276,21 @@ def test_a_driver_number_beyond_any_float_is_one_line(tmp_path, capsys):
     assert main(["config", "check", "--config", str(cfg)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "driver.poll_interval_s: expected a number >= 0, got 1000" in err[0]
+
+
+def test_a_folder_the_driver_makes_may_be_missing(tmp_path):
+    """CANopen's record_dir is made by the driver: missing is fine if it can be created; a
+    share that must be there is not."""
+    from dataclasses import replace
+
+    from robid_link.link.options import Folder
+
+    given = {"share": str(tmp_path / "no-share"), "record_dir": str(tmp_path / "rec" / "a")}
+    cfg = replace(load_daemon_config(write_config(tmp_path, {"one": ONE})), driver=given)
+    opts = {"share": Folder(), "record_dir": Folder(None, created=True)}
+    found = daemon_findings(cfg, opts)
+    assert [f.line for f in found] == [f"driver.share: {tmp_path / 'no-share'}: folder not found"]
+    _file(tmp_path / "rec")
+    found = daemon_findings(cfg, opts)
+    assert found[-1].line == (f"driver.record_dir: {tmp_path / 'rec' / 'a'}: cannot be created: "
+                              f"{tmp_path / 'rec'} is not a folder")
