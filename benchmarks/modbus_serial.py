@@ -148,8 +148,9 @@ def bench_transfer(slice_115200: int = 96_000, slice_921600: int = 768_000
     return out
 
 
-def report(only: str | None = None) -> None:
-    """Print the section of ``make bench`` (``--only modbus|serial`` narrows it)."""
+def report(only: str | None = None) -> dict[str, dict[str, dict[str, float]]]:
+    """Print the section of ``make bench`` (``--only modbus|serial`` narrows it); returns
+    the hand-offs and the transfers."""
     import logging
 
     logging.getLogger("robid").setLevel(logging.ERROR)  # the bench's own leftovers, not news
@@ -173,3 +174,26 @@ def report(only: str | None = None) -> None:
         print(f"log transfer, 60 s 6-axis 1 kHz log ({v['log_bytes'] / 1e6:.1f} MB), "
               f"{name:<24}: {v['mb_s']:8.3f} MB/s, {v['full_log_s']:8.1f} s for the log "
               f"({v['mb_s'] / ref:.2g}× the file share{how})")
+    return {"handoff": h, "transfer": t}
+
+
+def record(fig: Any, r: dict[str, dict[str, dict[str, float]]]) -> None:
+    """The section's figures into ``benchmarks.figures.Figures``."""
+    h, t = r["handoff"], r["transfer"]
+    base = h["file_share (inotify)"]["median_ms"]
+    if "modbus_plc" in h:
+        v = h["modbus_plc"]
+        fig.add("handoff_modbus_ms", v["median_ms"], "ms", label="give→take hand-off, Modbus "
+                "PLC, median", baseline=("file share (inotify)", base, "ms"), target="≤ 5 ms",
+                ok=v["median_ms"] <= 5, p99_ms=v["p99_ms"])
+    if "serial_line" in h:
+        v = h["serial_line"]
+        fig.add("handoff_serial_ms", v["median_ms"], "ms", label="give→take hand-off, serial "
+                "line, median", baseline=("file share (inotify)", base, "ms"), p99_ms=v["p99_ms"])
+    for name, v in t.items():
+        if "921600" in name:
+            fig.add("serial_921600_log_s", v["full_log_s"], "s", label="serial line at 921,600 "
+                    "baud: a 60 s 6-axis log on the wire",
+                    baseline=("the log's bytes at the line's rate", v["log_bytes"] * 10 / 921600,
+                              "s"), target="≥ 3× less than the baseline",
+                    ok=v["full_log_s"] * 3 <= v["log_bytes"] * 10 / 921600)

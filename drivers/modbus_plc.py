@@ -120,7 +120,7 @@ class ModbusPlcDriver(Driver):
 
     Options: ``host``, ``port`` (502), ``device_id`` (1), ``share`` (the folder the PLC side
     reads programs from and writes logs to), ``base_address`` / ``registers`` (the map),
-    ``poll_interval_s`` (0.02), ``heartbeat_period_s`` (0.2), ``heartbeat_timeout_s`` (2),
+    ``poll_interval_s`` (0.005), ``heartbeat_period_s`` (0.2), ``heartbeat_timeout_s`` (2),
     ``io_timeout_s`` (1), ``connect_retries`` (5), ``rapid`` (false: also write RAPID).
     """
 
@@ -133,7 +133,7 @@ class ModbusPlcDriver(Driver):
         device_id=Integer(1, low=0, high=255),
         share=Folder(hint="the folder programs and logs travel on"),
         base_address=_BASE_ADDRESS, registers=_REGISTERS,
-        poll_interval_s=Number(0.02, low=0.001, high=10),
+        poll_interval_s=Number(0.005, low=0.001, high=10),
         heartbeat_period_s=Number(0.2, low=0.01, high=60),
         heartbeat_timeout_s=Number(2.0, above=0), io_timeout_s=Number(1.0, low=0.01, high=60),
         connect_retries=Integer(5, low=0, high=100), rapid=Flag(False))

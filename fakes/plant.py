@@ -16,6 +16,7 @@ import numpy as np
 import pinocchio as pin
 
 from robid_link.exceptions import ConfigError
+from robid_link.fakes.plant_loop import COMPILED_EFFECTS, integrate, model_params
 from robid_link.ident.excite.excitation import MAX_RATE_HZ, MIN_RATE_HZ
 from robid_link.ident.model.effects import moving_sign
 from robid_link.ident.model.robot import Robot
@@ -453,24 +454,60 @@ class Plant:
                 tau += feedforward.extra(q_ref[k], qd_ref[k])
             return tau
 
-        out = self._integrate(t, command, q_ref[0], qd_ref[0])
+        if feedforward is None and self._compiled():
+            params = (self.robot.nominal if self.robot.nominal is not None
+                      else model_params(self.robot.model))
+            ctrl_args = {"kp": kp, "kd": kd, "ki": ki, "q": q_ref, "qd": qd_ref,
+                         "qdd": qdd_ref, "nominal": params}
+            out = integrate(self.robot, model_params(self.model), t, self._substeps(t),
+                            self._compiled_effects(), q_ref[0], qd_ref[0], ctrl_args, None)
+        else:
+            out = self._integrate(t, command, q_ref[0], qd_ref[0])
         return self._finish(t, *out, seed)
 
     def run_open_loop(self, t: np.ndarray, tau_motor: np.ndarray, q0: np.ndarray,
                       seed: int = 0) -> dict[str, np.ndarray]:
         """Forward dynamics under given motor torques (no controller)."""
-        out = self._integrate(t, lambda k, h, q, qd: tau_motor[k], q0, np.zeros_like(q0))
+        if self._compiled():
+            out = integrate(self.robot, model_params(self.model), t, self._substeps(t),
+                            self._compiled_effects(), q0, np.zeros_like(q0), None, tau_motor)
+        else:
+            out = self._integrate(t, lambda k, h, q, qd: tau_motor[k], q0, np.zeros_like(q0))
         return self._finish(t, *out, seed)
+
+    def _compiled(self) -> bool:
+        """Whether the compiled loop simulates every effect of this plant."""
+        return all(e["name"] in COMPILED_EFFECTS for e, _ in self._per_joint())
+
+    def _substeps(self, t: np.ndarray) -> int:
+        h_log = float(t[1] - t[0])
+        rate = max(float(self.truth.controller.get("rate_hz", 1000.0)), 1.0 / h_log)
+        return max(1, int(math.ceil(h_log * rate - 1e-9)))
+
+    def _compiled_effects(self) -> dict[str, np.ndarray]:
+        """Per joint: viscous and Coulomb coefficients, and the elastic joints' parameters."""
+        n = self.robot.n
+        out = {key: np.zeros(n) for key in ("fv", "fc", "k", "d", "jm", "j2", "k2", "d2")}
+        out["elastic"] = np.zeros(n, dtype=bool)
+        for e, j in self._per_joint():
+            key = "fv" if e["name"] == "viscous" else "fc"
+            out[key][j] += e[key]
+        for e in self.truth.effects:
+            if e["name"] != "elasticity":
+                continue
+            for j in ([e["joint"] - 1] if e.get("joint") else range(n)):
+                out["elastic"][j] = True
+                for key in ("k", "d", "jm", "j2", "k2", "d2"):
+                    out[key][j] = e[key]
+        return out
 
     def _integrate(self, t: np.ndarray, command: Callable[..., np.ndarray], q0: np.ndarray,
                    v0: np.ndarray) -> tuple[np.ndarray, ...]:
         """Semi-implicit Euler at ``controller.rate_hz`` (≥ the log rate); logs, per sample,
         the measured state each logged torque was computed at."""
         n = self.robot.n
-        h_log = float(t[1] - t[0])
-        rate = max(float(self.truth.controller.get("rate_hz", 1000.0)), 1.0 / h_log)
-        sub = max(1, int(math.ceil(h_log * rate - 1e-9)))
-        h = h_log / sub
+        sub = self._substeps(t)
+        h = float(t[1] - t[0]) / sub
         elastic = {e["joint"] - 1 if e.get("joint") else None: e
                    for e in self.truth.effects if e["name"] == "elasticity"}
         if None in elastic:

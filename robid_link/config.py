@@ -17,13 +17,14 @@ from robid_link.kinds import KIND_OPTIONS, experiment_options
 from robid_link.yamlio import check_keys, read_yaml_mapping, yaml_type
 
 __all__ = ["load_daemon_config", "DaemonConfig", "CampaignDef",
-           "ExperimentDef", "WebConfig"]
+           "ExperimentDef", "WebConfig", "check_store_url"]
 
 
 # ----------------------------------------------------------------------------- daemon config
 
 _DAEMON_REQUIRED = ("robot", "state_dir", "control_socket", "driver", "campaigns")
-_DAEMON_OPTIONAL = ("lock", "socket_mode", "worker_start_method", "log_level", "web")
+_DAEMON_OPTIONAL = ("lock", "socket_mode", "worker_start_method", "log_level", "web", "store",
+                    "robot_name", "log_store")
 _WEB_OPTIONAL = ("listen", "tls_cert", "tls_key", "token", "token_file")
 _CAMPAIGN_OPTIONAL = ("identify", "diagnose", "model", "add", "method", "retries", "backoff_s",
                       "timeout_s", "reduced_speed_first", "cutoff_hz", "motor_side", "upload")
@@ -82,10 +83,60 @@ class DaemonConfig:
     worker_start_method: str = "forkserver"
     log_level: str = "info"
     web: WebConfig = WebConfig()
+    #: a plant's PostgreSQL store (URL without password); None: SQLite under state_dir
+    store: str | None = None
+    #: this robot's name in the store; None: the robot description's name
+    robot_name: str | None = None
+    #: where raw logs go instead of state_dir (a folder or an fsspec URL)
+    log_store: str | None = None
 
     @property
     def base_dir(self) -> Path:
         return self.path.parent
+
+
+def check_store_url(value: Any, key: str = "store") -> str:
+    """A PostgreSQL URL with no password in it (the password comes from PGPASSWORD or a
+    PGPASSFILE); the one line refusing one never prints it."""
+    from urllib.parse import urlsplit
+
+    if not isinstance(value, str) or not value.startswith(("postgresql://", "postgresql+psycopg://",
+                                                           "postgres://")):
+        raise ConfigError(f"{key}: expected a PostgreSQL URL like "
+                          "postgresql://robid@db.plant:5432/robid")
+    try:
+        parts = urlsplit(value)
+        parts.port  # noqa: B018 - raises on a bad port
+    except ValueError:
+        raise ConfigError(f"{key}: not a valid URL") from None
+    if parts.password is not None:
+        raise ConfigError(f"{key}: the URL holds a password; give it in PGPASSWORD or a "
+                          "PGPASSFILE (~/.pgpass), never in the config or on the command line")
+    if not parts.hostname or not parts.path.strip("/"):
+        raise ConfigError(f"{key}: expected postgresql://USER@HOST:PORT/DATABASE")
+    return value
+
+
+def _plant_keys(doc: dict[str, Any], base: Path) -> dict[str, Any]:
+    """``store``, ``robot_name`` and ``log_store``: a plant's shared store."""
+    import re
+
+    out: dict[str, Any] = {}
+    if doc.get("store") is not None:
+        out["store"] = check_store_url(doc["store"])
+    name = doc.get("robot_name")
+    if name is not None:
+        if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}",
+                                                         name):
+            raise ConfigError(f"robot_name: expected 1-64 letters, digits, '_', '.' or '-', "
+                              f"got {name!r}")
+        out["robot_name"] = name
+    logs = doc.get("log_store")
+    if logs is not None:
+        if not isinstance(logs, str) or not logs:
+            raise ConfigError("log_store: expected a folder or an fsspec URL (s3://bucket/robid)")
+        out["log_store"] = logs if "://" in logs else str(_path(base, logs, "log_store"))
+    return out
 
 
 def _num(doc: dict[str, Any], key: str, where: str, default: Any, *, positive: bool = True,
@@ -251,4 +302,5 @@ def _daemon_config(p: Path, doc: dict[str, Any]) -> DaemonConfig:
         control_socket=_path(base, doc["control_socket"], "control_socket"),
         driver=driver, campaigns={n: _campaign(n, c, base) for n, c in camps.items()},
         lock=tuple(lock), socket_mode=mode, worker_start_method=start, log_level=level,
-        web=_web(doc.get("web"), base))
+        web=_web(doc.get("web"), base),
+        **_plant_keys(doc, base))

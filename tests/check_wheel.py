@@ -18,7 +18,8 @@ NEEDED = ("robid_link/examples/robots/industrial6.yaml", "robid_link/examples/li
           "robid_link/ident/report/static/LICENSE.uPlot",
           "robid_link/web/templates/runs.html.j2", "robid_link/web/server.py",
           "robid_link/fakes/canopen/cia402_drive.eds", "robid_link/fakes/rws/peer.py",
-          "robid_link/drivers/canopen/drives.py")
+          "robid_link/drivers/canopen/drives.py", "robid_link/link/store/sql.py",
+          "robid_link/fleet/analysis.py")
 
 
 def main(path: str) -> int:

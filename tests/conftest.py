@@ -190,3 +190,30 @@ def mdh_to_urdf(robot: Robot) -> str:
         parent = link
     parts.append("</robot>")
     return "\n".join(parts)
+
+
+# ----------------------------------------------------------------------------- servers
+
+
+@pytest.fixture(scope="session")
+def postgres() -> Iterator[Any]:
+    """A real PostgreSQL cluster on loopback for the session (tests/servers.py)."""
+    from tests.servers import postgres_server
+
+    with postgres_server() as pg:
+        yield pg
+
+
+@pytest.fixture
+def pg_url(postgres: Any) -> str:
+    """A fresh, empty database of the session's cluster: its URL (no password in it)."""
+    return str(postgres.create_database())
+
+
+@pytest.fixture(scope="session")
+def dask_scheduler() -> Iterator[Any]:
+    """A real ``dask scheduler`` with one ``dask worker`` on loopback for the session."""
+    from tests.servers import dask_cluster
+
+    with dask_cluster() as cluster:
+        yield cluster

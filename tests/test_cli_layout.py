@@ -44,12 +44,14 @@ def test_every_command_of_the_tables_is_in_the_parser_with_its_handler() -> None
         assert parser.get_default("command") is table[path], path
 
 
-def test_a_command_either_runs_or_has_sub_commands() -> None:
+def test_a_command_runs_or_has_sub_commands_or_both() -> None:
+    """A group may run alone too (``robid fleet``, ``robid fleet reidentify``)."""
     with pytest.raises(ValueError, match="'x'"):
         Command(name="x", help="neither")
-    with pytest.raises(ValueError, match="'y'"):
-        Command(name="y", help="both", run=lambda args: 0,
-                commands=(Command(name="z", help="", run=lambda args: 0),))
+    ap = _parser()
+    alone = ap.parse_args(["fleet", "--store", "s"])
+    sub = ap.parse_args(["fleet", "reidentify", "--store", "s", "--model", "m.yaml"])
+    assert alone.command.name == "fleet" and sub.command.name == "reidentify"
 
 
 def test_contradictory_options_are_refused_before_any_work(tmp_path, capsys) -> None:

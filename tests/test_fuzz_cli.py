@@ -378,7 +378,8 @@ def config_key_case() -> st.SearchStrategy[tuple[tuple[Any, ...], Any, str]]:
            (("control_socket",), "control_socket"), (("driver",), "driver"),
            (("campaigns",), "campaigns"), (("lock",), "lock"), (("socket_mode",), "socket_mode"),
            (("worker_start_method",), "worker_start_method"), (("log_level",), "log_level"),
-           (("web",), "web")]
+           (("web",), "web"), (("store",), "store"), (("robot_name",), "robot_name"),
+           (("log_store",), "log_store")]
     camp = [(("campaigns", "a", k), f"campaigns.a.{k}") for k in (
         "experiments", "identify", "diagnose", "model", "add", "method", "retries",
         "backoff_s", "timeout_s", "reduced_speed_first", "cutoff_hz", "motor_side", "upload")]
@@ -508,6 +509,7 @@ PATH_KEYS = {  # key → (its place in the config, what it must be)
     "robot": (("robot",), "file"), "state_dir": (("state_dir",), "folder"),
     "control_socket": (("control_socket",), "socket"), "driver.share": (("driver", "share"),
                                                                        "folder"),
+    "log_store": (("log_store",), "folder"),
     "campaigns.a.model": (("campaigns", "a", "model"), "file"),
     "campaigns.a.experiments.path.trajectory": (
         ("campaigns", "a", "experiments", 0, "trajectory"), "file")}
@@ -540,11 +542,62 @@ def test_fuzz_cli_config_paths(cell, capsys, key, how, k):
     place, want = PATH_KEYS[key]
     # what it must be is no spoiling; a missing state_dir or socket (and folder) is made
     assume((want, how) not in (("file", "file"), ("folder", "folder"), ("socket", "folder"))
-           and not (key in ("state_dir", "control_socket") and how == "missing"))
+           and not (key in ("state_dir", "control_socket", "log_store") and how == "missing"))
     bad = _bad_path(cell["work"], want, how, k)
     doc = set_path(_quick_config(cell), place, str(bad))
     p = write(cell["work"] / "paths.yaml", yaml.safe_dump(doc))
     check_report(f"CLI config check {key}", ["config", "check", "--config", p], capsys, bad)
+
+
+# ----------------------------------------------------------------------------- plant stores
+
+#: --store commands: a plant's store or a daemon's state dir, read (and written by reidentify)
+STORE_COMMANDS = {
+    "status": ["status", "--store", "{store}"],
+    "results": ["results", "--store", "{store}", "--robot", "arm3"],
+    "results --trend": ["results", "--store", "{store}", "--robot", "arm3", "--trend"],
+    "fleet": ["fleet", "--store", "{store}", "--workers", "1"],
+    "fleet reidentify": ["fleet", "reidentify", "--store", "{store}", "--model", "{model}"],
+}
+#: what is given as --store: a spoilt state dir (named by its path) or a bad URL (--store)
+STORE_SPOILERS = ("missing", "a file", "fifo", "device", "empty folder", "junk database",
+                  "empty database", "a folder as database", "")
+STORE_URLS = ("sqlite:///x.db", "http://db/robid", "postgresql://robid:hunter2@db/robid",
+              "postgresql://db", "postgresql://robid@db:99999/robid", "postgres:", " ")
+
+
+def _bad_store(work: Path, how: str, k: int) -> Path:
+    folder = work / "stores" / f"{how.replace(' ', '-')}-{k}"
+    folder.parent.mkdir(exist_ok=True)
+    if how == "missing":
+        return folder
+    if how in ("a file", "fifo", "device"):
+        return {"a file": lambda: write(folder, "robid"), "device": lambda: Path(os.devnull),
+                "fifo": lambda: _fifo(folder.parent, folder, "", k)}[how]()
+    folder.mkdir(exist_ok=True)
+    db = folder / "robid.sqlite"
+    if how == "junk database":
+        write(db, np.random.default_rng(k).bytes(1 + k % 3000))
+    elif how == "empty database":
+        write(db, b"")
+    elif how == "a folder as database":
+        db.mkdir(exist_ok=True)
+    return folder
+
+
+@FUZZ
+@given(command=st.sampled_from(sorted(STORE_COMMANDS)), how=st.one_of(
+    st.sampled_from(STORE_SPOILERS[:-1]), st.sampled_from(STORE_URLS)), k=st.integers(0, 999))
+def test_fuzz_cli_stores(cell, capsys, command, how, k):
+    """``robid status/results/fleet --store``: a state dir that is not one, a damaged store,
+    a URL robid does not take."""
+    if how in STORE_SPOILERS:
+        bad: Path | str = _bad_store(cell["work"], how, k)
+        name: Path | str = bad
+    else:
+        bad, name = how, "--store"
+    check_cli(f"CLI {command} --store", _argv(STORE_COMMANDS[command], {**cell, "store": bad}),
+              capsys, name)
 
 
 # ----------------------------------------------------------------------------- bags

@@ -18,26 +18,26 @@ from pathlib import Path
 from typing import Any
 
 from robid_link import __version__
-from robid_link.cli import analyse, campaign, daemon, demo, params, robot, runs, web
+from robid_link.cli import analyse, campaign, daemon, demo, fleet, params, robot, runs, web
 from robid_link.cli.types import Command, OneLineParser, error_line
 from robid_link.exceptions import RobidError
 
 __all__ = ["main", "GROUPS", "EXIT_INTERNAL"]
 
 #: the command groups, in the order ``robid --help`` lists their commands
-GROUPS = (analyse, robot, demo, daemon, campaign, runs, params, web)
+GROUPS = (analyse, robot, demo, daemon, campaign, runs, params, fleet, web)
 
 
 def _add(sub: Any, command: Command) -> None:
     p = sub.add_parser(command.name, help=command.help)
     if command.options is not None:
         command.options(p)
+    if command.run is not None:
+        p.set_defaults(command=command)
     if command.commands:
-        inner = p.add_subparsers(dest=f"{command.name}_cmd", required=True)
+        inner = p.add_subparsers(dest=f"{command.name}_cmd", required=command.run is None)
         for c in command.commands:
             _add(inner, c)
-    else:
-        p.set_defaults(command=command)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -104,17 +104,30 @@ def _quiet_broken_pipe() -> int:
 EXIT_INTERNAL = 70
 
 
+def _single_threaded_blas() -> None:
+    """BLAS on one thread unless the user chose (OPENBLAS_NUM_THREADS and the like): the
+    numerical passes spread their chunks over the cores themselves (``threads.in_slots``),
+    and a multi-threaded BLAS on small products only spins against them, and against the
+    other processes of a shared machine. Read by OpenBLAS when numpy is first imported."""
+
+    if not any(k in os.environ for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
+                                         "MKL_NUM_THREADS")):
+        os.environ["OPENBLAS_NUM_THREADS"] = "1"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one command. Exit 0 on success, 2 on an error (one line on stderr), 70 on a bug
     (one line; ``--debug`` shows the traceback), 130 when interrupted; a command may return
     a status of its own (``campaign start --trigger timer`` with nothing to do)."""
+    if "numpy" not in sys.modules:
+        _single_threaded_blas()
     try:
         args = _parser().parse_args(argv)
     except SystemExit as exc:  # a usage error (already printed in one line), --help, --version
         return exc.code if isinstance(exc.code, int) else 2
     _one_line_warnings()
     command: Command = args.command
-    assert command.run is not None  # only commands without sub-commands are set as defaults
+    assert command.run is not None  # only commands that run are set as defaults
     try:
         if command.check is not None:
             command.check(args)

@@ -60,7 +60,8 @@ def _config_check(args: argparse.Namespace) -> int:
     cfg = load_daemon_config(args.config)
     driver = make_driver(cfg.driver)
     findings = {f.key: f.line for f in daemon_findings(cfg, type(driver).options)}
-    paths = ["robot", "state_dir", "control_socket",
+    local_logs = cfg.log_store is not None and "://" not in cfg.log_store
+    paths = ["robot", "state_dir", *(["log_store"] if local_logs else []), "control_socket",
              *(k for k in findings if k.startswith("driver."))]
     for key in paths:
         print(findings.get(key, f"{key}: ok"))

@@ -57,9 +57,9 @@ def _via_daemon(args: argparse.Namespace, cfg: DaemonConfig) -> int:
 def _stored(args: argparse.Namespace, cfg: DaemonConfig
             ) -> tuple[list[dict[str, Any]], list[str], list[dict[str, Any]]]:
     """(every stored set of the robot, the sha256 of the sets in use, the sets named)."""
-    from robid_link.link.store import Store
+    from robid_link.cli.runs import store_reader
 
-    with Store(cfg.state_dir, readonly=True) as store:
+    with store_reader(cfg) as store:
         sets = store.param_sets(args.robot)
         active = store.active_param_sets(args.robot)
         picked = [store.param_set(args.robot, ref) for ref in args.sets]

@@ -1,10 +1,12 @@
 """``robid status``, ``results``: runs and their results, from the daemon over its control
-socket or, when no daemon answers, from the store; the run tables and the progress display
-that ``campaign start --wait`` and the demo print too."""
+socket or, when no daemon answers, from the store — or, with ``--store URL``, from a plant's
+store (every robot); the run tables and the progress display that ``campaign start --wait``
+and the demo print too."""
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -12,7 +14,7 @@ from typing import Any
 
 from robid_link.cli.types import (
     Command,
-    config_option,
+    bounded_int,
     figure_path,
     output_path,
     positive_float,
@@ -21,7 +23,8 @@ from robid_link.cli.types import (
 from robid_link.exceptions import DaemonUnreachable, RobidError
 from robid_link.link.control import request
 
-__all__ = ["COMMANDS", "wait_for_run", "format_runs", "format_results", "report_lines"]
+__all__ = ["COMMANDS", "wait_for_run", "format_runs", "format_results", "report_lines",
+           "store_reader", "store_option", "open_store_option"]
 
 
 def _unreachable(err: DaemonUnreachable) -> str:
@@ -65,14 +68,17 @@ def wait_for_run(socket_path: Path, run_id: str, poll_s: float = 0.5,
         time.sleep(poll_s)
 
 
-def format_runs(runs: list[dict[str, Any]]) -> str:
+def format_runs(runs: list[dict[str, Any]], robots: bool = False) -> str:
+    """The run table; ``robots``: with the robot of each run (a plant's store)."""
     if not runs:
         return "no runs yet"
-    lines = [f"{'run_id':<24} {'campaign':<12} {'trigger':<8} {'state':<10} progress"]
+    who = f"{'robot':<14} " if robots else ""
+    lines = [f"{'run_id':<24} {who}{'campaign':<12} {'trigger':<8} {'state':<10} progress"]
     for r in runs:
         p = r["progress"]
         tail = r.get("error") if r["state"] == "failed" else (r.get("step") or "")
-        lines.append(f"{r['run_id']:<24} {r['campaign']:<12} {r['trigger']:<8} "
+        who = f"{r.get('robot') or '?':<14} " if robots else ""
+        lines.append(f"{r['run_id']:<24} {who}{r['campaign']:<12} {r['trigger']:<8} "
                      f"{r['state']:<10} {p['stored']}/{p['total']} logs  {tail or ''}")
     return "\n".join(lines)
 
@@ -151,7 +157,10 @@ def report_lines(state_dir: Path, run_ids: list[str], most: int = 5) -> list[str
 
 
 def _robot_name(cfg: Any) -> str:
-    """The robot's name as the store records it (the description's name, else the stem)."""
+    """The robot's name as the store records it: ``robot_name``, else the description's name
+    (else the file's stem)."""
+    if cfg.robot_name:
+        return str(cfg.robot_name)
     from robid_link.ident.model.robot import load_robot
 
     try:
@@ -160,36 +169,106 @@ def _robot_name(cfg: Any) -> str:
         return Path(cfg.robot).stem
 
 
+def store_reader(cfg: Any) -> Any:
+    """The store of a daemon config, opened read-only while no daemon answers: its SQLite
+    file, or its robot's view of the plant's store."""
+    from robid_link.link.store import open_reader
+
+    return open_reader(cfg, _robot_name(cfg))
+
+
+def open_store_option(text: str, *, readonly: bool = True) -> Any:
+    """``--store URL``: a plant's PostgreSQL store (or a state dir's SQLite), read-only
+    unless ``readonly`` is False (a writer of results that is no daemon)."""
+    from robid_link.link.store import Store
+
+    url, folder = store_location(text)
+    return Store(folder, url=url, readonly=readonly, exclusive=False)
+
+
+def store_location(text: str) -> tuple[str | None, Path | None]:
+    """``--store``'s (URL, state dir): one of them, checked; an error names ``--store``."""
+    from robid_link.config import check_store_url
+    from robid_link.link.store.postgres import is_store_url
+    from robid_link.link.store.sqlite import DB_NAME
+
+    if is_store_url(text):
+        return check_store_url(text, "--store"), None
+    expect = "expected postgresql://USER@HOST:PORT/DB or a daemon's state dir"
+    if not text.strip() or "://" in text:
+        raise RobidError(f"--store {text!r}: {expect}")
+    folder = Path(text).expanduser()
+    if not folder.is_dir():
+        what = "no such folder" if not os.path.lexists(folder) else "not a folder"
+        raise RobidError(f"--store {folder}: {what} ({expect})")
+    if not (folder / DB_NAME).is_file():
+        raise RobidError(f"--store {folder}: holds no store (no {DB_NAME}: not a daemon's "
+                         "state dir, or no daemon ran there yet)")
+    return None, folder
+
+
+def store_option(p: argparse.ArgumentParser, *, required: bool = False) -> None:
+    p.add_argument("--store", metavar="URL", required=required,
+                   help="a plant's store: postgresql://USER@HOST:PORT/DB (the password from "
+                   "PGPASSWORD or a PGPASSFILE), or a state dir")
+
+
+def _config_or_store(p: argparse.ArgumentParser) -> None:
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--config", metavar="C", help="daemon config (YAML)")
+    g.add_argument("--store", metavar="URL",
+                   help="a plant's store instead: postgresql://USER@HOST:PORT/DB (the password "
+                   "from PGPASSWORD or a PGPASSFILE), or a state dir; every robot's runs")
+
+
 def _status_options(p: argparse.ArgumentParser) -> None:
-    config_option(p)
+    _config_or_store(p)
+    p.add_argument("--limit", type=bounded_int(1, 100_000),
+                   help="newest runs shown (default: 20 from a daemon, 50 from a store)")
     p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
                    help="write the runs as JSON")
+
+
+def _plant_status(args: argparse.Namespace) -> dict[str, Any]:
+    """Every robot's runs and drift flags, from a plant's store."""
+    from robid_link.link.campaign import drift_flags
+
+    with open_store_option(args.store) as store:
+        runs = store.runs(args.limit or 50)
+        drift = [f"{r['robot']}: {f.message}" for r in store.robots()
+                 for f in drift_flags(store, r["robot"])]
+        return {"runs": runs, "status": f"plant store {store.where.removeprefix('store ')}: "
+                f"{len(store.robots())} robot(s)", "drift": drift}
 
 
 def _status(args: argparse.Namespace) -> int:
     from robid_link.config import load_daemon_config
 
-    cfg = load_daemon_config(args.config)
-    try:
-        ans = request(cfg.control_socket, {"cmd": "status"})
-    except DaemonUnreachable as err:
-        print(f"robid: {err}; reading the store", file=sys.stderr)
-        from robid_link.link.campaign import drift_flags
-        from robid_link.link.store import Store
+    if args.store is not None:
+        ans = _plant_status(args)
+    else:
+        cfg = load_daemon_config(args.config)
+        try:
+            ask = {"cmd": "status", **({"limit": args.limit} if args.limit else {})}
+            ans = request(cfg.control_socket, ask)
+        except DaemonUnreachable as err:
+            print(f"robid: {err}; reading the store", file=sys.stderr)
+            from robid_link.link.campaign import drift_flags
 
-        with Store(cfg.state_dir, readonly=True) as store:
-            ans = {"runs": store.runs(), "status": _unreachable(err),
-                   "drift": [f.message for f in drift_flags(store, _robot_name(cfg))]}
+            with store_reader(cfg) as store:
+                ans = {"runs": store.runs(args.limit or 50), "status": _unreachable(err),
+                       "drift": [f.message for f in drift_flags(store, _robot_name(cfg))]}
     if args.json:
         from robid_link.ident.report.figures import write_json
 
         write_json(args.json, {"runs": ans["runs"], "status": ans["status"],
                                "drift": ans.get("drift", [])})
-    print(f"daemon: {ans['status']}")
-    print(format_runs(ans["runs"]))
-    for line in report_lines(cfg.state_dir, [r["run_id"] for r in ans["runs"]
-                                             if r["state"] == "completed"]):
-        print(line)
+    print(f"{'daemon' if args.store is None else 'store'}: {ans['status']}")
+    print(format_runs(ans["runs"], robots=args.store is not None))
+    if args.store is None:
+        for line in report_lines(cfg.state_dir, [r["run_id"] for r in ans["runs"]
+                                                 if r["state"] == "completed"]):
+            print(line)
     for line in ans.get("drift", []):
         print(f"drift: {line}")
     return 0
@@ -198,7 +277,7 @@ def _status(args: argparse.Namespace) -> int:
 # -------------------------------------------------------------------------------- results
 
 def _results_options(p: argparse.ArgumentParser) -> None:
-    config_option(p)
+    _config_or_store(p)
     p.add_argument("--robot", metavar="NAME", help="only this robot's results")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--trend", action="store_true",
@@ -229,20 +308,23 @@ def _results_check(args: argparse.Namespace) -> None:
 def _results(args: argparse.Namespace) -> int:
     from robid_link.config import load_daemon_config
 
-    cfg = load_daemon_config(args.config)
     robot = None if args.compare else args.robot
-    try:
-        res = request(cfg.control_socket, {"cmd": "results", "robot": robot})["results"]
-    except DaemonUnreachable:
-        from robid_link.link.store import Store
-
-        with Store(cfg.state_dir, readonly=True) as store:
+    if args.store is not None:
+        with open_store_option(args.store) as store:
             res = store.results(robot)
+    else:
+        cfg = load_daemon_config(args.config)
+        try:
+            res = request(cfg.control_socket, {"cmd": "results", "robot": robot})["results"]
+        except DaemonUnreachable:
+            with store_reader(cfg) as store:
+                res = store.results(robot)
     if args.trend or args.compare:
         return _drift(args, res)
     print(format_results(res))
-    for line in report_lines(cfg.state_dir, [r["run_id"] for r in reversed(res)]):
-        print(line)
+    if args.store is None:  # reports live on the cell's disk
+        for line in report_lines(cfg.state_dir, [r["run_id"] for r in reversed(res)]):
+            print(line)
     return 0
 
 

@@ -28,7 +28,8 @@ class Command:
     """One sub-command of ``robid``. ``options`` adds its arguments to its parser; ``check``
     refuses contradictory options before any work (raise a ``RobidError``); ``run`` does the
     work and returns the exit status. A command with ``commands`` is a group (``campaign
-    start``, ``model add``): its sub-commands run, it does not."""
+    start``, ``model add``): its sub-commands run; with ``run`` too, the group alone runs it
+    (``robid fleet``, ``robid fleet reidentify``)."""
 
     name: str
     help: str
@@ -38,8 +39,8 @@ class Command:
     commands: tuple[Command, ...] = ()
 
     def __post_init__(self) -> None:
-        if (self.run is None) == (not self.commands):
-            raise ValueError(f"command {self.name!r}: give it either run or sub-commands")
+        if self.run is None and not self.commands:
+            raise ValueError(f"command {self.name!r}: give it run or sub-commands")
 
 
 def error_line(message: str) -> str:

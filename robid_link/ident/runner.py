@@ -23,7 +23,7 @@ if TYPE_CHECKING:  # diagnose (scipy.stats) is imported only when a job diagnose
     from robid_link.ident.diagnosis.diagnose import Diagnosis
     from robid_link.jobs import ResonanceHint
 
-__all__ = ["ANALYSES", "JobOutcome", "run_job"]
+__all__ = ["ANALYSES", "JobOutcome", "run_job", "release_freed_memory"]
 
 #: the analyses a job can run, in the order they run
 ANALYSES = ("identify", "diagnose")
@@ -46,6 +46,25 @@ class JobOutcome:
         return out + ([self.diagnosis.summary()] if self.diagnosis is not None else [])
 
 
+def release_freed_memory() -> None:
+    """Large arrays go back to the system when freed (glibc: a fixed mmap threshold).
+
+    glibc raises its mmap threshold to the size of each large block freed, after which
+    blocks of that size come from the heap and stay resident when freed: the process's
+    peak then depends on the order of allocations and frees, which numba's threads and the
+    scheduler change from run to run. A job allocates its chunk buffers again and again."""
+    import ctypes
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None)
+        libc.mallopt(-3, 1 << 20)  # M_MMAP_THRESHOLD: 1 MiB, fixed
+    except (OSError, AttributeError):  # not glibc
+        pass
+
+
 def run_job(robot: Robot, data: Sequence[Log], model: Model, *,
             analyses: Collection[str] = ("identify",),
             validate: Sequence[Log] | None = None, cutoff_hz: float | None = None,
@@ -65,6 +84,7 @@ def run_job(robot: Robot, data: Sequence[Log], model: Model, *,
     ``resonance_hints``: per joint, what the diagnosis tells of an
     unexplained resonance (the daemon's campaign language; without, the generic advice).
     """
+    release_freed_memory()
     unknown = set(analyses) - set(ANALYSES)
     if unknown or not analyses:
         raise ValueError(f"analyses: {sorted(unknown) or 'none'} (choose from {ANALYSES})")

@@ -22,8 +22,9 @@ from robid_link.link.driver import CAP_UPLOAD, Driver, FeedforwardSource, parame
 from robid_link.link.store import AsyncStore, Store
 from robid_link.link.worker import run_here, run_in_worker
 
-__all__ = ["TRIGGERS", "plan", "check_capabilities", "create_run", "prepare_programs",
-           "preflight", "check_approved", "check_config", "describe_campaigns", "execute_run",
+__all__ = ["TRIGGERS", "plan", "stored_name", "check_capabilities", "create_run",
+           "prepare_programs", "preflight", "check_approved", "check_config",
+           "describe_campaigns", "execute_run",
            "resonance_hints", "feedforward_source", "drift_flags", "drift_flags_of"]
 
 log = logging.getLogger("robid.campaign")
@@ -31,6 +32,12 @@ log = logging.getLogger("robid.campaign")
 TRIGGERS = ("operator", "timer")
 BEFORE_SUFFIX = "-before"
 SLOW_SUFFIX = "-slow"
+
+
+def stored_name(cfg: DaemonConfig, description_name: str) -> str:
+    """The robot's name in the store: ``robot_name`` of the config, else its description's
+    (robots of one type share a description; a plant's store tells them apart by this)."""
+    return cfg.robot_name or description_name
 
 
 def plan(camp: CampaignDef) -> list[tuple[str, ExperimentDef, float | None]]:
@@ -141,8 +148,13 @@ async def create_run(cfg: DaemonConfig, store: AsyncStore, campaign: str, trigge
                           f"(known: {', '.join(sorted(cfg.campaigns))})")
     if trigger not in TRIGGERS:
         raise ConfigError(f"trigger: expected operator or timer, got {trigger!r}")
-    exps = [(exp_id, exp.kind) for exp_id, exp, _ in plan(cfg.campaigns[campaign])]
-    return await store.create_run(campaign, trigger, {"campaign": campaign}, exps)
+    camp = cfg.campaigns[campaign]
+    exps = [(exp_id, exp.kind) for exp_id, exp, _ in plan(camp)]
+    # how the run identifies: what a fleet re-identification repeats with another model
+    spec = {"campaign": campaign, "identify": {"method": camp.method,
+                                               "cutoff_hz": camp.cutoff_hz,
+                                               "motor_side": camp.motor_side}}
+    return await store.create_run(campaign, trigger, spec, exps)
 
 
 def _program_key(cfg: DaemonConfig, exp: ExperimentDef, slow: float | None, exp_id: str) -> str:
@@ -340,22 +352,23 @@ async def _identify(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: A
     kill_hook("identifying")
     out: jb.IdentifyOutcome = await run_in_worker(
         ctx, job, on_start=lambda: kill_hook("identify_started"))
+    robot = stored_name(cfg, out.robot)
     for kind, rec in out.records.items():
-        await store.add_result(run_id, out.robot, kind, rec)
+        await store.add_result(run_id, robot, kind, rec)
     log.info("run=%s identified: rmse %s", run_id,
              " ".join(f"{x:.3g}" for x in out.records["identify"]["rmse"] or []))
-    for flag in drift_flags_of(await store.results(out.robot), out.robot, run_id):
+    for flag in drift_flags_of(await store.results(robot), robot, run_id):
         await store.note(run_id, None, "drift", parameter=flag.parameter, kind=flag.kind,
                    change=round(flag.change, 4), sigmas=round(flag.sigmas, 1))
         log.warning("run=%s drift: %s", run_id, flag.message)
     pset = dict(out.parameter_set.doc)
     body = parameter_bytes(pset)
     version = await store.add_param_set(pset, body)
-    log.info("run=%s parameter set %d of %s: %s", run_id, version, out.robot,
+    log.info("run=%s parameter set %d of %s: %s", run_id, version, robot,
              pset["sha256"][:12])
     if camp.upload:
         trigger = (await store.run(run_id))["trigger"]
-        await upload_set(store, driver, out.robot, pset["sha256"], run_id,
+        await upload_set(store, driver, robot, pset["sha256"], run_id,
                          unattended=trigger == "timer")
 
 
@@ -375,7 +388,8 @@ async def _tracking(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
     out: jb.VerifyOutcome = await run_in_worker(ctx, job)
     for rec in map(dict, out.records):
         rec["run_id"] = run_id
-        await store.add_result(run_id, out.robot, f"verify_{rec['phase']}", rec)
+        await store.add_result(run_id, stored_name(cfg, out.robot), f"verify_{rec['phase']}",
+                               rec)
         log.info("run=%s %s: tool RMS %.3f mm, max %.3f mm", run_id, rec["experiment"],
                  rec["tracking"]["tool_rms_mm"], rec["tracking"]["tool_max_mm"])
 
@@ -419,7 +433,7 @@ async def _elasticity(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: st
     out: jb.ElasticityOutcome = await run_in_worker(ctx, job)
     rec = {"kind": "elasticity", "run_id": run_id, "robot": out.robot,
            "experiments": [dict(r) for r in out.results]}
-    await store.add_result(run_id, out.robot, "elasticity", rec)
+    await store.add_result(run_id, stored_name(cfg, out.robot), "elasticity", rec)
     for res in out.results:
         for j in res["result"].get("joints", []):
             log.info("run=%s %s joint %d: K %.4g, D %.4g, f_res %.3g Hz", run_id,

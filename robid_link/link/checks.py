@@ -112,9 +112,9 @@ def _option_paths(options: Mapping[str, Option], given: Mapping[str, Any]
 
 def daemon_findings(cfg: DaemonConfig, driver_options: Mapping[str, Option] | None = None
                     ) -> list[Finding]:
-    """The paths the whole daemon needs: the robot file, the state_dir (writable), the control
-    socket (its folder writable, nothing else in its place) and the driver's files and
-    folders (``driver_options``: the driver class's ``options``)."""
+    """The paths the whole daemon needs: the robot file, the state_dir and a log_store folder
+    (writable), the control socket (its folder writable, nothing else in its place) and the
+    driver's files and folders (``driver_options``: the driver class's ``options``)."""
     out = []
     problem = _readable(cfg.robot, "robot description")
     if problem:
@@ -122,6 +122,10 @@ def daemon_findings(cfg: DaemonConfig, driver_options: Mapping[str, Option] | No
     problem = _writable_folder(cfg.state_dir)
     if problem:
         out.append(Finding("state_dir", f"state_dir: {cfg.state_dir}: {problem}"))
+    if cfg.log_store and "://" not in cfg.log_store:  # a URL is reached at the first log
+        problem = _writable_folder(Path(cfg.log_store))
+        if problem:
+            out.append(Finding("log_store", f"log_store: {cfg.log_store}: {problem}"))
     problem = _socket_problem(cfg.control_socket)
     if problem:
         out.append(Finding("control_socket", f"control_socket: {cfg.control_socket}: {problem}"))

@@ -31,7 +31,7 @@ from robid_link.link.control import ControlServer
 from robid_link.link.driver import Done
 from robid_link.link.notify import Notifier
 from robid_link.link.registry import make_driver
-from robid_link.link.store import AsyncStore, SqliteStore
+from robid_link.link.store import AsyncStore, open_store
 from robid_link.link.worker import run_in_worker
 
 __all__ = ["Daemon", "setup_logging"]
@@ -101,6 +101,7 @@ class Daemon:
         self.store: AsyncStore | None = None
         self.driver: Any = None
         self.robot: RobotInfo | None = None
+        self.robot_name: str | None = None  # the robot's name in the store
         self._queue: asyncio.Queue[str] = asyncio.Queue()
         self._current: str | None = None
         self._run_task: asyncio.Task[None] | None = None
@@ -134,10 +135,15 @@ class Daemon:
         try:
             self.driver = make_driver(cfg.driver)
             self._check_config()
-            self.store = SqliteStore(cfg.state_dir)
+            self.robot = await run_in_worker(self.ctx, RobotInfoJob(str(cfg.robot), cfg.lock))
+            self.robot_name = cfg.robot_name or self.robot.name
+            self.store = open_store(cfg.state_dir, url=cfg.store, robot=self.robot_name,
+                                    log_store=cfg.log_store)
             await self.store.open()
             stack.push_async_callback(self._closed_store)
-            self.robot = await run_in_worker(self.ctx, RobotInfoJob(str(cfg.robot), cfg.lock))
+            description = await asyncio.to_thread(cfg.robot.read_bytes)
+            await self.store.register_robot(self.robot.name, cfg.robot.name, description,
+                                            cfg.lock)
             self.driver.bind_feedforward(cp.feedforward_source(cfg, self.ctx))
             cp.check_capabilities(cfg, self.driver)  # before anything can move
             self.driver.bind_robot(self.robot)
@@ -162,8 +168,9 @@ class Daemon:
         self._stack = stack
         self.notifier.send(READY=1, STATUS=await self._status_line())
         self.ready.set()
-        log.info("daemon ready robot=%s joints=%d driver=%s socket=%s pid=%d", self.robot.name,
-                 self.robot.n, cfg.driver["name"], cfg.control_socket, os.getpid())
+        log.info("daemon ready robot=%s joints=%d driver=%s socket=%s store=%s pid=%d",
+                 self.robot_name, self.robot.n, cfg.driver["name"], cfg.control_socket,
+                 "postgresql" if cfg.store else "sqlite", os.getpid())
         return self
 
     async def __aexit__(self, *exc: Any) -> None:
@@ -389,9 +396,9 @@ class Daemon:
         assert self.store is not None
         runs = ([await self.store.run(req["run_id"])] if req.get("run_id")
                 else await self.store.runs(int(req.get("limit", 20))))
-        drift = [f.message for f in cp.drift_flags_of(await self.store.results(self.robot.name),
-                                                       self.robot.name)] \
-            if self.robot else []
+        drift = [f.message for f in cp.drift_flags_of(await self.store.results(self.robot_name),
+                                                       self.robot_name)] \
+            if self.robot_name else []
         return {"ok": True, "runs": runs, "current": self._current,
                 "status": await self._status_line(), "drift": drift}
 

@@ -10,7 +10,7 @@ from typing import Any
 
 from robid_link.config import DaemonConfig, load_daemon_config
 from robid_link.exceptions import RobidError
-from robid_link.link.store import Store
+from robid_link.link.store import open_reader
 from robid_link.web.server import DEFAULT_LISTEN, WebServer
 
 __all__ = ["run_web", "daemon_service", "robot_name"]
@@ -20,6 +20,8 @@ def robot_name(cfg: DaemonConfig) -> str:
     """The config's robot as the store names it (the robot file's stem if it cannot load)."""
     from robid_link.ident.model.robot import load_robot
 
+    if cfg.robot_name:
+        return str(cfg.robot_name)
     try:
         return load_robot(cfg.robot, cfg.lock).name
     except RobidError:
@@ -29,9 +31,10 @@ def robot_name(cfg: DaemonConfig) -> str:
 def run_web(config: str, listen: str | None) -> int:
     """Serve the state dir of ``config`` read-only until SIGINT or SIGTERM."""
     cfg = load_daemon_config(config)
-    with Store(cfg.state_dir, readonly=True):  # refuses a state dir without a store now
+    robot = robot_name(cfg)
+    with open_reader(cfg, robot):  # refuses a state dir without a store now
         pass
-    server = WebServer(cfg, listen or cfg.web.listen or DEFAULT_LISTEN, robot_name(cfg))
+    server = WebServer(cfg, listen or cfg.web.listen or DEFAULT_LISTEN, robot)
 
     async def serve() -> None:
         stop = asyncio.Event()

@@ -22,7 +22,7 @@ from aiohttp import web
 
 from robid_link.config import DaemonConfig, WebConfig
 from robid_link.exceptions import ConfigError, RobidError
-from robid_link.link.store import Store
+from robid_link.link.store import open_reader
 from robid_link.web import pages, views
 
 __all__ = ["WebServer", "make_app", "parse_listen", "load_token", "DEFAULT_LISTEN",
@@ -119,7 +119,7 @@ class _App:
 
     async def read(self, fn: Callable[..., Any], *args: Any) -> Any:
         def work() -> Any:
-            with Store(self.cfg.state_dir, readonly=True) as store:
+            with open_reader(self.cfg, self.robot) as store:
                 return fn(store, *args)
         return await asyncio.to_thread(work)
 

@@ -634,7 +634,8 @@ def test_demo_over_ur_rtde_tells_the_file_shares_story(tmp_path: Path) -> None:
                           "--out", "rep", "--json", "demo.json"], cwd=tmp_path,
                          capture_output=True, text=True, timeout=900)
     assert out.returncode == 0, out.stderr + out.stdout
-    assert "calibrate and verify: skipped, driver ur_rtde cannot upload parameters" in out.stdout
+    assert ("calibrate and verify: skipped, the ur_rtde link cannot upload a parameter set"
+            in out.stdout)
     doc = json.loads((tmp_path / "demo.json").read_text())
     assert doc["run"]["state"] == "completed" and doc["model"][-1] == "ripple@1"
     before = next(r["record"]["rmse"] for r in doc["results"] if r["kind"] == "identify")

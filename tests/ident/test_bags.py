@@ -97,8 +97,30 @@ def write_bag(path: Path, kind: str, data: dict[str, np.ndarray], *,
         if second_topic and k % 10 == 0:
             w.write("/gripper/joint_states", jt, stamp_ns, _joint_state(
                 w.store, kind, t0 + t, ["finger"], np.array([0.01]), np.zeros(1), np.zeros(1)))
+        if second_topic and k == 0:  # a force sensor and the commanded path ride along
+            _other_topics(w, kind, stamp_ns)
     w.close()
     return path
+
+
+def _other_topics(w: BagWriter, kind: str, stamp_ns: int) -> None:
+    T = w.store.types
+    stamp = T["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
+    header = (T["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id="tool") if kind == "ros1"
+              else T["std_msgs/msg/Header"](stamp=stamp, frame_id="tool"))
+    vec = T["geometry_msgs/msg/Vector3"]
+    load = T["geometry_msgs/msg/Wrench"](force=vec(x=0.0, y=0.0, z=9.8),
+                                         torque=vec(x=0.0, y=0.0, z=0.0))
+    wrench = T["geometry_msgs/msg/WrenchStamped"](header=header, wrench=load)
+    w.write("/ft_sensor/wrench", "geometry_msgs/msg/WrenchStamped", stamp_ns, wrench)
+    dur = T["builtin_interfaces/msg/Duration"](sec=1, nanosec=0)
+    point = T["trajectory_msgs/msg/JointTrajectoryPoint"](
+        positions=np.zeros(3), velocities=np.empty(0), accelerations=np.empty(0),
+        effort=np.empty(0), time_from_start=dur)
+    traj = T["trajectory_msgs/msg/JointTrajectory"](header=header, joint_names=list(NAMES),
+                                                     points=[point])
+    w.write("/arm_controller/joint_trajectory", "trajectory_msgs/msg/JointTrajectory",
+            stamp_ns, traj)
 
 
 @pytest.fixture(scope="module")
@@ -132,6 +154,9 @@ def test_reordered_names_and_a_gripper_are_matched_by_name(tmp_path, arm3, motio
     assert log.source["topic"] == "/joint_states" and log.source["messages"] == d["t"].size
     assert any("finger" in n and "not the robot's" in n for n in log.notes)
     assert any("also /gripper/joint_states" in n for n in log.notes)
+    assert any("wrench topic /ft_sensor/wrench not read" in n for n in log.notes)
+    assert any("commanded trajectory topic /arm_controller/joint_trajectory not read" in n
+               for n in log.notes)
 
 
 def test_single_mcap_file_reads_like_its_folder(tmp_path, arm3, motion):
@@ -161,9 +186,13 @@ def test_topics_are_chosen_and_named(tmp_path, arm3, motion):
     path = write_bag(tmp_path / "two", "mcap", motion.data, second_topic=True)
     with pytest.raises(DataError, match=r"lacks joint\(s\) j1, j2, j3 .*|no message holds"):
         _load(path, arm3, topic="/gripper/joint_states")
-    with pytest.raises(DataError, match=r"two: no topic /nope \(topics: /gripper/joint_states, "
+    with pytest.raises(DataError, match=r"two: no topic /nope \(topics: /arm_controller/joint_"
+                                        r"trajectory, /ft_sensor/wrench, /gripper/joint_states, "
                                         r"/joint_states\)"):
         _load(path, arm3, topic="/nope")
+    with pytest.raises(DataError, match=r"two: topic /ft_sensor/wrench holds geometry_msgs/msg/"
+                                        r"WrenchStamped, expected sensor_msgs/msg/JointState or "):
+        _load(path, arm3, topic="/ft_sensor/wrench")
 
 
 def test_missing_joint_and_empty_effort_are_one_line(tmp_path, arm3, motion):

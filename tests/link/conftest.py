@@ -14,6 +14,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -239,3 +240,44 @@ def campaign_via_cli(tmp: Path, cfg: Path, *args: str,
         daemon.send_signal(signal.SIGTERM)
         assert daemon.wait(30) == 0
     return out
+
+
+# ------------------------------------------------------------------ the store's backends
+@dataclass
+class Backend:
+    """A store backend under test: a cell's SQLite file (``url`` None) or a fresh database of
+    the session's real PostgreSQL. ``store``/``async_store`` open it as robot ``robot``'s
+    daemon would; ``reader`` as an operator command does."""
+
+    name: str
+    url: str | None
+    robot: str = "arm3"
+
+    def store(self, state_dir: Path, **kw: Any) -> Any:
+        from robid_link.link.store import Store
+
+        kw.setdefault("robot", self.robot)
+        return Store(state_dir, url=self.url, **kw)
+
+    def async_store(self, state_dir: Path, **kw: Any) -> Any:
+        from robid_link.link.store import open_store
+
+        kw.setdefault("robot", self.robot)
+        reserve = kw.pop("reserve_bytes", None)
+        store = open_store(state_dir, url=self.url, **kw)
+        if reserve is not None:
+            store.reserve_bytes = reserve
+        return store
+
+    def reader(self, state_dir: Path) -> Any:
+        from robid_link.link.store import Store
+
+        return Store(None if self.url else state_dir, url=self.url, readonly=True)
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def backend(request: pytest.FixtureRequest) -> Backend:
+    """Each store test runs on both backends (PostgreSQL: tests/servers.py)."""
+    if request.param == "sqlite":
+        return Backend("sqlite", None)
+    return Backend("postgresql", request.getfixturevalue("pg_url"))

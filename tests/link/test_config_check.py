@@ -57,6 +57,8 @@ def test_a_sound_config_checks_every_path_ok(tmp_path, capsys):
     ("state_dir", lambda t: _file(t / "state"), "is not a folder"),
     ("state_dir", lambda t: Path("/proc/robid/state"), "cannot be created: cannot write in "
                                                        "/proc"),
+    ("log_store", lambda t: _file(t / "logs"), "is not a folder"),
+    ("log_store", lambda t: _file(t / "logs") / "a", "cannot be created: "),
     ("control_socket", lambda t: _file(t / "ctl.sock"), "exists and is not a socket"),
     ("control_socket", lambda t: t / ("x" * 120) / "ctl.sock", "a Unix socket path"),
     ("control_socket", lambda t: _file(t / "run") / "ctl.sock", "its folder"),

@@ -1,5 +1,6 @@
 """The store: one daemon per state dir, raw logs content-hashed and durable before their row,
-journal and run states, read-only access for operator commands; the daemon config's errors."""
+journal and run states, read-only access for operator commands (each on both backends: a
+cell's SQLite and a plant's real PostgreSQL); the daemon config's errors."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from robid_link.exceptions import ConfigError, RobidError, StoreLockedError
 from robid_link.jobs import MotionProgram
 from robid_link.link.store import Store
 
-from .conftest import QUICK, write_config
+from .conftest import QUICK, Backend, write_config
 
 
 def test_two_daemons_never_share_a_state_dir(tmp_path: Path) -> None:
@@ -24,8 +25,8 @@ def test_two_daemons_never_share_a_state_dir(tmp_path: Path) -> None:
     Store(tmp_path / "s").close()  # released on close
 
 
-def test_logs_are_content_hashed_and_idempotent(tmp_path: Path) -> None:
-    with Store(tmp_path / "s") as st:
+def test_logs_are_content_hashed_and_idempotent(tmp_path: Path, backend: Backend) -> None:
+    with backend.store(tmp_path / "s") as st:
         data = b"t,q1,tau1\n0,0,0\n"
         sha = st.put_log(data)
         assert sha == hashlib.sha256(data).hexdigest()
@@ -38,8 +39,8 @@ def test_logs_are_content_hashed_and_idempotent(tmp_path: Path) -> None:
             st.check_log(sha)
 
 
-def test_runs_experiments_and_journal(tmp_path: Path) -> None:
-    with Store(tmp_path / "s") as st:
+def test_runs_experiments_and_journal(tmp_path: Path, backend: Backend) -> None:
+    with backend.store(tmp_path / "s") as st:
         run = st.create_run("quick", "operator", {}, [("a", "rigid_body"), ("b", "friction")])
         st.set_run(run, "running", step="experiment 1/2 a")
         st.step(run, "a", "giving", attempt=1, nonce="n1", program_sha="p")
@@ -52,14 +53,14 @@ def test_runs_experiments_and_journal(tmp_path: Path) -> None:
         assert st.run(run)["error"] == "boom" and st.unfinished_runs() == []
         with pytest.raises(ConfigError, match="run nope: not in the store"):
             st.run("nope")
-    with Store(tmp_path / "s", readonly=True) as ro:  # while no daemon holds it
+    with backend.reader(tmp_path / "s") as ro:  # while no daemon holds it
         assert ro.runs()[0]["run_id"] == run
 
 
-def test_programs_and_approvals(tmp_path: Path) -> None:
+def test_programs_and_approvals(tmp_path: Path, backend: Backend) -> None:
     prog = MotionProgram("rb", {"traj.csv": b"t,q1\n0,0\n", "mod": b"MODULE x\nENDMODULE\n"},
                          1.0, {"kind": "rigid_body"})
-    with Store(tmp_path / "s") as st:
+    with backend.store(tmp_path / "s") as st:
         sha = st.put_program("key1", prog)
         assert st.program_for("key1") == sha == prog.sha256
         assert st.load_program(sha) == prog
@@ -71,9 +72,18 @@ def test_programs_and_approvals(tmp_path: Path) -> None:
             st.load_program(sha)
 
 
-def test_readonly_store_needs_one(tmp_path: Path) -> None:
+def test_readonly_store_needs_one(tmp_path: Path, backend: Backend) -> None:
     with pytest.raises(ConfigError, match="holds no store yet"):
-        Store(tmp_path / "none", readonly=True)
+        backend.reader(tmp_path / "none")
+
+
+@pytest.mark.parametrize("readonly", [True, False])
+def test_a_damaged_sqlite_file_is_one_line(tmp_path: Path, readonly: bool) -> None:
+    """Junk in robid.sqlite: the reader and the daemon say which state dir, not a traceback."""
+    (tmp_path / "robid.sqlite").write_bytes(b"\x00junk" * 300)
+    with pytest.raises(RobidError, match=rf"^state_dir: {tmp_path}: cannot (read its store|"
+                                         r"connect) \(file is not a database\)$"):
+        Store(tmp_path, readonly=readonly).close()
 
 
 @pytest.mark.parametrize("change, message", [
@@ -134,14 +144,14 @@ def test_example_config_is_valid() -> None:
 
 
 def test_a_full_disk_is_one_line_and_loses_nothing_already_stored(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, backend: Backend) -> None:
     import errno
     import os
 
     from robid_link.exceptions import StoreFullError
     from robid_link.link.store import files as store_mod
 
-    st = Store(tmp_path / "state")
+    st = backend.store(tmp_path / "state")
     kept = st.put_log(b"t,q1\n0,1\n")
 
     def no_room(*a: object, **kw: object) -> None:
@@ -173,11 +183,16 @@ def test_sqlite_disk_full_becomes_store_full(tmp_path: Path) -> None:
 
     st = Store(tmp_path / "state")
     run = st.create_run("quick", "operator", {}, [("a", "rigid_body")])
-    pages = st.db.execute("PRAGMA page_count").fetchone()[0]
-    st.db.execute(f"PRAGMA max_page_count = {pages}")
+
+    def pragma(sql: str) -> int:
+        with st.conn.begin():
+            return int(st.conn.exec_driver_sql(sql).scalar())
+
+    pages = pragma("PRAGMA page_count")
+    pragma(f"PRAGMA max_page_count = {pages}")
     with pytest.raises(StoreFullError, match="disk full while writing"):
         for k in range(10_000):
             st.note(run, None, "filler", blob="x" * 4000, k=k)
-    st.db.execute("PRAGMA max_page_count = 1073741823")
+    pragma("PRAGMA max_page_count = 1073741823")
     st.note(run, None, "after")  # the store works again
     st.close()

@@ -1,7 +1,7 @@
 """The daemon's store off the event loop (``link/store/``): a slow fsync or commit runs on the
 store's own thread while the loop keeps ticking; calls run in the order made, to their end even
 when their caller is cancelled; the blocking readers of the operator commands see the same
-rows through the same queries."""
+rows through the same queries. On both backends (a cell's SQLite, a plant's PostgreSQL)."""
 
 from __future__ import annotations
 
@@ -15,9 +15,11 @@ from typing import Any
 import pytest
 
 from robid_link.exceptions import StoreLockedError
-from robid_link.link.store import AsyncStore, SqliteStore, Store
+from robid_link.link.store import AsyncStore, SqliteStore, Store, ThreadedStore
 from robid_link.link.store import files as files_mod
-from robid_link.link.store import sqlite as sqlite_mod
+from robid_link.link.store import sql as sql_mod
+
+from .conftest import Backend
 
 #: ticks the loop must make while the store is held up
 TICKS = 25
@@ -69,12 +71,12 @@ async def _ticking(gate: Gate, work: Any) -> tuple[Any, int, int]:
 
 
 def test_a_slow_fsync_of_a_raw_log_leaves_the_loop_ticking(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, backend: Backend) -> None:
     gate = Gate()
     monkeypatch.setattr(files_mod, "atomic_write", gate.wrap(files_mod.atomic_write))
 
     async def go() -> tuple[Any, int, int]:
-        async with SqliteStore(tmp_path / "s") as store:
+        async with backend.async_store(tmp_path / "s") as store:
             out = await _ticking(gate, store.put_log(b"t,q1,tau1\n0,0,0\n"))
             assert await store.log_count() == 1
             return out
@@ -84,16 +86,16 @@ def test_a_slow_fsync_of_a_raw_log_leaves_the_loop_ticking(
     assert len(sha) == 64 and gate.thread is not None and gate.thread.startswith("robid-store")
 
 
-def test_a_slow_commit_leaves_the_loop_ticking(tmp_path: Path,
-                                               monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_slow_commit_leaves_the_loop_ticking(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                               backend: Backend) -> None:
     """The journal line is written inside the transaction: holding it holds the commit."""
     gate = Gate()
 
     async def go() -> tuple[Any, int, int, list[str]]:
-        async with SqliteStore(tmp_path / "s") as store:
+        async with backend.async_store(tmp_path / "s") as store:
             run_id = await store.create_run("c", "operator", {}, [("a", "friction")])
-            monkeypatch.setattr(sqlite_mod.Store, "_journal",
-                                staticmethod(gate.wrap(sqlite_mod.Store._journal)))
+            monkeypatch.setattr(sql_mod.Store, "_journal",
+                                staticmethod(gate.wrap(sql_mod.Store._journal)))
             out = await _ticking(gate, store.step(run_id, "a", "giving", attempt=1, nonce="n1"))
             steps = [j["step"] for j in await store.journal(run_id)]
             return (*out, steps)
@@ -103,14 +105,14 @@ def test_a_slow_commit_leaves_the_loop_ticking(tmp_path: Path,
 
 
 def test_a_call_runs_to_its_end_and_in_order_when_its_caller_is_cancelled(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, backend: Backend) -> None:
     gate = Gate()
 
     async def go() -> tuple[bool, dict[str, Any]]:
-        async with SqliteStore(tmp_path / "s") as store:
+        async with backend.async_store(tmp_path / "s") as store:
             run_id = await store.create_run("c", "operator", {}, [("a", "friction")])
-            monkeypatch.setattr(sqlite_mod.Store, "_journal",
-                                staticmethod(gate.wrap(sqlite_mod.Store._journal)))
+            monkeypatch.setattr(sql_mod.Store, "_journal",
+                                staticmethod(gate.wrap(sql_mod.Store._journal)))
             caller = asyncio.create_task(store.step(run_id, "a", "giving", attempt=1,
                                                     nonce="n1"))
             while not gate.entered.is_set():
@@ -129,9 +131,10 @@ def test_a_call_runs_to_its_end_and_in_order_when_its_caller_is_cancelled(
     assert cancelled and row["state"] == "giving" and row["nonce"] == "n1"
 
 
-def test_a_raw_log_and_its_journal_line_are_one_transaction(tmp_path: Path) -> None:
+def test_a_raw_log_and_its_journal_line_are_one_transaction(tmp_path: Path,
+                                                            backend: Backend) -> None:
     async def go() -> tuple[str, list[dict[str, Any]]]:
-        async with SqliteStore(tmp_path / "s") as store:
+        async with backend.async_store(tmp_path / "s") as store:
             run_id = await store.create_run("c", "operator", {}, [("a", "friction")])
             sha = await store.put_log(b"t,q1\n0,1\n", run_id=run_id, exp_id="a")
             return sha, await store.journal(run_id)
@@ -141,33 +144,34 @@ def test_a_raw_log_and_its_journal_line_are_one_transaction(tmp_path: Path) -> N
     assert journal[-1]["detail"] == {"log_sha": sha, "size": 9}
 
 
-def test_the_blocking_reader_sees_what_the_daemon_stored(tmp_path: Path) -> None:
+def test_the_blocking_reader_sees_what_the_daemon_stored(tmp_path: Path, backend: Backend) -> None:
     async def go() -> str:
-        async with SqliteStore(tmp_path / "s") as store:
+        async with backend.async_store(tmp_path / "s") as store:
             run_id = await store.create_run("c", "operator", {}, [("a", "friction")])
             await store.set_run(run_id, "running", step="experiment 1/1 a")
             await store.add_result(run_id, "arm3", "identify", {"rmse": [1.0]})
             return run_id
 
     run_id = asyncio.run(go())
-    with Store(tmp_path / "s", readonly=True) as ro:
+    with backend.reader(tmp_path / "s") as ro:
         assert ro.runs()[0]["run_id"] == run_id and ro.run(run_id)["step"] == "experiment 1/1 a"
         assert ro.results("arm3")[0]["record"] == {"rmse": [1.0]}
 
 
-def test_a_second_daemon_is_refused_and_nothing_is_left_running(tmp_path: Path) -> None:
+def test_a_second_daemon_is_refused_and_nothing_is_left_running(tmp_path: Path,
+                                                                backend: Backend) -> None:
     async def go() -> str:
-        async with SqliteStore(tmp_path / "s"):
+        async with backend.async_store(tmp_path / "s"):
             with pytest.raises(StoreLockedError, match="in use by another daemon") as err:
-                await SqliteStore(tmp_path / "s").open()
+                await backend.async_store(tmp_path / "s").open()
         return str(err.value)
 
     assert "\n" not in asyncio.run(go())  # and the leak check sees no store thread left
 
 
-def test_close_is_safe_twice_and_a_closed_store_says_so(tmp_path: Path) -> None:
+def test_close_is_safe_twice_and_a_closed_store_says_so(tmp_path: Path, backend: Backend) -> None:
     async def go() -> None:
-        store = SqliteStore(tmp_path / "s")
+        store = backend.async_store(tmp_path / "s")
         await store.open()
         await store.close()
         await store.close()
@@ -183,7 +187,7 @@ def test_every_operation_of_the_interface_has_one_blocking_implementation() -> N
     ops = {name for name, fn in inspect.getmembers(AsyncStore, inspect.iscoroutinefunction)
            if not name.startswith("_") and name not in ("open", "close")}
     assert {"run", "runs", "step", "put_log", "results", "param_set"} <= ops
-    assert not SqliteStore.__abstractmethods__
+    assert not SqliteStore.__abstractmethods__ and not ThreadedStore.__abstractmethods__
     missing = sorted(op for op in ops if not callable(getattr(Store, op, None)))
     assert missing == []
     assert not hasattr(Store, "set_step")

@@ -5,7 +5,8 @@ Joints are matched to the robot by *name* (a joint_state_broadcaster publishes i
 which may change between messages). The measured state comes from ``sensor_msgs/JointState``
 (position, velocity, effort) or from a joint trajectory controller's state
 (``control_msgs/JointTrajectoryControllerState``: its feedback — ``actual`` before ROS 2 Humble —
-and the reference it tracked); a ``trajectory_msgs/JointTrajectory`` topic is the commanded motion.
+and the reference it tracked, kept as the commanded motion). Topics of other types (a
+``trajectory_msgs/JointTrajectory`` command, a wrench) are named in a note and not read.
 """
 
 from __future__ import annotations
@@ -19,11 +20,11 @@ import numpy as np
 
 from robid_link.exceptions import DataError
 
-__all__ = ["is_bag", "read_bag", "BagLog", "JOINT_STATE", "CONTROLLER_STATE", "TRAJECTORY"]
+__all__ = ["is_bag", "read_bag", "BagLog", "JOINT_STATE", "CONTROLLER_STATE"]
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 CONTROLLER_STATE = "control_msgs/msg/JointTrajectoryControllerState"
-TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
+_COMMAND_TYPES = ("trajectory_msgs/msg/JointTrajectory",)
 #: message types whose topics may be read as a log, best first
 _STATE_TYPES = (JOINT_STATE, CONTROLLER_STATE)
 _WRENCH_TYPES = ("geometry_msgs/msg/WrenchStamped", "geometry_msgs/msg/Wrench")
@@ -110,8 +111,9 @@ def _choose_topic(p: Path, reader: Any, topic: str | None) -> tuple[str, str, li
     """(topic, msgtype, notes): the asked topic, else the one joint-state topic
     (``/joint_states`` among several), else a controller state topic."""
     types = {c.topic: c.msgtype for c in reader.connections}
-    notes = [f"{p.name}: wrench topic {t} ignored (a joint log is read)"
-             for t, m in sorted(types.items()) if m in _WRENCH_TYPES and t != topic]
+    notes = [f"{p.name}: {'wrench' if m in _WRENCH_TYPES else 'commanded trajectory'} topic "
+             f"{t} not read (the log is the measured joint state)"
+             for t, m in sorted(types.items()) if m in (*_WRENCH_TYPES, *_COMMAND_TYPES)]
     if topic is not None:
         if topic not in types:
             raise DataError(f"{p}: no topic {topic} (topics: {', '.join(sorted(types)) or 'none'})")

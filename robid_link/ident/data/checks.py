@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from robid_link.exceptions import DataWarning, ExcitationWarning
-from robid_link.ident.data.preprocess import Piece, Prepared, Problem
+from robid_link.ident.data.preprocess import CHUNK, Piece, Problem
 from robid_link.ident.model.regressor import rigid_regressor
 from robid_link.ident.model.robot import Robot
 
@@ -36,13 +36,13 @@ def data_checks(pb: Problem, stacklevel: int = 3) -> list[str]:
 
 
 def _ranges(pieces: Sequence[Piece]) -> np.ndarray:
-    lo = np.full((3, pieces[0].prep.q.shape[1]), np.inf)
+    lo = np.full((3, pieces[0].prep.log.q.shape[1]), np.inf)
     hi = -lo
     for pc in pieces:
-        for k, arr in enumerate((pc.prep.q, pc.prep.qd, pc.prep.qdd)):
-            a = arr[pc.lo: pc.hi]
-            lo[k] = np.minimum(lo[k], a.min(axis=0))
-            hi[k] = np.maximum(hi[k], a.max(axis=0))
+        for a in range(pc.lo, pc.hi, CHUNK):
+            for k, arr in enumerate(pc.prep.kinematics(a, min(pc.hi, a + CHUNK))):
+                lo[k] = np.minimum(lo[k], arr.min(axis=0))
+                hi[k] = np.maximum(hi[k], arr.max(axis=0))
     return np.stack((lo, hi))
 
 
@@ -68,7 +68,7 @@ def sanity_checks(pb: Problem, nominal: bool) -> list[str]:
         name = Path(prep.log.path).name
         if pb.transmission is None:
             out += _position_checks(robot, prep.log.q, name)
-        peak = np.abs(tau).max(axis=0)
+        peak = np.maximum(tau.max(axis=0), -tau.min(axis=0))  # |τ|'s peak, no copy of τ
         flat = max(5, int(0.05 * prep.filt.fs))  # a clipped signal sits flat at its peak
         for j in range(robot.n):
             at_peak = np.abs(tau[:, j]) >= peak[j] - 1e-9 * max(peak[j], 1.0)
@@ -83,8 +83,8 @@ def sanity_checks(pb: Problem, nominal: bool) -> list[str]:
             step = max(1, len(prep.log) // 4000)
             trim = prep.filt.settle
             sl = slice(trim, len(prep.log) - trim, step)
-            pred = rigid_regressor(robot, prep.q[sl], prep.qd[sl], prep.qdd[sl]) @ robot.nominal
-            meas = prep.tau_f[sl]
+            q, qd, qdd, meas = prep.rows(sl)
+            pred = rigid_regressor(robot, q, qd, qdd) @ robot.nominal
             for j in range(robot.n):
                 sp, sm = pred[:, j].std(), meas[:, j].std()
                 if sp < 1e-9 or sm < 1e-9:
@@ -96,7 +96,7 @@ def sanity_checks(pb: Problem, nominal: bool) -> list[str]:
                                f"(correlation {r:.2f}): sign convention?")
                 elif r > 0.5 and not 1 / 3 < ratio < 3:
                     out.append(f"{name}: tau{j + 1} is {ratio:.3g}× the a-priori model's "
-                               f"torque: {_scale_cause(robot, prep, sl, pred, j, ratio)}")
+                               f"torque: {_scale_cause(robot, (qd, qdd, meas), pred, j, ratio)}")
     return out
 
 
@@ -132,12 +132,12 @@ def _position_checks(robot: Robot, q: np.ndarray, name: str) -> list[str]:
     return out
 
 
-def _scale_cause(robot: Robot, prep: Prepared, sl: slice, pred: np.ndarray, j: int,
-                 ratio: float) -> str:
+def _scale_cause(robot: Robot, rows: tuple[np.ndarray, np.ndarray, np.ndarray],
+                 pred: np.ndarray, j: int, ratio: float) -> str:
     """Why a joint's measured torque is ``ratio``× the a-priori model's: when the model plus
     viscous and Coulomb friction and a rotor inertia (which the a-priori model lacks) explain
     the measurement, say that, not 'units'."""
-    qd, qdd, meas = prep.qd[sl, j], prep.qdd[sl, j], prep.tau_f[sl, j]
+    qd, qdd, meas = (r[:, j] for r in rows)  # q̇, q̈ and the filtered torque of the rows
     cols = np.column_stack([pred[:, j], qd, np.sign(qd), qdd, np.ones_like(qd)])
     coef, *_ = np.linalg.lstsq(cols, meas, rcond=None)
     r2 = 1.0 - float(np.var(meas - cols @ coef)) / max(float(np.var(meas)), 1e-300)

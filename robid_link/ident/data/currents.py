@@ -72,15 +72,14 @@ def without_known_torques(pb: Problem, known: Sequence[KnownTorque]) -> Problem:
 
 
 def _without_known(prep: Prepared, known: Sequence[KnownTorque]) -> Prepared:
+    """τ − τ_known; the filtered torque follows (filtering is linear: the filter of the
+    difference is the difference of the filtered torques)."""
     tk = np.zeros_like(prep.tau)
-    tau_f = prep.tau_f.copy(order="K")  # the same memory layout: the same sums
     for seg in prep.log.segments:
         if seg.stop - seg.start < 3 * prep.filt.settle:
             continue  # not prepared (too short to filter), never used
         tk[seg] = known_torque_total(tuple(known), prep.q[seg], prep.qd[seg], prep.qdd[seg])
-        tau_f[seg] -= prep.filt.apply(tk[seg])
-    return replace(prep, log=replace(prep.log, tau=prep.log.tau - tk), tau_f=tau_f,
-                   tau_known=tk)
+    return replace(prep, log=replace(prep.log, tau=prep.log.tau - tk), tau_known=tk)
 
 
 def unidentifiable_gains(robot: Robot, blocks: Sequence[Block], known: Sequence[KnownTorque],
@@ -163,12 +162,9 @@ def with_currents(prep: Prepared, found: CurrentGains) -> Prepared:
         return prep
     add = np.einsum("snu,u->sn", _current_columns(prep, found.motors, prep.log.currents),
                     found.gains)
-    tau_f = prep.tau_f.copy(order="K")  # the same memory layout: the same sums
-    for seg in prep.log.segments:
-        if seg.stop - seg.start >= 3 * prep.filt.settle:
-            tau_f[seg] += prep.filt.apply(add[seg])
+    # the filtered torque follows the completed torque (filtering is linear)
     return replace(prep, log=replace(prep.log, tau=prep.log.tau + add, currents=None,
-                                     current=None), tau_f=tau_f)
+                                     current=None))
 
 
 def _motor_grams(pb: Problem, design: Design) -> tuple[np.ndarray, int]:

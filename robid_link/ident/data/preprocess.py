@@ -8,15 +8,22 @@ as the torques (Gautier's parallel filtering), in chunks with overlap (bounded m
 from __future__ import annotations
 
 import math
+import threading
 import warnings
-from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-import numba
 import numpy as np
 
 from robid_link.exceptions import DataError, DataWarning
+from robid_link.ident.data.filtering import (
+    FILTER_ORDER,
+    Track,
+    ZeroPhaseFilter,
+    butter_lowpass_sos,
+    sos_steady_state,
+)
 from robid_link.ident.data.logs import Log
 from robid_link.ident.model.effects import Block, Model, States
 from robid_link.ident.model.robot import Robot
@@ -38,155 +45,62 @@ __all__ = [
     "check_counts",
     "butter_lowpass_sos",
     "sos_steady_state",
+    "FILTER_ORDER",
 ]
 
 #: Default low-pass cutoff. Excitation trajectories live below ~2 Hz (Fourier base 0.05–0.2 Hz,
 #: a handful of harmonics), so 10 Hz keeps them with < 0.1 % amplitude error while removing
 #: the noise that double differentiation amplifies. Capped at 40 % of the Nyquist rate.
 DEFAULT_CUTOFF_HZ = 10.0
-FILTER_ORDER = 4
-CHUNK = 65536  # samples per chunk when building design rows
+#: samples per chunk when building design rows: a chunk's compact columns (8192 × the
+#: design's non-zeros, one per slot of ``threads.in_slots``) are the largest buffers of a
+#: pass, whatever the log's length
+CHUNK = 8192
 
 
-@dataclass(frozen=True)
-class ZeroPhaseFilter:
-    """Butterworth low-pass applied forward and backward (zero phase)."""
+class _Channels:
+    """The filtered channels of one prepared log: a ``Track`` per source array (made at
+    ``prepare``; made again when a step replaces the source, e.g. the torque) and, only when
+    someone asks for them, the whole filtered arrays."""
 
-    cutoff_hz: float
-    fs: float
-    order: int = FILTER_ORDER
+    def __init__(self) -> None:
+        self._tracks: dict[str, Track] = {}
+        self._whole: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._lock = threading.Lock()
 
-    @property
-    def active(self) -> bool:
-        return self.cutoff_hz < 0.45 * self.fs
+    def track(self, name: str, src: np.ndarray, filt: ZeroPhaseFilter,
+              segments: Sequence[slice]) -> Track:
+        with self._lock:
+            hit = self._tracks.get(name)
+            if hit is None or hit.source is not src:
+                hit = self._tracks[name] = Track(src, filt, segments, 3 * filt.settle)
+            return hit
 
-    @property
-    def sos(self) -> np.ndarray:
-        return butter_lowpass_sos(self.order, self.cutoff_hz, self.fs)
-
-    @property
-    def settle(self) -> int:
-        """Samples after which the (doubled) impulse response has died out: 3 / fc."""
-        return int(math.ceil(3.0 * self.fs / self.cutoff_hz)) if self.active else 1
-
-    def apply(self, x: np.ndarray, edges: bool = True) -> np.ndarray:
-        """Filter along axis 0 (samples); exactly scipy's sosfiltfilt with odd padding.
-
-        ``edges=False`` skips the odd extension, for windows whose ends are discarded.
-        """
-        x = np.asarray(x, dtype=float)
-        if not self.active:
-            return x.copy()
-        flat = np.ascontiguousarray(x.reshape(x.shape[0], -1))
-        padlen = min(3 * self.settle, flat.shape[0] - 1) if edges else 0
-        sos = np.ascontiguousarray(self.sos)
-        zi = np.ascontiguousarray(sos_steady_state(sos))
-        return _sosfiltfilt(sos, zi, flat, padlen, numba.get_num_threads()).reshape(x.shape)
-
-
-def butter_lowpass_sos(order: int, cutoff_hz: float, fs: float) -> np.ndarray:
-    """Digital Butterworth low-pass as second-order sections (bilinear, pre-warped).
-
-    The same design as scipy.signal.butter(order, cutoff, fs=fs, output="sos"), written out
-    so the worker does not pay scipy.signal's import time (≈1 s) on every run.
-    """
-    warped = 2.0 * fs * math.tan(math.pi * cutoff_hz / fs)
-    k = np.arange(1, order + 1)
-    poles_a = warped * np.exp(1j * math.pi * (2 * k + order - 1) / (2 * order))
-    poles = (2.0 * fs + poles_a) / (2.0 * fs - poles_a)
-    gain = float(np.real(warped**order / np.prod(2.0 * fs - poles_a)))
-    upper = sorted((p for p in poles if p.imag > 1e-12), key=lambda p: -abs(1 - abs(p)))
-    sections = [[1.0, 2.0, 1.0, 1.0, -2.0 * p.real, abs(p) ** 2] for p in upper]
-    real = [p.real for p in poles if abs(p.imag) <= 1e-12]
-    if real:
-        sections.insert(0, [1.0, 1.0, 0.0, 1.0, -real[0], 0.0])
-    sos = np.array(sections)
-    sos[0, :3] *= gain
-    return sos
-
-
-def sos_steady_state(sos: np.ndarray) -> np.ndarray:
-    """Initial states (ns, 2) of a unit step's steady state (scipy.signal.sosfilt_zi)."""
-    zi = np.empty((sos.shape[0], 2))
-    scale = 1.0
-    for s, (b0, b1, b2, _a0, a1, a2) in enumerate(sos):
-        lhs = np.array([[1.0 + a1, -1.0], [a2, 1.0]])
-        zi[s] = scale * np.linalg.solve(lhs, np.array([b1 - a1 * b0, b2 - a2 * b0]))
-        scale *= (b0 + b1 + b2) / (1.0 + a1 + a2)
-    return zi
-
-
-@numba.njit(cache=True, nogil=True)
-def _biquads(sos: np.ndarray, z: np.ndarray, row: np.ndarray, out: np.ndarray) -> None:
-    """One sample through the cascade for every column (direct form II transposed)."""
-    for s in range(sos.shape[0]):
-        b0, b1, b2, a1, a2 = sos[s, 0], sos[s, 1], sos[s, 2], sos[s, 4], sos[s, 5]
-        z0, z1 = z[s, 0], z[s, 1]
-        for c in range(row.shape[0]):
-            v = row[c]
-            y = b0 * v + z0[c]
-            z0[c] = b1 * v - a1 * y + z1[c]
-            z1[c] = b2 * v - a2 * y
-            out[c] = y
-        row = out
-
-
-@numba.njit(cache=True, parallel=True, nogil=True)
-def _sosfiltfilt(sos: np.ndarray, zi: np.ndarray, x: np.ndarray, padlen: int,
-                 n_threads: int) -> np.ndarray:
-    """Zero-phase second-order-section filter of every column of x (N, m) along axis 0.
-
-    Exactly scipy's sosfiltfilt(padtype="odd"): odd extension, steady-state initial
-    conditions for the first sample of each pass. Sample-major, so the inner loop runs over
-    contiguous columns; column groups go to threads.
-    """
-    n, m = x.shape
-    total = n + 2 * padlen
-    ns = sos.shape[0]
-    out = np.empty((n, m))
-    n_par = max(1, min(m // 8, n_threads))
-    for part in numba.prange(n_par):
-        c0 = part * m // n_par
-        c1 = (part + 1) * m // n_par
-        w = c1 - c0
-        buf = np.empty((total, w))
-        for k in range(padlen):  # odd extension at both ends
-            for c in range(w):
-                buf[k, c] = 2.0 * x[0, c0 + c] - x[padlen - k, c0 + c]
-                buf[padlen + n + k, c] = 2.0 * x[n - 1, c0 + c] - x[n - 2 - k, c0 + c]
-        for k in range(n):
-            for c in range(w):
-                buf[padlen + k, c] = x[k, c0 + c]
-        z = np.empty((ns, 2, w))
-        for direction in range(2):
-            start = 0 if direction == 0 else total - 1
-            for s in range(ns):
-                for c in range(w):
-                    z[s, 0, c] = zi[s, 0] * buf[start, c]
-                    z[s, 1, c] = zi[s, 1] * buf[start, c]
-            if direction == 0:
-                for k in range(total):
-                    _biquads(sos, z, buf[k], buf[k])
-            else:
-                for k in range(total - 1, -1, -1):
-                    _biquads(sos, z, buf[k], buf[k])
-        for k in range(n):
-            for c in range(w):
-                out[k, c0 + c] = buf[k + padlen, c]
-    return out
+    def whole(self, name: str, src: np.ndarray, make: Callable[[], np.ndarray]) -> np.ndarray:
+        with self._lock:
+            hit = self._whole.get(name)
+            if hit is not None and hit[0] is src:
+                return hit[1]
+        out = make()
+        out.flags.writeable = False  # shared by every copy of the prepared log
+        with self._lock:
+            self._whole[name] = (src, out)
+        return out
 
 
 @dataclass(frozen=True)
 class Prepared:
     """One log after filtering: states for the regressor, raw and filtered torques. Frozen:
     a step that changes a torque (known torques, drive currents, the model's predictions)
-    returns a new one (``dataclasses.replace``) and ``Problem.with_preps`` re-points pieces."""
+    returns a new one (``dataclasses.replace``) and ``Problem.with_preps`` re-points pieces.
+
+    The filtered positions, velocities, accelerations and torques are read by window
+    (``states``, ``tau_f_rows``, ``rows``): a window is computed from the filter's stored
+    states and equals, to the bit, the rows of the whole arrays (``q``, ``qd``, ``qdd``,
+    ``tau_f``), which are only made when someone reads them.
+    """
 
     log: Log
-    q: np.ndarray
-    qd: np.ndarray
-    qdd: np.ndarray
-    tau_f: np.ndarray
     filt: ZeroPhaseFilter
     transmission: np.ndarray | None = None  # set for motor-side logs
     tau_rigid: np.ndarray | None = None  # the current model's rigid torque (diagnosis)
@@ -194,6 +108,7 @@ class Prepared:
     tau_model: np.ndarray | None = None  # the current model's torque on every raw sample
     #: known torques (model file), already subtracted from ``tau`` and ``tau_f``
     tau_known: np.ndarray | None = None
+    channels: _Channels = field(default_factory=_Channels, compare=False, repr=False)
 
     @property
     def tau(self) -> np.ndarray:
@@ -204,13 +119,102 @@ class Prepared:
     def tau_measured(self) -> np.ndarray:
         return self.log.tau if self.tau_known is None else self.log.tau + self.tau_known
 
+    def _track(self, name: str, src: np.ndarray) -> Track:
+        return self.channels.track(name, src, self.filt, self.log.segments)
+
+    def _filtered_segments(self) -> list[tuple[int, int]]:
+        return self._track("q", self.log.q).segments
+
+    def kinematics(self, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Filtered q, q̇ (the filtered log's q̇, else the derivative of q) and q̈ (the
+        derivative of q̇) at rows [lo, hi); zero outside the filtered segments."""
+        n_j = self.log.q.shape[1]
+        q, qd, qdd = (np.zeros((max(hi - lo, 0), n_j)) for _ in range(3))
+        dt = 1.0 / self.filt.fs
+        for a, b in self._filtered_segments():
+            r0, r1 = max(a, lo), min(b, hi)
+            if r0 >= r1:
+                continue
+            # q̈ at [r0, r1) needs q̇ one row beyond, which needs q one row further
+            v0, v1 = max(a, r0 - 1), min(b, r1 + 1)
+            p0, p1 = max(a, v0 - 1), min(b, v1 + 1)
+            qf = self._track("q", self.log.q).window(p0, p1)
+            q[r0 - lo: r1 - lo] = qf[r0 - p0: r1 - p0]
+            if self.log.qd is not None:
+                vel = self._track("qd", self.log.qd).window(v0, v1)
+            else:
+                vel = _gradient(qf, p0, v0, v1, a, b, dt)
+            qd[r0 - lo: r1 - lo] = vel[r0 - v0: r1 - v0]
+            qdd[r0 - lo: r1 - lo] = _gradient(vel, v0, r0, r1, a, b, dt)
+        return q, qd, qdd
+
+    def tau_f_rows(self, lo: int, hi: int) -> np.ndarray:
+        """The filtered torque at rows [lo, hi)."""
+        return self._track("tau", self.log.tau).window(lo, hi)
+
     def states(self, lo: int, hi: int) -> States:
         # time since the log's start: effects that change over the log (friction drift)
-        return States(self.q[lo:hi], self.qd[lo:hi], self.qdd[lo:hi],
-                      self.log.t[lo:hi] - self.log.t[0],
-                      self.transmission,
+        q, qd, qdd = self.kinematics(lo, hi)
+        return States(q, qd, qdd, self.log.t[lo:hi] - self.log.t[0], self.transmission,
                       None if self.tau_rigid is None else self.tau_rigid[lo:hi],
                       None if self.tau_rate is None else self.tau_rate[lo:hi])
+
+    def rows(self, sl: slice, chunk: int = 1 << 16
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """q, q̇, q̈ and the filtered torque at the rows of ``sl`` (a slice with a positive
+        step), computed chunk by chunk."""
+        idx = np.arange(*sl.indices(len(self.log)))
+        parts: list[tuple[np.ndarray, ...]] = []
+        for a in range(0, idx.size, max(1, chunk // max(1, sl.step or 1))):
+            sel = idx[a: a + max(1, chunk // max(1, sl.step or 1))]
+            lo, hi = int(sel[0]), int(sel[-1]) + 1
+            q, qd, qdd = self.kinematics(lo, hi)
+            tf = self.tau_f_rows(lo, hi)
+            parts.append(tuple(arr[sel - lo] for arr in (q, qd, qdd, tf)))
+        if not parts:
+            empty = np.zeros((0, self.log.q.shape[1]))
+            return empty, empty, empty, empty
+        return tuple(np.concatenate([p[k] for p in parts]) for k in range(4))  # type: ignore
+
+    def _whole(self, k: int) -> np.ndarray:
+        names = ("q", "qd", "qdd")
+        src = self.log.q if self.log.qd is None or k == 0 else self.log.qd
+        return self.channels.whole(names[k], src, lambda: self.kinematics(0, len(self.log))[k])
+
+    @property
+    def q(self) -> np.ndarray:
+        """Filtered positions, every row (made on first read; read-only)."""
+        return self._whole(0)
+
+    @property
+    def qd(self) -> np.ndarray:
+        return self._whole(1)
+
+    @property
+    def qdd(self) -> np.ndarray:
+        return self._whole(2)
+
+    @property
+    def tau_f(self) -> np.ndarray:
+        """Filtered torque, every row (made on first read; read-only)."""
+        return self.channels.whole("tau_f", self.log.tau,
+                                   lambda: self.tau_f_rows(0, len(self.log)))
+
+
+def _gradient(f: np.ndarray, f0: int, g0: int, g1: int, a: int, b: int, dt: float
+              ) -> np.ndarray:
+    """``np.gradient(x[a:b], dt)`` at rows [g0, g1) of segment [a, b), to the bit, from
+    ``f`` = x at rows [f0, f0 + len(f)) (one row beyond [g0, g1) where the segment has it)."""
+    out = np.empty((g1 - g0, f.shape[1]))
+    i0, i1 = max(g0, a + 1), min(g1, b - 1)
+    if i1 > i0:
+        out[i0 - g0: i1 - g0] = (f[i0 + 1 - f0: i1 + 1 - f0] - f[i0 - 1 - f0: i1 - 1 - f0]) \
+            / (2.0 * dt)
+    if g0 == a:
+        out[0] = (f[a + 1 - f0] - f[a - f0]) / dt
+    if g1 == b:
+        out[-1] = (f[b - 1 - f0] - f[b - 2 - f0]) / dt
+    return out
 
 
 @dataclass(frozen=True)
@@ -230,7 +234,8 @@ class Piece:
 def prepare(log: Log, cutoff_hz: float | None, interval: int = 1,
             transmission: np.ndarray | None = None) -> Prepared:
     """Filter positions, derive velocities/accelerations, filter torques (per segment).
-    A note (cutoff lowered for decimation) goes to the prepared log's copy, never to ``log``."""
+    A note (cutoff lowered for decimation) goes to the prepared log's copy, never to ``log``.
+    The filters run here once (their states are kept); rows are read by window."""
     fs = log.fs
     fc = DEFAULT_CUTOFF_HZ if cutoff_hz is None else float(cutoff_hz)
     if fc <= 0:
@@ -241,20 +246,12 @@ def prepare(log: Log, cutoff_hz: float | None, interval: int = 1,
         fc = 0.8 * fs / (2 * interval)  # anti-alias before decimation
         log = replace(log, notes=[*log.notes,
                                   f"cutoff lowered to {fc:.3g} Hz for --interval {interval}"])
-    filt = ZeroPhaseFilter(fc, fs)
-    q = np.empty_like(log.q)
-    qd = np.empty_like(log.q)
-    qdd = np.empty_like(log.q)
-    tau_f = np.empty_like(log.tau)
-    dt = 1.0 / fs
-    for seg in log.segments:
-        if seg.stop - seg.start < 3 * filt.settle:
-            continue
-        q[seg] = filt.apply(log.q[seg])
-        qd[seg] = filt.apply(log.qd[seg]) if log.qd is not None else np.gradient(q[seg], dt, axis=0)
-        qdd[seg] = np.gradient(qd[seg], dt, axis=0)
-        tau_f[seg] = filt.apply(log.tau[seg])
-    return Prepared(log, q, qd, qdd, tau_f, filt, transmission)
+    prep = Prepared(log, ZeroPhaseFilter(fc, fs), transmission)
+    prep._track("q", log.q)
+    if log.qd is not None:
+        prep._track("qd", log.qd)
+    prep._track("tau", log.tau)
+    return prep
 
 
 #: a sample moves when some joint's filtered speed exceeds this fraction of its typical speed
@@ -266,20 +263,28 @@ def motion_span(prep: Prepared) -> tuple[int, int]:
     """Rows [first, last) of a prepared log between its first and last moving sample (rest at
     the start or the end of a motion excluded); the whole log when nothing moves."""
     n = len(prep.log)
-    ok = np.zeros(n, bool)
-    for seg in prep.log.segments:
-        if seg.stop - seg.start >= 3 * prep.filt.settle:
-            ok[seg] = True  # rows of too-short segments were never filtered
-    if not ok.any():
+    segs = prep._filtered_segments()  # rows of too-short segments were never filtered
+    if not segs:
         return 0, n
-    speed = np.abs(prep.qd[ok])
-    typical = np.percentile(speed, 95, axis=0)
+    n_ok = sum(b - a for a, b in segs)
+    speed = np.empty((n_ok, prep.log.q.shape[1]))
+    at = 0
+    for a, b in segs:
+        for lo in range(a, b, CHUNK):
+            hi = min(b, lo + CHUNK)
+            speed[at: at + hi - lo] = np.abs(prep.kinematics(lo, hi)[1])
+            at += hi - lo
+    # per joint (one column's copy at a time): np.percentile(speed, 95, axis=0)
+    typical = np.array([np.percentile(speed[:, j], 95) for j in range(speed.shape[1])])
     active = typical > 1e-6 * max(float(typical.max()), 1e-300)
     if not active.any():
         return 0, n
-    moving = np.zeros(n, bool)
-    moving[ok] = np.any(speed[:, active] > MOVING_FRACTION * typical[active], axis=1)
-    idx = np.flatnonzero(moving)
+    moving_ok = np.zeros(n_ok, bool)
+    for j in np.flatnonzero(active):
+        moving_ok |= speed[:, j] > MOVING_FRACTION * typical[j]
+    del speed
+    ok_rows = np.concatenate([np.arange(a, b) for a, b in segs])
+    idx = ok_rows[moving_ok]
     return (int(idx[0]), int(idx[-1]) + 1) if idx.size else (0, n)
 
 
@@ -354,9 +359,11 @@ def noise_floor(pieces: Sequence[Piece]) -> np.ndarray | None:
         return None
     acc, rows = 0.0, 0
     for pc in pieces:
-        d = pc.prep.tau[pc.lo:pc.hi] - pc.prep.tau_f[pc.lo:pc.hi]
-        acc = acc + np.sum(d * d, axis=0)
-        rows += d.shape[0]
+        for lo in range(pc.lo, pc.hi, CHUNK):
+            hi = min(pc.hi, lo + CHUNK)
+            d = pc.prep.tau[lo:hi] - pc.prep.tau_f_rows(lo, hi)
+            acc = acc + np.sum(d * d, axis=0)
+            rows += d.shape[0]
     if rows == 0:
         return None
     share = _rejected_share(pieces[0].prep.filt)
@@ -366,13 +373,15 @@ def noise_floor(pieces: Sequence[Piece]) -> np.ndarray | None:
 def filter_windows(piece: Piece, interval: int = 1, chunk: int = CHUNK
                    ) -> Iterator[tuple[int, int, int, int, bool]]:
     """Chunks [a, b) of a piece's rows kept at ``interval`` (on the grid of its filtering
-    segment), each with the window [ca, cb) to filter over — padded so the filter has settled
+    segment; about ``chunk`` raw rows each, whatever the interval), each with the window
+    [ca, cb) to filter over — padded so the filter has settled
     at a and b — and whether the window reaches the segment's edge (odd extension only there,
     as in τ's filtering)."""
     pad = 3 * piece.prep.filt.settle if piece.prep.filt.active else 0
     first = piece.lo + (-(piece.lo - piece.ctx_lo) % interval)
-    for a in range(first, piece.hi, chunk * interval):
-        b = min(a + chunk * interval, piece.hi)
+    span = max(1, chunk // interval) * interval  # ≤ chunk raw rows: the filter needs them all
+    for a in range(first, piece.hi, span):
+        b = min(a + span, piece.hi)
         ca, cb = max(piece.ctx_lo, a - pad), min(piece.ctx_hi, b + pad)
         yield a, b, ca, cb, ca == piece.ctx_lo or cb == piece.ctx_hi
 

@@ -23,12 +23,14 @@ from robid_link.ident.model.regressor import (
     structural_base_set,
 )
 from robid_link.ident.model.robot import Robot
+from robid_link.ident.model.threads import in_slots
 
 __all__ = [
     "Design",
     "base_set_for",
     "block_columns",
     "design_chunks",
+    "design_rows",
     "make_design",
     "predict_torque",
     "random_states",
@@ -99,10 +101,11 @@ class Design:
             plan.append((np.array(dst, dtype=int), np.array(src, dtype=int)))
         return plan
 
-    def compact(self, st: States) -> np.ndarray:
-        """(N, nnz) base-column entries of every joint row, joint after joint."""
+    def compact(self, st: States, buf: np.ndarray | None = None) -> np.ndarray:
+        """(N, nnz) base-column entries of every joint row, joint after joint (in the first
+        rows of ``buf`` when given: a pass reuses one buffer)."""
         n_samp = len(st)
-        out = np.empty((n_samp, self.nnz))
+        out = np.empty((n_samp, self.nnz)) if buf is None else buf[:n_samp]
         n = self.robot.n
         for blk, (dst, src) in zip(self.blocks, self._gathers, strict=True):
             if dst.size == 0:
@@ -201,9 +204,22 @@ def design_chunks(design: Design, piece: Piece, interval: int = 1, filtered: boo
             b = min(a + chunk, piece.hi)
             yield design.compact(prep.states(a, b)), prep.tau[a:b], np.arange(a, b)
         return
-    for a, b, ca, cb, at_edge in filter_windows(piece, interval, chunk):
-        c = prep.filt.apply(design.compact(prep.states(ca, cb)), edges=at_edge)
-        yield c[a - ca: b - ca: interval], prep.tau_f[a:b:interval], np.arange(a, b, interval)
+    for window in filter_windows(piece, interval, chunk):
+        yield design_rows(design, piece, window, interval)
+
+
+def design_rows(design: Design, piece: Piece, window: tuple[int, int, int, int, bool],
+                interval: int = 1, buf: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The training rows of one ``filter_windows`` window of a piece: parallel-filtered
+    compact columns (in ``buf`` when given), filtered torque and sample index, decimated by
+    ``interval``."""
+    a, b, ca, cb, at_edge = window
+    prep = piece.prep
+    c = design.compact(prep.states(ca, cb), buf)
+    prep.filt.apply_inplace(c, edges=at_edge)
+    return c[a - ca: b - ca: interval], prep.tau_f_rows(a, b)[::interval], \
+        np.arange(a, b, interval)
 
 
 def predict_torque(design: Design, prep: Prepared, theta: np.ndarray,
@@ -231,11 +247,15 @@ def with_predictions(robot: Robot, preps: Sequence[Prepared], design: Design,
         n = len(prep.log)
         full = np.zeros((n, robot.n))
         rigid = np.zeros((n, robot.n))
-        for a in range(0, n, CHUNK):
-            b = min(a + CHUNK, n)
+
+        def work(a: int, slot: int, prep: Prepared = prep, full: np.ndarray = full,
+                 rigid: np.ndarray = rigid) -> None:
+            b = min(a + CHUNK, len(prep.log))
             c = design.compact(prep.states(a, b))
             full[a:b] = design.predict(c, theta)
             rigid[a:b] = design.predict(c, rigid_theta)
+
+        in_slots(range(0, n, CHUNK), work)
         out.append(replace(prep, tau_rigid=rigid, tau_model=full,
                            tau_rate=np.gradient(full, 1.0 / prep.filt.fs, axis=0)))
     return out

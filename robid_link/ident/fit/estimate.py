@@ -12,10 +12,13 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+import numba
 import numpy as np
 
 from robid_link.exceptions import ConditioningWarning, EstimationError
-from robid_link.ident.fit.design import Design, design_chunks
+from robid_link.ident.data.preprocess import filter_windows
+from robid_link.ident.fit.design import Design, design_chunks, design_rows
+from robid_link.ident.model.threads import SLOTS, in_slots
 
 if TYPE_CHECKING:  # pieces only pass through to design_chunks
     from robid_link.ident.data.preprocess import Piece
@@ -75,37 +78,137 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
     """One pass over the training rows into per-joint, per-time-block augmented Grams.
 
     Joint j's rows are non-zero only in its structural columns, so its Gram is built on
-    those alone (a large saving for the outer joints of a serial robot).
+    those alone (a large saving for the outer joints of a serial robot). The chunks of the
+    pass go to ``SLOTS`` threads (``in_slots``), each summing into Grams of its own; the
+    slots' Grams are added in slot order.
     """
     total = sum(_n_rows(pc, interval) for pc in pieces)
     k_blocks = int(min(max_blocks, max(2, total // max(1, block_len))))
     p, n = design.p, design.robot.n
-    g = np.zeros((n, k_blocks, p + 2, p + 2))
-    support = [np.concatenate((design.support[j], [p, p + 1])) for j in range(n)]
-    seen = 0
+    sizes = np.diff(design.offsets)
+    width = int(sizes.max()) + 2
+    offsets = np.asarray(design.offsets, dtype=np.int64)
+    tasks: list[tuple[Piece, tuple[int, int, int, int, bool], int]] = []  # + first row
+    first = 0
     for pc in pieces:
-        for c, y, idx in design_chunks(design, pc, interval=interval, filtered=True):
-            m = c.shape[0]
-            bid = (np.arange(seen, seen + m) * k_blocks) // total
-            seen += m
-            sw = np.sqrt(row_weight(c, y, idx)) if row_weight is not None else None
-            edges = np.flatnonzero(np.diff(bid)) + 1
-            for j in range(n):
-                sup = support[j]
-                cj, yj = c[:, design.joint_slice(j)], y[:, j]
-                if sw is not None:
-                    cj, yj = cj * sw[:, j, None], yj * sw[:, j]
-                ones = np.ones(m) if sw is None else sw[:, j]
-                for lo, hi in zip(np.r_[0, edges], np.r_[edges, m], strict=True):
-                    xb, yb, ob = cj[lo:hi], yj[lo:hi], ones[lo:hi]
-                    gb = np.empty((sup.size, sup.size))
-                    gb[:-2, :-2] = xb.T @ xb
-                    gb[:-2, -2] = gb[-2, :-2] = yb @ xb
-                    gb[:-2, -1] = gb[-1, :-2] = ob @ xb
-                    gb[-2, -2], gb[-2, -1] = yb @ yb, yb @ ob
-                    gb[-1, -2], gb[-1, -1] = gb[-2, -1], ob @ ob
-                    g[j, bid[lo]][np.ix_(sup, sup)] += gb
+        for window in filter_windows(pc, interval):
+            tasks.append((pc, window, first))
+            first += len(range(window[0], window[1], interval))
+    slots = [np.zeros((n, k_blocks, width, width)) for _ in range(min(SLOTS, len(tasks)))]
+    rows = max((w[3] - w[2] for _, w, _ in tasks), default=0)
+    bufs: list[np.ndarray | None] = [None] * len(slots)  # one chunk buffer per slot
+    no_weight = np.ones((0, n))
+
+    def work(task: tuple[Piece, tuple[int, int, int, int, bool], int], slot: int) -> None:
+        pc, window, at = task
+        if bufs[slot] is None:
+            bufs[slot] = np.empty((rows, design.nnz))
+        c, y, idx = design_rows(design, pc, window, interval, bufs[slot])
+        bid = (np.arange(at, at + c.shape[0]) * k_blocks) // total
+        sw = np.sqrt(row_weight(c, y, idx)) if row_weight is not None else no_weight
+        _gram_serial(c, np.ascontiguousarray(y), np.ascontiguousarray(sw), bid, offsets,
+                     slots[slot])
+
+    in_slots(tasks, work)
+    bufs.clear()
+    gc = slots[0]
+    for extra in slots[1:]:
+        gc += extra
+    slots.clear()
+    g = np.zeros((n, k_blocks, p + 2, p + 2))
+    for j in range(n):
+        sup = np.concatenate((design.support[j], [p, p + 1]))
+        s = sup.size
+        upper = gc[j, :, :s, :s]
+        full = upper + np.triu(upper, 1).transpose(0, 2, 1)
+        g[j][np.ix_(np.arange(k_blocks), sup, sup)] = full
     return Grams(g, np.full(n, total))
+
+
+def _joint_parts(sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Joints split into as many groups as threads, of about equal work (size² each)."""
+    n_par = max(1, min(numba.get_num_threads(), sizes.size))
+    load = [0.0] * n_par
+    groups: list[list[int]] = [[] for _ in range(n_par)]
+    for j in np.argsort(-(sizes + 2.0) ** 2, kind="stable"):
+        k = int(np.argmin(load))
+        groups[k].append(int(j))
+        load[k] += (sizes[j] + 2.0) ** 2
+    ptr = np.cumsum([0] + [len(gr) for gr in groups]).astype(np.int64)
+    return np.array([j for gr in groups for j in gr], dtype=np.int64), ptr
+
+
+#: rows per tile of the Gram kernel (transposed into a small contiguous block)
+_TILE = 64
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
+def _gram_joint(c, y, sw, j, off, s, bid, g):
+    """Joint j's augmented rows [x, y, 1] (× √w when sw has rows) into g[block] (upper
+    triangle), tile by tile: a tile's rows transposed, then 2 × 2 dot products."""
+    m = c.shape[0]
+    width = s + 2
+    even = (width + 1) // 2 * 2
+    tt = np.zeros((even, _TILE))
+    weighted = sw.shape[0] > 0
+    r = 0
+    while r < m:
+        b = bid[r]
+        end = r
+        while end < m and bid[end] == b:
+            end += 1
+        gb = g[b]
+        for r0 in range(r, end, _TILE):
+            t = min(_TILE, end - r0)
+            for i in range(t):
+                w = sw[r0 + i, j] if weighted else 1.0
+                for q in range(s):
+                    tt[q, i] = c[r0 + i, off + q] * w if weighted else c[r0 + i, off + q]
+                tt[s, i] = y[r0 + i, j] * w if weighted else y[r0 + i, j]
+                tt[s + 1, i] = w
+            for i in range(t, _TILE):
+                for q in range(width):
+                    tt[q, i] = 0.0
+            for a in range(0, even, 2):
+                ta0, ta1 = tt[a], tt[a + 1]
+                for bb in range(a, even, 2):
+                    tb0, tb1 = tt[bb], tt[bb + 1]
+                    s00 = 0.0
+                    s01 = 0.0
+                    s10 = 0.0
+                    s11 = 0.0
+                    for i in range(_TILE):
+                        u0, u1, v0, v1 = ta0[i], ta1[i], tb0[i], tb1[i]
+                        s00 += u0 * v0
+                        s01 += u0 * v1
+                        s10 += u1 * v0
+                        s11 += u1 * v1
+                    gb[a, bb] += s00
+                    if bb + 1 < width:
+                        gb[a, bb + 1] += s01
+                    if a + 1 < width:
+                        if bb > a:  # on the diagonal it is s01's mirror
+                            gb[a + 1, bb] += s10
+                        if bb + 1 < width:
+                            gb[a + 1, bb + 1] += s11
+        r = end
+
+
+@numba.njit(cache=True, nogil=True)
+def _gram_serial(c, y, sw, bid, offsets, g):
+    """Every joint's rows of a chunk into its Grams g[j] (n, K, w, w), on this thread."""
+    for j in range(offsets.size - 1):
+        _gram_joint(c, y, sw, j, offsets[j], offsets[j + 1] - offsets[j], bid, g[j])
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _gram_kernel(c, y, sw, bid, offsets, parts, ptr, g):
+    """Every joint's rows of a chunk into its Grams g[j] (n, K, w, w); joint groups go to
+    threads (each joint's sums are the same whichever thread runs it)."""
+    for p in numba.prange(ptr.size - 1):
+        for k in range(ptr[p], ptr[p + 1]):
+            j = parts[k]
+            _gram_joint(c, y, sw, j, offsets[j], offsets[j + 1] - offsets[j], bid, g[j])
 
 
 #: relative eigenvalue floor of a column-scaled Gram (cond(X) up to 1e6 is kept)

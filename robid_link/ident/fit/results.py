@@ -14,9 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from robid_link.ident.data.preprocess import Prepared, Problem, noise_floor
-from robid_link.ident.fit.design import Design, design_chunks, predict_torque
-from robid_link.ident.model.regressor import rigid_regressor
+from robid_link.ident.data.preprocess import CHUNK, Prepared, Problem, noise_floor
+from robid_link.ident.fit.design import Design, predict_torque
+from robid_link.ident.model.dynamics import rigid_torque
+from robid_link.ident.model.threads import SLOTS, in_slots
 
 __all__ = ["ErrorStats", "Parameter", "IdentResult", "HeldOut", "evaluate_held_out",
            "StatsAccumulator", "TRACE_SAMPLES", "parameter_unit"]
@@ -56,6 +57,14 @@ class StatsAccumulator:
         self.count = 0
         self.norm_e = 0.0
         self.norm_tau = 0.0
+
+    def merge(self, other: StatsAccumulator) -> None:
+        """Add another accumulator's sums (chunks summed apart, then in order)."""
+        self.s1 += other.s1
+        self.s2 += other.s2
+        self.count += other.count
+        self.norm_e += other.norm_e
+        self.norm_tau += other.norm_tau
 
     def add(self, e: np.ndarray, tau: np.ndarray) -> None:
         self.s1 += e.sum(axis=0)
@@ -133,36 +142,63 @@ class HeldOut:
 
 def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> HeldOut:
     """One pass over the validation pieces: columns from the filtered states at the full
-    rate against the measured (unfiltered) torques."""
+    rate against the measured (unfiltered) torques. Chunks go to ``in_slots``; each chunk's
+    sums are kept and added in order (the same figures whatever the threads did)."""
     robot = problem.robot
     if not problem.valid:
         return HeldOut(None, None, [])
+    tasks = [(pc, a, min(a + CHUNK, pc.hi)) for pc in problem.valid
+             for a in range(pc.lo, pc.hi, CHUNK)]
+    # traces thinned as they stream: every step-th row of each file's validation rows
+    total: dict[str, int] = {}
+    for pc in problem.valid:
+        total[pc.prep.log.path] = total.get(pc.prep.log.path, 0) + len(pc)
+    firsts, seen = [], dict.fromkeys(total, 0)
+    for pc, a, b in tasks:
+        firsts.append(seen[pc.prep.log.path])
+        seen[pc.prep.log.path] += b - a
+    out: list[tuple[StatsAccumulator, StatsAccumulator | None, dict[str, np.ndarray]] | None]
+    out = [None] * len(tasks)
+    bufs: list[np.ndarray | None] = [None] * SLOTS
+
+    def work(k: int, slot: int) -> None:
+        pc, a, b = tasks[k]
+        if bufs[slot] is None:
+            bufs[slot] = np.empty((CHUNK, design.nnz))
+        st = pc.prep.states(a, b)
+        pred = design.predict(design.compact(st, bufs[slot]), theta)
+        tau = pc.prep.tau[a:b]
+        known = pc.prep.tau_known
+        if known is not None:  # known torques: subtracted from τ, added back to both
+            tau, pred = tau + known[a:b], pred + known[a:b]
+        acc = StatsAccumulator(robot.n)
+        acc.add(tau - pred, tau)
+        nom = None
+        if robot.nominal is not None:
+            pred_nom = rigid_torque(robot, st.q, st.qd, st.qdd, robot.nominal)
+            if known is not None:
+                pred_nom = pred_nom + known[a:b]
+            nom = StatsAccumulator(robot.n)
+            nom.add(tau - pred_nom, tau)
+        step = max(1, total[pc.prep.log.path] // TRACE_SAMPLES)
+        keep = (-firsts[k]) % step
+        out[k] = (acc, nom, {"t": pc.prep.log.t[a + keep:b:step], "tau": tau[keep::step],
+                             "pred": pred[keep::step]})
+
+    in_slots(range(len(tasks)), work)
     acc = StatsAccumulator(robot.n)
     nom = StatsAccumulator(robot.n) if robot.nominal is not None else None
     parts: dict[str, dict[str, list[np.ndarray]]] = {}
-    for pc in problem.valid:
-        known = pc.prep.tau_known
-        for c, tau, idx in design_chunks(design, pc, filtered=False):
-            pred = design.predict(c, theta)
-            if known is not None:  # known torques: subtracted from τ, added back to both
-                tau, pred = tau + known[idx], pred + known[idx]
-            acc.add(tau - pred, tau)
-            tr = parts.setdefault(pc.prep.log.path, {"t": [], "tau": [], "pred": []})
-            tr["t"].append(pc.prep.log.t[idx])
-            tr["tau"].append(tau)
-            tr["pred"].append(pred)
-            if nom is not None:
-                st = pc.prep.states(int(idx[0]), int(idx[-1]) + 1)
-                pred_nom = rigid_regressor(robot, st.q, st.qd, st.qdd) @ robot.nominal
-                if known is not None:
-                    pred_nom = pred_nom + known[idx]
-                nom.add(tau - pred_nom, tau)
-    traces = []
-    for path, tr in parts.items():
-        t = np.concatenate(tr["t"])
-        step = max(1, t.size // TRACE_SAMPLES)
-        traces.append({"file": path, "t": t[::step], "tau": np.concatenate(tr["tau"])[::step],
-                       "pred": np.concatenate(tr["pred"])[::step]})
+    for (pc, _, _), done in zip(tasks, out, strict=True):
+        assert done is not None
+        acc.merge(done[0])
+        if nom is not None and done[1] is not None:
+            nom.merge(done[1])
+        tr = parts.setdefault(pc.prep.log.path, {"t": [], "tau": [], "pred": []})
+        for key in ("t", "tau", "pred"):
+            tr[key].append(done[2][key])
+    traces = [{"file": path, **{key: np.concatenate(v) for key, v in tr.items()}}
+              for path, tr in parts.items()]
     return HeldOut(acc.stats(), None if nom is None else nom.stats(), traces)
 
 

@@ -12,27 +12,28 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 import pinocchio as pin
-import scipy.linalg as sla
 
 from robid_link.ident.model.robot import Robot
+from robid_link.ident.model.threads import kernel_threads
 
-__all__ = ["rigid_regressor", "reference_regressor", "BaseSet", "structural_base_set"]
+__all__ = ["rigid_regressor", "reference_regressor", "BaseSet", "structural_base_set",
+           "robot_arrays"]
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _regressor_kernel(q, qd, qdd, r0s, p0s, axes, revolute, parents, anc, gravity, dest, out,
-                      n_threads):
+                      n_threads, zero):
     """Split the samples over threads; each part has its own scratch space."""
     nsamp = q.shape[1]
     n_par = max(1, min(n_threads, nsamp // 256))
     for part in numba.prange(n_par):
         _regressor_part(q, qd, qdd, r0s, p0s, axes, revolute, parents, anc, gravity, dest, out,
-                        part * nsamp // n_par, (part + 1) * nsamp // n_par)
+                        part * nsamp // n_par, (part + 1) * nsamp // n_par, zero)
 
 
 @numba.njit(cache=True, nogil=True)
 def _regressor_part(q, qd, qdd, r0s, p0s, axes, revolute, parents, anc, gravity, dest,  # noqa: C901
-                    out, k0, k1):
+                    out, k0, k1, zero):
     """Newton–Euler regressor for samples [k0, k1): entry (row i, column c) of a sample goes
     to out[k, dest[i, c]] (skipped where dest is −1).
 
@@ -47,6 +48,9 @@ def _regressor_part(q, qd, qdd, r0s, p0s, axes, revolute, parents, anc, gravity,
     body = np.zeros((6, 10))
     src = np.zeros(6)
     for k in range(k0, k1):
+        if zero:  # the dense layout: entries no joint row reaches stay zero
+            for c in range(out.shape[1]):
+                out[k, c] = 0.0
         for j in range(n):
             u0, u1, u2 = axes[j, 0], axes[j, 1], axes[j, 2]
             par = parents[j]
@@ -167,20 +171,36 @@ def _regressor_part(q, qd, qdd, r0s, p0s, axes, revolute, parents, anc, gravity,
             body[5, 7] = a0 - w1 * w2
             body[5, 8] = a1 + w0 * w2
             body[5, 9] = a2
+            # row i of the block: s_iᵀ·A, over A's structural non-zeros only (the mass
+            # column has no moment rows, the inertia columns no force rows): the same sums
             for i in range(j + 1):
                 if not anc[j, i]:
                     continue
-                for col in range(10):
-                    d = dest[i, 10 * j + col]
-                    if d < 0:
-                        continue
-                    acc_v = 0.0
-                    for a in range(6):
-                        acc_v += s_ax[j, i, a] * body[a, col]
-                    out[k, d] = acc_v
+                s0, s1, s2 = s_ax[j, i, 0], s_ax[j, i, 1], s_ax[j, i, 2]
+                s3, s4, s5 = s_ax[j, i, 3], s_ax[j, i, 4], s_ax[j, i, 5]
+                base = 10 * j
+                d = dest[i, base]
+                if d >= 0:
+                    out[k, d] = s0 * body[0, 0] + s1 * body[1, 0] + s2 * body[2, 0]
+                d = dest[i, base + 1]
+                if d >= 0:
+                    out[k, d] = s0 * body[0, 1] + s1 * body[1, 1] + s2 * body[2, 1] \
+                        + s4 * body[4, 1] + s5 * body[5, 1]
+                d = dest[i, base + 2]
+                if d >= 0:
+                    out[k, d] = s0 * body[0, 2] + s1 * body[1, 2] + s2 * body[2, 2] \
+                        + s3 * body[3, 2] + s5 * body[5, 2]
+                d = dest[i, base + 3]
+                if d >= 0:
+                    out[k, d] = s0 * body[0, 3] + s1 * body[1, 3] + s2 * body[2, 3] \
+                        + s3 * body[3, 3] + s4 * body[4, 3]
+                for col in range(4, 10):
+                    d = dest[i, base + col]
+                    if d >= 0:
+                        out[k, d] = s3 * body[3, col] + s4 * body[4, col] + s5 * body[5, col]
 
 
-def _robot_arrays(robot: Robot) -> tuple[np.ndarray, ...]:
+def robot_arrays(robot: Robot) -> tuple[np.ndarray, ...]:
     n = robot.n
     r0s = np.array([np.array(pl.rotation) for pl in robot.placements]).reshape(n, 3, 3)
     p0s = np.array([np.array(pl.translation) for pl in robot.placements]).reshape(n, 3)
@@ -208,19 +228,22 @@ def rigid_regressor(
     """
     q, qd, qdd = (np.ascontiguousarray(np.atleast_2d(x), dtype=float).T for x in (q, qd, qdd))
     n, nsamp = q.shape
+    dense = dest is None
     if dest is None:
         dest = np.arange(n * 10 * n, dtype=np.int64).reshape(n, 10 * n)
         if out is None:
-            out = np.zeros((nsamp, n, 10 * n))
-        else:
-            out[...] = 0.0
+            out = np.empty((nsamp, n, 10 * n))
         flat = out.reshape(nsamp, n * 10 * n)
     else:
         if out is None:
             raise ValueError("rigid_regressor: a compact dest needs an out array")
         flat = out
-    _regressor_kernel(q, qd, qdd, *_robot_arrays(robot), np.ascontiguousarray(dest, np.int64),
-                      flat, numba.get_num_threads())
+    args = (q, qd, qdd, *robot_arrays(robot), np.ascontiguousarray(dest, np.int64), flat)
+    threads = kernel_threads()
+    if threads == 1:
+        _regressor_part(*args, 0, nsamp, dense)
+    else:
+        _regressor_kernel(*args, threads, dense)
     return out
 
 
@@ -296,7 +319,7 @@ def structural_base_set(
     norms = np.linalg.norm(w, axis=0)
     live = [i for i in order if norms[i] > tol * max(1.0, norms.max())]
     wn = w[:, live] / norms[live]
-    r = sla.qr(wn, mode="r", check_finite=False)[0]
+    r = np.linalg.qr(wn, mode="r")
     diag = np.abs(np.diag(r))
     indep = [live[k] for k in range(len(live)) if diag[k] > 1e-7]
     dep = [i for i in range(p) if i not in indep]

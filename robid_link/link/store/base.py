@@ -1,5 +1,5 @@
 """The store's interface: every operation the daemon, the campaigns, the cycle and the
-operator commands use, async and backend-neutral (SQLite today, PostgreSQL next).
+operator commands use, async and backend-neutral (a cell's SQLite, a plant's PostgreSQL).
 
 What a store keeps, and the guarantees every backend gives:
 
@@ -16,7 +16,10 @@ What a store keeps, and the guarantees every backend gives:
   **approvals** of programs by hash, **parameter sets** (``sha256``, ``robot``, ``version``,
   ``run_id``, ``created``, ``body`` (bytes), ``approved``, ``approved_by``) and their
   **uploads** (``seq``, ``robot``, ``sha256``, ``time``, ``run_id``, ``state``, ``error``).
-- One daemon per store and robot (``StoreLockedError``); a full disk is ``StoreFullError``
+- A store opened for a robot is that robot's view of a shared database: its runs, logs,
+  programs and approvals; every row it writes names the robot. The **robots** directory holds
+  each robot's type, description and the daemon that holds it.
+- One daemon per state dir and robot (``StoreLockedError``); a full disk is ``StoreFullError``
   (the run waits; nothing stored is lost); an unknown run or experiment is ``ConfigError``.
 
 Rows cross the interface as plain dicts (JSON-able but for ``body``), never a backend's row
@@ -34,8 +37,8 @@ from typing import Any, Self
 from robid_link.exceptions import ConfigError
 from robid_link.jobs import MotionProgram
 
-__all__ = ["AsyncStore", "RUN_STATES", "STEP_FIELDS", "log_file", "pick_param_set",
-           "acknowledged_sets"]
+__all__ = ["AsyncStore", "RUN_STATES", "STEP_FIELDS", "log_file", "log_url", "is_url",
+           "pick_param_set", "acknowledged_sets"]
 
 RUN_STATES = ("queued", "running", "completed", "failed", "cancelled")
 #: the columns of an experiment a step may set
@@ -46,6 +49,18 @@ STEP_FIELDS = frozenset({"attempt", "nonce", "program_sha", "done_sha", "done_si
 def log_file(folder: Path, sha: str) -> Path:
     """Where the raw log of SHA-256 ``sha`` lives under a store's ``folder``."""
     return folder / "logs" / sha[:2] / f"{sha}.csv"
+
+
+def is_url(location: str) -> bool:
+    """An fsspec URL (``s3://…``, ``file://…``) rather than a folder."""
+    return "://" in location
+
+
+def log_url(location: str, sha: str) -> str:
+    """Where the raw log ``sha`` is, given its row's ``location`` (a folder or a URL)."""
+    if is_url(location):
+        return f"{location.rstrip('/')}/logs/{sha[:2]}/{sha}.csv"
+    return str(log_file(Path(location), sha))
 
 
 def pick_param_set(sets: Sequence[dict[str, Any]], robot: str, ref: str) -> dict[str, Any]:
@@ -100,6 +115,13 @@ class AsyncStore(abc.ABC):
     @abc.abstractmethod
     async def require_space(self, need_bytes: int = 0, what: str = "a new run") -> None:
         """StoreFullError (before any motion) unless ``need_bytes`` fit above the reserve."""
+
+    # ----------------------------------------------------------------- robots
+    @abc.abstractmethod
+    async def register_robot(self, robot_type: str, description_name: str, description: bytes,
+                             lock: tuple[str, ...] = ()) -> None:
+        """What the store's robot is: its type (the description's name) and description (what
+        a fleet re-identification loads)."""
 
     # ----------------------------------------------------------------- runs
     @abc.abstractmethod
@@ -194,13 +216,15 @@ class AsyncStore(abc.ABC):
     # ----------------------------------------------------------------- results
     @abc.abstractmethod
     async def add_result(self, run_id: str, robot: str, kind: str,
-                         record: dict[str, Any]) -> None:
-        """A run's result of ``kind`` (replacing an earlier one of the same run and kind)."""
+                         record: dict[str, Any], *, model_version: str = "") -> None:
+        """A run's result of ``kind`` (replacing an earlier one of the same run, kind and
+        model version: ``''`` is the run's own model, another a fleet re-identification)."""
 
     @abc.abstractmethod
-    async def results(self, robot: str | None = None, run_id: str | None = None
-                      ) -> list[dict[str, Any]]:
-        """Results (of a robot, of a run) in the order they were stored."""
+    async def results(self, robot: str | None = None, run_id: str | None = None,
+                      model_version: str | None = "") -> list[dict[str, Any]]:
+        """Results (of a robot, of a run; of the runs' own model, of a model version, or all
+        with None) in the order they were stored."""
 
     # ----------------------------------------------------------------- parameter sets
     @abc.abstractmethod

@@ -1,6 +1,8 @@
 """The cell's own files beside any store backend: raw logs and programs, content-addressed,
-each written and fsynced before the row that names it. Blocking: a store calls these on its
-own thread, never on the event loop."""
+each written and fsynced before the row that names it. A plant may keep the raw logs centrally
+(``log_store``: a mounted folder, written in place, or an fsspec URL, written beside the cell's
+own copy); the store's row says where. Blocking: a store calls these on its own thread, never
+on the event loop."""
 
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ from pathlib import Path
 from robid_link.atomic import atomic_write, fsync_dir
 from robid_link.exceptions import ConfigError, RobidError, StoreFullError
 from robid_link.jobs import MotionProgram
-from robid_link.link.store.base import log_file
+from robid_link.link.store.base import is_url, log_file, log_url
 
 __all__ = ["CellFiles", "FULL_ERRNOS"]
 
@@ -23,10 +25,15 @@ FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
 
 class CellFiles:
     """``logs/<sha[:2]>/<sha>.csv`` and ``programs/<sha>/`` under ``folder``; ``reports/``
-    for the worker's report files."""
+    for the worker's report files. ``log_store``: a folder that holds the logs instead, or an
+    fsspec URL that gets a copy of each before its row (``location`` says which)."""
 
-    def __init__(self, folder: Path) -> None:
+    def __init__(self, folder: Path, log_store: str | None = None) -> None:
         self.dir = folder
+        self.remote = log_store if log_store and is_url(log_store) else None
+        self.log_dir = Path(log_store) if log_store and not self.remote else folder
+        #: where the store says this cell's logs are
+        self.location = self.remote or str(self.log_dir)
 
     def prepare(self) -> None:
         """The folder and its sub-folders, made when missing (ConfigError names the folder)."""
@@ -36,10 +43,19 @@ class CellFiles:
                 (self.dir / sub).mkdir(exist_ok=True)
         except OSError as err:
             raise ConfigError(f"state_dir: {self.dir}: {err.strerror}") from err
+        try:
+            (self.log_dir / "logs").mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise ConfigError(f"log_store: {self.log_dir}: {err.strerror}") from err
 
     def free_bytes(self) -> int:
+        """Free bytes where the raw logs are written (the lesser of the two folders)."""
         st = os.statvfs(self.dir)
-        return st.f_bavail * st.f_frsize
+        free = st.f_bavail * st.f_frsize
+        if self.log_dir != self.dir:
+            lg = os.statvfs(self.log_dir)
+            free = min(free, lg.f_bavail * lg.f_frsize)
+        return free
 
     def full(self, err: BaseException) -> StoreFullError:
         return StoreFullError(f"state_dir: {self.dir}: disk full while writing "
@@ -47,10 +63,11 @@ class CellFiles:
 
     # ----------------------------------------------------------------- raw logs
     def log_path(self, sha: str) -> Path:
-        return log_file(self.dir, sha)
+        return log_file(self.log_dir, sha)
 
     def write_log(self, data: bytes) -> str:
-        """The log's file under its SHA-256, durable (a new fan-out folder too); idempotent."""
+        """The log's file under its SHA-256, durable (a new fan-out folder too), and its copy
+        in the remote log store; idempotent."""
         sha = hashlib.sha256(data).hexdigest()
         path = self.log_path(sha)
         try:
@@ -63,7 +80,25 @@ class CellFiles:
             if err.errno in FULL_ERRNOS:
                 raise self.full(err) from err
             raise
+        if self.remote:
+            self._upload(sha, data)
         return sha
+
+    def _upload(self, sha: str, data: bytes) -> None:
+        """The log's copy at the remote log store (an object store's PUT is durable when it
+        returns); an existing copy of the same size is kept."""
+        import fsspec  # type: ignore[import-untyped]
+
+        assert self.remote is not None
+        url = log_url(self.remote, sha)
+        try:
+            fs, path = fsspec.core.url_to_fs(url)
+            if not (fs.exists(path) and fs.size(path) == len(data)):
+                fs.makedirs(path.rsplit("/", 1)[0], exist_ok=True)
+                fs.pipe_file(path, data)
+        except (OSError, ValueError, ImportError) as err:
+            raise RobidError(f"log_store: {self.remote}: cannot write log {sha[:12]} "
+                             f"({type(err).__name__}: {err})") from err
 
     def check_log(self, sha: str) -> Path:
         """The stored log's path after re-hashing it (a damaged file is an error)."""

@@ -1,0 +1,57 @@
+"""How the numerical kernels share the cores: a pass over a long log runs its chunks in
+``SLOTS`` slots, each on a thread of its own with serial kernels (no barrier per kernel call,
+no two threads writing one row); outside a slot a kernel uses numba's threads itself.
+
+Slot k takes chunks k, k + SLOTS, … in order, whatever the machine: what a slot sums up is
+the same on every run, so results do not depend on the scheduler or the number of cores.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import TypeVar
+
+import numba
+
+__all__ = ["SLOTS", "in_slots", "kernel_threads"]
+
+#: slots of a pass (the machine's two cores)
+SLOTS = 2
+
+T = TypeVar("T")
+_local = threading.local()
+
+
+def kernel_threads() -> int:
+    """Threads a kernel may use here: 1 inside a slot, else numba's."""
+    return 1 if getattr(_local, "serial", False) else numba.get_num_threads()
+
+
+def in_slots(tasks: Sequence[T], work: Callable[[T, int], None], slots: int = SLOTS) -> None:
+    """``work(task, slot)`` for every task, slot k taking tasks k, k + slots, … in order on
+    a thread of its own (one thread, the caller's, when there is one task or one core).
+    The first error raised in a slot is raised here, after every slot stopped."""
+    if len(tasks) <= 1 or slots <= 1 or numba.get_num_threads() <= 1:
+        for i, task in enumerate(tasks):
+            _serial(work, task, i % slots)
+        return
+
+    def run(slot: int) -> None:
+        for task in tasks[slot::slots]:
+            _serial(work, task, slot)
+
+    with ThreadPoolExecutor(max_workers=slots, thread_name_prefix="robid-slot") as pool:
+        futures = [pool.submit(run, k) for k in range(slots)]
+        for f in futures:
+            f.result()
+
+
+def _serial(work: Callable[[T, int], None], task: T, slot: int) -> None:
+    before = getattr(_local, "serial", False)
+    _local.serial = True
+    try:
+        work(task, slot)
+    finally:
+        _local.serial = before
