@@ -64,20 +64,21 @@ def after_upload(camp: CampaignDef, exp_id: str) -> bool:
 def check_capabilities(cfg: DaemonConfig, driver: Driver) -> None:
     """Refuse, before anything moves, a campaign that needs what the driver cannot do (an
     upload of the identified parameters needs ``CAP_UPLOAD``)."""
+    for name in cfg.campaigns:
+        refusal = _capability_refusal(cfg, name, driver)
+        if refusal:
+            raise ConfigError(f"{cfg.path}: {refusal}")
+
+
+def _capability_refusal(cfg: DaemonConfig, name: str, driver: Driver) -> str | None:
+    """Why campaign ``name`` needs what the driver cannot do, or None (the daemon's start and
+    ``robid config check`` say it in the same words)."""
     caps = frozenset(driver.capabilities)
-    for name, camp in cfg.campaigns.items():
-        if camp.upload and CAP_UPLOAD not in caps:
-            raise ConfigError(f"{cfg.path}: campaigns.{name}.upload: driver {driver.name!r} "
-                              f"cannot upload parameters (capabilities: "
-                              f"{', '.join(sorted(caps)) or 'none'}); set upload: false or "
-                              "use a driver that can")
-
-
-def _check_driver_caps(cfg: DaemonConfig, name: str, caps: frozenset[str], driver: str
-                       ) -> None:
     if cfg.campaigns[name].upload and CAP_UPLOAD not in caps:
-        raise ConfigError(f"campaigns.{name}.upload: driver {driver!r} cannot upload "
-                          "parameters; set upload: false or use a driver that can")
+        return (f"campaigns.{name}.upload: driver {driver.name!r} cannot upload parameters "
+                f"(capabilities: {', '.join(sorted(caps)) or 'none'}); set upload: false or "
+                "use a driver that can")
+    return None
 
 
 def _model_job(cfg: DaemonConfig, name: str) -> jb.ModelCheckJob:
@@ -122,7 +123,9 @@ def check_config(cfg: DaemonConfig, driver: Driver) -> dict[str, str | None]:
     verdict: dict[str, str | None] = {}
     for name in cfg.campaigns:
         try:
-            _check_driver_caps(cfg, name, frozenset(driver.capabilities), driver.name)
+            refusal = _capability_refusal(cfg, name, driver)
+            if refusal:
+                raise ConfigError(refusal)
             run_here(_model_job(cfg, name))
             for exp_id, exp, slow in plan(cfg.campaigns[name]):
                 run_here(_program_job(cfg, exp_id, exp, slow))
@@ -452,8 +455,6 @@ async def upload_set(store: AsyncStore, driver: Driver, robot: str, sha: str, ru
         raise ApprovalError(f"unattended upload refused: parameter set {row['version']} of "
                             f"{robot} ({sha[:12]}) is not approved; run: robid params approve "
                             f"{row['version']} --robot {robot} --config C")
-    import json
-
     await store.record_upload(robot, sha, run_id, "sent")
     try:
         await driver.upload_parameters(json.loads(row["body"]), timeout_s=timeout_s)
