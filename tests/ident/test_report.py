@@ -182,3 +182,18 @@ def test_write_html_report_into_a_file_or_a_folder(job_report, tmp_path):
     job, _, _ = job_report
     assert write_html_report(tmp_path / "a", result=job.result) == tmp_path / "a" / "report.html"
     assert write_html_report(tmp_path / "b.html", result=job.result) == tmp_path / "b.html"
+
+
+def test_every_function_of_the_report_script_is_used():
+    """A helper nobody calls (``caption`` was one) is dead weight in every report file."""
+    import re
+    from pathlib import Path
+
+    import robid_link.ident.report as report_pkg
+
+    js = (Path(report_pkg.__file__).parent / "static" / "report.js").read_text()
+    declared = re.findall(r"\bfunction\s+([A-Za-z_$][\w$]*)\s*\(", js)
+    declared += re.findall(r"\bconst\s+([A-Za-z_$][\w$]*)\s*=\s*(?:\([^)]*\)|\w+)\s*=>", js)
+    assert declared
+    unused = [n for n in declared if len(re.findall(rf"(?<![\w$.]){re.escape(n)}\b", js)) < 2]
+    assert not unused, unused
