@@ -29,7 +29,7 @@ from typing import Any
 from robid_link.exceptions import ConfigError
 
 __all__ = ["Options", "Values", "Option", "REQUIRED", "Integer", "Number", "Flag", "Text",
-           "Choice", "Vector", "Table", "File", "Folder", "Secret"]
+           "Choice", "Vector", "Table", "File", "Folder", "Secret", "Retired"]
 
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 _SHOWN = 60  # characters of a refused value shown in a message
@@ -210,6 +210,18 @@ class Table(Option):
         if not isinstance(value, Mapping):
             raise self.refuse(key, value)
         return dict(value)
+
+
+class Retired(Option):
+    """An option a driver no longer reads: given, it is refused in one line saying ``why``
+    (never accepted and ignored, which would hide that the config says something untrue)."""
+
+    def __init__(self, why: str) -> None:
+        super().__init__(None)
+        self.why = why
+
+    def convert(self, key: str, value: Any) -> Any:
+        raise ConfigError(f"{key}: no longer used ({self.why}); remove it from the config")
 
 
 class _PathOption(Option):
