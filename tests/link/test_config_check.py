@@ -296,3 +296,21 @@ def test_a_folder_the_driver_makes_may_be_missing(tmp_path):
     found = daemon_findings(cfg, opts)
     assert found[-1].line == (f"driver.record_dir: {tmp_path / 'rec' / 'a'}: cannot be created: "
                               f"{tmp_path / 'rec'} is not a folder")
+
+
+def test_config_check_and_the_start_refuse_an_upload_in_the_same_words(tmp_path, capsys):
+    """One capability check: config check's line is the daemon's refusal without the path."""
+    cfg = write_config(tmp_path, {"one": ONE, "up": {**ONE, "identify": True, "upload": True}})
+    _edit(cfg, driver={"name": "ur_rtde", "host": "127.0.0.1"})
+    rc, lines, _ = config_check(cfg, capsys)
+    assert rc == 1
+    line = next(ln for ln in lines if ln.startswith("up: "))
+    assert line.startswith("up: campaigns.up.upload: driver 'ur_rtde' cannot upload parameters "
+                           "(capabilities: "), line
+    from robid_link.link.campaign import check_capabilities
+    from robid_link.link.registry import make_driver
+
+    with pytest.raises(ConfigError) as err:
+        check_capabilities(load_daemon_config(cfg), make_driver({"name": "ur_rtde",
+                                                                 "host": "127.0.0.1"}))
+    assert str(err.value) == f"{cfg}: {line.removeprefix('up: ')}"
