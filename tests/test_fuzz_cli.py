@@ -68,7 +68,8 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     return {"robot": ARM3, "log": work / "log.csv", "traj": work / "traj.csv",
             "model": work / "model.yaml", "truth": work / "truth.yaml",
             "steps": work / "steps.yaml", "share": work / "share",
-            "config": work / "daemon.yaml", "stored": work / "stored.yaml", "work": work}
+            "config": work / "daemon.yaml", "stored": work / "stored.yaml",
+            "storedir": work / "stored", "work": work}
 
 
 def _config(work: Path) -> dict[str, Any]:
@@ -168,6 +169,9 @@ COMMANDS: dict[str, tuple[list[str], dict[str, tuple[str, ...]]]] = {
     "params": (["params", "show", "--config", "{config}", "--robot", "arm3"],
                {"config": _YAML}),
     "web": (["web", "--config", "{config}"], {"config": _YAML}),
+    # a valid model would reach the (empty) store: another kind of YAML may be a model
+    "fleet reidentify": (["fleet", "reidentify", "--store", "{storedir}", "--model", "{model}"],
+                         {"model": ("suffix", "other kind")}),
 }
 
 

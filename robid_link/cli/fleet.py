@@ -133,9 +133,12 @@ def _reidentify(args: argparse.Namespace) -> int:
         plan_jobs,
         reidentify,
     )
+    from robid_link.jobs import ModelCheckJob
+    from robid_link.link.worker import run_here
 
     since = parse_since(args.since) if args.since else None
     model = Path(args.model)
+    run_here(ModelCheckJob(str(model), ()))  # the model file, checked before any task starts
     if args.version is not None and not args.version.strip():
         raise RobidError("--version: expected a name")
     with _open_store(args.store, write=True) as store:
