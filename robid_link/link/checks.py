@@ -14,7 +14,7 @@ import hashlib
 import os
 import stat
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -110,11 +110,13 @@ def _option_paths(options: Mapping[str, Option], given: Mapping[str, Any]
             and given[key]]
 
 
-def daemon_findings(cfg: DaemonConfig, driver_options: Mapping[str, Option] | None = None
+def daemon_findings(cfg: DaemonConfig,
+                    driver_options: Mapping[str, Option] | Collection[str] | None = None
                     ) -> list[Finding]:
     """The paths the whole daemon needs: the robot file, the state_dir and a log_store folder
     (writable), the control socket (its folder writable, nothing else in its place) and the
-    driver's files and folders (``driver_options``: the driver class's ``options``)."""
+    driver's files and folders (``driver_options``: the driver class's ``options``; a plain
+    set of names declares none)."""
     out = []
     problem = _readable(cfg.robot, "robot description")
     if problem:
@@ -129,7 +131,9 @@ def daemon_findings(cfg: DaemonConfig, driver_options: Mapping[str, Option] | No
     problem = _socket_problem(cfg.control_socket)
     if problem:
         out.append(Finding("control_socket", f"control_socket: {cfg.control_socket}: {problem}"))
-    for key, path, spec in _option_paths(driver_options or {}, cfg.driver):
+    # a plug-in may still declare its options as a set of names: no paths known then
+    specs = driver_options if isinstance(driver_options, Mapping) else {}
+    for key, path, spec in _option_paths(specs, cfg.driver):
         if isinstance(spec, File):
             problem = _readable(path, "file")
         elif not path.is_dir() and not (isinstance(spec, Folder) and spec.created):

@@ -314,3 +314,9 @@ def test_config_check_and_the_start_refuse_an_upload_in_the_same_words(tmp_path,
         check_capabilities(load_daemon_config(cfg), make_driver({"name": "ur_rtde",
                                                                  "host": "127.0.0.1"}))
     assert str(err.value) == f"{cfg}: {line.removeprefix('up: ')}"
+
+
+def test_a_plug_in_declaring_option_names_only_is_checked_without_its_paths(tmp_path):
+    """``options = frozenset({...})`` (the older plug-in form) has no path specs: no crash."""
+    cfg = load_daemon_config(write_config(tmp_path, {"one": ONE}))
+    assert daemon_findings(cfg, frozenset({"share"})) == []
