@@ -94,8 +94,9 @@ def test_status_and_results_read_the_plant_store(plant_url: tuple[str, dict]) ->
     (["status", "--store", "postgresql://robid:hunter2@h/robid"], "the URL holds a password"),
     (["status", "--store", ""], "--store '': expected postgresql://USER@HOST:PORT/DB or a "),
     (["results", "--store", "/dev/null"], "--store /dev/null: not a folder"),
+    (["results", "--store", "/nonexistent/robid"], "--store /nonexistent/robid: no such folder"),
     (["fleet", "reidentify", "--store", "/nonexistent/robid", "--model", "m.yaml"],
-     "--store /nonexistent/robid: no such folder"),
+     "m.yaml: model file not found"),  # checked before any store or task
 ])
 def test_bad_inputs_are_one_line(args: list[str], message: str) -> None:
     out = robid(*args)
