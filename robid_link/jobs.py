@@ -546,6 +546,11 @@ class VerifyJob(Job):
     robot: str
     lock: tuple[str, ...]
     runs: tuple[VerifyRun, ...]
+    #: the run's report folder: its report.html gains the tracking section (None: no report)
+    report_dir: str | None = None
+    #: the daemon run and campaign the report names
+    run_id: str | None = None
+    campaign: str | None = None
 
 
 @dataclass(frozen=True)
@@ -572,6 +577,11 @@ class ElasticityJob(Job):
     robot: str
     lock: tuple[str, ...]
     runs: tuple[ElasticityRun, ...]
+    #: the run's report folder: its report.html gains the Bode section (None: no report)
+    report_dir: str | None = None
+    #: the daemon run and campaign the report names
+    run_id: str | None = None
+    campaign: str | None = None
 
 
 @dataclass(frozen=True)

@@ -148,7 +148,16 @@ def verify(job: jb.VerifyJob) -> jb.VerifyOutcome:
         res = tracking(robot, ref, log.t, log.q, f"verification log {run_.log}")
         records.append({"kind": "verify", "experiment": run_.exp_id, "phase": run_.phase,
                         "robot": robot.name, "tracking": res.as_dict()})
+    if job.report_dir:
+        from robid_link.ident.report.html import add_to_report
+
+        add_to_report(job.report_dir, robot=robot, run=_run(job),
+                      tracking={r["phase"]: r["tracking"] for r in records})
     return jb.VerifyOutcome(robot.name, tuple(records))
+
+
+def _run(job: jb.VerifyJob | jb.ElasticityJob) -> dict[str, Any] | None:
+    return {"run_id": job.run_id, "campaign": job.campaign} if job.run_id else None
 
 
 def elasticity(job: jb.ElasticityJob) -> jb.ElasticityOutcome:
@@ -157,7 +166,7 @@ def elasticity(job: jb.ElasticityJob) -> jb.ElasticityOutcome:
     from robid_link.ident.elastic.frequency import excited_axes
 
     robot = _robot(job.robot, job.lock)
-    results = []
+    results, fits = [], []
     for run_ in job.runs:
         schedule = run_.program.trajectory().header.get("schedule")
         joints, pairs = excited_axes(schedule or [])
@@ -168,6 +177,11 @@ def elasticity(job: jb.ElasticityJob) -> jb.ElasticityOutcome:
         for j in doc.get("joints", []):
             j["measures"] = {"experiment": run_.exp_id, "kind": "elasticity"}
         results.append({"experiment": run_.exp_id, "result": doc})
+        fits.append(res)
+    if job.report_dir and fits:
+        from robid_link.ident.report.html import add_to_report
+
+        add_to_report(job.report_dir, robot=robot, run=_run(job), elasticity=fits)
     return jb.ElasticityOutcome(robot.name, tuple(results))
 
 

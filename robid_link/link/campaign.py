@@ -274,8 +274,8 @@ async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx:
             await cycle(k, exp_id, program)
         await _tracking(cfg, store, ctx, run_id, camp, [(e, p, shas[e]) for e, p in programs
                                                         if kinds.get(e) == "verify"])
-        await _elasticity(cfg, store, ctx, run_id, [(e, p, shas[e]) for e, p in programs
-                                                    if kinds.get(e) == "elasticity"])
+        await _elasticity(cfg, store, ctx, run_id, camp, [(e, p, shas[e]) for e, p in programs
+                                                          if kinds.get(e) == "elasticity"])
     except StoreFullError:
         raise  # not the run's fault: it waits, journaled as it is, until space returns
     except RobidError as err:
@@ -387,7 +387,8 @@ async def _tracking(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
         return "after" if camp.upload else "check"
 
     job = jb.VerifyJob(str(cfg.robot), cfg.lock, tuple([
-        jb.VerifyRun(e, phase(e), str(await store.check_log(sha)), p) for e, p, sha in runs]))
+        jb.VerifyRun(e, phase(e), str(await store.check_log(sha)), p) for e, p, sha in runs]),
+        report_dir=str(store.dir / "reports" / run_id), run_id=run_id, campaign=camp.name)
     out: jb.VerifyOutcome = await run_in_worker(ctx, job)
     for rec in map(dict, out.records):
         rec["run_id"] = run_id
@@ -426,13 +427,14 @@ def feedforward_source(cfg: DaemonConfig, ctx: Any) -> FeedforwardSource:
 
 
 async def _elasticity(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
-                      runs: list[tuple[str, MotionProgram, str]]) -> None:
+                      camp: CampaignDef, runs: list[tuple[str, MotionProgram, str]]) -> None:
     """Two-mass fits of each elasticity experiment (its schedule from the program header)."""
     if not runs:
         return
     await store.set_run(run_id, "running", step="elasticity")
     job = jb.ElasticityJob(str(cfg.robot), cfg.lock, tuple([
-        jb.ElasticityRun(e, str(await store.check_log(sha)), p) for e, p, sha in runs]))
+        jb.ElasticityRun(e, str(await store.check_log(sha)), p) for e, p, sha in runs]),
+        report_dir=str(store.dir / "reports" / run_id), run_id=run_id, campaign=camp.name)
     out: jb.ElasticityOutcome = await run_in_worker(ctx, job)
     rec = {"kind": "elasticity", "run_id": run_id, "robot": out.robot,
            "experiments": [dict(r) for r in out.results]}

@@ -81,5 +81,9 @@ def params_page(view: dict[str, Any], ctx: dict[str, Any]) -> str:
     return _render("params.html.j2", ctx, view=view)
 
 
+def fleet_page(view: dict[str, Any], ctx: dict[str, Any]) -> str:
+    return _render("fleet.html.j2", ctx, view=view)
+
+
 def message_page(doc: dict[str, Any]) -> str:
     return _render("message.html.j2", {}, doc=doc)

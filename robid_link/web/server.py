@@ -166,6 +166,12 @@ class _App:
             return web.json_response(view)
         return _html(pages.params_page(view, self._context(request)))
 
+    async def fleet(self, request: web.Request) -> web.StreamResponse:
+        view = await self.read(views.fleet_page_view)
+        if request.path.startswith("/api/"):
+            return web.json_response(view)
+        return _html(pages.fleet_page(view, self._context(request)))
+
     # ----------------------------------------------------------------- actions
     async def act(self, request: web.Request) -> web.StreamResponse:
         name = request.match_info["action"]
@@ -267,6 +273,7 @@ def make_app(cfg: DaemonConfig, robot: str, *, actions: Actions | None = None,
                     web.get("/compare", h.compare), web.get("/api/compare", h.compare),
                     web.get("/trend", h.trend), web.get("/api/trend", h.trend),
                     web.get("/params", h.params), web.get("/api/params", h.params),
+                    web.get("/fleet", h.fleet), web.get("/api/fleet", h.fleet),
                     web.post("/actions/{action}", h.act)])
     return app
 

@@ -188,3 +188,17 @@ def robots_in(store: Store, default: str) -> list[str]:
     except RobidError:
         found = set()
     return [default, *sorted(found - {default})]
+
+
+def fleet_page_view(store: Store) -> dict[str, Any]:
+    """The plant's robots in this store (``robid fleet``'s report, computed here): per robot
+    and model version its runs, latest parameters and drift flags; outliers per robot type.
+    A store without robots yet gives an empty report, not an error."""
+    from robid_link.fleet.analysis import fleet_view
+
+    try:
+        return fleet_view(store)
+    except RobidError as err:
+        return {"format": None, "store": store.where, "robots": [], "types": [], "flags": [],
+                "outliers": [], "empty": str(err)}
+

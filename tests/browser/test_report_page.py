@@ -3,6 +3,7 @@ is fetched, zoom is shared by every joint, and decimation keeps every extreme.""
 
 from __future__ import annotations
 
+import math
 import warnings
 from pathlib import Path
 
@@ -32,11 +33,15 @@ RIPPLE = {"name": "ripple", "joint": 1, "amplitude": 0.6, "period": 0.1}
 #: what every identify + diagnose report holds (at least)
 NAMES = {"measured-vs-model", "residual", "residual-vs-q", "residual-vs-qd",
          "residual-histogram", "residual-acf", "residual-ccf", "parameters", "diagnosis",
-         "evidence", "ladder", "tracking", "robot", "errors", "files", "joints"}
+         "evidence", "ladder", "tracking", "tracking-trace", "robot", "errors", "files",
+         "joints"}
+_T = [0.01 * k for k in range(400)]
 TRACKING = {"before": {"joint_rms": [2e-3, 1e-3, 1e-3], "joint_max": [6e-3, 3e-3, 3e-3],
-                       "tool_rms_mm": 0.4, "tool_max_mm": 1.4, "residual_mm": 0.5},
+                       "tool_rms_mm": 0.4, "tool_max_mm": 1.4, "residual_mm": 0.5,
+                       "trace": {"t": _T, "mm": [1.4 * abs(math.sin(t)) for t in _T]}},
             "after": {"joint_rms": [3e-4, 2e-4, 2e-4], "joint_max": [9e-4, 6e-4, 6e-4],
-                      "tool_rms_mm": 0.05, "tool_max_mm": 0.16, "residual_mm": 0.11}}
+                      "tool_rms_mm": 0.05, "tool_max_mm": 0.16, "residual_mm": 0.11,
+                      "trace": {"t": _T[:-5], "mm": [0.16 * abs(math.sin(t)) for t in _T[:-5]]}}}
 
 #: per [data-figure] element: what it drew (table rows, SVG shapes, inked canvas pixels and
 #: finite points of its plots, or text)

@@ -59,6 +59,7 @@ def test_a_runs_page_is_its_report(page, site):
     ("compare?a=robot:arm3&b=robot:arm3", {"compare-sides", "compare-errors",
                                            "compare-parameters"}),
     ("params", {"params"}),
+    ("fleet", {"fleet-robots", "fleet-flags", "fleet-types"}),
 ])
 def test_trend_compare_and_parameter_sets_draw(page, site, path, names):
     url, _, _ = site

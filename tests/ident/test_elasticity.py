@@ -190,7 +190,8 @@ def test_cli_elasticity_json_and_figure(plant_log):
     assert rc == 0
     doc = json.loads((tmp / "e.json").read_text())
     j = doc["joints"][0]
-    assert j["joint"] == 1 and set(j["std"]) == {"jm", "ja", "k", "d", "ba"}
+    assert j["joint"] == 1 and set(j["std"]) >= {"jm", "ja", "k", "d", "ba"}
+    assert {"delay_s", "hold_s", "chi2", "tests"} <= set(j) and doc["frfs"][0]["f_hz"]
     assert j["k"] == pytest.approx(TRUE["k"], rel=0.01)
     assert (tmp / "figs" / "elasticity_1.png").is_file()
     assert 'data-figure="bode"' in (tmp / "figs" / "report.html").read_text("utf-8")
@@ -227,11 +228,19 @@ def test_campaign_kind_and_worker(plant_log):
     np.testing.assert_allclose(made.q, traj.q, atol=1e-9)
     program = make_program(robot, made, "stiff")
     job = jb.ElasticityJob(ROBOT, (), (jb.ElasticityRun("stiff", str(tmp / "log.csv"),
-                                                         program),))
+                                                         program),),
+                           report_dir=str(tmp / "run"), run_id="r1", campaign="stiffness")
     out = jb.ElasticityOutcome.from_json(run(job.to_json()))
     joint = out.results[0]["result"]["joints"][0]
     assert joint["joint"] == 1 and joint["k"] == pytest.approx(TRUE["k"], rel=0.01)
     assert joint["measures"] == {"experiment": "stiff", "kind": "elasticity"}
+    from robid_link.ident.report.html import read_report_data
+
+    page = read_report_data(tmp / "run" / "report.html")  # the run's report: its Bode figures
+    assert page["run"] == {"run_id": "r1", "campaign": "stiffness"}
+    assert [f["joints"] for f in page["bode"]["frfs"]] == [[1]]
+    assert len(page["bode"]["frfs"][0]["f_hz"]) == 14
+    assert page["bode"]["joints"][0]["k"] == pytest.approx(joint["k"])
     for bad, key in [({"steps": 2}, "steps"), ({"f_min_hz": 80.0}, "f_min_hz"),
                      ({"joints": [0]}, "joints"), ({"pose_deg": "up"}, "pose_deg"),
                      ({"pairs": [[2, 2]]}, "pairs"), ({"pairs": [2, 3]}, "pairs")]:

@@ -15,7 +15,12 @@ from robid_link.ident.diagnosis.history import read_history
 from robid_link.ident.fit.identify import load_logs
 from robid_link.ident.model.effects import DEFAULT_MODEL, save_model
 from robid_link.ident.report.content import ladder_section, parameter_rows, report_document
-from robid_link.ident.report.html import add_to_report, read_report_data, write_html_report
+from robid_link.ident.report.html import (
+    add_to_report,
+    read_report_data,
+    render_html,
+    write_html_report,
+)
 from robid_link.ident.report.pack import BITS, pack, unpack
 from robid_link.ident.report.series import white_step
 from robid_link.ident.runner import run_job
@@ -182,6 +187,44 @@ def test_write_html_report_into_a_file_or_a_folder(job_report, tmp_path):
     job, _, _ = job_report
     assert write_html_report(tmp_path / "a", result=job.result) == tmp_path / "a" / "report.html"
     assert write_html_report(tmp_path / "b.html", result=job.result) == tmp_path / "b.html"
+
+
+def test_elasticity_section_shows_what_the_fit_found_in_the_log(tmp_path):
+    """The elasticity table carries the arm's Coulomb friction, the torque delay and χ²/dof; a
+    held torque and a third mass are stated under it; a record stored without those fields
+    (an older run's) still renders."""
+    from robid_link.ident.elastic.elasticity import (
+        ElasticityResult,
+        JointElasticity,
+        two_mass_frf,
+    )
+    from robid_link.ident.elastic.frequency import Frf
+    from robid_link.ident.model.robot import load_robot
+
+    from ..conftest import ROBOTS
+
+    robot = load_robot(ROBOTS / "arm3.yaml")
+    f = np.geomspace(2, 60, 12)
+    frf = Frf((1,), f, two_mass_frf(f, 0.8, 2.5, 9000.0, 6.0, 1.5), np.ones(f.size),
+              np.full(f.size, 200.0))
+    std = dict.fromkeys(("jm", "ja", "k", "d", "ba", "delay_s"), 1e-3)
+    joint = JointElasticity(1, 0.8, 2.5, 9000.0, 6.0, std, 0.01, ba=1.5, fc=0.97,
+                            delay_s=-2.5e-4, hold_s=5e-4, third=(0.6, 37900.0, 9.0), chi2=1.07)
+    res = ElasticityResult("twomass", [joint], [frf], notes=["[F = 15, p = 1e-06] a note"])
+    doc = read_report_data(write_html_report(tmp_path / "a", elasticity=res,
+                                            robot=robot))
+    [row] = doc["bode"]["joints"]
+    assert row["fc_arm"] == 0.97 and row["delay_s"] == -2.5e-4 and row["chi2"] == 1.07
+    text = re.sub(r"<[^>]+>", " ", (tmp_path / "a" / "report.html").read_text("utf-8"))
+    for shown in ("Fc arm", "0.97", "delay [ms]", "-0.25", "χ²/dof", "1.07",
+                  "held over each sample (0.0005 s)", "third mass behind the arm, j3 0.6",
+                  "37900", "F = 15, p = 1e-06"):
+        assert shown in text, shown
+    old = {k: v for k, v in joint.as_dict().items()
+           if k not in ("fc_arm", "delay_s", "hold_s", "third_mass", "chi2", "tests")}
+    page = render_html({**report_document(elasticity=res, robot=robot),
+                        "bode": {"frfs": [], "joints": [old], "notes": [], "coupled": None}})
+    assert "Fc arm" in page
 
 
 def test_every_function_of_the_report_script_is_used():

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
 from robid_link.config import load_daemon_config
 from robid_link.fakes.controller import make_peer
@@ -53,3 +54,14 @@ def test_tracking_after_upload_is_three_times_better(tmp_path: Path, arm3_robot:
     print(f"tool RMS {before['tool_rms_mm']:.3f} → {after['tool_rms_mm']:.3f} mm ({ratio:.1f}×)")
     assert ratio >= 3.0
     assert peer.core.feedforward is not None  # the controller runs on the identified set
+    # the run's report.html shows the tracking: the figures and the error over the path
+    from robid_link.ident.report.html import read_report_data
+
+    page = read_report_data(tmp_path / "state" / "reports" / run["run_id"] / "report.html")
+    assert page["series"] and page["parameters"]  # the identification is still there
+    tr = page["tracking"]
+    assert tr["phases"]["after"]["tool_rms_mm"] == pytest.approx(after["tool_rms_mm"])
+    trace = tr["trace"]
+    assert len(trace["t"]) == 600 and {"before", "after"} <= set(trace)
+    assert max(v for v in trace["before"] if v is not None) == pytest.approx(
+        before["tool_max_mm"], rel=0.05)

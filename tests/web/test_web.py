@@ -274,3 +274,25 @@ def test_status_and_results_print_the_report_of_a_finished_run(cell, capsys):
         out = capsys.readouterr().out
         assert f"report {cell.runs['reported']}: {page}" in out, cmd
         assert cell.runs["older"] not in out.split("report ")[-1]  # it has no report.html
+
+
+def test_the_fleet_page_shows_every_robot_of_the_store(cell, tmp_path):
+    """/fleet: robid fleet's report of the store (per robot and model version: runs, drift
+    flags; outliers per type), JSON at /api/fleet; an empty store is said, not an error."""
+    cfg = load_daemon_config(cell.config)
+    with serving(WebServer(cfg, "127.0.0.1:0", cell.robot)) as url:
+        view = json.loads(get(url + "api/fleet")[1])
+        assert [r["robot"] for r in view["robots"]] == ["arm3"]
+        versions = view["robots"][0]["versions"]
+        assert len(versions) == 2 and any("offset@2" in label for label in versions)
+        assert [len(v["runs"]) for v in versions.values()] == [1, 1]
+        status, page, _ = get(url + "fleet")
+        assert status == 200 and 'data-figure="fleet-robots"' in page
+        assert "/trend?robot=arm3" in page and f"/runs/{cell.runs['reported']}" in page
+        assert '<a href="/fleet">Fleet</a>' in get(url)[1]
+    empty = load_daemon_config(write_config(tmp_path))
+    Store(empty.state_dir).close()  # a store without a robot yet
+    with serving(WebServer(empty, "127.0.0.1:0", cell.robot)) as url:
+        status, page, _ = get(url + "fleet")
+        assert status == 200 and "No robot in" in page
+        assert json.loads(get(url + "api/fleet")[1])["robots"] == []

@@ -21,6 +21,8 @@ __all__ = ["verify_trajectory", "Tracking", "tracking", "tool_positions"]
 #: the path: moves between these fractions of each joint's range, then a hold at rest
 _WAYPOINTS = (0.0, 0.55, -0.45, 0.35, -0.25, 0.0)
 _SETTLE_S = 1.0
+#: the tool error's trace over time keeps at most this many points (each the peak of its bin)
+TRACE_POINTS = 600
 
 
 def _quintic(s: np.ndarray) -> np.ndarray:
@@ -78,11 +80,31 @@ class Tracking:
     tool_rms_mm: float
     tool_max_mm: float
     residual_mm: float           # peak tool deviation from its final rest after the stop
+    #: the tool's position error over the path: bin start times (s from the path's start)
+    #: and each bin's peak (mm), at most TRACE_POINTS of them
+    trace_t: tuple[float, ...] = ()
+    trace_mm: tuple[float, ...] = ()
 
     def as_dict(self) -> dict[str, Any]:
-        return {"joint_rms": self.joint_rms, "joint_max": self.joint_max,
-                "tool_rms_mm": self.tool_rms_mm, "tool_max_mm": self.tool_max_mm,
-                "residual_mm": self.residual_mm}
+        out: dict[str, Any] = {
+            "joint_rms": self.joint_rms, "joint_max": self.joint_max,
+            "tool_rms_mm": self.tool_rms_mm, "tool_max_mm": self.tool_max_mm,
+            "residual_mm": self.residual_mm}
+        if self.trace_t:
+            out["trace"] = {"t": list(self.trace_t), "mm": list(self.trace_mm)}
+        return out
+
+
+def _peak_trace(t: np.ndarray, e: np.ndarray) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """``e`` over ``t`` in at most TRACE_POINTS bins, each its peak (a plain stride could
+    step over the largest error)."""
+    edges = np.linspace(t[0], t[-1], min(TRACE_POINTS, t.size) + 1)
+    idx = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, edges.size - 2)
+    peak = np.full(edges.size - 1, np.nan)
+    np.fmax.at(peak, idx, e)
+    keep = np.isfinite(peak)
+    return (tuple(round(float(x), 4) for x in edges[:-1][keep]),
+            tuple(round(float(x), 5) for x in peak[keep]))
 
 
 def tracking(robot: Robot, ref: Trajectory, t_log: np.ndarray, q_log: np.ndarray,
@@ -105,7 +127,8 @@ def tracking(robot: Robot, ref: Trajectory, t_log: np.ndarray, q_log: np.ndarray
     after = (t[inside] >= ref.t[-1] - settle + 0.05)[::step]
     final = tool_ref[-1]
     residual = 1000.0 * np.linalg.norm(tool[after] - final, axis=1) if after.any() else [0.0]
+    trace_t, trace_mm = _peak_trace(t[inside][::step], e_tool)
     return Tracking([float(x) for x in np.sqrt(np.mean(err**2, axis=0))],
                     [float(x) for x in np.abs(err).max(axis=0)],
                     float(np.sqrt(np.mean(e_tool**2))), float(e_tool.max()),
-                    float(np.max(residual)))
+                    float(np.max(residual)), trace_t, trace_mm)

@@ -22,7 +22,8 @@ if TYPE_CHECKING:  # the report imports neither scipy.stats nor the elasticity f
     from robid_link.ident.diagnosis.diagnose import Diagnosis
     from robid_link.ident.elastic.elasticity import ElasticityResult
 
-__all__ = ["report_document", "ladder_section", "tracking_section", "parameter_rows", "FORMAT"]
+__all__ = ["report_document", "ladder_section", "tracking_section", "bode_section",
+           "parameter_rows", "FORMAT"]
 
 FORMAT = "robid-report/1"
 #: suggestions drawn with their evidence figures (all of them are in the table)
@@ -269,26 +270,55 @@ def tracking_section(tracking: Mapping[str, Any], joints: Sequence[Mapping[str, 
                          "joint_max": [x * s for x, s in zip(tr["joint_max"], scale,
                                                              strict=True)]}
     units = ["mm" if jt.get("type") == "prismatic" else "deg" for jt in joints]
-    return {"phases": phases, "joint_units": units}
+    return {"phases": phases, "joint_units": units, "trace": _tracking_trace(tracking)}
 
 
-def _bode_section(el: ElasticityResult) -> dict[str, Any]:
+def _tracking_trace(tracking: Mapping[str, Any], points: int = 600) -> dict[str, Any] | None:
+    """The phases' tool-error traces on one time grid (each phase's bin peaks interpolated;
+    null past a phase's end), or None when no phase has one."""
+    traces = {ph: tr["trace"] for ph in ("before", "after", "check")
+              if (tr := tracking.get(ph)) and isinstance(tr.get("trace"), Mapping)
+              and len(tr["trace"].get("t") or ()) >= 2}
+    if not traces:
+        return None
+    end = max(float(tr["t"][-1]) for tr in traces.values())
+    grid = np.linspace(0.0, end, points)
+    out: dict[str, Any] = {"t": [round(float(x), 4) for x in grid]}
+    for ph, tr in traces.items():
+        t, mm = np.asarray(tr["t"], dtype=float), np.asarray(tr["mm"], dtype=float)
+        y = np.interp(grid, t, mm, left=np.nan, right=np.nan)
+        out[ph] = [None if not math.isfinite(v) else round(float(v), 5) for v in y]
+    return out
+
+
+def bode_section(results: Sequence[ElasticityResult]) -> dict[str, Any]:
+    """The Bode figures and the fitted parameters of one or more elasticity results (a run's
+    experiments one after the other: their joints, responses and notes in that order)."""
     from robid_link.ident.elastic.elasticity import bode_cells
 
-    out = []
-    for frf in el.frfs:
-        fine, cells = bode_cells(el, frf)
-        names = ([f"H{a}{b}" for a in frf.joints for b in frf.joints] if len(frf.joints) == 2
-                 else [f"joint {frf.joints[0]}"])
-        out.append({"joints": list(frf.joints), "f_hz": [float(x) for x in frf.f_hz],
-                    "coherence": [float(x) for x in np.clip(frf.coherence, 0.0, 1.0)],
-                    "f_model": [float(x) for x in fine], "cells": [
-                        {"name": name, "mag": np.abs(meas).tolist(),
-                         "phase": np.degrees(np.angle(meas)).tolist(),
-                         "mag_model": np.abs(line).tolist(),
-                         "phase_model": np.degrees(np.angle(line)).tolist()}
-                        for name, (meas, line) in zip(names, cells, strict=True)]})
-    return {"frfs": out, **el.to_dict()}
+    out: dict[str, Any] = {"frfs": [], "joints": [], "notes": [], "data_files": []}
+    for el in results:
+        for frf in el.frfs:
+            fine, cells = bode_cells(el, frf)
+            names = ([f"H{a}{b}" for a in frf.joints for b in frf.joints]
+                     if len(frf.joints) == 2 else [f"joint {frf.joints[0]}"])
+            out["frfs"].append({
+                "joints": list(frf.joints), "f_hz": [float(x) for x in frf.f_hz],
+                "coherence": [float(x) for x in np.clip(frf.coherence, 0.0, 1.0)],
+                "f_model": [float(x) for x in fine], "cells": [
+                    {"name": name, "mag": np.abs(meas).tolist(),
+                     "phase": np.degrees(np.angle(meas)).tolist(),
+                     "mag_model": np.abs(line).tolist(),
+                     "phase_model": np.degrees(np.angle(line)).tolist()}
+                    for name, (meas, line) in zip(names, cells, strict=True)]})
+        doc = el.to_dict()
+        out["robot"], out["side"] = doc["robot"], doc["side"]
+        out["joints"] += doc["joints"]
+        out["notes"] += doc["notes"]
+        out["data_files"] += doc["data_files"]
+        if "coupled" in doc and "coupled" not in out:
+            out["coupled"] = doc["coupled"]
+    return out
 
 
 def report_document(*, result: IdentResult | None = None, diagnosis: Diagnosis | None = None,
@@ -342,7 +372,7 @@ def report_document(*, result: IdentResult | None = None, diagnosis: Diagnosis |
     if history:
         doc["ladder"] = ladder_section(history, [f.get("sha256") or "" for f in files])
     if elasticity is not None:
-        doc["bode"] = _bode_section(elasticity)
+        doc["bode"] = bode_section([elasticity])
     if tracking:
         doc["tracking"] = tracking_section(tracking, joints)
     return doc

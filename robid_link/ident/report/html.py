@@ -18,6 +18,7 @@ from robid_link.ident.fit.results import IdentResult
 from robid_link.ident.model.robot import Robot
 from robid_link.ident.report.content import (
     FORMAT,
+    bode_section,
     ladder_section,
     report_document,
     tracking_section,
@@ -138,12 +139,26 @@ def write_document(out: str | Path, doc: Mapping[str, Any]) -> Path:
 
 
 def add_to_report(path: str | Path, *, history: Sequence[Mapping[str, Any]] | None = None,
-                  tracking: Mapping[str, Any] | None = None) -> Path:
+                  tracking: Mapping[str, Any] | None = None,
+                  elasticity: Sequence[ElasticityResult] = (), robot: Robot | None = None,
+                  run: Mapping[str, Any] | None = None) -> Path:
     """Render a report.html again with what came after it was written: the model file's
-    error ladder as it stands now, the verification runs' tracking."""
-    doc = read_report_data(path)
-    if history:
-        doc["ladder"] = ladder_section(history, [f.get("sha256") or "" for f in doc["files"]])
-    if tracking:
-        doc["tracking"] = tracking_section(tracking, doc["robot"]["joints"])
-    return write_document(path, doc)
+    error ladder as it stands now, the verification runs' tracking (by phase), the
+    elasticity results of the run. Where there is no report yet (a run without an
+    identification), write one of these alone (``robot`` and ``run`` name it)."""
+    p = Path(path)
+    if p.is_dir() or not p.suffix:
+        p = p / REPORT_NAME
+    if p.exists():
+        doc = read_report_data(p)
+        if history:
+            doc["ladder"] = ladder_section(history,
+                                           [f.get("sha256") or "" for f in doc["files"]])
+        if tracking:
+            doc["tracking"] = tracking_section(tracking, doc["robot"]["joints"])
+    else:
+        doc = report_document(tracking=tracking or None, history=history, robot=robot, run=run,
+                              elasticity=elasticity[0] if elasticity else None)
+    if elasticity:
+        doc["bode"] = bode_section(list(elasticity))
+    return write_document(p, doc)

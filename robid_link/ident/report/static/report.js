@@ -418,6 +418,26 @@
     }
   }
 
+  // ------------------------------------------------------------------ tracking over time
+  function drawTrackingTrace() {
+    const tr = doc.tracking && doc.tracking.trace;
+    if (!tr) return;
+    const names = {before: "before (CAD model)", after: "after (identified set)", check: "check run"};
+    const colors = {before: "#9aa5b8", after: "#1f77b4", check: "#6a51a3"};
+    for (const el of figs("tracking-trace")) {
+      try {
+        const phases = ["before", "after", "check"].filter(p => tr[p]);
+        const mm = (u, v) => fmt(v, 3) + " mm";
+        make(el, {height: 240, scales: {x: {time: false}},
+          series: [{label: "t", value: (u, v) => v == null ? "—" : fmt(v, 4) + " s"},
+                   ...phases.map(p => ({label: names[p], stroke: colors[p], width: 1.5, value: mm}))],
+          axes: [Object.assign({label: "time along the path [s]"}, AXIS),
+                 Object.assign({label: "tool position error [mm]", size: 70}, AXIS)],
+          cursor: {drag: {x: true, y: false}}}, [tr.t, ...phases.map(p => tr[p])]);
+      } catch (e) { fail(el, e); }
+    }
+  }
+
   // ------------------------------------------------------------------ robot drawing
   function drawRobot() {
     const svg = figs("robot")[0], dr = doc.robot.drawing;
@@ -534,7 +554,7 @@
 
   async function main() {
     await unpackAll(doc);
-    const steps = [() => doc.series && doc.series.length && drawTorque(0), drawResidualAnalysis, drawEvidence, drawLadder, drawBode, drawRobot];
+    const steps = [() => doc.series && doc.series.length && drawTorque(0), drawResidualAnalysis, drawEvidence, drawLadder, drawBode, drawTrackingTrace, drawRobot];
     for (const step of steps) {
       try { step(); } catch (e) { console.error("robid report: " + e); }
     }

@@ -1,0 +1,149 @@
+"""Sines in a log: complex amplitudes at one frequency (whole window, blocks, each period),
+harmonics, the noise an amplitude carries (from the neighbouring frequencies), the frequency of
+a steady sine. Convention x(t) = Re(X e^{jωt}), t the log's time."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["sine_amplitudes", "harmonics", "noise_bins", "without_transient", "period_blocks",
+           "unexplained_share", "refine_frequency"]
+
+
+def sine_amplitudes(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1,
+                    degree: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Complex amplitudes X (x ≈ a + b·t (+ c·t²) + Re(X e^{jωt})) per column of ``x``, by
+    least squares on [1, t, …, cos, sin] (the drift's ramp removed), over the whole window and
+    over ``blocks`` equal sub-windows. Returns (X (m,), X per block (blocks, m))."""
+    x = x.reshape(len(t), -1)
+    tc = t - t.mean()
+
+    def fit(sl: slice) -> np.ndarray:
+        w = 2 * math.pi * f_hz * t[sl]
+        a = np.column_stack([tc[sl] ** p for p in range(degree + 1)] + [np.cos(w), np.sin(w)])
+        coef = np.linalg.lstsq(a, x[sl], rcond=None)[0]
+        return coef[-2] - 1j * coef[-1]
+
+    whole = fit(slice(None))
+    edges = np.linspace(0, len(t), blocks + 1).astype(int)
+    per = np.array([fit(slice(a, b)) for a, b in zip(edges[:-1], edges[1:], strict=True)])
+    return whole, per
+
+
+def harmonics(t: np.ndarray, x: np.ndarray, f: float, most: int = 9) -> np.ndarray:
+    """Complex amplitudes of x's first ``most`` harmonics of f (on a line: the drift)."""
+    tc = t - t.mean()
+    w = 2 * math.pi * f * t
+    cols = [np.ones(t.size), tc]
+    for h in range(1, most + 1):
+        cols += [np.cos(h * w), np.sin(h * w)]
+    coef = np.linalg.lstsq(np.column_stack(cols), x, rcond=None)[0][2:]
+    return coef[0::2] - 1j * coef[1::2]
+
+
+def noise_bins(t: np.ndarray, x: np.ndarray, f: float, most: int = 8
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The residual of x's sine fit at f (on a line: the drift), as amplitudes at the
+    neighbouring frequencies f ± k/T of the window T (k = 1…``most``, above f/4): orthogonal
+    to the sine over whole periods, they carry the noise an amplitude at f carries (its
+    spectrum is smooth there) and the leakage of a decaying transient (smooth in k).
+    Returns (k, (bins, m) complex amplitudes scaled like X)."""
+    x = x.reshape(len(t), -1)
+    tc = t - t.mean()
+    w = 2 * math.pi * f * t
+    a = np.column_stack((np.ones(t.size), tc, np.cos(w), np.sin(w)))
+    res = x - a @ np.linalg.lstsq(a, x, rcond=None)[0]
+    span = float(t[-1] - t[0]) + float(np.median(np.diff(t)))
+    k = np.r_[-most:0, 1:most + 1]
+    k = k[f + k / span > 0.25 * f]
+    basis = np.exp(-2j * math.pi * np.outer(f + k / span, t))
+    return k, 2.0 / t.size * (basis @ res)
+
+
+def without_transient(k: np.ndarray, y: np.ndarray, bins: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, float]:
+    """A decaying transient in the window (the loop's slowest mode, rung by the step's start
+    or the drift's reversal) leaks into the amplitude at f as it does into the neighbouring
+    bins, smoothly in k: a quadratic in k through the bins |k| ≤ 3, taken at k = 0, is its
+    share of X (the local polynomial method; over ±5 bins a ring at half the step's frequency
+    left 0.7 % of G, over ±3 0.2 %). The noise is what a quartic through all the bins leaves.
+    Returns (X less the transient, the noise per bin, the factor from the noise's mean square
+    to the variance of X)."""
+    local = np.abs(k) <= 3
+    deg = 2 if local.sum() >= 5 else (1 if local.sum() >= 3 else 0)
+    basis = np.vander(k[local].astype(float), deg + 1, increasing=True)
+    coef, *_ = np.linalg.lstsq(basis, bins[local], rcond=None)
+    lever = float(np.linalg.inv(basis.T @ basis)[0, 0])
+    wide = np.vander(k.astype(float), min(5, max(k.size - 3, 1)), increasing=True)
+    noise = bins - wide @ np.linalg.lstsq(wide, bins, rcond=None)[0]
+    dof = max(k.size - wide.shape[1], 1)
+    return y - coef[0], noise, k.size / dof * (1.0 + lever)
+
+
+def period_blocks(t: np.ndarray, x: np.ndarray, f: float) -> tuple[np.ndarray, np.ndarray]:
+    """Complex amplitudes at f of each whole period of x (columns), a local quadratic removed
+    (the drift and its ramps); returns (block start indices, amplitudes (blocks, columns)).
+    On a uniform time base every block has one design matrix (local time): one projection."""
+    x = x.reshape(len(t), -1)
+    per = 1.0 / f
+    nblk = int((t[-1] - t[0]) // per)
+    edges = np.searchsorted(t, t[0] + per * np.arange(nblk + 1))
+    steps = np.diff(t)
+    dt = float(np.median(steps))
+    size = int(round(per / dt))
+    if np.ptp(steps) > 1e-6 * dt or nblk == 0 or edges[-2] + size > len(t):
+        amps = np.array([sine_amplitudes(t[a:b], x[a:b], f, degree=2)[0]
+                         for a, b in zip(edges[:-1], edges[1:], strict=True)])
+        return edges, amps.reshape(nblk, -1)
+    loc = np.arange(size) * dt
+    lc = loc - loc.mean()
+    w = 2 * math.pi * f
+    design = np.column_stack((np.ones(size), lc, lc * lc, np.cos(w * loc), np.sin(w * loc)))
+    rows = np.linalg.pinv(design)[-2:]  # the cos and sin coefficients
+    blocks = x[edges[:-1, None] + np.arange(size)]  # (blocks, size, columns)
+    coef = np.einsum("kl,blm->bkm", rows, blocks)
+    local = coef[:, 0] - 1j * coef[:, 1]
+    return edges, local * np.exp(-1j * w * t[edges[:-1]])[:, None]
+
+
+def unexplained_share(t: np.ndarray, x: np.ndarray, f: float) -> float:
+    """Share of x's variance (a quadratic trend removed) a sine at f leaves unexplained."""
+    tc = t - t.mean()
+    w = 2 * math.pi * f * t
+    trend = np.column_stack((np.ones(t.size), tc, tc * tc))
+    x = x - trend @ np.linalg.lstsq(trend, x, rcond=None)[0]
+    a = np.column_stack((trend, np.cos(w), np.sin(w)))
+    res = x - a @ np.linalg.lstsq(a, x, rcond=None)[0]
+    return float(np.sum(res * res) / max(np.sum(x * x), 1e-300))
+
+
+def refine_frequency(t: np.ndarray, x: np.ndarray, f0: float, span_bins: float = 1.5) -> float:
+    """The frequency near f0 whose sinusoid (on a quadratic trend) leaves the least residual
+    (least squares; the projected power alone is biased by the trend): a grid over ±1.5 bins
+    of the window (side lobes), then golden section around the best. The trend is projected
+    out once; per frequency only the sine pair is."""
+    from scipy.optimize import minimize_scalar
+
+    tc = t - t.mean()
+    x = x.reshape(len(t), -1)
+    x = x / np.maximum(x.std(axis=0), 1e-300)
+    trend = np.linalg.qr(np.column_stack((np.ones(t.size), tc, tc * tc)))[0]
+    xd = x - trend @ (trend.T @ x)
+    total = float(np.sum(xd * xd))
+
+    def neg(f: float) -> float:
+        w = 2 * math.pi * f * t
+        b = np.column_stack((np.cos(w), np.sin(w)))
+        b = b - trend @ (trend.T @ b)
+        r = b.T @ xd
+        return total - float(np.sum(r * np.linalg.solve(b.T @ b, r)))
+
+    span = span_bins / (t[-1] - t[0])
+    grid = f0 + np.linspace(-span, span, 31)
+    best = float(grid[int(np.argmin([neg(f) for f in grid]))])
+    step = grid[1] - grid[0]
+    res = minimize_scalar(neg, bounds=(best - step, best + step), method="bounded",
+                          options={"xatol": 1e-6 * f0})
+    return float(res.x)

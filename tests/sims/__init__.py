@@ -1,0 +1,1 @@
+"""Small simulators written for the tests, sharing no code with the analysis they check."""
