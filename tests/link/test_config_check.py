@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -320,3 +321,15 @@ def test_a_plug_in_declaring_option_names_only_is_checked_without_its_paths(tmp_
     """``options = frozenset({...})`` (the older plug-in form) has no path specs: no crash."""
     cfg = load_daemon_config(write_config(tmp_path, {"one": ONE}))
     assert daemon_findings(cfg, frozenset({"share"})) == []
+
+
+@pytest.mark.parametrize(("key", "value", "said"), [
+    ("retries", 10 ** 400, "retries: expected a non-negative integer up to 1000, got an integer"),
+    ("retries", 1001, "retries: expected a non-negative integer up to 1000, got 1001"),
+    ("backoff_s", 10 ** 20, "backoff_s: expected a non-negative number up to 1e+09, got 1e+20"),
+])
+def test_a_campaign_number_beyond_any_use_is_refused(tmp_path, key, value, said):
+    """The fuzz found retries: 10**400 accepted (an int: it would overflow a float later)."""
+    cfg = write_config(tmp_path, {"one": {**ONE, key: value}})
+    with pytest.raises(ConfigError, match=re.escape(f"campaigns.one.{said}")):
+        load_daemon_config(cfg)
