@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from robid_link.drivers.file_share import FileShareDriver, log_name
-from robid_link.drivers.rws_api import done_value, log_file
+from robid_link.drivers.rws_api import done_value, log_file, size_value
 from robid_link.fakes.controller import default_truth, log_csv, make_peer
 from robid_link.ident.model.robot import load_robot
 from robid_link.link import registry
@@ -39,7 +39,7 @@ async def _handoffs(driver: Any, peer: Any, n: int) -> list[float]:
     async with driver:
         for i in range(n):
             nonce = f"n{i}"
-            peer.vars.update(robid_exp="exp", robid_nonce=nonce, robid_done="")
+            peer.vars.update(robid_exp="exp", robid_nonce=nonce, robid_done="", robid_size="")
             peer.exec_state = "running"
             waiter = asyncio.create_task(driver.take_done("exp", nonce, timeout_s=10))
             while not any(s["ws"] is not None for s in list(peer._subs.values())):
@@ -49,7 +49,8 @@ async def _handoffs(driver: Any, peer: Any, n: int) -> list[float]:
 
             def answer(nonce: str = nonce, stamp: list[float] = stamp) -> None:
                 stamp.append(time.perf_counter())
-                peer._set_var("robid_done", done_value(nonce, SHA, 0))
+                peer._set_var("robid_size", size_value(nonce, 0))
+                peer._set_var("robid_done", done_value(nonce, SHA))
 
             threading.Thread(target=peer._in_loop, args=(answer,)).start()
             await waiter

@@ -7,6 +7,11 @@ subscription on ``robid_done`` and the execution state (no polling), re-made aft
 or a silent socket and followed each time by asking the state; fetch: the log through the file
 service. aiohttp: a maintained asyncio HTTP client with Digest auth (``DigestAuthMiddleware``),
 a websocket client, and a server for the fake (one library, no second event loop or thread).
+
+A controller is trusted with nothing: every answer is read up to a cap (``max_answer_bytes``,
+the log up to ``max_log_bytes``) and parsed as the manual says or refused in one line; no
+redirect is ever followed (HTTP or websocket: it would carry the session elsewhere); the
+credentials come from an owner-only file or the daemon's environment, never from the URL.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import hashlib
 import ipaddress
 import json
 import logging
+import os
 import re
 import ssl
 from collections.abc import AsyncIterator, Mapping
@@ -32,18 +38,19 @@ from robid_link.drivers.rapid import MAX_AXES, render_rapid
 from robid_link.drivers.rws_api import (
     API,
     HOME,
+    credentials,
     log_file,
     parse_done,
     parse_rapid_string,
+    parse_size,
     program_file,
     rapid_string,
-    read_credentials,
     rws_module,
 )
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.jobs import MotionProgram, RobotInfo
 from robid_link.link.driver import CAP_RAPID, CAP_UPLOAD, Done, Driver
-from robid_link.link.options import Choice, File, Flag, Integer, Number, Options, Text
+from robid_link.link.options import Choice, File, Flag, Integer, Number, Options, Text, Url
 from robid_link.link.retry import Backoff
 
 __all__ = ["AbbRwsDriver"]
@@ -65,6 +72,21 @@ class _Unavailable(DriverError):
     """The controller did not answer (503, refused connection) within the bounded retries."""
 
 
+_REDIRECTS = frozenset({301, 302, 303, 307, 308})
+
+
+async def _no_redirects(req: Any, handler: Any) -> Any:
+    """A client middleware (it sees every hop, the websocket's handshake too): a redirect is
+    refused, never followed — the session cookie and the Authorization header stay here."""
+    resp = await handler(req)
+    if resp.status in _REDIRECTS:
+        resp.release()
+        raise DriverError(f"abb_rws: {req.method} {req.url.path}: HTTP {resp.status} redirect "
+                          "refused (a redirect is never followed: it would carry the session "
+                          "elsewhere)")
+    return resp
+
+
 def _loopback(host: str) -> bool:
     if host == "localhost":
         return True
@@ -79,29 +101,33 @@ class AbbRwsDriver(Driver):
     ``version`` (1: IRC5, 2: OmniCore), ``credentials_file`` (owner-only), ``task``,
     ``module`` (the installed robid RAPID module), ``ca_file``, ``verify_tls``,
     ``insecure_skip_verify``, ``ping_interval_s`` (the controller's websocket ping period; two
-    missed pings = a lost link), ``request_timeout_s``, ``retries``, ``backoff_s``."""
+    missed pings = a lost link), ``request_timeout_s``, ``retries``, ``backoff_s``,
+    ``max_answer_bytes`` (the largest answer or event but the log). Without
+    ``credentials_file`` the user and password come from ``ROBID_RWS_USER`` and
+    ``ROBID_RWS_PASSWORD``."""
 
     name = "abb_rws"
     capabilities = frozenset({CAP_RAPID, CAP_UPLOAD})
     options = Options(
         version=Choice(1, 2, expect="1 (RWS 1.0, IRC5) or 2 (RWS 2.0, OmniCore)"),
-        url=Text(hint="http(s)://controller[:port]"),
-        credentials_file=File(private=True, hint="a file with the RWS user and password, "
-                              "readable only by the daemon's user"),
+        url=Url(hint="http(s)://controller[:port]"),
+        credentials_file=File(None, private=True),
         task=Text("T_ROB1", pattern=_IDENT.pattern, expect="a RAPID name"),
         module=Text("robid", pattern=_IDENT.pattern, expect="a RAPID name"),
         ca_file=File(None, exists=True), verify_tls=Flag(True),
         insecure_skip_verify=Flag(False), ping_interval_s=Number(30.0, above=0),
         request_timeout_s=Number(10.0, above=0), retries=Integer(5, low=0),
-        backoff_s=Number(0.5, above=0))
+        backoff_s=Number(0.5, above=0),
+        max_answer_bytes=Integer(1 << 20, low=4096, high=1 << 30))
 
     def __init__(self, **options: Any) -> None:
         super().__init__(**options)
         o = self.config
         self.api = API[o.version]
         self._url = self._check_url(o.url, o.version)
-        self.credentials_file = str(o.credentials_file)
-        self._user, self._password = read_credentials(o.credentials_file)
+        self._user, self._password, self.credentials_file = credentials(o.credentials_file,
+                                                                        os.environ)
+        self._answer_cap, self._log_cap = o.max_answer_bytes, o.max_log_bytes
         self.task, self.module = o.task, o.module
         self._ssl = self._tls(o.ca_file, o.verify_tls, o.insecure_skip_verify)
         self._ping_s, self._request_s = o.ping_interval_s, o.request_timeout_s
@@ -114,9 +140,7 @@ class AbbRwsDriver(Driver):
 
     @staticmethod
     def _check_url(url: str, version: int) -> URL:
-        u = URL(url)
-        if u.scheme not in ("http", "https") or not u.host or u.path not in ("", "/"):
-            raise ConfigError(f"driver.url: expected http(s)://host[:port], got {url!r}")
+        u = URL(url)  # checked by the Url option: a scheme, a host, no credentials, no path
         if version == 2 and u.scheme == "http" and not _loopback(u.host):
             raise ConfigError("driver.url: RWS 2.0 sends the password with every request "
                               "(Basic auth): use https://")
@@ -149,12 +173,14 @@ class AbbRwsDriver(Driver):
         if self.api.version == 1:
             self._http = aiohttp.ClientSession(
                 connector=conn, cookie_jar=jar,
-                middlewares=(aiohttp.DigestAuthMiddleware(self._user, self._password),))
+                middlewares=(_no_redirects,
+                             aiohttp.DigestAuthMiddleware(self._user, self._password)))
         else:
-            # Basic on every request (no redirects are followed: it never reaches another
+            # Basic on every request (no redirect is followed: it never reaches another
             # host); built by hand, aiohttp deprecates BasicAuth after 3.12
             token = base64.b64encode(f"{self._user}:{self._password}".encode()).decode()
             self._http = aiohttp.ClientSession(connector=conn, cookie_jar=jar,
+                                               middlewares=(_no_redirects,),
                                                headers={"Authorization": f"Basic {token}"})
         try:
             await self._request("GET", "/", dict(self.api.query), what="login")
@@ -170,10 +196,10 @@ class AbbRwsDriver(Driver):
             return
         try:
             async with asyncio.timeout(min(self._request_s, 3.0)):
-                async with http.get(self._url.with_path("/logout"),
+                async with http.get(self._url.with_path("/logout"), allow_redirects=False,
                                     params=dict(self.api.query)) as resp:
-                    await resp.read()
-        except (aiohttp.ClientError, OSError, TimeoutError) as err:
+                    await self._read(resp, self._answer_cap, "logout")
+        except (aiohttp.ClientError, OSError, TimeoutError, DriverError) as err:
             log.info("driver=abb_rws logout failed (%s); the controller drops the session "
                      "itself", type(err).__name__)
         finally:
@@ -183,10 +209,13 @@ class AbbRwsDriver(Driver):
                        *, form: Mapping[str, str] | list[tuple[str, str]] | None = None,
                        raw: bytes | None = None, what: str, ok: tuple[int, ...] = (200, 201,
                                                                                     204),
-                       missing_ok: bool = False, retries: int | None = None
+                       missing_ok: bool = False, retries: int | None = None,
+                       cap: int | None = None, timeout_s: float | None = None
                        ) -> tuple[int, bytes, Any]:
         """One RWS call with bounded, jittered retries on 503 (session limit, start-up) and
-        lost connections; 401 and TLS failures are refused at once, in one line."""
+        lost connections; 401, TLS failures, redirects and answers over ``cap`` bytes
+        (``max_answer_bytes``) are refused at once, in one line. Each attempt has
+        ``timeout_s`` (``request_timeout_s``)."""
         assert self._http is not None
         url = self._url.with_path(path, encoded=True)
         headers = self.api.headers(form is not None)
@@ -196,13 +225,15 @@ class AbbRwsDriver(Driver):
         data = urlencode(form).encode() if form is not None else raw
         last = ""
         retries = self._retries if retries is None else retries
+        cap = self._answer_cap if cap is None else cap
         for attempt in range(retries + 1):
             try:
-                async with asyncio.timeout(self._request_s):
+                async with asyncio.timeout(timeout_s or self._request_s):
                     async with self._http.request(method, url, params=query, data=data,
                                                   headers=headers,
                                                   allow_redirects=False) as resp:
-                        body, status, rh = await resp.read(), resp.status, resp.headers
+                        status, rh = resp.status, resp.headers
+                        body = await self._read(resp, cap, what)
             except aiohttp.ClientConnectorCertificateError as err:
                 raise DriverError(f"{self.name}: {self._url}: TLS certificate verification "
                                   f"failed ({err.certificate_error}); give driver.ca_file, or "
@@ -229,6 +260,22 @@ class AbbRwsDriver(Driver):
         raise _Unavailable(f"{self.name}: {what}: controller unavailable after "
                            f"{retries + 1} attempt{'s' if retries else ''} ({last})")
 
+    async def _read(self, resp: aiohttp.ClientResponse, cap: int, what: str) -> bytes:
+        """The body, refused as soon as it is over ``cap`` bytes (never held whole)."""
+        limit = ("driver.max_answer_bytes" if cap == self._answer_cap else
+                 "driver.max_log_bytes" if cap == self._log_cap else "the size 'done' announced")
+        too_big = DriverError(f"{self.name}: {what}: answer over {cap} bytes refused "
+                              f"({limit})")
+        if resp.content_length is not None and resp.content_length > cap:
+            raise too_big
+        chunks, total = [], 0
+        async for chunk in resp.content.iter_chunked(1 << 16):
+            total += len(chunk)
+            if total > cap:
+                raise too_big
+            chunks.append(chunk)
+        return b"".join(chunks)
+
     def _rws_message(self, body: bytes) -> str:
         try:
             doc = json.loads(body)
@@ -245,7 +292,13 @@ class AbbRwsDriver(Driver):
         method = "GET" if form is None and which in ("symbol", "execution") else "POST"
         _, body, _ = await self._request(method, path, query, form=form if method == "POST"
                                          else None, what=what)
-        return json.loads(body) if body.strip() else None
+        if not body.strip():
+            return None
+        try:
+            return json.loads(body)
+        except ValueError as err:  # JSONDecodeError, UnicodeDecodeError
+            raise DriverError(f"{self.name}: {what}: the answer is not JSON "
+                              f"({body[:40]!r}…)") from err
 
     async def _get_var(self, var: str) -> str:
         doc = await self._call("symbol", what=f"read {var}", var=var)
@@ -262,7 +315,11 @@ class AbbRwsDriver(Driver):
         state = self.api.state(await self._call("execution", what="execution state"))
         if not state or "ctrlexecstate" not in state[0]:
             raise DriverError(f"{self.name}: execution state: no ctrlexecstate in the answer")
-        return str(state[0]["ctrlexecstate"])
+        value = state[0]["ctrlexecstate"]
+        if value not in ("running", "stopped"):
+            raise DriverError(f"{self.name}: execution state: ctrlexecstate {str(value)[:40]!r}"
+                              ", expected running or stopped")
+        return str(value)
 
     @contextlib.asynccontextmanager
     async def _mastership(self) -> AsyncIterator[None]:
@@ -308,6 +365,7 @@ class AbbRwsDriver(Driver):
                               f"experiment {exp_id}")
         async with self._mastership():
             await self._set_var("robid_done", "")
+            await self._set_var("robid_size", "")
             await self._set_var("robid_exp", exp_id)
             await self._set_var("robid_nonce", nonce)  # last: the mark that it was given
             await self._call("exec_resetpp", {}, what="reset the program pointer")
@@ -347,14 +405,15 @@ class AbbRwsDriver(Driver):
         parsed = parse_done(await self._get_var("robid_done"))
         if parsed is None:
             return None
-        kind, got, a, size = parsed
+        kind, got, text = parsed
         if got != nonce:
             log.warning("driver=abb_rws exp=%s stale answer for nonce %s (waiting for %s; "
-                        "ignored)", exp_id, got, nonce)
+                        "ignored)", exp_id, got[:16], nonce)
             return None
         if kind == "error":
-            raise DriverError(f"controller reports experiment {exp_id} failed: {a}")
-        return Done(exp_id, nonce, str(a), size)
+            raise DriverError(f"controller reports experiment {exp_id} failed: {text}")
+        size = parse_size(await self._get_var("robid_size"), nonce)
+        return Done(exp_id, nonce, text, size)
 
     @contextlib.asynccontextmanager
     async def _subscription(self) -> AsyncIterator[aiohttp.ClientWebSocketResponse]:
@@ -375,7 +434,8 @@ class AbbRwsDriver(Driver):
         try:
             async with asyncio.timeout(self._request_s):
                 ws = await self._http.ws_connect(ws_url, protocols=(a.subprotocol,),
-                                                 autoping=False)
+                                                 autoping=False,
+                                                 max_msg_size=self._answer_cap)
         except (aiohttp.ClientError, OSError, TimeoutError) as err:
             raise _Lost(f"websocket: {type(err).__name__}") from err
         try:
@@ -405,14 +465,25 @@ class AbbRwsDriver(Driver):
     async def _fetch_logs(self, done: Done) -> bytes:
         remote = log_file(done.exp_id, done.nonce)
         status, body, _ = await self._request("GET", self._file_uri(remote),
-                                              what=f"download {remote}", missing_ok=True)
+                                              what=f"download {remote}", missing_ok=True,
+                                              cap=min(self._log_cap, done.size)
+                                              if done.size is not None else self._log_cap,
+                                              timeout_s=self.config.transfer_timeout_s)
         if status == 404:
             raise DriverError(f"{self.name}: {remote}: log missing although 'done' was given")
         return body
 
     async def _withdraw(self, exp_id: str, nonce: str) -> None:
-        if (await self._get_var("robid_nonce") == nonce
-                and await self._exec_state() == "running"):
+        """Stop RAPID execution if it may run this attempt: unless the controller shows, in
+        answers that parse, another nonce or a stopped execution, the stop goes out."""
+        try:
+            ours = (await self._get_var("robid_nonce") == nonce
+                    and await self._exec_state() == "running")
+        except DriverError as err:
+            log.warning("driver=abb_rws exp=%s state unreadable (%s): stopping anyway",
+                        exp_id, err)
+            ours = True
+        if ours:
             log.warning("driver=abb_rws exp=%s nonce=%s given up: stopping RAPID execution",
                         exp_id, nonce)
             await self._call("exec_stop", {"stopmode": "stop"}, what=f"stop {exp_id}")

@@ -9,12 +9,14 @@ events still arrive, else the driver falls back to polling.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
 import json
 import logging
 import os
 import re
 import secrets
+import stat
 import time
 from pathlib import Path
 from typing import Any
@@ -42,6 +44,10 @@ _SEM = re.compile(r"^([A-Za-z0-9][A-Za-z0-9_\-]*)\.([A-Za-z0-9][A-Za-z0-9_\-]*)"
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
 #: a semaphore holds one short line; anything longer is not one
 MAX_SEM_BYTES = 4096
+#: stale or duplicate files looked at concurrently, and remembered (one warning each), at most:
+#: a share flooded with semaphores costs neither tasks nor memory without bound
+MAX_CHECKS = 32
+MAX_REMEMBERED = 1024
 MAX_LOG_BYTES = 256 * 1024 * 1024
 
 
@@ -154,11 +160,29 @@ class ShareTransfer:
         self.inbox, self.outbox, self.sem = (share / d for d in ("inbox", "outbox", "sem"))
 
     def prepare(self) -> None:
-        """The share must exist; its three folders are made when missing."""
+        """The share must exist; its three folders are made when missing and must be real
+        folders (a symbolic link put there would redirect the daemon's writes)."""
         if not self.share.is_dir():
             raise DriverError(f"{self.share}: shared folder not found")
         for d in (self.inbox, self.outbox, self.sem):
-            d.mkdir(exist_ok=True)
+            with contextlib.suppress(FileExistsError):
+                d.mkdir()
+            self.folder(d)
+
+    @staticmethod
+    def folder(path: Path) -> Path:
+        """``path`` if it is a folder of its own, not a symbolic link (checked before every
+        write into it: the other side of the share may replace it); blocking."""
+        try:
+            st = os.lstat(path)
+        except OSError as err:
+            raise DriverError(f"{path}: share folder unreadable ({err.strerror or err})"
+                              ) from err
+        if stat.S_ISLNK(st.st_mode) or not stat.S_ISDIR(st.st_mode):
+            kind = "a symbolic link" if stat.S_ISLNK(st.st_mode) else "not a folder"
+            raise DriverError(f"{path}: {kind}; refusing to write through it (the share's "
+                              "inbox/, outbox/ and sem/ must be real folders)")
+        return path
 
     async def put_program(self, program: MotionProgram, key: str | None = None) -> None:
         """Each program file written atomically as ``inbox/<key>.<suffix>`` (+ RAPID ``.mod``)."""
@@ -168,10 +192,11 @@ class ShareTransfer:
             files["mod"] = render_rapid(program)
 
         def write() -> None:
+            inbox = self.folder(self.inbox)
             for suffix, data in files.items():
                 if not re.fullmatch(r"[a-z]+(\.[a-z]+)?", suffix):
                     raise DriverError(f"program file suffix {suffix!r} is not allowed")
-                atomic_write(self.inbox / f"{key}.{suffix}", data)
+                atomic_write(inbox / f"{key}.{suffix}", data)
 
         await asyncio.to_thread(write)
 
@@ -189,17 +214,20 @@ class ShareTransfer:
     def identity(self, key: str, nkey: str, kind: str) -> tuple[int, int] | None:
         return _identity(self.sem_path(key, nkey, kind))
 
-    async def fetch_log(self, key: str, nkey: str) -> bytes:
-        """The log through the safe open: no links, regular files, ``max_log_bytes``."""
+    async def fetch_log(self, key: str, nkey: str, limit: int | None = None) -> bytes:
+        """The log through the safe open: no links, regular files, at most ``max_log_bytes``
+        and ``limit`` (the size its 'done' announced: a longer file is refused unread)."""
         path = self.outbox / log_name(key, nkey)
+        cap = self.max_log_bytes if limit is None else min(limit, self.max_log_bytes)
         try:
-            return await asyncio.to_thread(read_regular, path, self.max_log_bytes)
+            return await asyncio.to_thread(read_regular, path, cap)
         except FileNotFoundError as err:
             raise DriverError(f"{path}: log missing although 'done' was given") from err
         except OSError as err:
             raise DriverError(f"{path}: log refused ({err.strerror or err})") from err
 
     async def remove(self, key: str, nkey: str, *kinds: str) -> None:
+        await asyncio.to_thread(self.folder, self.sem)  # never deletes through a link
         for kind in kinds:
             await asyncio.to_thread(self.sem_path(key, nkey, kind).unlink, True)
 
@@ -207,6 +235,7 @@ class ShareTransfer:
         """A given-up attempt leaves nothing: 'ready' first (nothing may start it later),
         then its answers and log."""
         await self.remove(key, nkey, "ready", "done", "failed")
+        await asyncio.to_thread(self.folder, self.outbox)
         await asyncio.to_thread((self.outbox / log_name(key, nkey)).unlink, True)
 
 
@@ -340,7 +369,8 @@ class FileShareDriver(Driver):
         event = self._waiters.get((exp_id, nonce))
         if event is not None:
             event.set()
-        elif (exp_id, nonce) in self._taken or any(k[0] == exp_id for k in self._waiters):
+        elif ((exp_id, nonce) in self._taken or any(k[0] == exp_id for k in self._waiters)
+              ) and len(self._checks) < MAX_CHECKS:
             # one warning per file, none for the events of the answer just taken
             task = asyncio.get_running_loop().create_task(self._warn_once(name, (exp_id, nonce)))
             self._checks.add(task)
@@ -357,6 +387,8 @@ class FileShareDriver(Driver):
                         self.share, name)
         else:
             log.warning("share=%s stale_semaphore=%s (another nonce; ignored)", self.share, name)
+        if len(self._warned) >= MAX_REMEMBERED:
+            self._warned.clear()
         self._warned.add((name, ident))
 
     async def _liveness_loop(self) -> None:
@@ -394,10 +426,17 @@ class FileShareDriver(Driver):
         if path.exists():  # given before a restart: giving again must not start it twice
             return
         body = json.dumps({"experiment": exp_id, "nonce": nonce, "time": time.time()}).encode()
+        await asyncio.to_thread(self.transfer.folder, self.sem)
         await asyncio.to_thread(atomic_write, path, body + b"\n")
+
+    def _forget_old(self) -> None:
+        """Keep the newest MAX_REMEMBERED taken answers (dicts keep insertion order)."""
+        while len(self._taken) > MAX_REMEMBERED:
+            del self._taken[next(iter(self._taken))]
 
     async def _wait_done(self, exp_id: str, nonce: str) -> Done:
         key = (exp_id, nonce)
+        self._forget_old()
         event = asyncio.Event()
         self._waiters[key] = event
         try:
@@ -427,7 +466,7 @@ class FileShareDriver(Driver):
             self._waiters.pop(key, None)
 
     async def _fetch_logs(self, done: Done) -> bytes:
-        return await self.transfer.fetch_log(done.exp_id, done.nonce)
+        return await self.transfer.fetch_log(done.exp_id, done.nonce, limit=done.size)
 
     async def _acknowledge(self, done: Done) -> None:
         await self.transfer.remove(done.exp_id, done.nonce, "ready", "done")

@@ -17,7 +17,9 @@ code (and optionally ``sem/<n>.<tag>.failed`` with a reason). ``<tag>`` is the n
 tag in 8 hex digits. An answer whose echo is not ours is stale and ignored; a status outside
 0-3 or an echo of our nonce with another experiment is register garbage and refused. Both
 heartbeats count up; a PLC heartbeat that does not change within ``heartbeat_timeout_s`` is an
-error. Modbus has no events: the status is polled every ``poll_interval_s`` while waiting.
+error — also before the first RUN (a heartbeat seen moving since the link opened is required)
+— and a withdraw writes ABORT whatever the heartbeat says. Modbus has no events: the status is
+polled every ``poll_interval_s`` while waiting.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from robid_link.jobs import MotionProgram
 from robid_link.link.driver import CAP_RAPID, Done, Driver
 from robid_link.link.options import Flag, Folder, Integer, Number, Options, Table, Text
 from robid_link.link.retry import Backoff
+from robid_link.safeopen import read_regular
 
 __all__ = ["ModbusPlcDriver", "REGISTERS", "Command", "Status", "ERROR_CODES", "nonce_tag",
            "register_map"]
@@ -77,6 +80,10 @@ ERROR_CODES = {1: "program missing or unreadable on the share",
 _HEX_NONCE = re.compile(r"^[0-9a-f]{1,8}$")
 #: waits between connection attempts
 CONNECT_BACKOFF = Backoff(0.05, 1.0)
+#: the experiment index on the share: a JSON object of at most 65535 names
+MAX_INDEX_BYTES = 4 << 20
+#: stale answers remembered (one warning each), at most
+MAX_WARNED = 1024
 
 
 def nonce_tag(nonce: str) -> int:
@@ -152,7 +159,7 @@ class ModbusPlcDriver(Driver):
         self.connect_retries = o.connect_retries
         if o.rapid:
             self.capabilities = frozenset({CAP_RAPID})  # type: ignore[misc]
-        self.transfer = ShareTransfer(o.share, rapid=o.rapid)
+        self.transfer = ShareTransfer(o.share, rapid=o.rapid, max_log_bytes=o.max_log_bytes)
         self._index_path = self.transfer.inbox / "experiments.json"
         self._numbers: dict[str, int] = {}
         self._client: Any = None
@@ -164,6 +171,7 @@ class ModbusPlcDriver(Driver):
         self._waiting = 0
         self._beat = 0
         self._hb_seen: tuple[int, float] | None = None
+        self._hb_moved = False  # the PLC heartbeat was seen changing since the link opened
         self._warned: set[tuple[int, int, int]] = set()
         self._tasks: list[asyncio.Task[None]] = []
 
@@ -242,9 +250,11 @@ class ModbusPlcDriver(Driver):
             raise DriverError(f"{self.where}: asked for {self._span} registers, got {len(regs)}")
         return {name: regs[a - self._lo] for name, a in self.addr.items()}
 
-    async def _write(self, **values: int) -> None:
-        """Write named registers: one request per contiguous run, in the order given."""
-        if self._fault is not None:
+    async def _write(self, *, force: bool = False, **values: int) -> None:
+        """Write named registers: one request per contiguous run, in the order given; refused
+        while the link is faulty unless ``force`` (an ABORT goes out whatever the PLC's
+        heartbeat says)."""
+        if self._fault is not None and not force:
             raise self._fault
         if self._client is None or not self._client.connected:
             raise DriverError(f"{self.where}: not connected")
@@ -302,6 +312,7 @@ class ModbusPlcDriver(Driver):
     def _heartbeat_fault(self, snap: dict[str, int]) -> DriverError | None:
         value, now = snap["plc_heartbeat"], time.monotonic()
         if self._hb_seen is None or self._hb_seen[0] != value:
+            self._hb_moved = self._hb_moved or self._hb_seen is not None
             self._hb_seen = (value, now)
             return None
         frozen = now - self._hb_seen[1]
@@ -310,16 +321,40 @@ class ModbusPlcDriver(Driver):
                                f"(limit {self.hb_timeout_s:g} s): the PLC program is not running")
         return None
 
+    async def _check_link(self) -> None:
+        """Before a RUN: the PLC's heartbeat must have moved since the link opened and must
+        not be frozen now (waits up to ``heartbeat_timeout_s`` for a first change)."""
+        end = time.monotonic() + self.hb_timeout_s + 2 * self.hb_period_s
+        while not self._hb_moved and self._fault is None and time.monotonic() < end:
+            self._wake.set()
+            await asyncio.sleep(self.poll_s)
+        if self._fault is not None:
+            raise self._fault
+        if not self._hb_moved:
+            value = self._hb_seen[0] if self._hb_seen else "?"
+            raise DriverError(f"{self.where}: PLC heartbeat frozen at {value} since the link "
+                              f"opened (limit {self.hb_timeout_s:g} s): the PLC program is not "
+                              "running; no RUN given")
+
     # -- experiment numbers on the share
     def _load_index(self) -> dict[str, int]:
+        """The index through the safe open: a regular file of bounded size (a FIFO or a link
+        to /dev/zero put there is refused, never read)."""
         try:
-            doc = json.loads(self._index_path.read_text())
+            raw = read_regular(self._index_path, MAX_INDEX_BYTES)
         except FileNotFoundError:
             return {}
-        except (OSError, ValueError) as err:
+        except OSError as err:
+            raise DriverError(f"{self._index_path}: experiment index refused "
+                              f"({err.strerror or err})") from err
+        try:
+            doc = json.loads(raw)
+        except ValueError as err:
             raise DriverError(f"{self._index_path}: unreadable experiment index ({err})") from err
-        if not isinstance(doc, dict) or not all(isinstance(v, int) for v in doc.values()):
-            raise DriverError(f"{self._index_path}: expected a JSON object id → number")
+        if not isinstance(doc, dict) or not all(isinstance(v, int) and not isinstance(v, bool)
+                                                and 1 <= v <= 65535 for v in doc.values()):
+            raise DriverError(f"{self._index_path}: expected a JSON object id → number "
+                              "(1-65535)")
         return dict(doc)
 
     async def _number_of(self, exp_id: str) -> int:
@@ -331,6 +366,7 @@ class ModbusPlcDriver(Driver):
                                   "archive the share's inbox")
             self._numbers[exp_id] = n
             body = json.dumps(self._numbers, indent=1).encode()
+            await asyncio.to_thread(self.transfer.folder, self.transfer.inbox)
             await asyncio.to_thread(atomic_write, self._index_path, body)
         return self._numbers[exp_id]
 
@@ -414,6 +450,8 @@ class ModbusPlcDriver(Driver):
     def _stale(self, exp_id: str, snap: dict[str, int]) -> None:
         key = (snap["exp_echo"], snap["nonce_echo_hi"], snap["nonce_echo_lo"])
         if key not in self._warned:
+            if len(self._warned) >= MAX_WARNED:  # bounded: a PLC spraying echoes
+                self._warned.clear()
             self._warned.add(key)
             log.warning("%s exp=%s stale answer (status %s for experiment %d, nonce tag "
                         "%04x%04x; ignored)", self.where, exp_id, Status.NAMES[snap["status"]],
@@ -426,7 +464,8 @@ class ModbusPlcDriver(Driver):
                            f"({text})" + (f": {reason}" if reason else ""))
 
     async def _fetch_logs(self, done: Done) -> bytes:
-        return await self.transfer.fetch_log(*self._keys(done.exp_id, done.nonce))
+        return await self.transfer.fetch_log(*self._keys(done.exp_id, done.nonce),
+                                             limit=done.size)
 
     async def _release(self, exp_id: str, nonce: str, command: int) -> None:
         """Set ``command`` if the registers still hold this experiment's request."""
@@ -444,5 +483,20 @@ class ModbusPlcDriver(Driver):
         await self.transfer.remove(*self._keys(done.exp_id, done.nonce), "done")
 
     async def _withdraw(self, exp_id: str, nonce: str) -> None:
-        await self._release(exp_id, nonce, Command.ABORT)
+        """ABORT if the registers still hold this request — read past a heartbeat fault, and
+        written blindly when they cannot be read (the stop must go out)."""
+        n, tag = self._numbers.get(exp_id), nonce_tag(nonce)
+        if n is None:
+            return
+        try:
+            snap = await self._read_block()
+        except DriverError as err:
+            log.warning("%s exp=%s registers unreadable (%s): writing ABORT anyway",
+                        self.where, exp_id, err)
+            await self._write(force=True, command=Command.ABORT)
+            return
+        if self._ours(snap, n, tag, echo=False) and snap["command"] != Command.ABORT:
+            await self._write(force=True, command=Command.ABORT)
+            log.warning("%s exp=%s nonce=%s given up: ABORT written", self.where, exp_id,
+                        nonce)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import re
 import stat
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,13 +18,22 @@ import yaml
 
 from robid_link.exceptions import ConfigError, DriverError
 
-__all__ = ["RwsApi", "API", "VARS", "HOME", "PATH_MODULE", "PATH_PROC", "done_value",
-           "error_value", "parse_done", "rapid_string", "parse_rapid_string",
-           "read_credentials", "log_file", "program_file", "rws_module"]
+__all__ = ["RwsApi", "API", "VARS", "HOME", "PATH_MODULE", "PATH_PROC", "RAPID_STRING_MAX",
+           "done_value", "size_value", "error_value", "parse_done", "parse_size",
+           "rapid_string", "parse_rapid_string", "read_credentials", "credentials",
+           "CREDENTIAL_ENV", "log_file", "program_file", "rws_module"]
 
 #: the fixed RAPID module the cell installs once, its variables (strings), and the name the
-#: daemon gives every experiment's motion module (loaded with ``replace``: one at a time)
-VARS = ("robid_exp", "robid_nonce", "robid_done", "robid_params", "robid_params_ack")
+#: daemon gives every experiment's motion module (loaded with ``replace``: one at a time).
+#: ``robid_done`` holds "<nonce> <sha256>" (73 characters) and ``robid_size`` "<nonce> <bytes>",
+#: written before it: "<nonce> <sha256> <size>" in one string passed RAPID's 80 characters for
+#: logs of 1 MB or more
+VARS = ("robid_exp", "robid_nonce", "robid_size", "robid_done", "robid_params",
+        "robid_params_ack")
+#: a RAPID string holds at most 80 characters (RAPID reference, data type string)
+RAPID_STRING_MAX = 80
+#: where the daemon's environment may give the RWS user and password instead of a file
+CREDENTIAL_ENV = ("ROBID_RWS_USER", "ROBID_RWS_PASSWORD")
 PATH_MODULE = "robid_path"
 PATH_PROC = "robid_move"
 #: the folder on the controller's disk (file service) for programs, logs and parameters
@@ -110,27 +120,45 @@ def parse_rapid_string(value: str) -> str:
     return v
 
 
-def done_value(nonce: str, sha256: str, size: int) -> str:
-    """What the robid RAPID module writes into ``robid_done`` when the log is on disk."""
-    return f"{nonce} {sha256} {size}"
+def done_value(nonce: str, sha256: str) -> str:
+    """What the robid RAPID module writes into ``robid_done`` when the log is on disk (its
+    size went into ``robid_size`` just before)."""
+    return f"{nonce} {sha256}"
+
+
+def size_value(nonce: str, size: int) -> str:
+    """What the robid RAPID module writes into ``robid_size`` before ``robid_done``."""
+    return f"{nonce} {size}"
 
 
 def error_value(nonce: str, text: str) -> str:
-    return f"ERR {nonce} {text}"[:80]  # RAPID strings hold at most 80 characters
+    return f"ERR {nonce} {text}"[:RAPID_STRING_MAX]
 
 
-def parse_done(value: str) -> tuple[str, str, str | None, int | None] | None:
-    """``robid_done`` → ``("done", nonce, sha256, size)`` or ``("error", nonce, text, None)``;
-    None while empty; DriverError when malformed."""
+def parse_done(value: str) -> tuple[str, str, str] | None:
+    """``robid_done`` → ``("done", nonce, sha256)`` or ``("error", nonce, text)``; None while
+    empty; DriverError when malformed."""
     tokens = value.split()
     if not tokens:
         return None
     if tokens[0] == "ERR" and len(tokens) >= 2:
-        return "error", tokens[1], " ".join(tokens[2:]) or "no reason given", None
-    if len(tokens) == 3 and _HEX64.match(tokens[1].lower()) and tokens[2].isdigit():
-        return "done", tokens[0], tokens[1].lower(), int(tokens[2])
-    raise DriverError(f"robid_done {value[:80]!r}: expected '<nonce> <sha256> <size>' or "
+        return "error", tokens[1], " ".join(tokens[2:]) or "no reason given"
+    if len(tokens) == 2 and _HEX64.match(tokens[1].lower()):
+        return "done", tokens[0], tokens[1].lower()
+    raise DriverError(f"robid_done {value[:80]!r}: expected '<nonce> <sha256>' or "
                       "'ERR <nonce> <text>'")
+
+
+def parse_size(value: str, nonce: str) -> int:
+    """The log size in ``robid_size`` (``"<nonce> <bytes>"``) for ``nonce``; DriverError when
+    it is malformed or names another nonce (written after 'done', or not at all)."""
+    tokens = value.split()
+    if len(tokens) != 2 or not tokens[1].isdigit() or len(tokens[1]) > 12:
+        raise DriverError(f"robid_size {value[:80]!r}: expected '<nonce> <bytes>'")
+    if tokens[0] != nonce:
+        raise DriverError(f"robid_size names nonce {tokens[0][:16]!r}, robid_done {nonce!r}: "
+                          "the controller must write the size before 'done'")
+    return int(tokens[1])
 
 
 def log_file(exp_id: str, nonce: str) -> str:
@@ -153,6 +181,21 @@ def rws_module(rapid: bytes) -> bytes:
     if n1 != 1 or n2 != 1:
         raise DriverError("RAPID module: no MODULE line or PROC main() to rename")
     return text.encode()
+
+
+def credentials(path: str | os.PathLike[str] | None, env: Mapping[str, str],
+                key: str = "driver.credentials_file") -> tuple[str, str, str]:
+    """``(user, password, where)``: from the owner-only file ``path`` (``read_credentials``)
+    or, without one, from the environment (``ROBID_RWS_USER``, ``ROBID_RWS_PASSWORD``);
+    ``where`` names the source in messages (never the password)."""
+    if path is not None:
+        return (*read_credentials(path, key), str(path))
+    user, password = (env.get(name, "") for name in CREDENTIAL_ENV)
+    if not user or not password:
+        raise ConfigError(f"{key}: missing (a file with the RWS user and password, readable "
+                          f"only by the daemon's user; or {CREDENTIAL_ENV[0]} and "
+                          f"{CREDENTIAL_ENV[1]} in the daemon's environment)")
+    return user, password, f"{CREDENTIAL_ENV[0]}/{CREDENTIAL_ENV[1]}"
 
 
 def read_credentials(path: str | os.PathLike[str], key: str = "driver.credentials_file"

@@ -4,7 +4,10 @@
 The blocking pyserial port is read by one thread that hands whole frames to the event loop
 (``call_soon_threadsafe``); writes go through ``asyncio.to_thread``. A port that vanishes
 (USB adapter pulled, pty closed) is reopened within ``reopen_s``; a log fetch resumes from its
-last good offset.
+last good offset. Nothing a controller sends grows without bound: answers are kept only for
+attempts this driver gave (a flood of unsolicited DONE frames is counted, not kept), a log
+fetch stops at its announced size (and ``max_log_bytes``), and a controller that answers no
+STAT twice in a row while a motion runs fails the attempt.
 """
 
 from __future__ import annotations
@@ -12,8 +15,10 @@ from __future__ import annotations
 import asyncio
 import base64
 import binascii
+import collections
 import contextlib
 import logging
+import re
 import threading
 import time
 import zlib
@@ -41,6 +46,11 @@ ERROR_CODES = {1: "program missing or incomplete", 2: "motion supervision trigge
 MAX_LINE = 24_000
 #: waits between attempts to reopen a vanished port (within ``reopen_s``)
 REOPEN_BACKOFF = Backoff(0.05, 0.5)
+#: the attempts whose answers are kept (given by this driver, newest last) and the answers
+#: already taken that are remembered as such
+MAX_KEPT = 64
+#: STAT requests in a row without a valid answer while waiting: the controller is gone
+MAX_SILENT_STATS = 2
 
 
 def encode_frame(*fields: object) -> bytes:
@@ -103,7 +113,10 @@ class SerialLineDriver(Driver):
         self._pending: _Pending | None = None
         self._answers: dict[tuple[str, str], list[str]] = {}
         self._waiting: set[tuple[str, str]] = set()
-        self._taken: set[tuple[str, str]] = set()
+        # bounded memories: the attempts given (answers kept only for these), the taken ones
+        self._given: collections.deque[tuple[str, str]] = collections.deque(maxlen=MAX_KEPT)
+        self._taken: collections.deque[tuple[str, str]] = collections.deque(maxlen=MAX_KEPT)
+        self.unsolicited = 0  # answers to attempts this driver did not give (dropped)
         self._tick = asyncio.Event()
         self._partial: dict[tuple[str, str], bytearray] = {}
         self._tasks: list[asyncio.Task[None]] = []
@@ -233,6 +246,12 @@ class SerialLineDriver(Driver):
         elif key not in self._waiting and any(k[0] == key[0] for k in self._waiting):
             log.warning("serial %s stale answer %s %s %s (another nonce; ignored)",
                         self.port, *fields[:3])
+        elif key not in self._waiting and key not in self._given:
+            self.unsolicited += 1  # never kept: a controller cannot fill the memory
+            if self.unsolicited in (1, 10) or self.unsolicited % 10_000 == 0:
+                log.warning("serial %s %d answer(s) to attempts this daemon did not give "
+                            "(latest %s %s %s; dropped)", self.port, self.unsolicited,
+                            *fields[:3])
         else:
             self._answers[key] = fields
         self._tick.set()
@@ -304,50 +323,73 @@ class SerialLineDriver(Driver):
             pid = program.exp_id
             await self._request(["PROG", pid, name, len(data), sha],
                                 _starts("OK", "PROG", pid, name), what=f"PROG {name}")
-            offset = 0
+            offset, stalls = 0, 0
             while offset < len(data):
                 chunk = data[offset: offset + self.chunk]
                 got = await self._request(
                     ["PUT", pid, name, offset, base64.b64encode(chunk).decode()],
                     _starts("ACK", "PUT", pid, name, size=5), what=f"PUT {name} at {offset}")
-                offset = _int(got[4], f"PUT {name}")
-                if offset > len(data):
+                acked = _int(got[4], f"PUT {name}")
+                if acked > len(data):
                     raise DriverError(f"serial port {self.port}: controller acknowledged "
-                                      f"{offset} bytes of {name}, {len(data)} were sent")
+                                      f"{acked} bytes of {name}, {len(data)} were sent")
+                stalls = stalls + 1 if acked <= offset else 0
+                if stalls > self.retries:
+                    raise DriverError(f"serial port {self.port}: {name} makes no progress "
+                                      f"(the controller acknowledges {acked} of {len(data)} "
+                                      f"bytes, {stalls} times in a row)")
+                offset = acked
 
     async def _give_ready(self, exp_id: str, nonce: str) -> None:
+        self._remember_given((exp_id, nonce))
         got = await self._request(["GO", exp_id, nonce],
                                   lambda f: f[:4] == ["OK", "GO", exp_id, nonce]
                                   or (f[0] == "ERR" and f[1:3] == [exp_id, nonce]), what="GO")
         if got[0] == "ERR":
             raise self._error(exp_id, got)
 
+    def _remember_given(self, key: tuple[str, str]) -> None:
+        if key not in self._given:
+            if len(self._given) == self._given.maxlen:
+                self._answers.pop(self._given[0], None)  # the oldest falls out with its answer
+            self._given.append(key)
+
     async def _wait_done(self, exp_id: str, nonce: str) -> Done:
         key = (exp_id, nonce)
         self._waiting.add(key)
+        silent = 0
         try:
             while True:
                 fields = self._answers.get(key)
                 if fields is not None:
-                    self._taken.add(key)
+                    self._taken.append(key)
                     if fields[0] == "ERR":
                         raise self._error(exp_id, fields)
-                    if len(fields) != 5:
+                    if len(fields) != 5 or not _HEX64.fullmatch(fields[4].lower()):
                         raise DriverError(f"serial port {self.port}: malformed DONE frame")
                     return Done(exp_id, nonce, fields[4].lower(), _int(fields[3], "DONE"))
                 if self._fault is not None:
                     raise self._fault
                 tick = self._tick
-                with contextlib.suppress(DriverError):  # a lost STAT: the next one asks again
+                try:
                     await self._request(["STAT", exp_id, nonce],
                                         lambda f: f[0] in ("BUSY", "IDLE", "DONE", "ERR")
                                         and f[1:3] == [exp_id, nonce], what="STAT")
+                    silent = 0
+                except DriverError:  # a lost STAT: the next one asks again, once
+                    silent += 1
+                    if silent >= MAX_SILENT_STATS:
+                        raise DriverError(f"serial port {self.port}: controller silent while "
+                                          f"experiment {exp_id} runs: no answer to "
+                                          f"{silent} STAT requests in a row") from None
                 if key not in self._answers:
                     with contextlib.suppress(TimeoutError):
                         async with asyncio.timeout(self.stat_period_s):
                             await tick.wait()
         finally:
             self._waiting.discard(key)
+            if key not in self._given:  # an attempt of an earlier daemon: nothing kept
+                self._answers.pop(key, None)
 
     def _error(self, exp_id: str, fields: list[str]) -> DriverError:
         code = _int(fields[3], "ERR") if len(fields) > 3 else 0
@@ -360,8 +402,13 @@ class SerialLineDriver(Driver):
         """GET chunk after chunk from the last good offset (kept across a reopened port)."""
         key = (done.exp_id, done.nonce)
         data = self._partial.setdefault(key, bytearray())
-        total = done.size
+        cap = self.config.max_log_bytes
+        total, stalls = done.size, 0
         while total is None or len(data) < total:
+            if len(data) > cap:  # no announced size to stop at: the cap does
+                self._partial.pop(key, None)
+                raise DriverError(f"serial port {self.port}: log of experiment {done.exp_id} "
+                                  f"over driver.max_log_bytes ({cap}); fetch stopped")
             off = len(data)
             got = await self._request(
                 ["GET", done.exp_id, done.nonce, off, self.chunk],
@@ -372,10 +419,16 @@ class SerialLineDriver(Driver):
             if got[0] == "EOF" or len(got) < 5:
                 break  # the controller has no more: the base checks size and SHA-256
             try:
-                data += base64.b64decode(got[4], validate=True)
+                chunk = base64.b64decode(got[4], validate=True)
             except binascii.Error as err:
                 raise DriverError(f"serial port {self.port}: bad base64 in DATA at {off}"
                                   ) from err
+            stalls = 0 if chunk else stalls + 1
+            if stalls > self.retries:
+                raise DriverError(f"serial port {self.port}: log of experiment "
+                                  f"{done.exp_id} makes no progress (empty DATA at {off}, "
+                                  f"{stalls} times in a row)")
+            data += chunk
         self._partial.pop(key, None)
         return bytes(data)
 
@@ -400,6 +453,9 @@ def _chunk_at(exp_id: str, nonce: str, offset: int) -> Callable[[list[str]], boo
     """Accepts the answer to ``GET`` at ``offset``: its DATA or EOF, or an ERR."""
     return lambda f: len(f) >= 4 and f[1:3] == [exp_id, nonce] and (
         f[0] == "ERR" or (f[0] in ("DATA", "EOF") and f[3] == str(offset)))
+
+
+_HEX64 = re.compile(r"[0-9a-f]{64}")
 
 
 def _sha256(data: bytes) -> str:

@@ -25,7 +25,7 @@ from robid_link.ident.model.robot import Robot
 from robid_link.jobs import MotionProgram
 
 __all__ = ["FAULTS", "ControllerCore", "Peer", "RunResult", "default_truth", "log_csv",
-           "make_peer"]
+           "logged_torques", "make_peer"]
 
 log = logging.getLogger("robid.fake_controller")
 
@@ -37,15 +37,29 @@ FAULTS = ("never_answer", "die", "truncated_log", "corrupt_log", "answer_twice",
           "stale_semaphore", "nan_log", "fail", "no_param_ack")
 
 
-def log_csv(t: np.ndarray, q: np.ndarray, tau: np.ndarray) -> bytes:
-    """A log in the project's CSV format (``t,q1..qn,tau1..taun``)."""
+def log_csv(t: np.ndarray, q: np.ndarray, tau: np.ndarray,
+            torques: list[int] | None = None) -> bytes:
+    """A log in the project's CSV format (``t,q1..qn,tau1..taun``); ``torques`` (joints from
+    1): only those torque channels, as a controller with a signal budget logs them."""
     n = q.shape[1]
+    keep = list(range(1, n + 1)) if torques is None else torques
     buf = io.StringIO()
-    header = ",".join(["t"] + [f"q{j}" for j in range(1, n + 1)]
-                      + [f"tau{j}" for j in range(1, n + 1)])
-    np.savetxt(buf, np.hstack([t[:, None], q, tau]), delimiter=",", header=header,
-               comments="", fmt="%.10g")
+    header = ",".join(["t"] + [f"q{j}" for j in range(1, n + 1)] + [f"tau{j}" for j in keep])
+    np.savetxt(buf, np.hstack([t[:, None], q, tau[:, [j - 1 for j in keep]]]), delimiter=",",
+               header=header, comments="", fmt="%.10g")
     return buf.getvalue().encode()
+
+
+def logged_torques(header: dict[str, Any], n: int) -> list[int] | None:
+    """The program's ``log_torques`` (joints from 1 whose torque to log), checked."""
+    js = header.get("log_torques")
+    if js is None:
+        return None
+    if not isinstance(js, list) or not js or not all(
+            isinstance(j, int) and not isinstance(j, bool) and 1 <= j <= n for j in js) \
+            or sorted(set(js)) != js:
+        raise RobidError(f"log_torques: expected ascending joint numbers 1..{n}, got {js!r}")
+    return js
 
 
 @dataclass(frozen=True)
@@ -109,9 +123,10 @@ class ControllerCore:
     def simulate(self, traj: Trajectory, seed: int) -> bytes:
         if traj.q.shape[1] != self.robot.n:
             raise RobidError(f"program has {traj.q.shape[1]} joints, robot has {self.robot.n}")
+        torques = logged_torques(traj.header, self.robot.n)
         t, q, qd, qdd = trajectory_states(traj, self.rate_hz)
         out = self.plant.run(t, q, qd, qdd, seed=seed, feedforward=self.feedforward)
-        return log_csv(out["t"], out["q"], out["tau"])
+        return log_csv(out["t"], out["q"], out["tau"], torques)
 
     def run(self, exp_id: str, nonce: str, csv: bytes, header: bytes | None = None
             ) -> RunResult:

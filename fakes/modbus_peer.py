@@ -4,8 +4,11 @@ program, running programs from the share on the fake controller and writing logs
 files back to the share.
 
 Own faults: ``plc_gone`` (the server stops for good once a RUN arrives), ``heartbeat_frozen``
-(the PLC heartbeat stops for ``freeze_s`` while BUSY), ``error_code`` (ERROR with code 4,
-emergency stop), ``register_garbage`` (status and echo registers hold nonsense; nothing runs).
+(the PLC heartbeat stops for ``freeze_s`` while BUSY), ``heartbeat_dead`` (it never counts:
+the PLC program does not run, the Modbus server answers all the same), ``error_code`` (ERROR
+with code 4, emergency stop), ``register_garbage`` (status and echo registers hold nonsense;
+nothing runs). The PLC keeps ``runs`` (each request it started) and ``aborts`` (the wall-clock
+time each ABORT written to ``command`` arrived).
 """
 
 from __future__ import annotations
@@ -60,7 +63,8 @@ class ModbusPeer(Peer):
     """A fake PLC: ``start`` serves in a thread with its own event loop, ``stop`` joins it."""
 
     driver = "modbus_plc"
-    faults = ("plc_gone", "heartbeat_frozen", "error_code", "register_garbage")
+    faults = ("plc_gone", "heartbeat_frozen", "heartbeat_dead", "error_code",
+              "register_garbage")
 
     def __init__(self, core: ControllerCore, workdir: Path, *, port: int = 0,
                  device_id: int = 1, base_address: int = 0,
@@ -85,6 +89,8 @@ class ModbusPeer(Peer):
         self._frozen_until = 0.0
         #: nonce tag (8 hex digits) → time.perf_counter() when DONE was set (benchmarks)
         self.answer_times: dict[str, float] = {}
+        self.runs: list[tuple[int, int, int]] = []
+        self.aborts: list[float] = []
 
     # -- register image (touched only on the server's loop)
     def get(self, name: str) -> int:
@@ -101,6 +107,8 @@ class ModbusPeer(Peer):
             for k, v in enumerate(values):
                 if 0 <= address - self._lo + k < len(self.image):
                     self.image[address - self._lo + k] = int(v)
+                if address + k == self.addr["command"] and int(v) == CMD_ABORT:
+                    self.aborts.append(time.time())  # the ABORT has reached the PLC
         else:
             regs[self._lo - start: self._lo - start + len(self.image)] = self.image
         return None
@@ -163,7 +171,8 @@ class ModbusPeer(Peer):
         next_beat = 0.0
         while True:
             now = loop.time()
-            if now >= next_beat and now >= self._frozen_until:
+            if (now >= next_beat and now >= self._frozen_until
+                    and self.core.fault != "heartbeat_dead"):
                 self.set(plc_heartbeat=self.get("plc_heartbeat") + 1)
                 next_beat = now + self.heartbeat_s
             self._scan()
@@ -181,6 +190,7 @@ class ModbusPeer(Peer):
         elif cmd == CMD_RUN and not busy and self.get("status") != BUSY and (
                 request != self._last and request[0] > 0):
             self._last = request
+            self.runs.append(request)
             self.set(exp_echo=request[0], nonce_echo_hi=request[1], nonce_echo_lo=request[2],
                      error_code=0, status=BUSY)
             self._job = asyncio.create_task(self._run_program(*request), name="fake-plc-job")

@@ -76,7 +76,13 @@ class SerialPeer(Peer):
     runs programs), ``stop`` joins both and closes the pty."""
 
     driver = "serial_line"
-    faults = ("flip_bytes", "cable_pulled", "device_gone")
+    #: beyond the core's: a noisy line, a pulled cable, a device gone for good; hostile ones:
+    #: ``endless_log`` (DONE announces 2^40 bytes and GET answers forever), ``done_flood``
+    #: (100 000 unsolicited DONE frames while a program runs), ``stalled_put`` (PUT is never
+    #: acknowledged past 0), ``silent_run`` (no STAT answered while the program runs until an
+    #: ABORT). Every ABORT is kept in ``aborts`` (its wall-clock time).
+    faults = ("flip_bytes", "cable_pulled", "device_gone", "endless_log", "done_flood",
+              "stalled_put", "silent_run")
 
     def __init__(self, core: ControllerCore, workdir: Path, *, baudrate: int = 921600,
                  pace_baud: int = 0, flip_rate: float = 0.05, pull_s: float = 1.0,
@@ -99,6 +105,8 @@ class SerialPeer(Peer):
         self._programs: dict[str, dict[str, bytes]] = {}
         self._pulled = False
         self.frames_in = self.frames_bad = 0
+        self.aborts: list[float] = []
+        self._silent: tuple[str, str] | None = None  # silent_run: the program nobody hears
         #: nonce → time.perf_counter() when its DONE was first sent (benchmarks)
         self.answer_times: dict[str, float] = {}
 
@@ -211,6 +219,9 @@ class SerialPeer(Peer):
         self._write("OK", "PROG", exp_id, name)
 
     def _on_put(self, exp_id: str, name: str, offset: str, b64: str) -> None:
+        if self.core.fault == "stalled_put":
+            self._write("ACK", "PUT", exp_id, name, 0)
+            return
         size, sha, buf = self._files[(exp_id, name)]
         if int(offset) == len(buf) and len(buf) < size:
             buf += base64.b64decode(b64, validate=True)
@@ -240,6 +251,8 @@ class SerialPeer(Peer):
 
     def _on_stat(self, exp_id: str, nonce: str) -> None:
         key = (exp_id, nonce)
+        if key == self._silent:
+            return
         state = self._state.get(key, "IDLE")
         if state in ("DONE", "ERR"):
             self._answer(key)
@@ -259,6 +272,8 @@ class SerialPeer(Peer):
             self._plug()
             return
         chunk = res.delivered[off: off + min(int(size), 16384)]
+        if res.fault == "endless_log":  # a logger that never stops writing
+            chunk = (b"0.001,0.1,0.2,0.3,1.5,2.5,3.5\n" * 600)[: min(int(size), 16384)]
         if chunk:
             self._write("DATA", exp_id, nonce, off, base64.b64encode(chunk).decode())
         else:
@@ -269,6 +284,9 @@ class SerialPeer(Peer):
         self._write("OK", "CLEAR", exp_id, nonce)
 
     def _on_abort(self, exp_id: str, nonce: str) -> None:
+        self.aborts.append(time.time())
+        if self._silent == (exp_id, nonce):
+            self._silent = None
         if self._state.get((exp_id, nonce)) == "BUSY":
             self._state[(exp_id, nonce)] = "ABORTED"
         self._write("OK", "ABORT", exp_id, nonce)
@@ -279,7 +297,10 @@ class SerialPeer(Peer):
             self._write("ERR", *key, code, text)
         elif key in self._done:  # also after CLEAR: STAT always has an answer
             self.answer_times.setdefault(key[1], time.perf_counter())
-            self._write("DONE", *key, *self._done[key])
+            size, sha = self._done[key]
+            if key in self._results and self._results[key].fault == "endless_log":
+                size = 1 << 40
+            self._write("DONE", *key, size, sha)
 
     def offer_log(self, exp_id: str, nonce: str, data: bytes) -> None:
         """A finished program's log, as if it had run (benchmarks of the log transfer)."""
@@ -292,6 +313,14 @@ class SerialPeer(Peer):
         while (key := self._jobs.get()) is not None:
             files = self._programs[key[0]]
             res = self.core.run(*key, files["traj.csv"], files["traj.yaml"])
+            if res.fault == "done_flood":
+                for k in range(100_000):  # answers to attempts nobody gave
+                    self._write("DONE", f"x{k}", f"n{k}", 1, "0" * 64)
+            if res.fault == "silent_run":
+                self._silent = key
+                while self._silent == key and not self._stop.wait(0.05):
+                    pass
+                continue
             if self._state.get(key) == "ABORTED" or res.fault == "never_answer":
                 continue
             if res.fault == "die":

@@ -7,7 +7,7 @@ ids (``jobs.py``) are on the door, checked alike by the worker. The YAML reader 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +17,8 @@ from robid_link.kinds import KIND_OPTIONS, experiment_options
 from robid_link.yamlio import check_keys, read_yaml_mapping, yaml_type
 
 __all__ = ["load_daemon_config", "DaemonConfig", "CampaignDef",
-           "ExperimentDef", "WebConfig", "check_store_url"]
+           "ExperimentDef", "WebConfig", "check_store_url", "robot_name", "with_joint_count",
+           "SPLIT_KINDS"]
 
 
 # ----------------------------------------------------------------------------- daemon config
@@ -25,9 +26,12 @@ __all__ = ["load_daemon_config", "DaemonConfig", "CampaignDef",
 _DAEMON_REQUIRED = ("robot", "state_dir", "control_socket", "driver", "campaigns")
 _DAEMON_OPTIONAL = ("lock", "socket_mode", "worker_start_method", "log_level", "web", "store",
                     "robot_name", "log_store")
-_WEB_OPTIONAL = ("listen", "tls_cert", "tls_key", "token", "token_file")
+_WEB_OPTIONAL = ("listen", "tls_cert", "tls_key", "token", "token_file", "hosts")
 _CAMPAIGN_OPTIONAL = ("identify", "diagnose", "model", "add", "method", "retries", "backoff_s",
-                      "timeout_s", "reduced_speed_first", "cutoff_hz", "motor_side", "upload")
+                      "timeout_s", "reduced_speed_first", "cutoff_hz", "motor_side", "upload",
+                      "channels", "force")
+#: experiment kinds whose logs feed the identification: the ones ``channels`` splits
+SPLIT_KINDS = ("rigid_body", "friction", "custom")
 
 
 @dataclass(frozen=True)
@@ -37,6 +41,8 @@ class ExperimentDef:
     exp_id: str
     kind: str
     options: dict[str, Any]
+    #: joints (from 1) whose torque the controller logs; None: every joint's
+    torques: tuple[int, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -55,19 +61,56 @@ class CampaignDef:
     cutoff_hz: float | None = None
     motor_side: bool = False
     upload: bool = False
+    #: the controller's signal budget: torque channels one log may hold (None: every joint's)
+    channels: int | None = None
+    #: the robot's joint count, once known (``with_joint_count``): ``channels`` splits with it
+    n_joints: int | None = None
+
+    def torque_groups(self) -> list[tuple[int, ...]] | None:
+        """Joints (from 1) whose torques each split experiment logs: ⌈n / channels⌉ groups of
+        consecutive joints (main axes, then wrist axes); None when nothing is split (no
+        budget, the robot's joints not known yet, or the budget holds every joint)."""
+        n, k = self.n_joints, self.channels
+        if n is None or k is None or k >= n:
+            return None
+        return [tuple(range(a, min(a + k, n + 1))) for a in range(1, n + 1, k)]
+
+    def split_experiments(self) -> tuple[ExperimentDef, ...]:
+        """The experiments with ``channels`` applied: each identification experiment
+        (``SPLIT_KINDS``) once per torque group, the same motion, ids ``<id>-j1-3``; a friction
+        sweep of some joints only in the groups that hold one of them."""
+        groups = self.torque_groups()
+        if groups is None:
+            return self.experiments
+        out: list[ExperimentDef] = []
+        for e in self.experiments:
+            if e.kind not in SPLIT_KINDS:
+                out.append(e)
+                continue
+            swept = e.options.get("joints") if e.kind == "friction" else None
+            for g in groups:
+                if swept and not set(g) & set(swept):  # sweeps of other joints only
+                    continue
+                span = f"j{g[0]}" if len(g) == 1 else f"j{g[0]}-{g[-1]}"
+                out.append(ExperimentDef(f"{e.exp_id}-{span}", e.kind, e.options, g))
+        return tuple(out)
+    #: upload a parameter set the worker marked unfit (worse than CAD, physically impossible)
+    force: bool = False
 
 
 @dataclass(frozen=True)
 class WebConfig:
     """``web:``: the operator's page. ``listen`` HOST:PORT (the daemon serves it when set);
     TLS certificate and key; the token actions need (given, or in ``token_file``, by default
-    ``web.token`` in the state dir, mode 0600)."""
+    ``web.token`` in the state dir, mode 0600); ``hosts``: the names the page is reached by
+    besides the listen host and localhost (a request naming another Host is refused)."""
 
     listen: str | None = None
     tls_cert: Path | None = None
     tls_key: Path | None = None
     token: str | None = None
     token_file: Path | None = None
+    hosts: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -95,10 +138,22 @@ class DaemonConfig:
         return self.path.parent
 
 
+def robot_name(cfg: DaemonConfig, description_name: str | None) -> str:
+    """The robot's name in the store, on its page and in its commands: the config's
+    ``robot_name``, else the robot description's name (robots of one type share it; a plant's
+    store tells them apart by ``robot_name``), else the description file's stem (a
+    description that does not load: ``description_name`` None)."""
+    return cfg.robot_name or description_name or cfg.robot.stem
+
+
+#: connection parameters of libpq that are secrets (in a URL's query string as in its user info)
+_SECRET_PARAMS = frozenset({"password", "sslpassword"})
+
+
 def check_store_url(value: Any, key: str = "store") -> str:
     """A PostgreSQL URL with no password in it (the password comes from PGPASSWORD or a
     PGPASSFILE); the one line refusing one never prints it."""
-    from urllib.parse import urlsplit
+    from urllib.parse import parse_qsl, urlsplit
 
     if not isinstance(value, str) or not value.startswith(("postgresql://", "postgresql+psycopg://",
                                                            "postgres://")):
@@ -109,7 +164,8 @@ def check_store_url(value: Any, key: str = "store") -> str:
         parts.port  # noqa: B018 - raises on a bad port
     except ValueError:
         raise ConfigError(f"{key}: not a valid URL") from None
-    if parts.password is not None:
+    query = {k.lower() for k, _ in parse_qsl(parts.query, keep_blank_values=True)}
+    if parts.password is not None or query & _SECRET_PARAMS:
         raise ConfigError(f"{key}: the URL holds a password; give it in PGPASSWORD or a "
                           "PGPASSFILE (~/.pgpass), never in the config or on the command line")
     if not parts.hostname or not parts.path.strip("/"):
@@ -209,21 +265,31 @@ def _campaign(name: str, raw: Any, base: Path) -> CampaignDef:
     check_keys(raw, w, required=("experiments",), optional=_CAMPAIGN_OPTIONAL)
     raw = _upload_step(raw, w)
     method = raw.get("method", "ols")
-    if method not in ("ols", "wls", "irls"):
-        raise ConfigError(f"{w}.method: expected ols, wls or irls, got {method!r}")
+    if method not in ("ols", "wls", "irls", "consistent"):
+        raise ConfigError(f"{w}.method: expected ols, wls, irls or consistent, got {method!r}")
     add = raw.get("add") or []
     if not isinstance(add, list) or not all(isinstance(a, str) for a in add):
         raise ConfigError(f"{w}.add: expected a list of EFFECT[@J]")
     rsf = _num(raw, "reduced_speed_first", w, None)
     if rsf is not None and rsf >= 1:
         raise ConfigError(f"{w}.reduced_speed_first: expected a fraction in (0, 1), got {rsf!r}")
-    for key in ("identify", "diagnose", "motor_side", "upload"):
+    for key in ("identify", "diagnose", "motor_side", "upload", "force"):
         if not isinstance(raw.get(key, False), bool):
             raise ConfigError(f"{w}.{key}: expected true or false")
     if raw.get("upload", False) and not raw.get("identify", True):
         raise ConfigError(f"{w}.upload: needs identify: true (nothing to upload otherwise)")
+    channels = _num(raw, "channels", w, None, integer=True)
+    if channels is not None and not 1 <= channels <= 64:
+        raise ConfigError(f"{w}.channels: expected the torque channels one log may hold, "
+                          f"1..64, got {channels!r}")
+    if channels is not None and raw.get("diagnose", False):
+        raise ConfigError(f"{w}.channels: the diagnosis needs every joint's torque in each "
+                          "log; set diagnose: false or drop channels")
+    experiments = _experiments(raw["experiments"], f"{w}.experiments")
+    if channels is not None:
+        _check_split_ids(experiments, f"{w}.experiments")
     return CampaignDef(
-        name=name, experiments=_experiments(raw["experiments"], f"{w}.experiments"),
+        name=name, experiments=experiments,
         identify=raw.get("identify", True), diagnose=raw.get("diagnose", False),
         model=_path(base, raw["model"], f"{w}.model") if raw.get("model") else None,
         add=tuple(add), method=method,
@@ -231,7 +297,32 @@ def _campaign(name: str, raw: Any, base: Path) -> CampaignDef:
         backoff_s=_num(raw, "backoff_s", w, 2.0, positive=False),
         timeout_s=_num(raw, "timeout_s", w, None), reduced_speed_first=rsf,
         cutoff_hz=_num(raw, "cutoff_hz", w, None), motor_side=raw.get("motor_side", False),
-        upload=raw.get("upload", False))
+        upload=raw.get("upload", False), channels=channels,
+        force=raw.get("force", False))
+
+
+def _check_split_ids(experiments: tuple[ExperimentDef, ...], where: str) -> None:
+    """Split ids (``<id>-j1-3``) stay names and collide with no other experiment's id."""
+    ids = {e.exp_id for e in experiments}
+    for i, e in enumerate(experiments):
+        if e.kind not in SPLIT_KINDS:
+            continue
+        longest = f"{e.exp_id}-j64-64"
+        try:
+            check_name(longest, "id")
+        except RobidError as err:
+            raise ConfigError(f"{where}[{i}].id: split by channels as {longest!r}: {err}"
+                              ) from err
+        clash = next((o for o in ids if o.startswith(f"{e.exp_id}-j") and o != e.exp_id), None)
+        if clash is not None:
+            raise ConfigError(f"{where}[{i}].id: {e.exp_id!r} split by channels would "
+                              f"collide with experiment {clash!r}")
+
+
+def with_joint_count(cfg: DaemonConfig, n_joints: int) -> DaemonConfig:
+    """The config with the robot's joint count in every campaign (``channels`` splits)."""
+    return replace(cfg, campaigns={k: replace(c, n_joints=n_joints)
+                                   for k, c in cfg.campaigns.items()})
 
 
 def _web(raw: Any, base: Path) -> WebConfig:
@@ -248,7 +339,27 @@ def _web(raw: Any, base: Path) -> WebConfig:
         raise ConfigError("web: give token or token_file, not both")
     paths = {k: _path(base, raw[k], f"web.{k}") if raw.get(k) else None
              for k in ("tls_cert", "tls_key", "token_file")}
-    return WebConfig(listen=raw.get("listen"), token=raw.get("token"), **paths)
+    return WebConfig(listen=raw.get("listen"), token=raw.get("token"),
+                     hosts=_web_hosts(raw.get("hosts", [])), **paths)
+
+
+def _web_hosts(raw: Any) -> tuple[str, ...]:
+    """``web.hosts``: host names or addresses, without a scheme or a port."""
+    import ipaddress
+    import re
+
+    if not isinstance(raw, list):
+        raise ConfigError(f"web.hosts: expected a list of host names, got {raw!r}")
+    for k, name in enumerate(raw):
+        try:
+            ok = isinstance(name, str) and (re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9.-]*", name)
+                                            is not None or bool(ipaddress.ip_address(name)))
+        except ValueError:
+            ok = False
+        if not ok:
+            raise ConfigError(f"web.hosts[{k}]: expected a host name or address (no scheme "
+                              f"or port), got {name!r}")
+    return tuple(name.lower().rstrip(".") for name in raw)
 
 
 def load_daemon_config(path: str | Path) -> DaemonConfig:

@@ -14,6 +14,9 @@
      ├── ApprovalError                  an unattended run met a program nobody approved
      ├── StoreLockedError (RuntimeError)  the state dir is in use by another daemon
      ├── StoreFullError (OSError)       the state_dir has no room: new runs wait, none fails
+     ├── StoreUnavailableError (ConnectionError)  the store's database cannot be reached: the
+     │    │                             robot is withdrawn, runs wait, none fails
+     │    └── StoreLockLostError        the robot's lock in a shared store was lost: no motion
      ├── DaemonUnreachable (ConnectionError)  no daemon answers on the control socket
      ├── WorkerError (RuntimeError)     a worker process crashed or died (a bug, not bad input)
      └── RecordError (ValueError)       a job or result record of another version, type or keys
@@ -41,6 +44,8 @@ __all__ = [
     "CycleError",
     "StoreLockedError",
     "StoreFullError",
+    "StoreUnavailableError",
+    "StoreLockLostError",
     "DaemonUnreachable",
     "WorkerError",
     "RecordError",
@@ -135,3 +140,14 @@ class DataWarning(RobidWarning):
 class StoreFullError(RobidError, OSError):
     """The state_dir's disk is full (or below its reserve): the daemon refuses new runs and
     pauses the current one before its next motion; it resumes when space returns."""
+
+
+class StoreUnavailableError(RobidError, ConnectionError):
+    """The store's database cannot be reached (a PostgreSQL server down, a connection lost):
+    like a full disk, the daemon withdraws what it gave, pauses the run and serves status; it
+    resumes when the store answers again. The message names the store (no password)."""
+
+
+class StoreLockLostError(StoreUnavailableError):
+    """A daemon's lock on its robot in a shared store was lost (its session ended and another
+    daemon may hold the robot now): latched, no further motion until the daemon restarts."""

@@ -12,7 +12,7 @@ __all__ = ["CW_SHUTDOWN", "CW_SWITCH_ON", "CW_ENABLE", "CW_QUICK_STOP", "CW_DISA
            "CW_FAULT_RESET", "MODE_CSP", "drive_state", "error_words", "RPDO1", "TPDO1",
            "TPDO2", "RPDO1_MAP", "NMT_RESET_COMM", "NMT_START",
            "NMT_PRE_OPERATIONAL", "SYNC_ID", "PROFILE_402", "pdo_entry", "SYNC_OVERFLOW",
-           "SYNC_ECHO", "sync_counter", "tpdo_maps"]
+           "SYNC_ECHO", "TORQUE_ACTUAL", "sync_counter", "tpdo_maps", "tpdo2_struct"]
 
 # controlwords (CiA 402 §6.2): the low bits of the commands the state machine obeys
 CW_SHUTDOWN = 0x0006
@@ -43,10 +43,20 @@ def sync_counter(index: int) -> int:
 
 
 # robid's PDO layout: one RPDO and two TPDOs per drive, all synchronous (transmission type 1);
-# the error code 0x603F comes by EMCY (and by SDO at start-up)
+# the error code 0x603F comes by EMCY (and by SDO after a fault). TPDO2 carries the torque the
+# log records: 0x6077 (INTEGER16, per mille of the rated torque: 0.5 N·m steps on a 500 N·m
+# joint, near the measurement noise) or a drive's finer object (INTEGER32, e.g. the torque or
+# the current actual value in its own unit); the velocity the master needs at standstill comes
+# from successive positions, so both fit one frame each with the SYNC echo.
 RPDO1 = struct.Struct("<Hih")  # controlword 0x6040, target position 0x607A, torque offset 0x60B2
 TPDO1 = struct.Struct("<HiB")  # statusword 0x6041, position actual 0x6064, SYNC echo
-TPDO2 = struct.Struct("<ihB")  # velocity actual 0x606C, torque actual 0x6077, SYNC echo
+TORQUE_ACTUAL = (0x6077, 0)  # INTEGER16, per mille of the rated torque (0x6076)
+TPDO2 = struct.Struct("<hB")  # torque actual 0x6077, SYNC echo (a 32-bit object: tpdo2_struct)
+
+
+def tpdo2_struct(bits: int) -> struct.Struct:
+    """TPDO2 (the torque object of ``bits`` bits, SYNC echo)."""
+    return struct.Struct({16: "<hB", 32: "<iB"}[bits])
 
 
 def pdo_entry(index: int, subindex: int, bits: int) -> int:
@@ -57,10 +67,12 @@ def pdo_entry(index: int, subindex: int, bits: int) -> int:
 RPDO1_MAP = (pdo_entry(0x6040, 0, 16), pdo_entry(0x607A, 0, 32), pdo_entry(0x60B2, 0, 16))
 
 
-def tpdo_maps(echo: tuple[int, int] = SYNC_ECHO) -> tuple[tuple[int, ...], tuple[int, ...]]:
-    """The two TPDO mappings, with the drive's SYNC echo object ``(index, subindex)``."""
+def tpdo_maps(echo: tuple[int, int] = SYNC_ECHO, torque: tuple[int, int] = TORQUE_ACTUAL,
+              torque_bits: int = 16) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """The two TPDO mappings, with the drive's SYNC echo object ``(index, subindex)`` and the
+    torque object the log records (``torque_bits`` wide)."""
     return ((pdo_entry(0x6041, 0, 16), pdo_entry(0x6064, 0, 32), pdo_entry(*echo, 8)),
-            (pdo_entry(0x606C, 0, 32), pdo_entry(0x6077, 0, 16), pdo_entry(*echo, 8)))
+            (pdo_entry(*torque, torque_bits), pdo_entry(*echo, 8)))
 
 
 # statusword patterns (mask, value, state), CiA 402 table 30

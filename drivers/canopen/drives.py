@@ -38,8 +38,10 @@ from robid_link.drivers.canopen.cia402 import (
     RPDO1_MAP,
     SYNC_ECHO,
     SYNC_OVERFLOW,
+    TORQUE_ACTUAL,
     drive_state,
     error_words,
+    tpdo2_struct,
     tpdo_maps,
 )
 from robid_link.drivers.canopen.feedforward import KeptParameterSet, torque_offsets
@@ -73,9 +75,14 @@ _INT32 = 2**31 - 1
 
 class _ObjectEntry(Option):
     """An object dictionary entry given as ``"0x2100:0"``, ``"0x2100"`` or an int index,
-    manufacturer-specific (0x2000..0x5FFF): ``(index, subindex)``."""
+    manufacturer-specific (0x2000..0x5FFF) or one of ``also``: ``(index, subindex)``."""
 
-    expect = "a manufacturer-specific object as '0xIIII:SS' (index 0x2000..0x5FFF)"
+    def __init__(self, default: Any, *, also: tuple[tuple[int, int], ...] = ()) -> None:
+        super().__init__(default)
+        self.also = also
+        named = "".join(f"'0x{i:04X}:{s}' or " for i, s in also)
+        self.expect = f"{named}a manufacturer-specific object as '0xIIII:SS' (index " \
+                      "0x2000..0x5FFF)"
 
     def convert(self, key: str, value: Any) -> tuple[int, int]:
         if isinstance(value, int) and not isinstance(value, bool):
@@ -87,7 +94,8 @@ class _ObjectEntry(Option):
                 index, sub = int(head, 0), int(tail or "0", 0)
             except ValueError:
                 index = sub = -1
-        if not (0x2000 <= index <= 0x5FFF and 0 <= sub <= 0xFF):
+        if (index, sub) not in self.also and not (0x2000 <= index <= 0x5FFF
+                                                  and 0 <= sub <= 0xFF):
             raise self.refuse(key, value)
         return index, sub
 
@@ -108,7 +116,11 @@ class CanopenDrivesDriver(Driver):
     ``sync_echo`` (the drive's UNSIGNED8 object, mappable, that holds the counter of the SYNC
     at which its TPDO values were latched: ``"0x2100:0"`` by default; each TPDO carries it, so
     a late answer is still put at its own SYNC; the driver sets 0x1019 so SYNCs carry a
-    counter).
+    counter), ``torque_object`` (what TPDO2 carries as the log's torque: ``"0x6077:0"``,
+    INTEGER16 per mille of the rated torque, by default; a manufacturer object is an INTEGER32
+    — a finer torque, or a current — with ``torque_unit_nm``, the joint N·m of one unit, per
+    joint: a 500 N·m joint reads 0x6077 in 0.5 N·m steps, coarser than the noise an effect
+    hides in).
 
     An uploaded parameter set is the driver's own feedforward: every setpoint carries the set's
     model torque (a table the worker computes, ``feedforward_table``) as torque offset 0x60B2
@@ -140,7 +152,9 @@ class CanopenDrivesDriver(Driver):
         # answers are put at their SYNC by its counter, unambiguous within SYNC_OVERFLOW
         max_missed=Integer(3, low=1, high=SYNC_OVERFLOW - 40),
         overrun_streak=Integer(5, low=1, high=1_000_000), max_approach_rad=Number(1.0, low=0),
-        bus_options=Table(None), sync_echo=_ObjectEntry(SYNC_ECHO))
+        bus_options=Table(None), sync_echo=_ObjectEntry(SYNC_ECHO),
+        torque_object=_ObjectEntry(TORQUE_ACTUAL, also=(TORQUE_ACTUAL,)),
+        torque_unit_nm=Vector(Number(above=0), None, per_joint=True))
 
     def __init__(self, **options: Any) -> None:
         super().__init__(**options)
@@ -163,7 +177,17 @@ class CanopenDrivesDriver(Driver):
         self.boot_timeout, self.state_timeout = o.boot_timeout_s, o.state_timeout_s
         self.settle_timeout, self.standstill = o.settle_timeout_s, o.standstill_rad_s
         self.max_missed = o.max_missed
-        self.tpdo_maps = tpdo_maps(o.sync_echo)
+        self.torque_object, self.torque_unit_nm = o.torque_object, o.torque_unit_nm
+        fine = self.torque_object != TORQUE_ACTUAL  # a manufacturer object: INTEGER32
+        if fine and self.torque_unit_nm is None:
+            raise ConfigError(f"driver.torque_unit_nm: missing (the joint N·m of one unit of "
+                              f"0x{self.torque_object[0]:04X}:{self.torque_object[1]:02X}, one "
+                              "per joint)")
+        if not fine and self.torque_unit_nm is not None:
+            raise ConfigError("driver.torque_unit_nm: only with a manufacturer torque_object "
+                              "(0x6077 is in per mille of rated_torque_nm)")
+        self.tpdo_maps = tpdo_maps(o.sync_echo, self.torque_object, 32 if fine else 16)
+        self.tpdo2 = tpdo2_struct(32 if fine else 16)
         self.overrun_streak, self.max_approach = o.overrun_streak, o.max_approach_rad
         self.bus_options = dict(o.bus_options or {})
         self.parameters: KeptParameterSet | None = None
@@ -184,8 +208,13 @@ class CanopenDrivesDriver(Driver):
                 raise ConfigError(f"driver.counts_per_rad[{j}]: joint {j + 1} reaches "
                                   f"{reach:.4g} rad = {reach * self.counts_per_rad[j]:.3g} "
                                   "counts, beyond the drive's 32-bit position")
-            if self.rated_torque_nm is not None and math.isfinite(robot.tau_max[j]) and (
-                    robot.tau_max[j] / self.rated_torque_nm[j] * 1000 > 32767):
+            if self.torque_unit_nm is not None and math.isfinite(robot.tau_max[j]) and (
+                    robot.tau_max[j] / self.torque_unit_nm[j] > _INT32):
+                raise ConfigError(f"driver.torque_unit_nm[{j}]: joint {j + 1} torque limit "
+                                  f"{robot.tau_max[j]:g} N·m overflows the 32-bit torque object")
+            if (self.torque_unit_nm is None and self.rated_torque_nm is not None
+                    and math.isfinite(robot.tau_max[j])
+                    and robot.tau_max[j] / self.rated_torque_nm[j] * 1000 > 32767):
                 raise ConfigError(f"driver.rated_torque_nm[{j}]: joint {j + 1} torque limit "
                                   f"{robot.tau_max[j]:g} N·m overflows 0x6077 (16-bit per mille)")
 
@@ -300,6 +329,8 @@ class CanopenDrivesDriver(Driver):
             a.rated_torque_nm = self._sdo(a, 0x6076, 0) / 1000.0
         else:
             a.rated_torque_nm = self.rated_torque_nm[a.joint - 1]
+        if self.torque_unit_nm is not None:
+            a.torque_unit_nm = self.torque_unit_nm[a.joint - 1]
 
     def _enable(self, a: Axis) -> int:
         """Walk the power state machine to Operation enabled (by SDO, a timeout per step),
@@ -337,7 +368,8 @@ class CanopenDrivesDriver(Driver):
             self.network.bus, self.axes, self.period, heartbeat_timeout_s=self.hb_timeout,
             max_missed=self.max_missed, overrun_streak=self.overrun_streak,
             standstill_rad_s=self.standstill, decel_rad_s2=0.5 * qdd, on_end=self._job_ended,
-            tap=self._tap.on_message_received, send_lock=self.network.send_lock)
+            tap=self._tap.on_message_received, send_lock=self.network.send_lock,
+            tpdo2=self.tpdo2)
         net = self.network
         for i, a in enumerate(self.axes):
             net.subscribe(0x180 + a.node, lambda _c, d, _t, i=i: master.on_tpdo1(i, d))
@@ -517,12 +549,22 @@ class CanopenDrivesDriver(Driver):
         path, sha, size = await self.bridge.wait(job.result)
         if job.error is not None:
             what = "quick stop on every drive" if job.quick_stop else "no quick stop needed"
-            raise DriverError(f"experiment {exp_id}: {job.error}; {what}; log captured so far "
-                              f"kept as {path} ({len(job.rows)} samples, incomplete)")
+            code = "" if job.drive_fault is None else await self._error_code(job.drive_fault)
+            raise DriverError(f"experiment {exp_id}: {job.error}{code}; {what}; log captured "
+                              f"so far kept as {path} ({len(job.rows)} samples, incomplete)")
         if job.missing_rows:
             log.warning("exp=%s %d SYNC periods without every drive's answer (gaps in the log)",
                         exp_id, job.missing_rows)
         return Done(exp_id, nonce, sha, size)
+
+    async def _error_code(self, axis: Axis) -> str:
+        """The drive's own error code after its fault: 0x603F read by SDO (an EMCY may be lost
+        or never sent), named in words."""
+        try:
+            code = await asyncio.to_thread(self._sdo, axis, 0x603F, 0, None, "<H")
+        except DriverError as err:
+            return f", error code 0x603F unreadable ({err})"
+        return f", error code 0x603F = {error_words(code)}"
 
     async def _fetch_logs(self, done: Done) -> bytes:
         path = self.record_dir / f"{done.exp_id}.{done.nonce}.log.csv"

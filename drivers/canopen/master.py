@@ -43,21 +43,25 @@ class Axis:
     """One drive (= one joint) as the master sees it; the notifier thread fills the inputs.
 
     ``slots`` holds what the drive answered per SYNC index (its TPDOs carry the SYNC counter),
-    ``[(status, pos), (torque, vel)]`` until both came; ``heard`` the newest SYNC index each of
+    ``[(status, pos), (torque,)]`` until both came; ``heard`` the newest SYNC index each of
     its two TPDOs answered (each comes in order; the two may overtake each other on a bus),
-    ``newest`` the newest SYNC index it answered completely."""
+    ``newest`` the newest SYNC index it answered completely. The velocity (counts/s) is the
+    difference of successive answered positions (``_velocity``)."""
 
     node: int
     joint: int  # from 1
     name: str
     counts_per_rad: float
-    rated_torque_nm: float  # joint torque of 1000 per mille
+    rated_torque_nm: float  # joint torque of 1000 per mille (the torque offset's unit)
     window_counts: float  # following-error window
+    torque_unit_nm: float = 0.0  # N·m per unit of the torque object in TPDO2 (0: ‰ of rated)
     slots: dict[int, list[Any]] = field(default_factory=dict)
     heard: list[int] = field(default_factory=lambda: [-1, -1])
     newest: int = -1
     last: tuple[int, int, int, int, int] | None = None  # status, pos, torque, vel, error
     missed: int = 0
+    seen: tuple[int, int] | None = None  # (SYNC index, position) of ``last``
+    row_seen: tuple[int, int] | None = None  # (SYNC index, position) of the last recorded row
     heartbeat_at: float = 0.0
     nmt_state: int = -1
     emcy: int = 0
@@ -88,6 +92,7 @@ class Job:
     error: str | None = None
     missing_rows: int = 0
     quick_stop: bool = False  # ended by a fault (else finished, or ramped to rest on request)
+    drive_fault: Axis | None = None  # the drive whose own fault ended it (0x603F to be read)
     ended: threading.Event = field(default_factory=threading.Event)
     result: Future[Any] = field(default_factory=Future)
 
@@ -126,9 +131,9 @@ def _lost(axis: Axis, part: list[Any] | None, index: int) -> bool:
 
 
 class _Stop(Exception):
-    def __init__(self, axis: Axis | None, cause: str) -> None:
+    def __init__(self, axis: Axis | None, cause: str, drive_fault: bool = False) -> None:
         super().__init__(cause)
-        self.axis, self.cause = axis, cause
+        self.axis, self.cause, self.drive_fault = axis, cause, drive_fault
 
 
 class SyncMaster:
@@ -142,8 +147,9 @@ class SyncMaster:
                  heartbeat_timeout_s: float, max_missed: int, overrun_streak: int,
                  standstill_rad_s: float, decel_rad_s2: np.ndarray,
                  on_end: Callable[[Job], None], tap: Callable[[can.Message], None],
-                 send_lock: threading.Lock | None = None) -> None:
+                 send_lock: threading.Lock | None = None, tpdo2: Any = TPDO2) -> None:
         self.bus, self.axes, self.period = bus, list(axes), period
+        self.tpdo2 = tpdo2  # the torque object's width decides it (cia402.tpdo2_struct)
         # one frame at a time on the bus: SDO and NMT go out from other threads (a socketcand
         # client writes each frame to one TCP stream)
         self.send_lock = send_lock or threading.Lock()
@@ -163,6 +169,11 @@ class SyncMaster:
         self.ramp: np.ndarray | None = None
         self.ramp_then = "hold"
         self.halt_reason: str | None = None
+        # something no drive of ours may send (another node on our COB-ID, two different
+        # answers to one SYNC, a TPDO mapped otherwise): seen on the notifier thread, the
+        # master stops at its next tick
+        self.protocol_fault: _Stop | None = None
+        self.duplicates = 0  # identical TPDOs repeated for one SYNC (ignored)
         self.sync_count = 0  # SYNCs sent; the next one has index sync_count
         self.next_row = 0  # the oldest SYNC index not yet recorded or given up
         # the SYNC indices every drive answered (status, pos, torque, vel per drive), None for
@@ -180,20 +191,33 @@ class SyncMaster:
 
     # -- inputs (notifier thread)
     def on_tpdo1(self, i: int, data: bytes) -> None:
-        if len(data) == TPDO1.size:  # else a drive mapped otherwise: it stays silent here
-            status, pos, counter = TPDO1.unpack(data)
-            self._answer(i, 0, counter, (status, pos))
+        if len(data) != TPDO1.size:
+            self._refuse(i, f"TPDO1 of {len(data)} bytes, {TPDO1.size} mapped")
+            return
+        status, pos, counter = TPDO1.unpack(data)
+        self._answer(i, 0, counter, (status, pos))
 
     def on_tpdo2(self, i: int, data: bytes) -> None:
-        if len(data) == TPDO2.size:
-            vel, torque, counter = TPDO2.unpack(data)
-            self._answer(i, 1, counter, (torque, vel))
+        if len(data) != self.tpdo2.size:
+            self._refuse(i, f"TPDO2 of {len(data)} bytes, {self.tpdo2.size} mapped")
+            return
+        torque, counter = self.tpdo2.unpack(data)
+        self._answer(i, 1, counter, (torque,))
+
+    def _refuse(self, i: int, cause: str) -> None:
+        """A frame no drive of ours sends: the master stops every drive at its next tick."""
+        if self.protocol_fault is None:
+            self.protocol_fault = _Stop(self.axes[i], f"{cause}: not this drive's answer "
+                                                      "(another node on its COB-ID, or mapped "
+                                                      "otherwise); refused")
 
     def _answer(self, i: int, part: int, counter: int, values: tuple[int, int]) -> None:
         """A TPDO put at the SYNC it answers: the newest SYNC sent (or being sent) with its
         counter. ``max_missed`` < SYNC_OVERFLOW keeps that unambiguous: a drive whose answers
-        come later than that is stopped first."""
+        come later than that is stopped first. The same answer twice is ignored; a different
+        second answer to one SYNC is refused (two senders on one COB-ID)."""
         if not 1 <= counter <= SYNC_OVERFLOW:
+            self._refuse(i, f"TPDO{part + 1} with SYNC counter {counter} (1..{SYNC_OVERFLOW})")
             return
         with self.lock:
             newest = self.sync_count  # this SYNC may be out while its count is not yet up
@@ -201,7 +225,15 @@ class SyncMaster:
             if index < self.next_row:
                 return  # given up already (or before the master started)
             axis = self.axes[i]
-            axis.slots.setdefault(index, [None, None])[part] = values
+            slot = axis.slots.setdefault(index, [None, None])
+            if slot[part] is not None:
+                if slot[part] == values:
+                    self.duplicates += 1
+                    return
+                self._refuse(i, f"two different TPDO{part + 1} for SYNC {index} ({slot[part]} "
+                                f"and {values})")
+                return
+            slot[part] = values
             axis.heard[part] = max(axis.heard[part], index)
 
     def on_heartbeat(self, i: int, data: bytes) -> None:
@@ -267,7 +299,7 @@ class SyncMaster:
             try:
                 self._tick()
             except _Stop as stop:
-                self._halt(stop.axis, stop.cause)
+                self._halt(stop.axis, stop.cause, stop.drive_fault)
             except Exception as err:  # noqa: BLE001 - a bug must stop the drives, not the thread
                 log.exception("sync master: internal error")
                 self._halt(None, f"internal error in the motion master: {err}")
@@ -308,7 +340,10 @@ class SyncMaster:
                 fresh = None
                 for index, (p1, p2) in a.slots.items():
                     if p1 is not None and p2 is not None and index > a.newest:
-                        a.newest, fresh = index, (p1[0], p1[1], p2[0], p2[1], a.emcy)
+                        a.newest = index
+                        vel = self._velocity(a.seen, index, p1[1])
+                        a.seen = (index, p1[1])
+                        fresh = (p1[0], p1[1], p2[0], vel, a.emcy)
                 if fresh is not None:
                     a.last = fresh
                 out.append(fresh)
@@ -319,8 +354,12 @@ class SyncMaster:
                 done = [p for p in parts if p is not None and p[0] is not None
                         and p[1] is not None]
                 if len(done) == len(parts):
-                    self.answered.append((index, [(p[0][0], p[0][1], p[1][0], p[1][1])
-                                                  for p in done]))
+                    row = []
+                    for a, p in zip(self.axes, done, strict=True):
+                        row.append((p[0][0], p[0][1], p[1][0],
+                                    self._velocity(a.row_seen, index, p[0][1])))
+                        a.row_seen = (index, p[0][1])
+                    self.answered.append((index, row))
                 elif (all(_lost(a, p, index) for a, p in zip(self.axes, parts, strict=True))
                       or last - index >= self.max_missed):
                     self.answered.append((index, None))
@@ -331,9 +370,18 @@ class SyncMaster:
                 self.next_row += 1
         return out
 
+    def _velocity(self, before: tuple[int, int] | None, index: int, pos: int) -> float:
+        """Counts/s from the position answered before (at most a few SYNCs back); an
+        unknown velocity counts as moving (never taken for standstill)."""
+        if before is None or not 0 < index - before[0] <= 4:
+            return math.inf
+        return (pos - before[1]) / ((index - before[0]) * self.period)
+
     def _check(self, samples: list[tuple[int, int, int, int, int] | None]) -> None:
         if self.mode == "halted":
             return
+        if self.protocol_fault is not None:
+            raise self.protocol_fault
         now = time.monotonic()
         for a, s in zip(self.axes, samples, strict=True):
             if a.missed >= self.max_missed:
@@ -347,7 +395,9 @@ class SyncMaster:
             status, pos, _, _, err = s
             state = drive_state(status)
             if state in ("Fault", "Fault reaction active"):
-                raise _Stop(a, f"drive fault {error_words(err or a.emcy)}")
+                emcy = err or a.emcy  # the driver reads 0x603F after the stop and names it
+                raise _Stop(a, "drive fault" + (f" (EMCY {error_words(emcy)})" if emcy else
+                                                " (no EMCY received)"), drive_fault=True)
             if state != "Operation enabled" and self.mode != "ramp":
                 raise _Stop(a, f"drive left Operation enabled (now {state})")
             error = abs(pos - int(self.sent.get(a.newest, self.cmd)[a.joint - 1]))
@@ -459,7 +509,7 @@ class SyncMaster:
             t = job.t0 + (index - job.sync0) * job.period
             job.rows.append((t, tuple(p[1] for p in parts), tuple(p[2] for p in parts)))
 
-    def _halt(self, axis: Axis | None, cause: str) -> None:
+    def _halt(self, axis: Axis | None, cause: str, drive_fault: bool = False) -> None:
         """Quick stop on every drive (latched); the running job fails with one line."""
         where = axis.label() if axis is not None else "bus"
         line = f"{where}: {cause}"
@@ -469,6 +519,7 @@ class SyncMaster:
         log.error("quick stop on every drive: %s", line)
         if job is not None:
             job.quick_stop = True
+            job.drive_fault = axis if drive_fault else None
             self._end_job(job, line)
         self.idle.set()
         try:  # at once, not only at the next period

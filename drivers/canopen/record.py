@@ -29,7 +29,7 @@ def log_bytes(job: Job, axes: Sequence[Axis]) -> bytes:
     head = ",".join(["t"] + [f"q{j}" for j in range(1, n + 1)]
                     + [f"tau{j}" for j in range(1, n + 1)])
     cpr = [a.counts_per_rad for a in axes]
-    scale = [a.rated_torque_nm / 1000.0 for a in axes]
+    scale = [a.torque_unit_nm or a.rated_torque_nm / 1000.0 for a in axes]
     lines = [head]
     for t, pos, tq in job.rows:
         cells = [f"{t:.6f}"] + [f"{p / c:.10g}" for p, c in zip(pos, cpr, strict=True)]
@@ -38,19 +38,34 @@ def log_bytes(job: Job, axes: Sequence[Axis]) -> bytes:
     return ("\n".join(lines) + "\n").encode()
 
 
+#: frames waiting for the BLF writer at most (a few seconds of a busy bus): a writer that falls
+#: behind loses frames of the raw record (counted), never the motion master's time or memory
+MAX_BACKLOG = 200_000
+
+
 class BlfTap(can.Listener):
     """Every frame of an experiment, both directions, into its BLF file, written off the
-    motion master's thread (python-can's BLFWriter compresses in chunks)."""
+    motion master's thread (python-can's BLFWriter compresses in chunks). At most
+    ``MAX_BACKLOG`` frames wait; more are dropped and counted in ``dropped``."""
 
     def __init__(self) -> None:
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._writer: can.BLFWriter | None = None
+        self._backlog = 0  # frames in the queue (the control items are few)
+        self._count = threading.Lock()
+        self.dropped = 0
         self._thread = threading.Thread(target=self._run, name="canopen-blf", daemon=True)
         self._thread.start()
 
     def on_message_received(self, msg: can.Message) -> None:
-        if self._writer is not None:
-            self._queue.put(msg)
+        if self._writer is None:
+            return
+        with self._count:
+            if self._backlog >= MAX_BACKLOG:
+                self.dropped += 1
+                return
+            self._backlog += 1
+        self._queue.put(msg)
 
     def begin(self, path: Path) -> None:
         self._queue.put(("begin", path))
@@ -69,6 +84,8 @@ class BlfTap(can.Listener):
         while True:
             item = self._queue.get()
             if isinstance(item, can.Message):
+                with self._count:
+                    self._backlog -= 1
                 if writer is not None:
                     frame = copy.copy(item)
                     frame.channel = 1  # BLF numbers its channels

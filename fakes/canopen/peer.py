@@ -58,6 +58,8 @@ EDS = Path(str(resources.files("robid_link.fakes.canopen") / "cia402_drive.eds")
 _SG_D1 = np.array([-3, -2, -1, 0, 1, 2, 3]) / 28.0
 _SG_D2 = np.array([5, 0, -3, -4, -3, 0, 5]) / 42.0
 _FAULT_CODE = EMCY_OVER_CURRENT
+#: the fake drives' manufacturer object with the torque actual value in mN·m (INTEGER32)
+TORQUE_FINE = (0x2101, 0)
 _MASTER_LOST = EMCY_HEARTBEAT  # here: no SYNC from the master
 
 
@@ -76,6 +78,7 @@ class _Drive:
         self.drop_until = -1
         self.decel = 1.0  # rad/s², from 0x6085
         self.received: list[tuple[int, int, int]] = []  # per SYNC: k, target, torque offset
+        self.quick_stopped: list[float] = []  # wall-clock times of the master's quick stops
         self._put(0x1018, 4, joint, "<I")
         self._put(0x6076, 0, round(rated_nm * 1000 / 1), "<I")  # mN·m of 1000 per mille
         self._status()
@@ -99,6 +102,8 @@ class _Drive:
     def _controlword(self, cw: int) -> None:
         prev, self.cw = self.cw, cw
         state = next_state(self.state, cw, prev)
+        if state == "Quick stop active" and self.state != state:
+            self.quick_stopped.append(time.time())
         if state == "Operation enabled" and self._get(0x6060, 0, "<b") != MODE_CSP:
             state = self.state  # this drive runs only in cyclic synchronous position mode
         if self.state == "Fault" and state != "Fault":
@@ -106,10 +111,10 @@ class _Drive:
         self.state = state
         self._status()
 
-    def fault(self, code: int) -> None:
+    def fault(self, code: int, emcy: bool = True) -> None:
         self.state, self.error = "Fault", code
         self._status()
-        if not self.silent:
+        if not self.silent and emcy:
             self.node.network.send_message(COB_EMCY + self.id, struct.pack(
                 "<HB5x", code, ERROR_REGISTER_GENERIC))
 
@@ -168,13 +173,20 @@ class Cia402Peer(Peer):
     and in order: a loaded socketcand host or network),
     ``fault_node`` (joint number the faults hit), ``fault_after_s`` (into the motion). A run
     starts with the first moving setpoint after a rest of ten SYNCs; the core's fault schedule
-    is consumed per run.
+    is consumed per run. Faults beyond the core's: ``drive_fault`` (EMCY and 0x603F),
+    ``drive_fault_quiet`` (its EMCY is lost: only 0x603F tells), ``no_boot``,
+    ``heartbeat_loss``, ``following_error``, ``dropped_frames``, and two a hostile bus plays:
+    ``foreign_tpdo`` (the fault node's TPDO1 goes out under the next node's COB-ID too) and
+    ``bad_length`` (its TPDO2 one byte short). ``counts_per_rad``: the encoders (2^27 per joint
+    turn); ``fine_torque``: the daemon maps the drives' 2101h, the torque in mN·m, instead of
+    6077h (per mille of the rated torque).
     """
 
     driver = "canopen_drives"
     #: the contract suite runs over the in-process virtual bus and over socketcand on loopback
     contract_variants = ({}, {"interface": "socketcand"})
-    faults = ("drive_fault", "no_boot", "heartbeat_loss", "following_error", "dropped_frames")
+    faults = ("drive_fault", "no_boot", "heartbeat_loss", "following_error", "dropped_frames",
+              "drive_fault_quiet", "foreign_tpdo", "bad_length")
     unsupported = {
         "never_answer": "the daemon streams every setpoint itself: a drive that does not "
                         "answer is a lost node, stopped within a few SYNCs (a DriverError, not "
@@ -191,7 +203,9 @@ class Cia402Peer(Peer):
     def __init__(self, core: ControllerCore, workdir: Path, *, interface: str | None = None,
                  channel: str | None = None, port: int = 0, sync_period_s: float | None = None,
                  sync_timeout_s: float | None = None, fault_node: int | None = None,
-                 fault_after_s: float = 0.2, answer_lag_periods: int = 0) -> None:
+                 fault_after_s: float = 0.2, answer_lag_periods: int = 0,
+                 counts_per_rad: float = 2**27 / (2 * math.pi),
+                 fine_torque: bool = True) -> None:
         super().__init__(core, workdir)
         robot = core.robot
         self.n = robot.n
@@ -213,7 +227,10 @@ class Cia402Peer(Peer):
         self._quit = threading.Event()
         self._watch: threading.Thread | None = None
         self.master_lost = 0  # how many times the drives quick-stopped for a lost master
-        self.cpr = [2**20 / (2 * math.pi)] * self.n
+        # a 20-bit motor encoder behind a 128:1 gear (2^20 per joint turn, the former value,
+        # made the plant's accelerations from rounded setpoints noisy by N·m on heavy axes)
+        self.cpr = [float(counts_per_rad)] * self.n
+        self.fine_torque = fine_torque  # 2101h (INTEGER32, mN·m) mapped, not 6077h
         tau = [float(x) if math.isfinite(x) else 100.0 for x in robot.limits.tau_max]
         self.rated = [t / 3.0 for t in tau]  # peak ≈ 3 × rated, as servo drives are sized
         self.fault_joint = int(fault_node or min(2, self.n))
@@ -227,6 +244,7 @@ class Cia402Peer(Peer):
         self.run_start = -1
         self.delay_buf: collections.deque[np.ndarray] = collections.deque(maxlen=1)
         self.rng = np.random.default_rng(core.seed)
+        self.hostile: str | None = None  # foreign_tpdo, bad_length: from the fault on
         self.answer_lag = int(answer_lag_periods)
         self.lag_rng = np.random.default_rng(core.seed + 1)  # apart: the noise stays the same
         self.outbox: collections.deque[tuple[int, int, bytes]] = collections.deque()
@@ -242,6 +260,8 @@ class Cia402Peer(Peer):
                 "nodes": [d.id for d in self.drives],
                 "sync_period_s": self.period, "counts_per_rad": self.cpr,
                 "rated_torque_nm": self.rated, "eds": str(EDS),
+                **({"torque_object": f"0x{TORQUE_FINE[0]:04X}:{TORQUE_FINE[1]}",
+                    "torque_unit_nm": [0.001] * self.n} if self.fine_torque else {}),
                 "record_dir": str(self.workdir / "records"),
                 # lenient supervision: the fake drives and the master share one Python
                 # process (GIL) on what may be a loaded test machine
@@ -341,12 +361,24 @@ class Cia402Peer(Peer):
             d._put(0x606C, 0, int(round(qd[j] * d.cpr)), "<i")
             d._put(0x6077, 0, int(np.clip(round(tau[j] / d.rated_nm * 1000), -32767, 32767)),
                    "<h")
+            d._put(*TORQUE_FINE, int(np.clip(round(tau[j] * 1000), -2**31, 2**31 - 1)), "<i")
             d._put(*SYNC_ECHO, counter, "<B")  # the SYNC these values were latched at
             if send:
-                self.outbox.extend((due, cob, data) for cob, data in d.tpdo_frames(self.k, twice))
+                self.outbox.extend((due, cob, data) for cob, data in self._frames(d, twice))
         while self.outbox and self.outbox[0][0] <= self.k and self.network is not None:
             _, cob, data = self.outbox.popleft()
             self.network.send_message(cob, data)
+
+    def _frames(self, d: _Drive, twice: bool) -> list[tuple[int, bytes]]:
+        """The drive's TPDOs of this SYNC, as a hostile bus delivers them after the fault."""
+        frames = d.tpdo_frames(self.k, twice)
+        if self.hostile is None or d.joint != self.fault_joint or not frames:
+            return frames
+        if self.hostile == "bad_length":
+            return [frames[0]] + [(cob, data[:-1]) for cob, data in frames[1:]]
+        other = self.drives[self.fault_joint % self.n]  # the next node's COB-ID
+        cob, data = frames[0]
+        return [*frames, (cob - d.id + other.id, data)]
 
     # -- the master lost: what a drive's SYNC supervision does
     def _watch_loop(self) -> None:
@@ -425,9 +457,11 @@ class Cia402Peer(Peer):
     def _inject(self, fault: str) -> None:
         d = self.drives[self.fault_joint - 1]
         log.info("fake drives: injecting %s on node %d", fault, d.id)
-        if fault in ("fail", "drive_fault"):
-            d.fault(_FAULT_CODE)
+        if fault in ("fail", "drive_fault", "drive_fault_quiet"):
+            d.fault(_FAULT_CODE, emcy=fault != "drive_fault_quiet")
             log.info("node %d: %s", d.id, error_text(_FAULT_CODE))
+        elif fault in ("foreign_tpdo", "bad_length"):
+            self.hostile = fault
         elif fault == "heartbeat_loss":
             d.node.nmt.stop_heartbeat()
         elif fault == "following_error":
@@ -440,6 +474,10 @@ class Cia402Peer(Peer):
                 other.node.nmt.stop_heartbeat()
             self.died.set()
             self.core.die()
+
+    def quick_stops(self) -> list[float]:
+        """When the master's quick stop reached each drive that obeyed one (tests)."""
+        return sorted(t for d in self.drives for t in d.quick_stopped)
 
     def states(self) -> dict[int, str]:
         """Each node's power state (tests)."""

@@ -8,7 +8,12 @@ and subscriptions gone, 503 for a moment, the program finishes meanwhile), ``sil
 socket stays open but carries neither pings nor events; the program ends once the daemon
 subscribed again), ``exec_error`` (execution stops with
 no 'done'), ``session_limit`` (503 for the first ``fault_count`` logins), ``bad_credentials``
-(the daemon gets a wrong password). The server logs no secret: no password, no cookie.
+(the daemon gets a wrong password). Hostile ones, while a faulted program runs (it runs on
+until execution is stopped): ``garbage_state`` (the execution state answers an HTML page),
+``wrong_shape`` (it answers JSON of another shape), ``endless_log`` (the log download never
+ends), ``redirect`` (the subscription's websocket and the file service answer 302 to
+``redirect_to``). Every stop request is kept in ``stops`` (its wall-clock time). The server logs
+no secret: no password, no cookie.
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from robid_link.fakes.rws.login import Login, tls_context, write_credentials
 from robid_link.fakes.rws.resources import (
     DIALECTS,
     PATH_MODULE,
+    RAPID_STRING_MAX,
     ROBID_MODULE,
     ROBID_TASK,
     ROBID_VARS,
@@ -45,6 +51,7 @@ from robid_link.fakes.rws.resources import (
     exec_event,
     rapid_string_text,
     rapid_string_value,
+    size_value,
     value_event,
 )
 
@@ -65,13 +72,17 @@ class RwsPeer(Peer):
     ``version``, ``tls`` (auto | true | false), ``ping_interval_s``, ``restart_s``."""
 
     driver = "abb_rws"
-    faults = ("restart", "silent_ws", "exec_error", "session_limit", "bad_credentials")
+    faults = ("restart", "silent_ws", "exec_error", "session_limit", "bad_credentials",
+              "garbage_state", "wrong_shape", "endless_log", "redirect")
+    #: the faults that play the controller as hostile (the program runs until stopped)
+    hostile = ("garbage_state", "wrong_shape", "endless_log", "redirect")
     #: the contract suite runs once per RWS version (2.0: HTTPS, Basic auth, hal+json)
     contract_variants = ({"version": 1}, {"version": 2})
 
     def __init__(self, core: ControllerCore, workdir: Path, *, version: int = 1,
                  tls: str | bool = "auto", ping_interval_s: float = 30.0,
-                 restart_s: float = 0.5, port: int = 0) -> None:
+                 restart_s: float = 0.5, port: int = 0,
+                 redirect_to: str = "http://127.0.0.2:9/elsewhere") -> None:
         super().__init__(core, workdir)
         if version not in (1, 2):
             raise ValueError(f"version: expected 1 or 2, got {version!r}")
@@ -108,6 +119,10 @@ class RwsPeer(Peer):
         self._programs: list[threading.Thread] = []
         self._halt = threading.Event()
         self._lock = threading.Lock()
+        self.redirect_to = redirect_to
+        self.stops: list[float] = []  # time.time() of every stop request
+        self._stopped = threading.Event()  # set by a stop request: a hanging program ends
+        self._hostile: str | None = None  # the hostile fault of the program running now
 
     # -- life cycle
     def driver_options(self) -> dict[str, Any]:
@@ -354,6 +369,12 @@ class RwsPeer(Peer):
         return web.Response(status=204)
 
     async def _get_execution(self, request: web.Request) -> web.Response:
+        if self._hostile == "garbage_state":
+            return web.Response(status=200, text="<html><body>controller busy</body></html>",
+                                content_type="text/html")
+        if self._hostile == "wrong_shape":
+            return web.json_response({"_embedded": {"_state": {"ctrlexecstate": [1, 2]}},
+                                      "state": "running"})
         return self._answer(200, [{"_type": "rap-execution", "_title": "execution",
                                    "ctrlexecstate": self.exec_state, "cycle": "once"}])
 
@@ -371,6 +392,10 @@ class RwsPeer(Peer):
         if form.get("cycle", "asis") not in ("once", "forever", "asis", "oncedone"):
             return self._refuse(400, "cycle: expected once, forever, asis or oncedone")
         exp, nonce = self.vars["robid_exp"], self.vars["robid_nonce"]
+        self._stopped.clear()
+        # a controller that answers garbage does so from the start of the faulted program
+        self._hostile = (self.core.fault if self.core.fault in self.hostile
+                         and self.core.faults_left > 0 else None)
         self._set_exec("running")
         t = threading.Thread(target=self._program, args=(exp, nonce, self._loaded),
                              name="rws-program", daemon=True)
@@ -379,6 +404,9 @@ class RwsPeer(Peer):
         return web.Response(status=204)
 
     async def _stop(self, request: web.Request) -> web.Response:
+        self.stops.append(time.time())
+        log.info("execution stopped by request")
+        self._stopped.set()
         self._set_exec("stopped")
         return web.Response(status=204)
 
@@ -408,7 +436,12 @@ class RwsPeer(Peer):
             await sub["ws"].close()
         return web.Response(status=204)
 
+    def _redirect(self) -> web.Response:
+        return web.Response(status=302, headers={"Location": self.redirect_to})
+
     async def _poll(self, request: web.Request) -> web.StreamResponse:
+        if self._hostile == "redirect":
+            return self._redirect()
         sub = self._subs.get(request.match_info["id"])
         if sub is None or sub["session"] != request.get(_SESSION) or sub["ws"] is not None:
             return self._refuse(404, "no such subscription")
@@ -498,6 +531,10 @@ class RwsPeer(Peer):
             data = await request.read()
             await asyncio.to_thread(self._write, path, data)
             return web.Response(status=201)
+        if request.method == "GET" and self._hostile == "redirect":
+            return self._redirect()
+        if request.method == "GET" and self._hostile == "endless_log" and path.is_file():
+            return await self._endless(request)
         if request.method == "GET" and path.is_file():
             return web.Response(body=await asyncio.to_thread(path.read_bytes),
                                 content_type="application/octet-stream")
@@ -505,6 +542,16 @@ class RwsPeer(Peer):
             path.unlink()
             return web.Response(status=204)
         return self._refuse(404, "no such file")
+
+    async def _endless(self, request: web.Request) -> web.StreamResponse:
+        """A log that never ends (a logger left running into the file being served)."""
+        resp = web.StreamResponse(headers={"Content-Type": "application/octet-stream"})
+        await resp.prepare(request)
+        row = b"0.001,0.1,0.2,0.3,1.5,2.5,3.5\n" * 2048
+        with contextlib.suppress(ConnectionError, RuntimeError):
+            while not self._halt.is_set():
+                await resp.write(row)
+        return resp
 
     @staticmethod
     def _write(path: Path, data: bytes) -> None:
@@ -531,12 +578,14 @@ class RwsPeer(Peer):
     # -- the robid RAPID module's main, on the plant
     def _program(self, exp: str, nonce: str, loaded: str) -> None:
         """main of the robid module: clear robid_done, run the loaded robid_path (late
-        binding), close the log, then ``robid_done`` := ``<nonce> <sha256> <size>`` (or
-        ``ERR <nonce> <text>``); execution stops (README sketch)."""
-        def finish(done: str | None) -> None:
+        binding), close the log, then ``robid_size`` := ``<nonce> <size>`` and ``robid_done``
+        := ``<nonce> <sha256>`` (or ``ERR <nonce> <text>``); execution stops (README
+        sketch)."""
+        def finish(done: str | None, size: str | None = None) -> None:
+            if size is not None:  # the size first: 'done' is the mark that all is there
+                self._set_var("robid_size", size)
             if done is not None:
-                self.vars["robid_done"] = done
-                self._notify_var("robid_done")
+                self._set_var("robid_done", done)
             self._set_exec("stopped")
 
         if loaded != exp:  # %robid_move% runs whatever is loaded
@@ -550,11 +599,14 @@ class RwsPeer(Peer):
             self._in_loop(finish, error_value(nonce, f"trajectory: {err.strerror}"))
             return
         res = self.core.run(exp, nonce, csv, header)
+        if res.fault in ("garbage_state", "wrong_shape", "redirect"):
+            self._until_stopped()
+            return
         if res.fault in ("never_answer", "die"):
             if res.fault == "die":
                 self.core.die()
                 self.died.set()
-            self._halt.wait()  # hangs until stopped (withdraw) or the peer stops
+            self._until_stopped()  # hangs until stopped (withdraw) or the peer stops
             return
         if res.fault == "exec_error":  # motion supervision: execution stops, no 'done'
             self._in_loop(finish, None)
@@ -579,14 +631,28 @@ class RwsPeer(Peer):
                    and time.monotonic() < end and not self._halt.wait(0.01)):
                 pass
         self._write(folder / f"{exp}.{nonce}.log.csv", res.delivered)
-        done = done_value(nonce, res.sha256, len(res.log))
+        done = done_value(nonce, res.sha256)
         if res.fault == "stale_semaphore":  # an answer to an attempt that no longer exists
-            self._in_loop(self._set_var, "robid_done", done_value("0stale0", "0" * 64, 1))
-        self._in_loop(finish, done)
+            self._in_loop(self._set_var, "robid_done", done_value("0stale0", "0" * 64))
+        self._in_loop(finish, done, size_value(nonce, len(res.log)))
         if res.fault == "answer_twice":  # the same answer written a second time
             self._in_loop(self._set_var, "robid_done", done)
 
+    def _until_stopped(self) -> None:
+        """A program that runs until execution is stopped (or the peer stops)."""
+        while not self._halt.is_set() and not self._stopped.wait(0.05):
+            pass
+        self._hostile = None
+
     def _set_var(self, var: str, value: str) -> None:
+        """RAPID's own write of a PERS string: one over 80 characters is an execution error
+        (ERRNO ERR_STRTOOLNG), which the robid module's ERROR handler reports in
+        ``robid_done``."""
+        if len(value) > RAPID_STRING_MAX:
+            log.error("RAPID: %s: string of %d characters (at most %d)", var, len(value),
+                      RAPID_STRING_MAX)
+            var, value = "robid_done", error_value(self.vars["robid_nonce"],
+                                                   f"ERR_STRTOOLNG writing {var}")
         self.vars[var] = value
         self._notify_var(var)
 

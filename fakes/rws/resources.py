@@ -20,12 +20,14 @@ from dataclasses import dataclass
 from typing import Any
 
 __all__ = ["Dialect", "DIALECTS", "ROBID_VARS", "ROBID_TASK", "ROBID_MODULE", "PATH_MODULE",
-           "PATH_PROC", "rapid_string_value", "rapid_string_text", "done_value",
-           "error_value", "check_path_module", "event_page", "value_event", "exec_event"]
+           "PATH_PROC", "RAPID_STRING_MAX", "rapid_string_value", "rapid_string_text",
+           "done_value", "size_value", "error_value", "check_path_module", "event_page",
+           "value_event", "exec_event"]
 
 # -- the robid RAPID module (README, "Driver abb_rws"): installed once in T_ROB1
 ROBID_TASK, ROBID_MODULE = "T_ROB1", "robid"
-ROBID_VARS = ("robid_exp", "robid_nonce", "robid_done", "robid_params", "robid_params_ack")
+ROBID_VARS = ("robid_exp", "robid_nonce", "robid_size", "robid_done", "robid_params",
+              "robid_params_ack")
 #: each experiment's module is loaded (replace) as robid_path; robid's main calls robid_move
 PATH_MODULE, PATH_PROC = "robid_path", "robid_move"
 #: a RAPID string holds at most 80 characters (RAPID reference, data type string)
@@ -118,9 +120,15 @@ def rapid_string_text(value: str) -> str | None:
     return v[1:-1].replace('""', '"')
 
 
-def done_value(nonce: str, sha256: str, size: int) -> str:
-    """``robid_done`` once the log is closed (README sketch): ``<nonce> <sha256> <size>``."""
-    return f"{nonce} {sha256} {size}"
+def done_value(nonce: str, sha256: str) -> str:
+    """``robid_done`` once the log is closed (README sketch): ``<nonce> <sha256>``, 73
+    characters with the daemon's 8-character nonces."""
+    return f"{nonce} {sha256}"
+
+
+def size_value(nonce: str, size: int) -> str:
+    """``robid_size``, written before ``robid_done``: ``<nonce> <bytes>``."""
+    return f"{nonce} {size}"
 
 
 def error_value(nonce: str, text: str) -> str:

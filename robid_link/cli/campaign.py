@@ -1,5 +1,6 @@
-"""``robid campaign start``, ``list``, ``cancel``, ``approve``: the operator's requests to the
-daemon over its control socket (``list`` reads the config when no daemon answers)."""
+"""``robid campaign start``, ``list``, ``cancel``, ``resume``, ``approve``: the operator's
+requests to the daemon over its control socket (``list`` reads the config when no daemon
+answers)."""
 
 from __future__ import annotations
 
@@ -39,6 +40,9 @@ def _start_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trigger", choices=("operator", "timer"), default="operator",
                    help="timer: unattended, runs only approved programs")
     p.add_argument("--wait", action="store_true", help="show progress until the run ends")
+    p.add_argument("--force", action="store_true",
+                   help="upload the identified parameter set even if the worker marks it "
+                        "unfit (validates worse than CAD, physically impossible)")
     p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
                    help="with --wait: write the run and results")
 
@@ -47,7 +51,8 @@ def _start(args: argparse.Namespace) -> int:
     cfg = _config(args)
     try:
         run_id = request(cfg.control_socket, {"cmd": "start", "campaign": args.name,
-                                              "trigger": args.trigger},
+                                              "trigger": args.trigger,
+                                              **({"force": True} if args.force else {})},
                          timeout_s=PREFLIGHT_TIMEOUT_S)["run_id"]
     except ApprovalError as err:  # unattended, and nothing approved: nothing to do
         if args.trigger != "timer":
@@ -101,6 +106,13 @@ def _cancel(args: argparse.Namespace) -> int:
     return 0
 
 
+def _resume(args: argparse.Namespace) -> int:
+    cfg = _config(args)
+    ans = request(cfg.control_socket, {"cmd": "resume", "run_id": args.run_id})
+    print(ans["message"])
+    return 0
+
+
 def _approve(args: argparse.Namespace) -> int:
     cfg = _config(args)
     ans = request(cfg.control_socket, {"cmd": "approve", "campaign": args.name},
@@ -112,13 +124,17 @@ def _approve(args: argparse.Namespace) -> int:
 
 
 COMMANDS = (
-    Command(name="campaign", help="start, list or approve test campaigns", commands=(
+    Command(name="campaign", help="start, list, cancel, resume or approve test campaigns",
+            commands=(
         Command(name="start", help="queue a run of a campaign (prints its run_id)",
                 options=_start_options, run=_start),
         Command(name="list", help="the campaigns of the config", options=config_option,
                 run=_list),
         Command(name="cancel", help="drop a queued run, or stop the running one after "
                 "withdrawing its program", options=_cancel_options, run=_cancel),
+        Command(name="resume", help="let a run interrupted by a daemon restart move again "
+                "(no run moves after a restart without it)", options=_cancel_options,
+                run=_resume),
         Command(name="approve", help="generate, check and approve a campaign's programs for "
                 "unattended runs", options=_name_options, run=_approve),
     )),

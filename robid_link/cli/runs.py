@@ -59,11 +59,14 @@ def wait_for_run(socket_path: Path, run_id: str, poll_s: float = 0.5,
             stream.write(("\r\033[K" if tty else "") + line + ("" if tty else "\n"))
             stream.flush()
             last = line
-        if run["state"] in ("completed", "failed", "cancelled"):
+        if run["state"] in ("completed", "failed", "cancelled", "interrupted"):
             if tty:
                 stream.write("\n")
             if run["state"] == "failed":
                 stream.write(f"run {run_id} failed: {run['error']}\n")
+            elif run["state"] == "interrupted":
+                stream.write(f"run {run_id} interrupted by a daemon restart: it waits for "
+                             f"robid campaign resume {run_id}\n")
             return run
         time.sleep(poll_s)
 
@@ -77,6 +80,9 @@ def format_runs(runs: list[dict[str, Any]], robots: bool = False) -> str:
     for r in runs:
         p = r["progress"]
         tail = r.get("error") if r["state"] == "failed" else (r.get("step") or "")
+        if r["state"] == "interrupted" and r.get("state_since"):
+            since = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(r["state_since"]))
+            tail = f"since {since}, {tail}"
         who = f"{r.get('robot') or '?':<14} " if robots else ""
         lines.append(f"{r['run_id']:<24} {who}{r['campaign']:<12} {r['trigger']:<8} "
                      f"{r['state']:<10} {p['stored']}/{p['total']} logs  {tail or ''}")
@@ -157,16 +163,11 @@ def report_lines(state_dir: Path, run_ids: list[str], most: int = 5) -> list[str
 
 
 def _robot_name(cfg: Any) -> str:
-    """The robot's name as the store records it: ``robot_name``, else the description's name
-    (else the file's stem)."""
-    if cfg.robot_name:
-        return str(cfg.robot_name)
-    from robid_link.ident.model.robot import load_robot
+    """The robot's name as the store records it (``config.robot_name``)."""
+    from robid_link.config import robot_name
+    from robid_link.ident.model.robot import description_name
 
-    try:
-        return str(load_robot(cfg.robot, cfg.lock).name)
-    except RobidError:
-        return Path(cfg.robot).stem
+    return robot_name(cfg, description_name(cfg.robot, cfg.lock))
 
 
 def store_reader(cfg: Any) -> Any:

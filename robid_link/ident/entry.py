@@ -54,6 +54,9 @@ def program(job: jb.ProgramJob) -> jb.MotionProgram:
     if job.reduced_speed is not None:
         traj = pg.reduced_speed(traj, job.reduced_speed)
         meta["reduced_speed"] = job.reduced_speed
+    if job.log_torques is not None:
+        traj = pg.with_logged_torques(robot, traj, job.log_torques, job.exp_id)
+        meta["log_torques"] = list(traj.header["log_torques"])
     return pg.make_program(robot, traj, job.exp_id, meta)
 
 

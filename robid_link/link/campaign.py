@@ -13,31 +13,40 @@ from pathlib import Path
 from typing import Any
 
 from robid_link import jobs as jb
-from robid_link.config import CampaignDef, DaemonConfig, ExperimentDef
-from robid_link.exceptions import ApprovalError, ConfigError, RobidError, StoreFullError
+from robid_link.config import (
+    CampaignDef,
+    DaemonConfig,
+    ExperimentDef,
+    robot_name,
+    with_joint_count,
+)
+from robid_link.exceptions import (
+    ApprovalError,
+    ConfigError,
+    RobidError,
+    StoreFullError,
+    StoreUnavailableError,
+)
 from robid_link.jobs import MotionProgram
 from robid_link.link.checks import ModelWatch, campaign_findings
-from robid_link.link.cycle import CyclePolicy, run_cycle
+from robid_link.link.cycle import CyclePolicy, MotionWithheld, Withdrawn, run_cycle
 from robid_link.link.driver import CAP_UPLOAD, Driver, FeedforwardSource, parameter_bytes
 from robid_link.link.store import AsyncStore, Store
 from robid_link.link.worker import run_here, run_in_worker
 
-__all__ = ["TRIGGERS", "plan", "stored_name", "check_capabilities", "create_run",
-           "prepare_programs", "preflight", "check_approved", "check_config",
-           "describe_campaigns", "execute_run",
+__all__ = ["TRIGGERS", "UNATTENDED", "plan", "check_approved", "check_capabilities", "create_run",
+           "prepare_programs", "preflight", "check_config", "describe_campaigns", "execute_run",
            "resonance_hints", "feedforward_source", "drift_flags", "drift_flags_of"]
 
 log = logging.getLogger("robid.campaign")
 
-TRIGGERS = ("operator", "timer")
+#: starts nobody is known to watch from beside the robot (a timer; the web page, which may be
+#: far from the cell): they move only programs an operator approved by hash (``robid campaign
+#: approve``) and upload only approved parameter sets, resumed after a restart too
+UNATTENDED = ("timer", "web")
+TRIGGERS = ("operator", *UNATTENDED)
 BEFORE_SUFFIX = "-before"
 SLOW_SUFFIX = "-slow"
-
-
-def stored_name(cfg: DaemonConfig, description_name: str) -> str:
-    """The robot's name in the store: ``robot_name`` of the config, else its description's
-    (robots of one type share a description; a plant's store tells them apart by this)."""
-    return cfg.robot_name or description_name
 
 
 def plan(camp: CampaignDef) -> list[tuple[str, ExperimentDef, float | None]]:
@@ -45,9 +54,10 @@ def plan(camp: CampaignDef) -> list[tuple[str, ExperimentDef, float | None]]:
     an upload, each ``verify`` runs first as ``<id>-before`` (the controller's old model) and
     again after the upload under its own id."""
     out: list[tuple[str, ExperimentDef, float | None]] = []
-    before = [e for e in camp.experiments if camp.upload and e.kind == "verify"]
+    experiments = camp.split_experiments()  # the channels budget, once the robot is known
+    before = [e for e in experiments if camp.upload and e.kind == "verify"]
     for exp_id, exp in [(e.exp_id + BEFORE_SUFFIX, e) for e in before] + [
-            (e.exp_id, e) for e in camp.experiments]:
+            (e.exp_id, e) for e in experiments]:
         if camp.reduced_speed_first:
             out.append((exp_id + SLOW_SUFFIX, exp, camp.reduced_speed_first))
         out.append((exp_id, exp, None))
@@ -93,34 +103,41 @@ def _model_job(cfg: DaemonConfig, name: str) -> jb.ModelCheckJob:
 def _program_job(cfg: DaemonConfig, exp_id: str, exp: ExperimentDef, slow: float | None
                  ) -> jb.ProgramJob:
     return jb.ProgramJob(str(cfg.robot), cfg.lock, exp_id, exp.kind, exp.options,
-                         str(cfg.base_dir), slow)
+                         str(cfg.base_dir), slow, exp.torques)
 
 
-async def preflight(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: str) -> None:
+async def preflight(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: str,
+                    trigger: str = "operator") -> None:
     """Everything a run of ``campaign`` will need, checked before any program is given: the
-    model file and ``add:`` effects load, every program generates and passes the limits."""
+    model file and ``add:`` effects load, every program generates and passes the limits; an
+    unattended start (timer, web page) is refused here unless every program is approved."""
     await run_in_worker(ctx, _model_job(cfg, campaign))
-    await prepare_programs(cfg, store, ctx, campaign)
-
-
-async def check_approved(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: str
-                         ) -> None:
-    """An unattended (timer) run needs every program of the campaign approved: else there is
-    nothing to do, and ApprovalError says which program and how to approve it."""
     programs = await prepare_programs(cfg, store, ctx, campaign)
+    if trigger in UNATTENDED:
+        await check_approved(cfg, store, campaign, programs, trigger)
+
+
+async def check_approved(cfg: DaemonConfig, store: AsyncStore, campaign: str,
+                         programs: list[tuple[str, MotionProgram]], trigger: str) -> None:
+    """ApprovalError (one line: which program, how many, how to approve them) unless an
+    operator approved every program of an unattended start (``UNATTENDED``): a timer has
+    nothing to do, a web start is refused."""
     missing = [(e, p) for e, p in programs if not await store.approved(p.sha256)]
     if missing:
         exp_id, prog = missing[0]
         more = f" ({len(missing)} of {len(programs)} are not)" if len(missing) > 1 else ""
-        raise ApprovalError(f"campaign {campaign}: nothing to do unattended: the program of "
-                            f"experiment {exp_id} ({prog.sha256[:12]}) is not approved{more}; "
-                            f"run: robid campaign approve {campaign} --config {cfg.path}")
+        what = ("web start refused" if trigger == "web" else
+                f"campaign {campaign}: nothing to do unattended")
+        raise ApprovalError(f"{what}: the program of experiment {exp_id} "
+                            f"({prog.sha256[:12]}) is not approved{more}; run: robid campaign "
+                            f"approve {campaign} --config {cfg.path}")
 
 
 def check_config(cfg: DaemonConfig, driver: Driver) -> dict[str, str | None]:
     """``robid config check``: the pre-flight of every campaign without a daemon, in this
     process; campaign name → None (ok) or the reason a run would be refused."""
     verdict: dict[str, str | None] = {}
+    cfg = _joints_known(cfg)
     for name in cfg.campaigns:
         try:
             refusal = _capability_refusal(cfg, name, driver)
@@ -135,8 +152,19 @@ def check_config(cfg: DaemonConfig, driver: Driver) -> dict[str, str | None]:
     return verdict
 
 
+def _joints_known(cfg: DaemonConfig) -> DaemonConfig:
+    """A config read without a daemon, with the robot's joint count where a campaign's
+    ``channels`` needs it to split its experiments (the robot read in this process)."""
+    if all(c.channels is None or c.n_joints is not None for c in cfg.campaigns.values()):
+        return cfg
+    info = run_here(jb.RobotInfoJob(str(cfg.robot), cfg.lock))
+    assert isinstance(info, jb.RobotInfo)
+    return with_joint_count(cfg, info.n)
+
+
 def describe_campaigns(cfg: DaemonConfig) -> list[dict[str, Any]]:
-    """The campaigns as ``campaign list`` shows them (from the config alone)."""
+    """The campaigns as ``campaign list`` shows them (from the config and the robot)."""
+    cfg = _joints_known(cfg)
     return [{"name": name,
              "experiments": [{"id": e, "kind": d.kind, "reduced_speed": s}
                              for e, d, s in plan(camp)],
@@ -144,19 +172,21 @@ def describe_campaigns(cfg: DaemonConfig) -> list[dict[str, Any]]:
             for name, camp in cfg.campaigns.items()]
 
 
-async def create_run(cfg: DaemonConfig, store: AsyncStore, campaign: str, trigger: str
-                     ) -> str:
+async def create_run(cfg: DaemonConfig, store: AsyncStore, campaign: str, trigger: str,
+                     force: bool = False) -> str:
+    """A queued run; ``force``: the operator lets it upload a set the worker marked unfit."""
     if campaign not in cfg.campaigns:
         raise ConfigError(f"campaign {campaign!r}: not in {cfg.path} "
                           f"(known: {', '.join(sorted(cfg.campaigns))})")
     if trigger not in TRIGGERS:
-        raise ConfigError(f"trigger: expected operator or timer, got {trigger!r}")
+        raise ConfigError(f"trigger: expected {', '.join(TRIGGERS)}, got {trigger!r}")
     camp = cfg.campaigns[campaign]
     exps = [(exp_id, exp.kind) for exp_id, exp, _ in plan(camp)]
     # how the run identifies: what a fleet re-identification repeats with another model
     spec = {"campaign": campaign, "identify": {"method": camp.method,
                                                "cutoff_hz": camp.cutoff_hz,
-                                               "motor_side": camp.motor_side}}
+                                               "motor_side": camp.motor_side},
+            **({"force": True} if force else {})}
     return await store.create_run(campaign, trigger, spec, exps)
 
 
@@ -174,7 +204,8 @@ def _program_key(cfg: DaemonConfig, exp: ExperimentDef, slow: float | None, exp_
             except OSError as err:
                 raise ConfigError(f"{p}: custom trajectory unreadable ({err.strerror})") from err
     h.update(extra)
-    h.update(json.dumps([exp_id, exp.kind, exp.options, slow, list(cfg.lock)],
+    h.update(json.dumps([exp_id, exp.kind, exp.options, slow, list(cfg.lock),
+                         None if exp.torques is None else list(exp.torques)],
                         sort_keys=True, default=str).encode())
     return h.hexdigest()
 
@@ -222,9 +253,15 @@ async def _generated(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: s
 
 async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: Any, run_id: str,
                       n_joints: int, kill_hook: Callable[[str], None] = lambda step: None,
-                      models: ModelWatch | None = None) -> None:
+                      models: ModelWatch | None = None, *, may_give: bool = True,
+                      on_withdrawn: Withdrawn = lambda exp_id, nonce: None) -> None:
     """Run or resume ``run_id`` to completed/failed (logs are checked for ``n_joints``, the
-    robot's). Cancellation leaves it resumable. ``models``: a model file edited since it was
+    robot's). Cancellation leaves it resumable, and so does a store that cannot be written
+    (full, unreachable: StoreFullError, StoreUnavailableError go on to the daemon, what was
+    given withdrawn first). Without ``may_give`` (a daemon's first look at
+    a run it found unfinished) only its bookkeeping is done — what was given before is taken
+    and stored, what needs no motion is computed — and it stops ``interrupted`` where a program
+    or a parameter set would go to the controller. ``models``: a model file edited since it was
     last read is reloaded with a line in the log."""
     run = await store.run(run_id)
     camp = cfg.campaigns.get(run["campaign"])
@@ -232,16 +269,12 @@ async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx:
         await store.set_run(run_id, "failed", error=f"campaign {run['campaign']!r} is no "
                             f"longer in {cfg.path}")
         return
-    await store.set_run(run_id, "running", step="generating programs")
+    await store.set_run(run_id, "running", step="generating programs" if may_give else
+                        "bookkeeping after a restart (no motion)")
     try:
         programs = await _pinned_programs(cfg, store, ctx, run_id, run["campaign"])
-        if run["trigger"] == "timer":
-            missing = [e for e, p in programs if not await store.approved(p.sha256)]
-            if missing:
-                raise ApprovalError(f"unattended run refused: program of experiment "
-                                    f"{missing[0]} ({dict(programs)[missing[0]].sha256[:12]}) "
-                                    f"is not approved; run: robid campaign approve "
-                                    f"{run['campaign']} --config {cfg.path}")
+        if run["trigger"] in UNATTENDED:
+            await check_approved(cfg, store, run["campaign"], programs, run["trigger"])
 
         # the identification's inputs, before the first motion (a config edited since start)
         model = await run_in_worker(ctx, _model_job(cfg, run["campaign"]))
@@ -263,21 +296,29 @@ async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx:
             policy = CyclePolicy(camp.timeout_s or 2 * program.duration_s + 60.0, camp.retries,
                                  camp.backoff_s)
             shas[exp_id] = await run_cycle(store, driver, run_id, exp_id, program, policy,
-                                           check, kill_hook)
+                                           check, kill_hook, may_give=may_give,
+                                           on_withdrawn=on_withdrawn)
 
         for k, (exp_id, program) in enumerate(first, 1):
             await cycle(k, exp_id, program)
         if camp.identify:
             data = [s for e, s in shas.items() if kinds.get(e) not in ("verify", "elasticity")]
-            await _identify(cfg, store, driver, ctx, run_id, camp, data, n_joints, kill_hook)
+            await _identify(cfg, store, driver, ctx, run_id, camp, data, n_joints, kill_hook,
+                            may_give)
         for k, (exp_id, program) in enumerate(then, len(first) + 1):
             await cycle(k, exp_id, program)
         await _tracking(cfg, store, ctx, run_id, camp, [(e, p, shas[e]) for e, p in programs
                                                         if kinds.get(e) == "verify"])
         await _elasticity(cfg, store, ctx, run_id, camp, [(e, p, shas[e]) for e, p in programs
                                                           if kinds.get(e) == "elasticity"])
-    except StoreFullError:
-        raise  # not the run's fault: it waits, journaled as it is, until space returns
+    except (StoreFullError, StoreUnavailableError):
+        raise  # not the run's fault: it waits, journaled as it is, until the store is back
+    except MotionWithheld as held:
+        await store.set_run(run_id, "interrupted", step=f"waiting for the operator before "
+                            f"{held.exp_id}: robid campaign resume {run_id}")
+        log.warning("run=%s interrupted by a restart; bookkeeping done, no motion until an "
+                    "operator resumes it (robid campaign resume %s)", run_id, run_id)
+        return
     except RobidError as err:
         await store.set_run(run_id, "failed", error=str(err))
         log.error("run=%s failed: %s", run_id, err)
@@ -341,7 +382,36 @@ def resonance_hints(cfg: DaemonConfig, campaign: str, n_joints: int
 
 async def _identify(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: Any, run_id: str,
                     camp: CampaignDef, shas: list[str], n_joints: int,
-                    kill_hook: Callable[[str], None]) -> None:
+                    kill_hook: Callable[[str], None], may_give: bool = True) -> None:
+    """Identify (once per run: a run identified before a restart keeps its result and
+    parameter set), then upload the set if the campaign says so — a controller command,
+    withheld like motion until an operator resumes an interrupted run."""
+    robot, sha = await _identified(store, run_id)
+    if sha is None:
+        robot, sha = await _identify_now(cfg, store, ctx, run_id, camp, shas, n_joints,
+                                         kill_hook)
+    if not camp.upload or any(u["run_id"] == run_id and u["state"] == "acknowledged"
+                              for u in await store.uploads(robot)):
+        return
+    if not may_give:
+        raise MotionWithheld("upload")
+    run = await store.run(run_id)
+    await upload_set(store, driver, robot, sha, run_id, unattended=run["trigger"] in UNATTENDED,
+                     force=camp.force or run["spec"].get("force") is True)
+
+
+async def _identified(store: AsyncStore, run_id: str) -> tuple[str, str | None]:
+    """The robot and parameter set of the run's identification, if it ended before."""
+    for res in await store.results(run_id=run_id):
+        if res["kind"] == "identify":
+            sets = [s for s in await store.param_sets(res["robot"]) if s["run_id"] == run_id]
+            return res["robot"], (sets[-1]["sha256"] if sets else None)
+    return "", None
+
+
+async def _identify_now(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
+                        camp: CampaignDef, shas: list[str], n_joints: int,
+                        kill_hook: Callable[[str], None]) -> tuple[str, str]:
     await store.set_run(run_id, "running", step="identifying" + (" and diagnosing"
                                                                  if camp.diagnose else ""))
     job = jb.IdentifyJob(
@@ -355,24 +425,21 @@ async def _identify(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: A
     kill_hook("identifying")
     out: jb.IdentifyOutcome = await run_in_worker(
         ctx, job, on_start=lambda: kill_hook("identify_started"))
-    robot = stored_name(cfg, out.robot)
+    robot = robot_name(cfg, out.robot)
     for kind, rec in out.records.items():
         await store.add_result(run_id, robot, kind, rec)
     log.info("run=%s identified: rmse %s", run_id,
              " ".join(f"{x:.3g}" for x in out.records["identify"]["rmse"] or []))
     for flag in drift_flags_of(await store.results(robot), robot, run_id):
         await store.note(run_id, None, "drift", parameter=flag.parameter, kind=flag.kind,
-                   change=round(flag.change, 4), sigmas=round(flag.sigmas, 1))
+                         change=round(flag.change, 4), sigmas=round(flag.sigmas, 1))
         log.warning("run=%s drift: %s", run_id, flag.message)
     pset = dict(out.parameter_set.doc)
     body = parameter_bytes(pset)
     version = await store.add_param_set(pset, body)
     log.info("run=%s parameter set %d of %s: %s", run_id, version, robot,
              pset["sha256"][:12])
-    if camp.upload:
-        trigger = (await store.run(run_id))["trigger"]
-        await upload_set(store, driver, robot, pset["sha256"], run_id,
-                         unattended=trigger == "timer")
+    return robot, str(pset["sha256"])
 
 
 async def _tracking(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
@@ -392,7 +459,7 @@ async def _tracking(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: str,
     out: jb.VerifyOutcome = await run_in_worker(ctx, job)
     for rec in map(dict, out.records):
         rec["run_id"] = run_id
-        await store.add_result(run_id, stored_name(cfg, out.robot), f"verify_{rec['phase']}",
+        await store.add_result(run_id, robot_name(cfg, out.robot), f"verify_{rec['phase']}",
                                rec)
         log.info("run=%s %s: tool RMS %.3f mm, max %.3f mm", run_id, rec["experiment"],
                  rec["tracking"]["tool_rms_mm"], rec["tracking"]["tool_max_mm"])
@@ -438,7 +505,7 @@ async def _elasticity(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: st
     out: jb.ElasticityOutcome = await run_in_worker(ctx, job)
     rec = {"kind": "elasticity", "run_id": run_id, "robot": out.robot,
            "experiments": [dict(r) for r in out.results]}
-    await store.add_result(run_id, stored_name(cfg, out.robot), "elasticity", rec)
+    await store.add_result(run_id, robot_name(cfg, out.robot), "elasticity", rec)
     for res in out.results:
         for j in res["result"].get("joints", []):
             log.info("run=%s %s joint %d: K %.4g, D %.4g, f_res %.3g Hz", run_id,
@@ -446,10 +513,12 @@ async def _elasticity(cfg: DaemonConfig, store: AsyncStore, ctx: Any, run_id: st
 
 
 async def upload_set(store: AsyncStore, driver: Driver, robot: str, sha: str, run_id: str | None,
-                     *, unattended: bool, timeout_s: float = 120.0) -> None:
+                     *, unattended: bool, force: bool = False, timeout_s: float = 120.0) -> None:
     """Send a stored parameter set to the controller. Unattended runs send only a set an
-    operator approved; every attempt is recorded; the controller's acknowledgement (or its
-    absence: the set is withdrawn, the controller keeps its old one) is the outcome."""
+    operator approved; a set the worker marked unfit (``uploadable: false``: worse than CAD,
+    physically impossible) only when forced; every attempt is recorded; the controller's
+    acknowledgement (or its absence: the set is withdrawn, the controller keeps its old one) is
+    the outcome."""
     row = next((s for s in await store.param_sets(robot) if s["sha256"] == sha), None)
     if row is None:
         raise ConfigError(f"robot {robot}: no parameter set {sha[:12]}")
@@ -457,9 +526,16 @@ async def upload_set(store: AsyncStore, driver: Driver, robot: str, sha: str, ru
         raise ApprovalError(f"unattended upload refused: parameter set {row['version']} of "
                             f"{robot} ({sha[:12]}) is not approved; run: robid params approve "
                             f"{row['version']} --robot {robot} --config C")
+    body = json.loads(row["body"])
+    if body.get("uploadable") is False and not force:
+        raise ApprovalError(f"upload refused: parameter set {row['version']} of {robot} "
+                            f"({sha[:12]}) is unfit: {'; '.join(body.get('unfit') or [])} — "
+                            "or force it (robid campaign start NAME --force, campaign "
+                            "force: true)")
+
     await store.record_upload(robot, sha, run_id, "sent")
     try:
-        await driver.upload_parameters(json.loads(row["body"]), timeout_s=timeout_s)
+        await driver.upload_parameters(body, timeout_s=timeout_s)
     except RobidError as err:
         await store.record_upload(robot, sha, run_id, "failed", str(err))
         raise

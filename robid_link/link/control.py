@@ -1,8 +1,10 @@
 """The operator interface: one JSON request per line over a Unix stream socket (mode 0660),
 one JSON answer per line. A socket file left by a dead daemon is detected by trying to connect
 before it is replaced; nothing but a socket is ever replaced. Connections, line length, JSON
-nesting and idle time are bounded: a hostile or broken client gets ``ok: false`` with one line
-and never reaches a running campaign."""
+nesting, idle time and the time an answer may wait for its reader are bounded: a hostile or
+broken client gets ``ok: false`` with one line (or is closed) and never reaches a running
+campaign; when every connection is taken, the one idle the longest makes room for the newcomer,
+so clients that connect and never read cannot lock the operator out."""
 
 from __future__ import annotations
 
@@ -24,11 +26,13 @@ __all__ = ["ControlServer", "request", "PREFLIGHT_TIMEOUT_S"]
 log = logging.getLogger("robid.control")
 
 Handler = Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]
-#: longest request line, deepest JSON nesting, most clients at once, idle seconds per client
+#: longest request line, deepest JSON nesting, most clients at once, idle seconds per client,
+#: seconds an answer may wait for a client that does not read it
 MAX_LINE = 1 << 16
 MAX_DEPTH = 16
 MAX_CLIENTS = 64
 IDLE_S = 120.0
+WRITE_S = 10.0
 # 'start' answers after the pre-flight, which generates (and optimises) every program of the
 # campaign the first time: minutes on a loaded two-core cell PC, not the 30 s of a status
 PREFLIGHT_TIMEOUT_S = 900.0
@@ -48,13 +52,16 @@ class ControlServer:
     """Async context manager serving ``handler`` on ``path``."""
 
     def __init__(self, path: Path, handler: Handler, mode: int = 0o660, *,
-                 max_clients: int = MAX_CLIENTS, idle_s: float = IDLE_S) -> None:
+                 max_clients: int = MAX_CLIENTS, idle_s: float = IDLE_S,
+                 write_s: float = WRITE_S) -> None:
         self.path, self._handler, self._mode = Path(path), handler, mode
         self._server: asyncio.Server | None = None
-        self._max_clients, self._idle_s = max_clients, idle_s
+        self._max_clients, self._idle_s, self._write_s = max_clients, idle_s, write_s
         self.clients = 0
+        self.evicted = 0  # idle clients closed to make room for a newcomer
         self._tasks: set[asyncio.Task[None]] = set()
-        self._writers: set[asyncio.StreamWriter] = set()
+        # every open connection → since when it waits for a request (None: being answered)
+        self._writers: dict[asyncio.StreamWriter, float | None] = {}
 
     def _clear_stale(self) -> None:
         """Remove a dead daemon's socket; refuse anything that is not a socket (a typo in
@@ -108,35 +115,60 @@ class ControlServer:
         if task is not None:
             self._tasks.add(task)
             task.add_done_callback(self._tasks.discard)
-        self._writers.add(writer)
+        loop = asyncio.get_running_loop()
+        self._writers[writer] = loop.time()
         self.clients += 1
         try:
-            if self.clients > self._max_clients:
-                await _answer(writer, {"ok": False, "error": f"too many connections (at most "
-                                       f"{self._max_clients}); try again later"})
+            if self.clients > self._max_clients and not self._evict_idle(writer):
+                await self._answer(writer, {"ok": False, "error": f"too many connections (at "
+                                            f"most {self._max_clients}); try again later"})
                 return
             while True:
+                self._writers[writer] = loop.time()
                 try:
                     async with asyncio.timeout(self._idle_s):
                         line = await reader.readline()
                 except TimeoutError:
                     return
                 except (ValueError, asyncio.LimitOverrunError):  # the line is over the limit
-                    await _answer(writer, {"ok": False, "error": f"bad request: longer than "
-                                           f"{MAX_LINE} bytes"})
+                    await self._answer(writer, {"ok": False, "error": f"bad request: longer "
+                                                f"than {MAX_LINE} bytes"})
                     return
                 if not line:
                     return
-                await _answer(writer, await self._serve_line(line))
-        except (ConnectionError, asyncio.IncompleteReadError):
-            pass
+                self._writers[writer] = None
+                await self._answer(writer, await self._serve_line(line))
+        except (ConnectionError, asyncio.IncompleteReadError, TimeoutError):
+            pass  # gone, or it did not read its answer within write_s: closed
         finally:
             self.clients -= 1
-            self._writers.discard(writer)
+            self._writers.pop(writer, None)
             writer.close()
             # the server closing under us cancels this wait: the client is done either way
             with contextlib.suppress(Exception, asyncio.CancelledError):
                 await writer.wait_closed()
+
+    def _evict_idle(self, newcomer: asyncio.StreamWriter) -> bool:
+        """Close the connection that has waited the longest for a request (never one being
+        answered) to make room for ``newcomer``; False when every other one is busy."""
+        idle = [(since, w) for w, since in self._writers.items()
+                if since is not None and w is not newcomer and not w.is_closing()]
+        if not idle:
+            return False
+        _, oldest = min(idle, key=lambda item: item[0])
+        oldest.close()  # its handler reads EOF and ends
+        self.evicted += 1
+        if self.evicted in (1, 100) or self.evicted % 10_000 == 0:
+            log.warning("control socket full (%d connections): %d idle client(s) closed to make "
+                        "room", self._max_clients, self.evicted)
+        return True
+
+    async def _answer(self, writer: asyncio.StreamWriter, answer: dict[str, Any]) -> None:
+        """One answer line; a client that does not take it within ``write_s`` is closed
+        (TimeoutError), so its slot never stays taken."""
+        writer.write(json.dumps(answer, default=str).encode() + b"\n")
+        async with asyncio.timeout(self._write_s):
+            await writer.drain()
 
     async def _serve_line(self, line: bytes) -> dict[str, Any]:
         try:
@@ -178,11 +210,6 @@ def _parse(line: bytes) -> dict[str, Any]:
     return req
 
 
-async def _answer(writer: asyncio.StreamWriter, answer: dict[str, Any]) -> None:
-    writer.write(json.dumps(answer, default=str).encode() + b"\n")
-    await writer.drain()
-
-
 def request(path: str | Path, req: dict[str, Any], timeout_s: float = 30.0) -> dict[str, Any]:
     """Send one request to the daemon and return its answer (blocking; for the CLI)."""
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
@@ -195,7 +222,9 @@ def request(path: str | Path, req: dict[str, Any], timeout_s: float = 30.0) -> d
         except PermissionError as err:
             raise DaemonUnreachable(f"control_socket: {path}: permission denied (join the "
                                     "socket's group)") from err
-        s.sendall(json.dumps(req).encode() + b"\n")
+        with contextlib.suppress(BrokenPipeError, ConnectionResetError):
+            # a full socket answers and closes before reading: its answer is read below
+            s.sendall(json.dumps(req).encode() + b"\n")
         buf = b""
         try:
             while not buf.endswith(b"\n"):
@@ -206,6 +235,8 @@ def request(path: str | Path, req: dict[str, Any], timeout_s: float = 30.0) -> d
         except TimeoutError as err:
             raise DaemonUnreachable(f"control_socket: {path}: no answer within "
                                     f"{timeout_s:g} s") from err
+        except ConnectionResetError:
+            pass  # what arrived is the answer; nothing is "closed the connection"
     if not buf:
         raise DaemonUnreachable(f"control_socket: {path}: the daemon closed the connection")
     answer = json.loads(buf)

@@ -1,6 +1,7 @@
 """The link daemon: store (locked state dir), driver, control socket, campaign runner and
-systemd notifications in one event loop. SIGTERM stops between journaled steps; a restart
-resumes every unfinished run."""
+systemd notifications in one event loop. SIGTERM stops between journaled steps; a restarted
+daemon finishes the bookkeeping of every unfinished run (what was given before is taken and
+stored) and then leaves it ``interrupted``: no motion until an operator resumes it."""
 
 from __future__ import annotations
 
@@ -16,13 +17,14 @@ from collections.abc import Awaitable, Callable, Mapping, Sequence
 from contextlib import AbstractAsyncContextManager
 from typing import Any, TextIO
 
-from robid_link.config import DaemonConfig
+from robid_link.config import DaemonConfig, robot_name, with_joint_count
 from robid_link.exceptions import (
     ApprovalError,
     ConfigError,
     DriverError,
     RobidError,
     StoreFullError,
+    StoreUnavailableError,
 )
 from robid_link.jobs import WORKER_PRELOAD, RobotInfo, RobotInfoJob
 from robid_link.link import campaign as cp
@@ -86,6 +88,13 @@ def _kill_hook(spec: str | None) -> Any:
     return hook
 
 
+#: runs waiting in the queue at most: a start (or resume) beyond it is refused in one line
+MAX_QUEUED = 64
+#: times a run's attempt may be withdrawn for a store failure before the run fails (a store
+#: that fails on the same write again and again must not make the robot start over forever)
+MAX_OUTAGES = 3
+
+
 class Daemon:
     """The link daemon; ``async with Daemon(cfg) as d: await d.wait_stopped()``."""
 
@@ -111,7 +120,14 @@ class Daemon:
         self._cancelling: set[str] = set()
         self._run_ended = asyncio.Event()
         self._paused: list[str] = []  # runs waiting for space in the state_dir, in order
-        self._full: str | None = None  # the one line while the state_dir is full
+        # runs found unfinished at start: their first execution gives nothing to the controller
+        self._bookkeeping: set[str] = set()
+        # the one line while the store cannot take a run (state_dir full, database unreachable)
+        self._full: str | None = None
+        self._unreachable = False  # the store's database did not answer: probe it
+        # attempts withdrawn while the store could not journal it: (run_id, exp_id, nonce)
+        self._withdrawn: list[tuple[str, str, str]] = []
+        self._outages: dict[str, int] = {}  # run_id → attempts withdrawn for the store
         self._stop = asyncio.Event()
         self.ready = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
@@ -136,7 +152,9 @@ class Daemon:
             self.driver = make_driver(cfg.driver)
             self._check_config()
             self.robot = await run_in_worker(self.ctx, RobotInfoJob(str(cfg.robot), cfg.lock))
-            self.robot_name = cfg.robot_name or self.robot.name
+            # campaigns with a channels budget split their experiments by the joint count
+            self.cfg = cfg = with_joint_count(cfg, self.robot.n)
+            self.robot_name = robot_name(cfg, self.robot.name)
             self.store = open_store(cfg.state_dir, url=cfg.store, robot=self.robot_name,
                                     log_store=cfg.log_store)
             await self.store.open()
@@ -152,9 +170,8 @@ class Daemon:
                                                           cfg.socket_mode))
             tg = await stack.enter_async_context(asyncio.TaskGroup())
             await self._withdraw_orphans()
-            for run_id in await self.store.unfinished_runs():
-                log.info("run=%s resuming", run_id)
-                self._queue.put_nowait(run_id)
+            await self._interrupted_at_start()
+            ready_status = await self._status_line()  # READY is the first message systemd gets
             self._tasks = [tg.create_task(self._runner_loop(), name="robid-runner"),
                            tg.create_task(self._space_loop(), name="robid-space"),
                            tg.create_task(self._preflight_all(), name="robid-preflight")]
@@ -166,7 +183,7 @@ class Daemon:
             await stack.aclose()
             raise
         self._stack = stack
-        self.notifier.send(READY=1, STATUS=await self._status_line())
+        self.notifier.send(READY=1, STATUS=ready_status)
         self.ready.set()
         log.info("daemon ready robot=%s joints=%d driver=%s socket=%s store=%s pid=%d",
                  self.robot_name, self.robot.n, cfg.driver["name"], cfg.control_socket,
@@ -174,11 +191,12 @@ class Daemon:
         return self
 
     async def __aexit__(self, *exc: Any) -> None:
-        """Cancel the loops (the current step is journaled: an unfinished run resumes at the
-        next start), then close the control socket, the driver and the store. The body's own
+        """Cancel the loops (the current step is journaled: an unfinished run gets its
+        bookkeeping at the next start, then waits for an operator's resume), then close the
+        control socket, the driver and the store. The body's own
         exception goes on unchanged (not wrapped into the TaskGroup's ExceptionGroup)."""
-        log.info("stopping: the current step is journaled; an unfinished run resumes at the "
-                 "next start")
+        log.info("stopping: the current step is journaled; an unfinished run waits for an "
+                 "operator's resume after the next start")
         self.notifier.send(STOPPING=1, STATUS="stopping")
         for task in self._tasks:
             task.cancel()
@@ -208,34 +226,71 @@ class Daemon:
         log.info("daemon stopped")
 
     async def _runner_loop(self) -> None:
-        assert self.store is not None
+        """Runs one after the other. A store that fails between a run's steps pauses the run
+        (resumed when it answers again): the loop, and the daemon, stay up."""
         while True:
             run_id = await self._queue.get()
-            async with self._handover:  # a cancel finds the run queued or started, never between
-                if (await self.store.run(run_id))["state"] not in ("queued", "running"):
-                    continue  # cancelled while it waited
-                self._current = run_id
-                self._run_ended.clear()
-                status = await self._status_line()
-                self._launch(run_id)
-            self.notifier.send(STATUS=status)
             try:
-                await self._execute(run_id)
-            finally:
-                self._current, self._run_task = None, None
-                self._run_ended.set()
-                self.notifier.send(STATUS=await self._status_line())
+                await self._run_one(run_id)
+                await self._withdraw_orphans()  # a run that ended leaves nothing given
+            except (StoreFullError, StoreUnavailableError) as err:
+                self._pause(run_id, err)
+            except Exception as err:  # noqa: BLE001 - e.g. the failure's own write refused
+                log.error("run=%s left as the store has it after an error: %s: %s", run_id,
+                          type(err).__name__, err, exc_info=err)
+            self.notifier.send(STATUS=await self._status_line())
+
+    async def _run_one(self, run_id: str) -> None:
+        assert self.store is not None
+        async with self._handover:  # a cancel finds the run queued or started, never between
+            if (await self.store.run(run_id))["state"] not in ("queued", "running"):
+                return  # cancelled while it waited
+            self._current = run_id
+            self._run_ended.clear()
+            status = await self._status_line()
+            self._launch(run_id)
+        self.notifier.send(STATUS=status)
+        try:
+            await self._execute(run_id)
+        finally:
+            self._current, self._run_task = None, None
+            self._run_ended.set()
+
+    def _pause(self, run_id: str, err: StoreFullError | StoreUnavailableError) -> None:
+        """The run waits, journaled as it is, until the store takes writes again."""
+        if run_id not in self._paused:
+            self._paused.append(run_id)
+        self._unreachable = self._unreachable or isinstance(err, StoreUnavailableError)
+        self._set_full(str(err))
 
     def _launch(self, run_id: str) -> None:
         """The run's own task (``cancel`` stops it); awaited by ``_execute`` with no await in
-        between, so it never runs unwatched."""
+        between, so it never runs unwatched. A run found unfinished at start only has its
+        bookkeeping done (no motion)."""
         assert self.store is not None and self.robot is not None
+        may_give = run_id not in self._bookkeeping
         self._run_task = asyncio.create_task(
             cp.execute_run(self.cfg, self.store, self.driver, self.ctx, run_id, self.robot.n,
-                           self._kill, self.models), name=f"robid-run-{run_id}")
+                           self._kill, self.models, may_give=may_give,
+                           on_withdrawn=lambda e, n: self._withdrawn.append((run_id, e, n))),
+            name=f"robid-run-{run_id}")
+
+    async def _interrupted_at_start(self) -> None:
+        """Unfinished runs at start: a cancel that was under way is finished; every other run
+        gets its bookkeeping (queued, no motion), then waits for an operator's resume."""
+        assert self.store is not None
+        for run_id in await self.store.unfinished_runs():
+            if any(j["step"] == "cancel_requested" for j in await self.store.journal(run_id)):
+                log.info("run=%s a cancel was under way: finishing it", run_id)
+                await self._finish_cancel(run_id)
+                continue
+            log.info("run=%s interrupted by a restart: bookkeeping, no motion", run_id)
+            self._bookkeeping.add(run_id)
+            self._queue.put_nowait(run_id)
 
     async def _execute(self, run_id: str) -> None:
-        """Await the run's task; a cancel finishes it, a full state_dir pauses it."""
+        """Await the run's task; a cancel finishes it, a store that cannot be written (full,
+        unreachable) pauses it (what it gave was withdrawn first)."""
         assert self.store is not None and self._run_task is not None
         try:
             await self._run_task
@@ -244,38 +299,52 @@ class Daemon:
             if run_id not in self._cancelling or (current and current.cancelling()):
                 raise  # the daemon stops: the run resumes at the next start
             await self._finish_cancel(run_id)
-        except StoreFullError as err:
-            self._paused.append(run_id)
-            self._set_full(str(err))
+        except (StoreFullError, StoreUnavailableError) as err:
+            self._pause(run_id, err)
         except Exception as err:  # a bug must fail its run, not the daemon (or resume loop)
             cause = f"{type(err).__name__}: {err}"
             log.error("run=%s internal error: %s", run_id, cause, exc_info=err)
-            with contextlib.suppress(StoreFullError):
+            with contextlib.suppress(StoreFullError, StoreUnavailableError):
+                await self._withdraw_out(run_id)  # the stop first, then the failure
                 await self.store.set_run(run_id, "failed", error=f"internal error: {cause}")
         finally:
             self._cancelling.discard(run_id)
+            if run_id not in self._paused:  # a paused bookkeeping goes on without motion
+                self._bookkeeping.discard(run_id)
 
     async def _finish_cancel(self, run_id: str) -> None:
         """Withdraw what is still out (so no controller runs it later), keep a log that was
         already announced, journal, state ``cancelled``."""
         assert self.store is not None
-        for row in await self.store.experiments(run_id):
-            if row["state"] in ("giving", "given", "taken") and row["nonce"]:
-                await self._withdraw_row(row)
+        await self._withdraw_out(run_id)
         await self.store.set_run(run_id, "cancelled", error="cancelled by the operator")
         log.info("run=%s cancelled", run_id)
+
+    async def _withdraw_out(self, run_id: str) -> None:
+        """Take back every program of the run that may still be out (a failed attempt's
+        too: its withdraw is done before it is journaled, but a daemon of an older version
+        journaled first)."""
+        assert self.store is not None
+        for row in await self.store.experiments(run_id):
+            if row["state"] in ("giving", "given", "taken", "attempt_failed") and row["nonce"]:
+                await self._withdraw_row(row)
 
     async def _withdraw_row(self, row: dict[str, Any]) -> None:
         """Take back an experiment's 'ready'; a log the controller already announced is
         stored first (a captured log is never lost)."""
         assert self.store is not None
         run_id, exp_id, nonce = row["run_id"], row["exp_id"], row["nonce"]
-        try:
-            async with asyncio.timeout(30):
-                if row["state"] == "taken" and not row["log_sha"]:
+        if row["state"] == "taken" and not row["log_sha"]:
+            try:
+                async with asyncio.timeout(30):
                     data = await self.driver.fetch_logs(Done(exp_id, nonce, row["done_sha"],
                                                              row["done_size"]))
                     await self.store.put_log(data, run_id=run_id, exp_id=exp_id)
+            except (DriverError, OSError, TimeoutError) as err:  # OSError: the store is full
+                # a log that cannot be fetched (corrupt, gone) never keeps a program out
+                log.warning("run=%s exp=%s announced log not stored: %s", run_id, exp_id, err)
+        try:
+            async with asyncio.timeout(30):
                 await self.driver.withdraw(exp_id, nonce)
         except (DriverError, OSError, TimeoutError) as err:
             log.warning("run=%s exp=%s withdraw failed: %s", run_id, exp_id, err)
@@ -297,40 +366,70 @@ class Daemon:
                 continue  # said at start
             try:
                 await cp.preflight(self.cfg, self.store, self.ctx, name)
-            except StoreFullError as err:
+            except (StoreFullError, StoreUnavailableError) as err:
                 self._set_full(str(err))
+                self._unreachable = self._unreachable or isinstance(err, StoreUnavailableError)
                 return
             except RobidError as err:
                 log.error("%s: campaign %s: %s (start refused until fixed)", self.cfg.path,
                           name, err)
 
     def _set_full(self, line: str | None) -> None:
-        """One log line when the state_dir fills up, one when room returns."""
+        """One log line when the store stops taking runs (full, unreachable), one when it
+        takes them again."""
         if line and not self._full:
             log.error("%s; new runs refused, status still served", line)
         elif not line and self._full:
-            log.info("state_dir has room again: resuming %d paused run(s)", len(self._paused))
+            log.info("the store takes writes again: resuming %d paused run(s)",
+                     len(self._paused))
         self._full = line
 
     #: how often the free space of the state_dir is looked at
     space_poll_s = 5.0
 
     async def _space_loop(self) -> None:
-        """Check for room every few seconds (from the start: a daemon started on a full disk
-        serves status and waits); re-queue the paused runs when it returns."""
+        """Check for room (and, after a failure, that the database answers) every few seconds
+        (from the start: a daemon started on a full disk serves status and waits); when the
+        store is back, journal what was withdrawn meanwhile and re-queue the paused runs. A
+        lost robot lock (StoreLockLostError) never comes back: no motion until a restart."""
         assert self.store is not None
         while True:
             try:
                 await self.store.require_space()
-            except StoreFullError as err:
-                self._set_full(str(err))
-            else:
+                if self._unreachable:
+                    await self.store.unfinished_runs()  # a read: reconnects, takes the lock
                 if self._full:
-                    self._set_full(None)
-                    for run_id in self._paused:
-                        self._queue.put_nowait(run_id)
-                    self._paused.clear()
+                    await self._store_back()
+                self._unreachable = False
+            except (StoreFullError, StoreUnavailableError) as err:
+                self._set_full(str(err))
             await asyncio.sleep(self.space_poll_s)
+
+    async def _store_back(self) -> None:
+        assert self.store is not None
+        line = self._full
+        while self._withdrawn:
+            run_id, exp_id, nonce = self._withdrawn[0]
+            row = await self.store.experiment(run_id, exp_id)
+            if row["nonce"] == nonce and row["state"] in ("giving", "given"):
+                await self.store.step(run_id, exp_id, "attempt_failed",
+                                      error=f"withdrawn: {line}")
+                self._outages[run_id] = self._outages.get(run_id, 0) + 1
+            self._withdrawn.pop(0)
+        await self._withdraw_orphans()
+        self._unreachable = False
+        self._set_full(None)
+        while self._paused:
+            run_id = self._paused[0]
+            if any(j["step"] == "cancel_requested" for j in await self.store.journal(run_id)):
+                await self._finish_cancel(run_id)  # a cancel the outage interrupted
+            elif self._outages.get(run_id, 0) > MAX_OUTAGES:
+                await self.store.set_run(run_id, "failed", error=(
+                    f"the store failed while an attempt was out {self._outages[run_id]} "
+                    f"times (each withdrawn); last: {line}"))
+            else:
+                self._queue.put_nowait(run_id)
+            self._paused.pop(0)
 
     async def _watchdog_loop(self) -> None:
         assert self.notifier.watchdog_s is not None
@@ -341,19 +440,33 @@ class Daemon:
     async def _status_line(self) -> str:
         if self._full:
             return f"{self._full}; {len(self._paused)} run(s) paused"
+        try:
+            return await self._store_status()
+        except Exception as err:  # noqa: BLE001 - the line says what the store answered
+            return f"{err}; {len(self._paused)} run(s) paused"
+
+    async def _store_status(self) -> str:
+        assert self.store is not None
+        held = [r for r in await self.store.runs(100) if r["state"] == "interrupted"]
+        waiting = ""
+        if held:
+            since = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(
+                min(r["state_since"] for r in held)))
+            waiting = (f"; {len(held)} run(s) interrupted, waiting for an operator since "
+                       f"{since} (robid campaign resume RUN)")
         current = self._current
         if current is None:
-            return f"idle, {self._queue.qsize()} run(s) queued"
-        assert self.store is not None
+            return f"idle, {self._queue.qsize()} run(s) queued{waiting}"
         run = await self.store.run(current)
         return (f"run {current} ({run['campaign']}): {run['step'] or run['state']}, "
-                f"{run['progress']['stored']}/{run['progress']['total']} logs")
+                f"{run['progress']['stored']}/{run['progress']['total']} logs{waiting}")
 
     # ----------------------------------------------------------------- control requests
     def _command_table(self) -> dict[str, Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]]:
         """The control socket's commands: name → handler of the request."""
         return {"ping": self._ping, "start": self._start, "status": self._status,
                 "cancel": lambda req: self._cancel(str(req.get("run_id"))),
+                "resume": self._resume,
                 "results": self._results, "list": self._list, "approve": self._approve,
                 "params_approve": self._params, "params_rollback": self._params}
 
@@ -375,27 +488,38 @@ class Daemon:
     async def _start(self, req: dict[str, Any]) -> dict[str, Any]:
         assert self.store is not None
         if self._full:
-            raise StoreFullError(self._full)
+            raise (StoreUnavailableError if self._unreachable else StoreFullError)(self._full)
         await self.store.require_space()
         trigger = req.get("trigger", "operator")
+        self._check_room()
         name = str(req.get("campaign"))
         if name in self.cfg.campaigns:  # else create_run says so
-            await cp.preflight(self.cfg, self.store, self.ctx, name)
-            if trigger == "timer":  # unattended: only approved programs, else nothing to do
-                try:
-                    await cp.check_approved(self.cfg, self.store, self.ctx, name)
-                except ApprovalError as err:
-                    log.warning("timer start refused: %s", err)
-                    raise
-        run_id = await cp.create_run(self.cfg, self.store, str(req.get("campaign")), trigger)
+            try:
+                await cp.preflight(self.cfg, self.store, self.ctx, name, str(trigger))
+            except ApprovalError as err:  # unattended: only approved programs
+                log.warning("%s start refused: %s", trigger, err)
+                raise
+        run_id = await cp.create_run(self.cfg, self.store, name, trigger,
+                                     force=req.get("force") is True)
         self._queue.put_nowait(run_id)
         log.info("run=%s queued campaign=%s trigger=%s", run_id, req.get("campaign"), trigger)
         return {"ok": True, "run_id": run_id}
 
+    def _check_room(self) -> None:
+        if self._queue.qsize() >= MAX_QUEUED:
+            raise ConfigError(f"{self._queue.qsize()} runs are queued already (at most "
+                              f"{MAX_QUEUED}); wait for them or cancel some")
+
     async def _status(self, req: dict[str, Any]) -> dict[str, Any]:
+        """The runs and the status line; with the store unreachable, the line only (the
+        daemon's own state: what is paused, why)."""
         assert self.store is not None
-        runs = ([await self.store.run(req["run_id"])] if req.get("run_id")
-                else await self.store.runs(int(req.get("limit", 20))))
+        try:
+            runs = ([await self.store.run(req["run_id"])] if req.get("run_id")
+                    else await self.store.runs(int(req.get("limit", 20))))
+        except StoreUnavailableError as err:
+            self._unreachable = True
+            raise StoreUnavailableError(await self._status_line()) from err
         drift = [f.message for f in cp.drift_flags_of(await self.store.results(self.robot_name),
                                                        self.robot_name)] \
             if self.robot_name else []
@@ -422,14 +546,34 @@ class Daemon:
                                           "duration_s": p.duration_s}
                                          for e, p in programs]}
 
+    async def _resume(self, req: dict[str, Any]) -> dict[str, Any]:
+        """An operator's go-ahead for a run interrupted by a restart (the CLI's ``campaign
+        resume``, the operator's page): it is queued and moves again from where it stopped."""
+        assert self.store is not None
+        run_id, by = str(req.get("run_id")), str(req.get("by", "operator"))
+        async with self._handover:  # (on a full disk it is paused before any motion)
+            state = (await self.store.run(run_id))["state"]
+            if state != "interrupted":
+                raise ConfigError(f"run {run_id} is {state}: only an interrupted run is "
+                                  "resumed")
+            self._check_room()
+            await self.store.note(run_id, None, "resumed", by=by)
+            await self.store.set_run(run_id, "queued", step=f"resumed by {by}")
+            self._queue.put_nowait(run_id)
+        log.info("run=%s resumed by %s", run_id, by)
+        return {"ok": True, "run_id": run_id, "state": "queued",
+                "message": f"run {run_id} resumed by {by}: queued"}
+
     async def _cancel(self, run_id: str) -> dict[str, Any]:
-        """A queued (or paused) run is dropped; the running one stops at its next step,
-        after its 'ready' was withdrawn."""
+        """A queued, paused or interrupted run is dropped; the running one stops at its next
+        step, after its 'ready' was withdrawn. The request is journaled first: a daemon that
+        dies during the cancel finishes it at its next start."""
         assert self.store is not None
         async with self._handover:
             state = (await self.store.run(run_id))["state"]
-            if state not in ("queued", "running"):
+            if state not in ("queued", "running", "interrupted"):
                 raise ConfigError(f"run {run_id} is {state}: nothing to cancel")
+            await self.store.note(run_id, None, "cancel_requested")
             started = run_id == self._current and self._run_task is not None
             if started:
                 assert self._run_task is not None
@@ -452,6 +596,10 @@ class Daemon:
         assert self.store is not None
         cmd, robot, ref = req["cmd"], str(req.get("robot")), req.get("set")
         by = str(req.get("by", "operator"))
+        if robot != self.robot_name:  # its store rows and its controller are another's
+            raise ConfigError(f"robot {robot}: this daemon holds robot {self.robot_name}; "
+                              f"{'approve' if cmd == 'params_approve' else 'roll back'} "
+                              f"{robot}'s parameter sets with {robot}'s own daemon")
         sets = await self.store.param_sets(robot)
         if not sets:
             raise ConfigError(f"robot {robot}: no parameter set stored yet")
@@ -467,7 +615,8 @@ class Daemon:
         if len(active) < 2:
             raise ConfigError(f"robot {robot}: the controller has had no earlier set to roll "
                               "back to")
-        await cp.upload_set(self.store, self.driver, robot, active[-2], None, unattended=False)
+        await cp.upload_set(self.store, self.driver, robot, active[-2], None, unattended=False,
+                            force=True)  # the set the controller ran before: the operator's
         row = next(s for s in sets if s["sha256"] == active[-2])
         return {"ok": True, "message": f"rolled {robot} back to parameter set {row['version']} "
                 f"({active[-2][:16]}…), acknowledged by the controller"}

@@ -2,6 +2,14 @@
 
 The base class owns the public methods (state, timeouts, checks, logging); a driver overrides
 the small ``_hooks``. Drivers are async context managers and ``close()`` is safe twice.
+
+One rule for every driver, kept here: whatever a hook raises that is not already a RobidError
+(an unparseable or oddly shaped answer, a decode error, an OSError) leaves the base as a
+DriverError of one line — a ProtocolError once the motion command may have gone out (give,
+take, fetch: the controller answered, nobody retries that motion unasked); every call has a
+timeout and a fetched log a size cap (``LINK_OPTIONS``, which every driver has); the link is
+checked alive before a motion command (``_check_link``); and a give runs to its end even when
+its caller is cancelled, so a ``withdraw`` that follows always finds what it takes back.
 """
 
 from __future__ import annotations
@@ -9,17 +17,24 @@ from __future__ import annotations
 import abc
 import asyncio
 import concurrent.futures
+import contextlib
 import hashlib
 import json
 import logging
 import threading
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar, Self
+from typing import Any, ClassVar, Self, TypeVar
 
-from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError, RobidError
+from robid_link.exceptions import (
+    ConfigError,
+    DriverError,
+    DriverTimeoutError,
+    ProtocolError,
+    RobidError,
+)
 from robid_link.jobs import FeedforwardTable, MotionProgram, ParameterSet, RobotInfo, check_name
-from robid_link.link.options import Options, Values
+from robid_link.link.options import Integer, Number, Options, Values
 
 __all__ = [
     "Driver",
@@ -30,9 +45,13 @@ __all__ = [
     "CAP_UPLOAD",
     "CAP_RAPID",
     "CAP_FEEDFORWARD",
+    "LINK_OPTIONS",
+    "one_line",
 ]
 
 log = logging.getLogger("robid.driver")
+
+T = TypeVar("T")
 
 #: capability names a driver may advertise
 CAP_UPLOAD = "upload_parameters"
@@ -44,6 +63,27 @@ CAP_FEEDFORWARD = "feedforward"
 #: the link's way to the worker for a feed-forward table: (set, period_s, setpoints q) → table
 FeedforwardSource = Callable[[ParameterSet, float, Sequence[Sequence[float]]],
                              Awaitable[FeedforwardTable]]
+
+
+#: the options every driver has (a driver may declare one of them again with its own default):
+#: the longest a give, acknowledge, withdraw or parameter send may take, the longest a program
+#: or log transfer may take (a slow serial line moves a 10 MB log in ~20 min at 115200 baud),
+#: and the largest log accepted (a longer one is refused while it is read, never held whole)
+LINK_OPTIONS = Options(
+    command_timeout_s=Number(60.0, above=0, high=3600),
+    transfer_timeout_s=Number(3600.0, above=0, high=86400),
+    max_log_bytes=Integer(256 << 20, low=1024, high=1 << 34))
+
+#: the longest message of a DriverError (a controller's text is cut there)
+MAX_MESSAGE = 400
+
+
+def one_line(text: str, limit: int = MAX_MESSAGE) -> str:
+    """``text`` as one printable line of at most ``limit`` characters (what a controller sent
+    may hold newlines, control characters, or megabytes)."""
+    flat = "".join(ch if ch.isprintable() else " " for ch in text[: 4 * limit])
+    flat = " ".join(flat.split())
+    return flat if len(flat) <= limit else flat[: limit - 1] + "…"
 
 
 def parameter_bytes(doc: Mapping[str, Any]) -> bytes:
@@ -157,17 +197,32 @@ class Driver(abc.ABC):
     #: the given ones into ``self.config``; per-joint vectors are checked by ``bind_robot``.
     #: (A plain set of names is still accepted from older plug-ins: only unknown keys are
     #: refused then.)
-    options: ClassVar[Options | frozenset[str]] = Options()
+    options: ClassVar[Options | frozenset[str]] = LINK_OPTIONS
+
+    def __init_subclass__(cls, **kw: Any) -> None:
+        super().__init_subclass__(**kw)
+        spec = cls.__dict__.get("options")
+        if isinstance(spec, Options):  # every driver has the link's options too
+            cls.options = LINK_OPTIONS.merged(spec)
+        elif spec is not None:
+            cls.options = frozenset(spec) | frozenset(LINK_OPTIONS)
 
     def __init__(self, **options: Any) -> None:
         spec = type(self).options
-        self.config = (spec.parse(options, owner=self.name) if isinstance(spec, Options)
-                       else Values(options))
+        if isinstance(spec, Options):
+            self.config = spec.parse(options, owner=self.name)
+        else:  # a plain set of names: only the link's options are checked
+            link = LINK_OPTIONS.parse({k: v for k, v in options.items() if k in LINK_OPTIONS},
+                                      owner=self.name)
+            self.config = Values({**options, **link.as_dict()})
         self.bridge = ThreadBridge(self.name)
         self._opened = False
         self._closed = False
         self.robot: RobotInfo | None = None
         self._feedforward_source: FeedforwardSource | None = None
+        #: gives under way: a cancelled caller leaves them running to their end, and a
+        #: withdraw of the same attempt waits for them first
+        self._gives: dict[tuple[str, str], asyncio.Task[None]] = {}
 
     def bind_robot(self, robot: RobotInfo) -> None:
         """The robot this link moves, given before ``open``: a driver checks its options
@@ -238,16 +293,61 @@ class Driver(abc.ABC):
             raise DriverError(f"{self.name}: driver is not open")
 
     # -- the cycle
+    async def _guarded(self, what: str, call: Awaitable[T], timeout_s: float, *,
+                       answered: bool = False) -> T:
+        """``call`` under ``timeout_s``; whatever escapes it is one line: a RobidError as it is
+        (its text flattened), the timeout as DriverTimeoutError, anything else as DriverError —
+        ProtocolError when ``answered`` (the motion command may have gone out)."""
+        try:
+            async with asyncio.timeout(timeout_s) as cm:
+                return await call
+        except RobidError as err:
+            text = one_line(str(err))
+            if text != str(err):
+                err.args = (text,)
+            raise
+        except TimeoutError as err:
+            if not cm.expired():
+                raise self._unexpected(what, err, answered) from err
+            raise DriverTimeoutError(f"{self.name}: {what}: no answer within {timeout_s:g} s "
+                                     "(driver.command_timeout_s / transfer_timeout_s)") from err
+        except Exception as err:  # noqa: BLE001 - the one rule: one line, never a traceback
+            raise self._unexpected(what, err, answered) from err
+
+    def _unexpected(self, what: str, err: Exception, answered: bool) -> DriverError:
+        cls = ProtocolError if answered else DriverError
+        return cls(one_line(f"{self.name}: {what}: unexpected from the controller "
+                            f"({type(err).__name__}: {err})"))
+
     async def put_program(self, program: MotionProgram) -> None:
         """Hand the motion program to the controller (idempotent for the same program)."""
         self._require_open()
         check_name(program.exp_id, "experiment id")
-        await self._put_program(program)
+        await self._guarded(f"put program of {program.exp_id}", self._put_program(program),
+                            self.config.transfer_timeout_s)
 
     async def give_ready(self, exp_id: str, nonce: str) -> None:
-        """semGive: tell the controller the program of ``exp_id`` is ready (idempotent)."""
+        """semGive: tell the controller the program of ``exp_id`` is ready (idempotent). The
+        link is checked alive first; the give itself runs to its end even if the caller is
+        cancelled meanwhile (``withdraw`` then waits for it)."""
         self._require_open()
-        await self._give_ready(check_name(exp_id, "experiment id"), check_name(nonce, "nonce"))
+        key = (check_name(exp_id, "experiment id"), check_name(nonce, "nonce"))
+        await self._guarded("link check before motion", self._check_link(),
+                            self.config.command_timeout_s)
+        task = self._gives.get(key)
+        if task is None:
+            task = asyncio.create_task(self._guarded(
+                f"give experiment {exp_id}", self._give_ready(*key),
+                self.config.command_timeout_s, answered=True), name=f"{self.name}-give")
+            self._gives[key] = task
+            task.add_done_callback(lambda t: self._give_ended(key, t))
+        await asyncio.shield(task)
+
+    def _give_ended(self, key: tuple[str, str], task: asyncio.Task[None]) -> None:
+        if self._gives.get(key) is task:
+            del self._gives[key]
+        if not task.cancelled():
+            task.exception()  # the caller has it, or was cancelled: never 'not retrieved'
 
     async def take_done(self, exp_id: str, nonce: str, timeout_s: float) -> Done:
         """semTake with a timeout: wait for this experiment's 'done' of this nonce."""
@@ -257,16 +357,26 @@ class Driver(abc.ABC):
         if not timeout_s > 0:
             raise ConfigError(f"timeout_s: expected a positive number, got {timeout_s!r}")
         try:
-            async with asyncio.timeout(timeout_s):
-                return await self._wait_done(exp_id, nonce)
-        except TimeoutError as err:
+            done = await self._guarded(f"take experiment {exp_id}",
+                                       self._wait_done(exp_id, nonce), timeout_s, answered=True)
+        except DriverTimeoutError as err:
             raise DriverTimeoutError(f"{self.name}: no 'done' for experiment {exp_id} "
                                      f"(nonce {nonce}) within {timeout_s:g} s") from err
+        cap = self.config.max_log_bytes
+        if done.size is not None and not 0 <= done.size <= cap:
+            raise ProtocolError(f"{self.name}: 'done' of experiment {exp_id} announces a log "
+                                f"of {done.size} bytes, over driver.max_log_bytes ({cap})")
+        return done
 
     async def fetch_logs(self, done: Done) -> bytes:
         """The raw log of a finished experiment, checked against the 'done' checksum."""
         self._require_open()
-        data = await self._fetch_logs(done)
+        data = await self._guarded(f"fetch log of experiment {done.exp_id}",
+                                   self._fetch_logs(done), self.config.transfer_timeout_s,
+                                   answered=True)
+        if len(data) > self.config.max_log_bytes:
+            raise ProtocolError(f"{self.name}: log of experiment {done.exp_id} is over "
+                                f"driver.max_log_bytes ({self.config.max_log_bytes})")
         if done.size is not None and len(data) != done.size:
             raise DriverError(f"{self.name}: log of experiment {done.exp_id} has {len(data)} "
                               f"bytes, 'done' announced {done.size} (truncated log)")
@@ -280,13 +390,21 @@ class Driver(abc.ABC):
     async def acknowledge(self, done: Done) -> None:
         """The log is stored: the controller side may clean up this experiment's semaphores."""
         self._require_open()
-        await self._acknowledge(done)
+        await self._guarded(f"acknowledge experiment {done.exp_id}", self._acknowledge(done),
+                            self.config.command_timeout_s)
 
     async def withdraw(self, exp_id: str, nonce: str) -> None:
-        """An attempt was given up (timeout, bad log): take back its 'ready' so a controller
-        that wakes up later does not run an obsolete program."""
+        """An attempt was given up (timeout, bad answer, cancel): its stop/abort goes out, so a
+        controller that wakes up later does not run an obsolete program. A give of the same
+        attempt still under way ends first (what it gives is then taken back)."""
         self._require_open()
-        await self._withdraw(exp_id, nonce)
+        giving = self._gives.get((exp_id, nonce))
+        if giving is not None:
+            with contextlib.suppress(Exception):
+                async with asyncio.timeout(self.config.command_timeout_s):
+                    await asyncio.shield(giving)
+        await self._guarded(f"withdraw experiment {exp_id}", self._withdraw(exp_id, nonce),
+                            self.config.command_timeout_s)
 
     async def upload_parameters(self, doc: Mapping[str, Any], timeout_s: float = 60.0
                                 ) -> None:
@@ -301,10 +419,11 @@ class Driver(abc.ABC):
         if not timeout_s > 0:
             raise ConfigError(f"timeout_s: expected a positive number, got {timeout_s!r}")
         try:
-            async with asyncio.timeout(timeout_s):
-                await self._upload_parameters(doc, body)
-        except TimeoutError as err:
-            await self._withdraw_parameters(doc, body)
+            await self._guarded("upload parameters", self._upload_parameters(doc, body),
+                                timeout_s)
+        except DriverTimeoutError as err:
+            await self._guarded("withdraw parameters", self._withdraw_parameters(doc, body),
+                                self.config.command_timeout_s)
             raise DriverTimeoutError(
                 f"{self.name}: the controller did not acknowledge parameter set "
                 f"{str(doc.get('sha256', sha))[:12]} within {timeout_s:g} s; withdrawn, it "
@@ -330,6 +449,11 @@ class Driver(abc.ABC):
     async def _fetch_logs(self, done: Done) -> bytes: ...
 
     def _check_robot(self, robot: RobotInfo) -> None:
+        return None
+
+    async def _check_link(self) -> None:
+        """Before every motion command: raise DriverError unless the controller shows it is
+        alive (a heartbeat that moves, a session that answers). Default: nothing to check."""
         return None
 
     async def _acknowledge(self, done: Done) -> None:

@@ -29,7 +29,7 @@ from typing import Any
 from robid_link.exceptions import ConfigError
 
 __all__ = ["Options", "Values", "Option", "REQUIRED", "Integer", "Number", "Flag", "Text",
-           "Choice", "Vector", "Table", "File", "Folder", "Secret", "Retired"]
+           "Choice", "Vector", "Table", "File", "Folder", "Secret", "Url", "Retired"]
 
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 _SHOWN = 60  # characters of a refused value shown in a message
@@ -163,6 +163,38 @@ class Secret(Text):
     def __init__(self, default: Any = REQUIRED, *, hint: str = "") -> None:
         super().__init__(default, hint=hint)
         self.secret = True
+
+
+class Url(Option):
+    """A URL of one of ``schemes`` with a host, and nothing but ``/`` after it: returned
+    without a trailing path. Credentials never travel in a URL: one written with
+    ``user:password@`` is refused in a line that shows neither (they belong in the driver's
+    credentials file or the environment), and a refused URL is shown without them."""
+
+    def __init__(self, default: Any = REQUIRED, *, schemes: tuple[str, ...] = ("http", "https"),
+                 hint: str = "") -> None:
+        super().__init__(default, hint=hint)
+        self.schemes = schemes
+        self.expect = f"{'|'.join(schemes)}://host[:port]"
+
+    def convert(self, key: str, value: Any) -> str:
+        from urllib.parse import urlsplit
+
+        if not isinstance(value, str) or not value:
+            raise self.refuse(key, value)
+        try:
+            u = urlsplit(value)
+            port = u.port
+        except ValueError:
+            u, port = None, None
+        if u is not None and (u.username is not None or u.password is not None):
+            raise ConfigError(f"{key}: credentials in the URL are refused (not shown); give "
+                              "them in the driver's credentials file or the environment")
+        if (u is None or u.scheme not in self.schemes or not u.hostname
+                or u.path not in ("", "/") or u.query or u.fragment):
+            raise self.refuse(key, value.split("@")[-1] if "@" in value else value)
+        host = f"[{u.hostname}]" if ":" in u.hostname else u.hostname
+        return f"{u.scheme}://{host}" + (f":{port}" if port is not None else "")
 
 
 class Choice(Option):
@@ -327,6 +359,11 @@ class Options(Mapping[str, Option]):
 
     def __len__(self) -> int:
         return len(self._specs)
+
+    def merged(self, other: Options) -> Options:
+        """These options with ``other``'s added; a name in both takes ``other``'s spec (a
+        driver declares its own default for an option every driver has)."""
+        return Options(**{**self._specs, **other._specs})
 
     def parse(self, given: Mapping[str, Any], *, owner: str = "", prefix: str = "driver"
               ) -> Values:

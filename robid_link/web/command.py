@@ -8,30 +8,19 @@ from collections.abc import Callable
 from contextlib import AbstractAsyncContextManager
 from typing import Any
 
-from robid_link.config import DaemonConfig, load_daemon_config
-from robid_link.exceptions import RobidError
+from robid_link.config import DaemonConfig, load_daemon_config, robot_name
 from robid_link.link.store import open_reader
 from robid_link.web.server import DEFAULT_LISTEN, WebServer
 
-__all__ = ["run_web", "daemon_service", "robot_name"]
-
-
-def robot_name(cfg: DaemonConfig) -> str:
-    """The config's robot as the store names it (the robot file's stem if it cannot load)."""
-    from robid_link.ident.model.robot import load_robot
-
-    if cfg.robot_name:
-        return str(cfg.robot_name)
-    try:
-        return load_robot(cfg.robot, cfg.lock).name
-    except RobidError:
-        return cfg.robot.stem
+__all__ = ["run_web", "daemon_service"]
 
 
 def run_web(config: str, listen: str | None) -> int:
     """Serve the state dir of ``config`` read-only until SIGINT or SIGTERM."""
+    from robid_link.ident.model.robot import description_name
+
     cfg = load_daemon_config(config)
-    robot = robot_name(cfg)
+    robot = robot_name(cfg, description_name(cfg.robot, cfg.lock))
     with open_reader(cfg, robot):  # refuses a state dir without a store now
         pass
     server = WebServer(cfg, listen or cfg.web.listen or DEFAULT_LISTEN, robot)
@@ -51,12 +40,13 @@ def run_web(config: str, listen: str | None) -> int:
 
 
 def daemon_service(cfg: DaemonConfig) -> Callable[[Any], AbstractAsyncContextManager[Any]]:
-    """The daemon's page (``web.listen``): the daemon's own requests as its actions; the
-    token file is made in the state dir on the first start."""
+    """The daemon's page (``web.listen``) of its robot as the store names it: the daemon's
+    own requests as its actions; the token file is made in the state dir on the first
+    start."""
     assert cfg.web.listen is not None
 
     def start(daemon: Any) -> AbstractAsyncContextManager[Any]:
-        return WebServer(cfg, cfg.web.listen or DEFAULT_LISTEN, daemon.robot.name,
+        return WebServer(cfg, cfg.web.listen or DEFAULT_LISTEN, daemon.robot_name,
                          actions=daemon.handle, create_token=True)
 
     return start

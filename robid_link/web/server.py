@@ -37,7 +37,8 @@ CSRF_COOKIE = "robid_csrf"
 _CSRF: ContextVar[str] = ContextVar("robid_csrf", default="")
 Actions = Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]
 #: the action routes and the control request each one makes
-_ACTIONS = {"start": ("campaign",), "cancel": ("run_id",), "approve": ("robot", "set")}
+_ACTIONS = {"start": ("campaign",), "cancel": ("run_id",), "resume": ("run_id",),
+            "approve": ("robot", "set")}
 _HEADERS = {"Content-Security-Policy": "default-src 'none'; script-src 'unsafe-inline'; "
             "style-src 'unsafe-inline'; img-src data:; connect-src 'self'; form-action 'self'; "
             "frame-ancestors 'none'; base-uri 'none'",
@@ -61,6 +62,44 @@ def _loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:  # a name: only localhost is known to stay on the machine
         return False
+
+
+class _Hosts:
+    """The names a request may give in its Host header, against DNS rebinding (a foreign
+    page whose name resolves to this address): the listen host, the loopback names and
+    ``web.hosts``; when listening on every address, any address too (never another name)."""
+
+    def __init__(self, listen_host: str | None, extra: tuple[str, ...]) -> None:
+        listen = _normal(listen_host or "127.0.0.1")
+        self.any_address = listen in ("0.0.0.0", "::")
+        self.names = {_normal(n) for n in ("localhost", *extra, listen)}
+        self.shown = ", ".join(dict.fromkeys([listen, "localhost", *extra]))
+
+    def allows(self, host: str) -> bool:
+        name = _normal(_without_port(host))
+        if name in self.names:
+            return True
+        try:
+            addr = ipaddress.ip_address(name)
+        except ValueError:
+            return False
+        return addr.is_loopback or self.any_address
+
+
+def _without_port(host: str) -> str:
+    host = host.strip()
+    if host.startswith("["):  # [v6]:port
+        return host[1:].partition("]")[0]
+    return host.rpartition(":")[0] if host.count(":") == 1 else host
+
+
+def _normal(name: str) -> str:
+    """A host name lower-cased without its trailing dot; an address in its short form."""
+    name = name.lower().rstrip(".")
+    try:
+        return str(ipaddress.ip_address(name))
+    except ValueError:
+        return name
 
 
 def load_token(web_cfg: WebConfig, state_dir: Path, *, create: bool) -> str | None:
@@ -114,8 +153,9 @@ class _App:
     """The handlers; every read opens the store read-only in a worker thread."""
 
     def __init__(self, cfg: DaemonConfig, robot: str, actions: Actions | None,
-                 token: str | None, tls: bool) -> None:
+                 token: str | None, tls: bool, hosts: _Hosts) -> None:
         self.cfg, self.robot, self.actions, self.token, self.tls = cfg, robot, actions, token, tls
+        self.hosts = hosts
 
     async def read(self, fn: Callable[..., Any], *args: Any) -> Any:
         def work() -> Any:
@@ -188,10 +228,11 @@ class _App:
             return _refuse(request, "token missing or wrong")
         if not bearer and not self._csrf_ok(request, form):
             return _refuse(request, "CSRF check failed (reload the page and submit again)")
-        req = {"cmd": {"start": "start", "cancel": "cancel", "approve": "params_approve"}[name],
+        req = {"cmd": {"start": "start", "cancel": "cancel", "resume": "resume",
+                       "approve": "params_approve"}[name],
                **{k: str(form[k]) for k in _ACTIONS[name] if form.get(k)}, "by": "web"}
-        if name == "start":
-            req["trigger"] = "operator"
+        if name == "start":  # unattended: the page may be far from the cell
+            req["trigger"] = "web"
         try:
             ans = await self.actions(req)
         except RobidError as err:
@@ -243,8 +284,15 @@ def _refuse(request: web.Request, why: str) -> web.Response:
 
 @web.middleware
 async def _guard(request: web.Request, handler: Any) -> web.StreamResponse:
-    """Security headers; the CSRF cookie on every page; store errors as one line."""
+    """A foreign Host refused; security headers; the CSRF cookie on every page; store
+    errors as one line."""
     app = request.app[_APP]
+    if not app.hosts.allows(request.host):
+        log.warning("web request refused from %s: Host %.80r", request.remote, request.host)
+        resp = web.Response(status=421, text=f"Host {request.host[:80]!r} is not a name of "
+                            f"this page ({app.hosts.shown}; other names go in web.hosts)\n")
+        resp.headers.update(_HEADERS)
+        return resp
     csrf = request.cookies.get(CSRF_COOKIE) or secrets.token_urlsafe(24)
     _CSRF.set(csrf)
     try:
@@ -262,11 +310,13 @@ async def _guard(request: web.Request, handler: Any) -> web.StreamResponse:
 
 
 def make_app(cfg: DaemonConfig, robot: str, *, actions: Actions | None = None,
-             token: str | None = None, tls: bool = False) -> web.Application:
+             token: str | None = None, tls: bool = False, listen_host: str | None = None
+             ) -> web.Application:
     """The page's aiohttp application (``actions``: the daemon's request handler, or None
-    for a read-only page)."""
+    for a read-only page); requests must name ``listen_host`` (None: loopback only), a
+    loopback name or one of ``web.hosts`` in their Host header."""
     app = web.Application(middlewares=[_guard], client_max_size=1 << 16)
-    h = _App(cfg, robot, actions, token, tls)
+    h = _App(cfg, robot, actions, token, tls, _Hosts(listen_host, cfg.web.hosts))
     app[_APP] = h
     app.add_routes([web.get("/", h.runs), web.get("/api/runs", h.runs),
                     web.get("/runs/{run_id}", h.run), web.get("/api/runs/{run_id}", h.run),
@@ -293,7 +343,8 @@ class WebServer:
                 raise ConfigError(f"web.listen: {listen} is not a loopback address; serving it "
                                   f"needs TLS and a token (missing: {', '.join(missing)})")
         self.ssl = _tls(cfg.web)
-        self.app = make_app(cfg, robot, actions=actions, token=token, tls=self.ssl is not None)
+        self.app = make_app(cfg, robot, actions=actions, token=token, tls=self.ssl is not None,
+                            listen_host=self.host)
         self._runner: web.AppRunner | None = None
 
     @property

@@ -44,6 +44,8 @@ def _run_row(store: Store, run: dict[str, Any], robot: str, reported: set[str]
     waiting = None
     if run["state"] == "queued":
         waiting = run["created"]
+    elif run["state"] == "interrupted":  # for an operator's resume since the restart
+        waiting = run.get("state_since") or run["created"]
     elif run["state"] == "running":  # since the last thing the journal says happened
         tail = store.journal(run["run_id"])[-1:]
         waiting = tail[0]["time"] if tail else run["started"]

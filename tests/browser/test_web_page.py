@@ -91,5 +91,5 @@ def test_a_form_post_without_the_token_is_refused_and_changes_nothing(page, site
         page.page.click("form[action='/actions/start'] button")
     assert "run r-new queued" in page.page.content()
     assert rec.calls == [{"cmd": "start", "campaign": "nightly", "by": "web",
-                          "trigger": "operator"}]
+                          "trigger": "web"}]
     rec.calls.clear()

@@ -16,7 +16,15 @@ from typing import Any
 import pytest
 
 from robid_link.drivers.abb_rws import AbbRwsDriver
-from robid_link.drivers.rws_api import parse_done, read_credentials, rws_module
+from robid_link.drivers.rws_api import (
+    RAPID_STRING_MAX,
+    done_value,
+    parse_done,
+    parse_size,
+    read_credentials,
+    rws_module,
+    size_value,
+)
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.fakes.controller import default_truth, make_peer
 from robid_link.ident.model.robot import Robot
@@ -286,13 +294,40 @@ def test_config_errors_name_the_key(tmp_path: Path, over: dict[str, Any], key: s
 
 def test_done_values_and_the_module_name(program: MotionProgram) -> None:
     assert parse_done("") is None
-    assert parse_done("n1 " + "a" * 64 + " 12") == ("done", "n1", "a" * 64, 12)
-    assert parse_done("ERR n1 motion supervision") == ("error", "n1", "motion supervision",
-                                                      None)
+    assert parse_done("n1 " + "a" * 64) == ("done", "n1", "a" * 64)
+    assert parse_done("ERR n1 motion supervision") == ("error", "n1", "motion supervision")
     with pytest.raises(DriverError, match="robid_done"):
-        parse_done("n1 nothex 12")
+        parse_done("n1 nothex")
+    with pytest.raises(DriverError, match="robid_done"):  # the old three-field value
+        parse_done("n1 " + "a" * 64 + " 12")
+    # a RAPID string holds 80 characters: the done value of an 8-character nonce takes 73,
+    # whatever the log's size (the size has its own variable)
+    assert len(done_value("3f9a0c21", "a" * 64)) == 73 <= RAPID_STRING_MAX
+    assert parse_size(size_value("3f9a0c21", 10**9), "3f9a0c21") == 10**9
+    with pytest.raises(DriverError, match="before 'done'"):
+        parse_size("0ld0n0ce 12", "3f9a0c21")
+    with pytest.raises(DriverError, match="robid_size"):
+        parse_size("3f9a0c21 -12", "3f9a0c21")
     from robid_link.drivers.rapid import render_rapid
 
     text = rws_module(render_rapid(program)).decode()
     assert text.startswith("MODULE robid_path") and "PROC robid_move()" in text
     assert "experiment exp1," in text
+
+
+def test_a_log_of_over_a_megabyte_fits_the_rapid_strings(tmp_path: Path, robot: Robot) -> None:
+    """Issue 19: '<nonce> <sha256> <size>' in robid_done passed RAPID's 80 characters from
+    1 MB on (the controller fails writing it); the size now has robid_size of its own."""
+    from tests.drivers.conftest import bump_program
+
+    program = bump_program(robot, 14.0, 0.05)
+    work = tmp_path / "cell"
+    work.mkdir()
+    peer = make_peer("abb_rws", robot, default_truth(robot, rate_hz=1000.0), work)
+    with peer:
+        driver = registry.make_driver(peer.driver_options())
+        driver.bind_robot(RobotInfo.of(robot))
+        data = _cycle(driver, program)
+    assert len(data) > 1_000_000
+    assert all(len(v) <= RAPID_STRING_MAX for v in peer.vars.values())
+    assert peer.vars["robid_size"].endswith(f" {len(data)}")

@@ -74,7 +74,16 @@ def _partial(err: pytest.ExceptionInfo[DriverError]) -> np.ndarray:
 
 
 @pytest.mark.parametrize("fault, cause", [
-    ("drive_fault", r"node 2 \(joint 2 j2\): drive fault 0x2310 continuous over-current"),
+    ("drive_fault", r"node 2 \(joint 2 j2\): drive fault \(EMCY 0x2310 continuous "
+                    r"over-current\), error code 0x603F = 0x2310 continuous over-current"),
+    # the EMCY lost: 0x603F, read by SDO after the stop, still names the cause
+    ("drive_fault_quiet", r"node 2 \(joint 2 j2\): drive fault \(no EMCY received\), error "
+                          r"code 0x603F = 0x2310 continuous over-current"),
+    # a hostile bus: another sender on node 3's TPDO1 COB-ID, a TPDO mapped otherwise
+    ("foreign_tpdo", r"node 3 \(joint 3 j3\): two different TPDO1 for SYNC \d+ .*not this "
+                     r"drive's answer \(another node on its COB-ID"),
+    ("bad_length", r"node 2 \(joint 2 j2\): TPDO2 of \d bytes, \d mapped: not this drive's "
+                   r"answer"),
     ("heartbeat_loss", r"node 2 \(joint 2 j2\): lost heartbeat"),
     ("following_error", r"node 2 \(joint 2 j2\): following error .* rad beyond the window"),
     ("dropped_frames", r"node 2 \(joint 2 j2\): no TPDO for \d+ SYNC periods"),

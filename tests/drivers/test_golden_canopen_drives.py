@@ -7,6 +7,7 @@ python-can bus, answer exactly as it says (".." where a byte is a process value)
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -67,7 +68,7 @@ def test_transcript_sdo_frames_are_well_formed() -> None:
 
 def _peer(tmp_path: Path, robot: Robot) -> Any:
     return make_peer("canopen_drives", robot, default_truth(robot, rate_hz=200.0), tmp_path,
-                     sync_period_s=0.005)
+                     sync_period_s=0.005, counts_per_rad=2**20 / (2 * math.pi))
 
 
 def test_driver_sends_the_transcript(tmp_path: Path, robot: Robot) -> None:
@@ -119,9 +120,9 @@ def _check_streaming(frames: list[Any]) -> None:
     assert set(words) <= {0x000F, 0x0006} and words[-1] == 0x0006
     kinds = [m.arbitration_id for m in frames if m.arbitration_id in (0x080, 0x200 + NODE)]
     assert all(a != b for a, b in zip(kinds, kinds[1:], strict=False))  # alternate
-    for cob in (0x180 + NODE, 0x280 + NODE):
+    for cob, size in ((0x180 + NODE, 7), (0x280 + NODE, 5)):
         tpdo = [m for m in frames if m.arbitration_id == cob]
-        assert tpdo and all(len(m.data) == 7 and m.data[6] in syncs for m in tpdo)
+        assert tpdo and all(len(m.data) == size and m.data[-1] in syncs for m in tpdo)
 
 
 def test_peer_answers_the_transcript(tmp_path: Path, robot: Robot) -> None:

@@ -10,6 +10,7 @@ import asyncio
 import contextlib
 import io
 import json
+import os
 import re
 import socket
 import struct
@@ -624,6 +625,7 @@ def test_campaign_over_ur_rtde_with_the_controller_as_a_process(tmp_path: Path) 
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(not os.environ.get("ROBID_VALIDATE"), reason="make validate")
 def test_demo_over_ur_rtde_tells_the_file_shares_story(tmp_path: Path) -> None:
     """`robid demo --driver ur_rtde`: the hidden effect found, the error falls once it is
     added; calibrate is skipped with one line (UR takes no parameter upload)."""

@@ -3,6 +3,7 @@ first run past the thresholds; 20 nightly runs of a healthy robot raise no flag.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +57,7 @@ def test_rising_friction_is_flagged_at_the_first_run_past_the_threshold(
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(not os.environ.get("ROBID_VALIDATE"), reason="make validate")
 def test_twenty_healthy_nights_raise_no_flag(arm3: Robot, tmp_path: Path) -> None:
     tr = trend(_nightly(arm3, tmp_path, [1.0] * 20, "healthy", 70), "healthy")
     assert tr.flags == [], tr.table()

@@ -175,8 +175,9 @@ def test_with_profiled_hypers_chooses_the_grid_value_of_least_rss(arm3, tmp_path
     grid = np.array(REGISTRY["stribeck"].hypers["vs"].grid)
     vs = chosen["stribeck@2"]["vs"]
     assert vs in grid and 0.025 <= vs <= 0.1  # the truth is 0.05
+    assert chosen["stribeck@2"]["shape"] in REGISTRY["stribeck"].hypers["shape"].grid
     assert new.blocks[-1].opts["vs"] == vs and not new.blocks[-1].free_hypers()
-    assert pb.blocks[-1].free_hypers() == ["vs"]  # the given problem keeps its blocks
+    assert pb.blocks[-1].free_hypers() == ["vs", "shape"]  # the given problem keeps its blocks
     assert with_profiled_hypers(new) == (new, {})
 
 

@@ -115,6 +115,17 @@ def process(*args: str, env: dict[str, str] | None = None, log: Path | None = No
             out.close()  # type: ignore[union-attr]
 
 
+def _answers(path: Path) -> bool:
+    from robid_link.exceptions import DaemonUnreachable
+    from robid_link.link.control import request
+
+    try:
+        request(path, {"cmd": "ping"}, timeout_s=2.0)
+    except (DaemonUnreachable, OSError):
+        return False
+    return True
+
+
 def wait_socket(path: Path, proc: subprocess.Popen[bytes] | None = None,
                 timeout_s: float = 60.0) -> None:
     from robid_link.exceptions import DaemonUnreachable
@@ -171,12 +182,42 @@ def run_status(cfg: Path, tmp: Path, timeout_s: float = 180.0) -> dict[str, Any]
     raise AssertionError(f"run did not finish within {timeout_s} s")
 
 
+def resume_when_interrupted(cfg: Path, tmp: Path, run_id: str,
+                            daemon: subprocess.Popen[bytes], timeout_s: float = 180.0
+                            ) -> dict[str, Any] | None:
+    """After a restart: wait for the daemon's bookkeeping of ``run_id`` (no motion), check it
+    waits as 'interrupted' with a time, then give the operator's ``robid campaign resume``.
+    The run's record as the bookkeeping left it; None when the daemon died first (a kill
+    point reached during the bookkeeping)."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        st = robid("status", "--config", str(cfg), "--json", str(tmp / "s.json"))
+        if daemon.poll() is not None:
+            return None
+        assert st.returncode == 0, st.stderr
+        run = next(r for r in json.loads((tmp / "s.json").read_text())["runs"]
+                   if r["run_id"] == run_id)
+        if run["state"] in ("completed", "failed"):
+            return dict(run)  # nothing was left that needed motion
+        if run["state"] == "interrupted":
+            assert run["state_since"] > 0 and "since" in st.stdout, st.stdout
+            out = robid("campaign", "resume", run_id, "--config", str(cfg))
+            if daemon.poll() is not None:
+                return None
+            assert out.returncode == 0 and "resumed" in out.stdout, out.stderr
+            return dict(run)
+        time.sleep(0.3)
+    raise AssertionError(f"run {run_id}: no bookkeeping end within {timeout_s} s")
+
+
 def kill_then_resume(tmp: Path, cfg: Path, kill_points: list[str], during: Any = None,
                      after_kill: Any = None) -> tuple[str, dict[str, Any]]:
     """Start the campaign 'quick' on a daemon process and SIGKILL the daemon after each journal
     step of ``kill_points`` (``ROBID_FAULT_KILL_AFTER``; a point named ``@...`` is the test's
-    own: ``during(point, daemon)`` kills it); ``after_kill(point)`` runs after each kill; then a
-    last daemon finishes the run. Returns the run id and the final run record."""
+    own: ``during(point, daemon)`` kills it); ``after_kill(point)`` runs after each kill. Every
+    restarted daemon only finishes the run's bookkeeping: the run moves on after the operator's
+    ``robid campaign resume``; a last daemon finishes the run. Returns the run id and the final
+    run record."""
     log, run_id = tmp / "daemon.log", None
     for k, point in enumerate(kill_points):
         own = point.startswith("@")
@@ -187,18 +228,25 @@ def kill_then_resume(tmp: Path, cfg: Path, kill_points: list[str], during: Any =
                 out = robid("campaign", "start", "quick", "--config", str(cfg))
                 run_id = out.stdout.strip()
                 assert run_id, out.stderr
+            else:  # the kill point may come in the bookkeeping, before the socket answers
+                end = time.monotonic() + 60
+                while daemon.poll() is None and not _answers(tmp / "ctl.sock"):
+                    assert time.monotonic() < end, "restarted daemon never answered"
+                    time.sleep(0.1)
+                resume_when_interrupted(cfg, tmp, run_id, daemon)
             if own:
                 during(point, daemon)
             rc = daemon.wait(120)
             assert rc == -signal.SIGKILL, f"kill point {k} ({point}): exit {rc}"
         if after_kill is not None:
             after_kill(point)
+    assert run_id is not None
     with process("daemon", "--config", str(cfg), log=log) as daemon:
         wait_socket(tmp / "ctl.sock", daemon)  # a stale socket file was left behind
+        resume_when_interrupted(cfg, tmp, run_id, daemon)
         run = run_status(cfg, tmp)
         daemon.send_signal(signal.SIGTERM)
         daemon.wait(30)
-    assert run_id is not None
     return run_id, run
 
 

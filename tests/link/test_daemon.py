@@ -73,6 +73,25 @@ def test_campaign_runs_to_completion(tmp_path: Path, controller: Any) -> None:
     assert ctrl.core.feedforward.sha256 == params["sha256"]  # the controller loaded it
 
 
+def test_a_campaign_keeps_its_logs_in_the_log_store_folder(tmp_path: Path,
+                                                           controller: Any) -> None:
+    """``log_store: FOLDER`` (a plant's central log folder): the cycle finds the log it
+    stored there, the run completes, nothing is written under the state dir's logs."""
+    central = tmp_path / "central"
+    cfg = write_config(tmp_path, {"one": ONE}, log_store=str(central))
+
+    async def body(d: Daemon) -> dict:
+        return await start(d)
+
+    with controller() as ctrl:
+        run = with_daemon(cfg, body)
+    assert run["state"] == "completed", run["error"]
+    assert len(ctrl.handled) == 1
+    sha = run["experiments"][0]["log_sha"]
+    assert [p.name for p in central.rglob("*.csv")] == [f"{sha}.csv"]
+    assert list((tmp_path / "state" / "logs").rglob("*.csv")) == []
+
+
 @pytest.mark.parametrize("fault, journal_error", [
     ("never_answer", "no 'done' for experiment rigid_body"),
     ("truncated_log", "truncated log"),
@@ -214,6 +233,32 @@ def test_unattended_runs_need_approved_programs(tmp_path: Path, controller: Any)
     assert ran["state"] == "completed" and len(ctrl.handled) == 1
 
 
+def test_a_web_start_runs_only_approved_programs(tmp_path: Path, controller: Any) -> None:
+    """The page may be far from the cell: its start is unattended. Before the programs are
+    approved it is refused in one line and nothing is queued or given; once approved it runs,
+    and after a restart it is still held to the approvals (its trigger is stored)."""
+    from robid_link.exceptions import ApprovalError
+
+    cfg = write_config(tmp_path, {"one": ONE})
+    web = {"cmd": "start", "campaign": "one", "trigger": "web", "by": "web"}
+
+    async def body(d: Daemon) -> tuple[str, int, dict]:
+        assert d.store is not None
+        with pytest.raises(ApprovalError) as err:
+            await d.handle(web)
+        runs = len(await d.store.runs())
+        await d.handle({"cmd": "approve", "campaign": "one"})
+        ans = await d.handle(web)
+        return str(err.value), runs, await wait_run(d, ans["run_id"])
+
+    with controller() as ctrl:
+        refused, runs, ran = with_daemon(cfg, body)
+    assert re.fullmatch(r"web start refused: program of experiment rigid_body \(\w{12}\) is "
+                        r"not approved; run: robid campaign approve one --config \S+", refused)
+    assert runs == 0 and ctrl.handled[1:] == []
+    assert ran["state"] == "completed" and ran["trigger"] == "web" and len(ctrl.handled) == 1
+
+
 def test_reduced_speed_first_run(tmp_path: Path, controller: Any) -> None:
     cfg = write_config(tmp_path, {"one": {**ONE, "reduced_speed_first": 0.5}})
 
@@ -263,9 +308,10 @@ def test_control_socket_mode_stale_file_and_commands(tmp_path: Path, controller:
     assert not sock.exists()  # removed on a clean stop
     # one table of commands: an unknown one is answered with one line naming the known ones
     assert out["table"] == ["approve", "cancel", "list", "params_approve", "params_rollback",
-                            "ping", "results", "start", "status"]
+                            "ping", "results", "resume", "start", "status"]
     assert out["unknown"] == ("unknown command 'dance' (known: approve, cancel, list, "
-                              "params_approve, params_rollback, ping, results, start, status)")
+                              "params_approve, params_rollback, ping, results, resume, start, "
+                              "status)")
 
 
 def test_an_internal_error_fails_the_run_not_the_daemon(tmp_path: Path, controller: Any,
@@ -308,12 +354,12 @@ def test_resume_after_a_failed_attempt_takes_back_its_ready(tmp_path: Path,
     async def body(d: Daemon) -> tuple[dict, bool]:
         store = d.store
         assert store is not None
-        async with asyncio.timeout(60):
-            while (await store.experiment(run_id, "rigid_body"))["state"] != "given":
-                run = await store.run(run_id)
-                assert run["state"] != "failed", run["error"]
+        async with asyncio.timeout(60):  # the restart's bookkeeping takes it back, no motion
+            while (await store.run(run_id))["state"] != "interrupted":
                 await asyncio.sleep(0.02)
-        gone = not stale.exists()  # taken back before the new attempt was given
+        gone = not stale.exists()
+        assert (await store.experiment(run_id, "rigid_body"))["attempt"] == 1
+        await d.handle({"cmd": "resume", "run_id": run_id})  # the operator's go-ahead
         with controller():
             return await wait_run(d, run_id), gone
 
@@ -475,3 +521,37 @@ def test_a_program_is_generated_once_however_many_ask(tmp_path: Path,
     generated = [r for r in caplog.records if "generated" in r.getMessage()]
     assert len(generated) == 1, [r.getMessage() for r in generated]
     assert not cp._generating
+
+
+def test_a_cancel_while_a_failed_attempt_is_stored_leaves_no_ready(
+        tmp_path: Path, controller: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 19: the cancel reached the run while it stored a failed attempt, before that
+    attempt's 'ready' was taken back; the cancel withdrew only attempts still 'given', and the
+    'ready' stayed for a controller to run with nobody watching. The stop now goes out before
+    the failure is stored."""
+    from robid_link.link.store import SqliteStore
+
+    cfg = write_config(tmp_path, {"one": ONE})
+    real = SqliteStore.step
+    storing: list[asyncio.Event] = []
+
+    async def step(self: SqliteStore, run_id: str, exp_id: str, state: str, **kw: Any) -> None:
+        await real(self, run_id, exp_id, state, **kw)  # (the store's thread commits it)
+        if state == "attempt_failed" and storing:
+            storing[0].set()
+            await asyncio.sleep(0.5)  # the operator's cancel lands here
+
+    monkeypatch.setattr(SqliteStore, "step", step)
+
+    async def body(d: Daemon) -> tuple[list[str], str]:
+        storing.append(asyncio.Event())
+        run_id = (await d.handle({"cmd": "start", "campaign": "one"}))["run_id"]
+        async with asyncio.timeout(60):
+            await storing[0].wait()
+        await d.handle({"cmd": "cancel", "run_id": run_id})
+        ready = [n for n in os.listdir(tmp_path / "share" / "sem") if n.endswith(".ready")]
+        return ready, (await d.store.run(run_id))["state"]  # type: ignore[union-attr]
+
+    with controller(fault="fail", fault_count=3):
+        ready, state = with_daemon(cfg, body)
+    assert state == "cancelled" and ready == []

@@ -213,7 +213,7 @@ def test_full_state_dir_pauses_refuses_serves_status_and_resumes(
     disk = _Disk(monkeypatch)
     disk.free = 1 << 40
     cfg = write_config(tmp_path, {"c": FRICTION})
-    async def left_over() -> str:  # a run left over, resumed on a full disk
+    async def left_over() -> str:  # a run left over, resumed by the operator on a full disk
         async with SqliteStore(tmp_path / "state") as store:
             return await cp.create_run(load_daemon_config(cfg), store, "c", "operator")
 
@@ -222,6 +222,8 @@ def test_full_state_dir_pauses_refuses_serves_status_and_resumes(
 
     async def body(d: Daemon) -> tuple[dict, str, dict]:
         assert d.store is not None
+        await until(lambda: state_is(d, run_id, "interrupted"))  # never moves on its own
+        await d.handle({"cmd": "resume", "run_id": run_id})
         await until(lambda: d._full is not None and run_id in d._paused)
         with pytest.raises(StoreFullError, match="MiB free"):
             await d.handle({"cmd": "start", "campaign": "c"})

@@ -98,3 +98,40 @@ def test_an_unacknowledged_set_leaves_the_old_one(tmp_path: Path, controller: An
     assert "keeps its previous set" in out["run"]["error"]
     assert ctrl.core.feedforward is None
     assert [u["state"] for u in out["uploads"]] == ["sent", "failed"]
+
+
+def test_another_robots_sets_are_refused_naming_both(tmp_path: Path, controller: Any) -> None:
+    """A daemon of robot cell-a on a store shared with cell-b: approving cell-b's set was a
+    silent no-op answered 'approved', and a rollback sent cell-b's set to cell-a's
+    controller; both refused in one line naming both robots, before anything changes."""
+    import hashlib
+
+    from robid_link.link.store import Store
+
+    bodies = [b'{"x": 1}', b'{"x": 2}']
+    with Store(tmp_path / "state", robot="cell-b") as b:
+        run_b = b.create_run("cal", "operator", {}, [])
+        for body in bodies:
+            sha = hashlib.sha256(body).hexdigest()
+            b.add_param_set({"sha256": sha, "robot": "cell-b", "run_id": run_b}, body)
+            b.record_upload("cell-b", sha, run_b, "acknowledged")
+    cfg = write_config(tmp_path, {"cal": ONE}, robot_name="cell-a")
+
+    async def refused(d: Daemon) -> list[str]:
+        errors = []
+        for cmd in ("params_approve", "params_rollback"):
+            with pytest.raises(ConfigError) as err:
+                await d.handle({"cmd": cmd, "robot": "cell-b", "set": "1"})
+            errors.append(str(err.value))
+        return errors
+
+    with controller() as ctrl:
+        approve, rollback = _daemon(cfg, refused)
+    assert approve == ("robot cell-b: this daemon holds robot cell-a; approve cell-b's "
+                       "parameter sets with cell-b's own daemon")
+    assert rollback == ("robot cell-b: this daemon holds robot cell-a; roll back cell-b's "
+                        "parameter sets with cell-b's own daemon")
+    assert ctrl.core.feedforward is None  # nothing reached cell-a's controller
+    with Store(tmp_path / "state", robot="cell-b", readonly=True) as b:
+        assert [s["approved"] for s in b.param_sets("cell-b")] == [None, None]
+        assert len(b.uploads("cell-b")) == 2

@@ -191,3 +191,21 @@ def test_every_operation_of_the_interface_has_one_blocking_implementation() -> N
     missing = sorted(op for op in ops if not callable(getattr(Store, op, None)))
     assert missing == []
     assert not hasattr(Store, "set_step")
+
+
+@pytest.mark.parametrize("where", ["state_dir", "folder", "url"])
+def test_the_daemon_finds_a_log_where_log_store_put_it(tmp_path: Path, where: str) -> None:
+    """``log_path`` of the daemon's store is where ``put_log`` wrote the log: the state dir,
+    the ``log_store`` folder instead, or the state dir beside an fsspec URL's copy (the cycle
+    checks the log at this path before it counts as stored)."""
+    log_store = {"state_dir": None, "folder": str(tmp_path / "central"),
+                 "url": "memory://robid-plant-logs"}[where]
+
+    async def go() -> tuple[Path, Path]:
+        async with SqliteStore(tmp_path / "s", robot="arm3", log_store=log_store) as store:
+            sha = await store.put_log(b"t,q1\n0,1\n")
+            return store.log_path(sha), await store.check_log(sha)
+
+    path, checked = asyncio.run(go())
+    assert path == checked and path.read_bytes() == b"t,q1\n0,1\n"
+    assert path.is_relative_to(tmp_path / ("central" if where == "folder" else "s"))

@@ -18,6 +18,8 @@ from robid_link.exceptions import ConfigError, StoreLockedError
 from robid_link.link.store import Store
 from robid_link.link.store.schema import SCHEMA_VERSION
 
+from .conftest import Backend
+
 #: the schema of the SQLite-only store (version 1), as its daemons created it
 V1 = """
 CREATE TABLE runs (run_id TEXT PRIMARY KEY, campaign TEXT NOT NULL, trigger TEXT NOT NULL,
@@ -58,11 +60,13 @@ def test_a_store_of_the_sqlite_days_migrates_in_place(tmp_path: Path) -> None:
     db = sqlite3.connect(state / "robid.sqlite")
     db.executescript(V1)
     db.close()
-    with pytest.raises(ConfigError, match="store schema version 1, this robid reads 2; start "
-                                          "its daemon once to migrate it"):
+    with pytest.raises(ConfigError, match=f"store schema version 1, this robid reads "
+                                          f"{SCHEMA_VERSION}; start its daemon once to migrate "
+                                          "it"):
         Store(state, readonly=True)
     with Store(state, robot="arm3") as st:  # the daemon: migrates, adopts the rows
         assert st.unfinished_runs() == ["r1"] and st.run("r1")["progress"]["stored"] == 1
+        assert st.run("r1")["state_since"] == 1.0  # (v3) a run of before: since its creation
         assert st.log_count() == 1 and st.approved("PROG")
         assert st.results("arm3")[0]["record"] == {"rmse": [1.0]}
         assert st.param_set("arm3", "1")["body"] == b"{}"
@@ -82,8 +86,9 @@ def test_a_newer_store_is_refused(tmp_path: Path) -> None:
     db.execute("UPDATE robid_schema SET version = ?", (SCHEMA_VERSION + 1,))
     db.commit()
     db.close()
-    with pytest.raises(ConfigError, match=r"schema version 3 is newer than this robid reads "
-                                          r"\(2\); upgrade robid_link"):
+    with pytest.raises(ConfigError, match=fr"schema version {SCHEMA_VERSION + 1} is newer than "
+                                          fr"this robid reads \({SCHEMA_VERSION}\); upgrade "
+                                          r"robid_link"):
         Store(tmp_path / "s")
 
 
@@ -115,6 +120,29 @@ def test_robots_share_a_database_and_each_is_held_once(tmp_path: Path, pg_url: s
         assert sorted(r["robot"] for r in plant.runs()) == ["a", "b"]
 
 
+def test_another_robots_parameter_set_is_refused_naming_both(tmp_path: Path,
+                                                             backend: Backend) -> None:
+    """Robot a's store may read robot b's sets (``params show``), but approving one was a
+    silent no-op (the daemon then answered 'approved'): refused in one line naming both."""
+    body = b'{"x": 1}'
+    sha = hashlib.sha256(body).hexdigest()
+    with backend.store(tmp_path / "b", robot="b") as b:
+        run_b = b.create_run("cal", "operator", {}, [])
+        b.add_param_set({"sha256": sha, "robot": "b", "run_id": run_b}, body)
+    with backend.store(tmp_path / "a" if backend.url else tmp_path / "b", robot="a") as a:
+        assert [s["sha256"] for s in a.param_sets("b")] == [sha]
+        with pytest.raises(ConfigError, match=r"^parameter set 1 of robot b \(\w{12}\): this "
+                                              r"store is robot a's; approve it with robot "
+                                              r"b's daemon$"):
+            a.approve_param_set(sha, "op")
+        with pytest.raises(ConfigError, match=r"^parameter set 0{12}: not in the store$"):
+            a.approve_param_set("0" * 64, "op")
+    with backend.store(tmp_path / "b", robot="b") as b:
+        assert b.param_sets("b")[0]["approved"] is None
+        b.approve_param_set(sha, "op")
+        assert b.param_sets("b")[0]["approved_by"] == "op"
+
+
 def test_the_password_comes_from_the_environment(tmp_path: Path, pg_url: str,
                                                  postgres: object) -> None:
     """PGPASSWORD alone (no passfile) opens the store; a wrong one is one line."""
@@ -130,6 +158,34 @@ def test_the_password_comes_from_the_environment(tmp_path: Path, pg_url: str,
                          timeout=60)
     assert bad.returncode == 2 and "cannot connect" in bad.stderr and "password" in bad.stderr
     assert len(bad.stderr.strip().splitlines()) == 1 and "nope" not in bad.stderr
+
+
+@pytest.mark.parametrize("url", [
+    "postgresql://robid:s3cr3t-pw@db.plant:5432/robid",
+    "postgresql://robid@db.plant:5432/robid?password=s3cr3t-pw",
+    "postgresql+psycopg://robid@db.plant/robid?sslmode=require&PASSWORD=s3cr3t-pw",
+    "postgres://robid@db.plant/robid?sslpassword=s3cr3t-pw",
+])
+def test_a_password_in_the_store_url_is_refused_unprinted(tmp_path: Path, url: str,
+                                                          capsys: pytest.CaptureFixture[str]
+                                                          ) -> None:
+    """The password comes from PGPASSWORD or a PGPASSFILE: one in the URL (its user info or
+    its query string) is refused in one line that does not print it, by the config, the
+    store and ``--store``, before any connection."""
+    from robid_link.cli import main
+    from robid_link.config import load_daemon_config
+    from tests.link.conftest import write_config
+
+    with pytest.raises(ConfigError, match=r"daemon.yaml: store: the URL holds a password") as err:
+        load_daemon_config(write_config(tmp_path, store=url))
+    assert "s3cr3t" not in str(err.value) and "\n" not in str(err.value)
+    with pytest.raises(ConfigError, match=r"^store: the URL holds a password") as err:
+        Store(None, url=url, readonly=True)
+    assert "s3cr3t" not in str(err.value)
+    assert main(["status", "--store", url]) == 2
+    out, errors = capsys.readouterr()
+    assert "s3cr3t" not in out + errors and len(errors.strip().splitlines()) == 1
+    assert "the URL holds a password" in errors
 
 
 def test_logs_in_a_central_log_store(tmp_path: Path) -> None:
@@ -151,3 +207,22 @@ def test_logs_in_a_central_log_store(tmp_path: Path) -> None:
         (inputs,) = st.identify_inputs("r")
         assert inputs["logs"] == [{"sha256": sha, "url":
                                    f"memory://plant-logs/logs/{sha[:2]}/{sha}.csv"}]
+
+
+def test_a_version_2_store_gains_state_since(tmp_path: Path) -> None:
+    """Version 3: the time a run entered its state; the runs before read as their creation,
+    an update that keeps the state keeps it, a change of state moves it."""
+    with Store(tmp_path / "s") as st:
+        run = st.create_run("quick", "operator", {}, [("a", "rigid_body")])
+    db = sqlite3.connect(tmp_path / "s" / "robid.sqlite")
+    db.execute("ALTER TABLE runs DROP COLUMN state_since")
+    db.execute("UPDATE robid_schema SET version = 2")
+    db.commit()
+    db.close()
+    with Store(tmp_path / "s") as st:
+        created = st.run(run)["created"]
+        assert st.run(run)["state_since"] == created
+        st.set_run(run, "queued", step="still queued")
+        assert st.run(run)["state_since"] == created
+        st.set_run(run, "interrupted")
+        assert st.run(run)["state_since"] > created

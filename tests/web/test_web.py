@@ -147,11 +147,75 @@ def test_actions_need_the_token_and_the_csrf_cookie(cell):
         status, text = post(url + "actions/cancel", {"run_id": "r1"},
                             {"Authorization": f"Bearer {TOKEN}"})
         assert status == 200 and json.loads(text)["ok"]
+        status, text = post(url + "actions/resume", {"run_id": "r2"},
+                            {"Authorization": f"Bearer {TOKEN}"})
+        assert status == 200 and json.loads(text)["ok"]
         assert rec.calls == [{"cmd": "start", "campaign": "nightly", "by": "web",
-                              "trigger": "operator"},
-                             {"cmd": "cancel", "run_id": "r1", "by": "web"}]
+                              "trigger": "web"},
+                             {"cmd": "cancel", "run_id": "r1", "by": "web"},
+                             {"cmd": "resume", "run_id": "r2", "by": "web"}]
         assert post(url + "actions/reboot", form, {"Cookie": cookie})[0] == 404
     assert _runs(cell.state) == before
+
+
+def _status_for_host(cfg: Any, listen_host: str | None, host: str, post: bool = False
+                     ) -> tuple[int, str]:
+    """The page's answer to a request naming ``host`` in its Host header."""
+    from aiohttp.test_utils import TestClient, TestServer
+
+    from robid_link.web.server import make_app
+
+    async def go() -> tuple[int, str]:
+        app = make_app(cfg, "arm3", actions=Recorder(), token=TOKEN, listen_host=listen_host)
+        async with TestClient(TestServer(app)) as client:
+            if post:
+                r = await client.post("/actions/start", data={"campaign": "nightly"},
+                                      headers={"Host": host,
+                                               "Authorization": f"Bearer {TOKEN}"})
+            else:
+                r = await client.get("/api/runs", headers={"Host": host})
+            return r.status, await r.text()
+
+    return asyncio.run(go())
+
+
+@pytest.mark.parametrize("listen_host, host, served", [
+    ("127.0.0.1", "127.0.0.1:8765", True),
+    ("127.0.0.1", "localhost:8765", True),
+    ("127.0.0.1", "LOCALHOST.", True),
+    ("127.0.0.1", "[::1]:8765", True),
+    ("127.0.0.1", "attacker.example:8765", False),  # DNS rebinding: a name that is not ours
+    ("127.0.0.1", "10.1.2.3:8765", False),
+    (None, "127.0.0.1", True),  # make_app alone: loopback names only
+    (None, "attacker.example", False),
+    ("10.1.2.3", "10.1.2.3:8765", True),
+    ("10.1.2.3", "cell-12.plant.example", False),
+    ("0.0.0.0", "10.9.8.7:8765", True),  # every address: any address, still no other name
+    ("0.0.0.0", "[fe80::1]:8765", True),
+    ("0.0.0.0", "attacker.example", False),
+    ("cell-12.plant.example", "Cell-12.Plant.Example:8765", True),
+    ("127.0.0.1", "cell-12.plant.example", True),  # web.hosts names it
+])
+def test_a_foreign_host_header_is_refused(cell, listen_host, host, served):
+    """DNS rebinding: a page of another name that resolves to the page's address must get
+    nothing (runs, parameter sets, actions): only the listen host, the loopback names and
+    ``web.hosts`` are served, anything else is 421 with one line."""
+    base = load_daemon_config(cell.config)
+    cfg = base.__class__(**{**base.__dict__, "web": base.web.__class__(
+        hosts=("cell-12.plant.example",) if listen_host == "127.0.0.1" else ())})
+    for post in (False, True):
+        status, text = _status_for_host(cfg, listen_host, host, post)
+        if served:
+            assert status == 200, (host, post, text)
+        else:
+            assert status == 421, (host, post, text)
+            assert text.count("\n") == 1 and "not a name of this page" in text
+            assert "web.hosts" in text
+
+
+def test_web_hosts_names_hosts(tmp_path):
+    cfg = load_daemon_config(write_config(tmp_path, hosts=["cell-12.plant.example", "10.0.0.7"]))
+    assert cfg.web.hosts == ("cell-12.plant.example", "10.0.0.7")
 
 
 def test_the_read_only_page_refuses_every_action(cell):
@@ -232,6 +296,9 @@ def test_the_token_file_is_private(tmp_path):
     ({"port": 1}, "web: unknown key 'port'"),
     ({"token": "short"}, "web.token: at least 16 characters"),
     ({"token": TOKEN, "token_file": "t"}, "web: give token or token_file, not both"),
+    ({"hosts": "cell-12"}, "web.hosts: expected a list of host names, got 'cell-12'"),
+    ({"hosts": ["http://cell-12"]}, r"web.hosts\[0\]: expected a host name or address "
+     r"\(no scheme or port\), got 'http://cell-12'"),
 ])
 def test_web_config_errors_name_the_key(tmp_path, web, message):
     with pytest.raises(ConfigError, match=message):
@@ -263,6 +330,92 @@ def test_the_daemon_serves_its_page_with_actions(tmp_path):
     refused, status, answer, runs = asyncio.run(go())
     assert refused == 403 and runs == 0
     assert status == 400 and answer["error"] == "run nope: not in the store"
+
+
+def test_the_daemons_page_starts_only_approved_programs(tmp_path):
+    """A start from the page is unattended (the page may be far from the cell): with the
+    token and programs nobody approved, it is refused in one line and nothing is queued."""
+    import aiohttp
+
+    from robid_link.link.daemon import Daemon
+    from robid_link.web.command import daemon_service
+
+    cfg = load_daemon_config(write_config(tmp_path, listen="127.0.0.1:0"))
+
+    async def go() -> tuple[int, dict[str, Any], int]:
+        async with Daemon(cfg, env={}) as d, daemon_service(cfg)(d) as srv, \
+                aiohttp.ClientSession() as http:
+            token = (tmp_path / "state" / "web.token").read_text().strip()
+            async with http.post(srv.url + "actions/start", data={"campaign": "nightly"},
+                                 headers={"Authorization": f"Bearer {token}"}) as r:
+                status, answer = r.status, await r.json()
+            assert d.store is not None
+            return status, answer, len(await d.store.runs())
+
+    status, answer, runs = asyncio.run(go())
+    assert status == 400 and runs == 0
+    assert answer["error"].startswith("web start refused: program of experiment ")
+    assert "robid campaign approve nightly --config" in answer["error"]
+    assert "\n" not in answer["error"]
+
+
+def _named(path: Path, robot_name: str | None = None, robot: str | None = None) -> Path:
+    """The config at ``path`` with ``robot_name`` (and another robot description) set."""
+    import yaml
+
+    doc = yaml.safe_load(path.read_text())
+    doc.update({k: v for k, v in (("robot_name", robot_name), ("robot", robot)) if v})
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_the_daemons_page_names_the_robot_as_its_store_does(tmp_path):
+    """``robot_name: cell-a``: the daemon's page shows cell-a's runs, trend and parameter
+    sets (it showed the description's name, arm3, and none of them)."""
+    import aiohttp
+
+    from robid_link.link.daemon import Daemon
+    from robid_link.web.command import daemon_service
+
+    cfg = load_daemon_config(_named(write_config(tmp_path, listen="127.0.0.1:0"), "cell-a"))
+    record = {"robot": "arm3", "parameters": [{"name": "m_1", "value": 1.0, "std": 0.1}],
+              "effects": [], "rmse": [1.0]}
+
+    async def go() -> tuple[str | None, dict[str, Any], dict[str, Any], dict[str, Any]]:
+        async with Daemon(cfg, env={}) as d, daemon_service(cfg)(d) as srv, \
+                aiohttp.ClientSession() as http:
+            assert d.store is not None
+            run_id = await d.store.create_run("nightly", "operator", {}, [("a", "rigid_body")])
+            await d.store.add_result(run_id, "cell-a", "identify", record)
+            await d.store.add_param_set({"sha256": "ab" * 32, "robot": "cell-a",
+                                         "run_id": run_id}, b"{}")
+            got = []
+            for page in ("runs", "trend", "params"):
+                async with http.get(srv.url + "api/" + page) as r:
+                    got.append(await r.json())
+            return d.robot_name, *got
+
+    name, runs, trend, params = asyncio.run(go())
+    assert name == runs["robot"] == trend["robot"] == "cell-a"
+    assert len(runs["runs"]) == 1 and [r["version"] for r in trend["runs"]] == [1]
+    assert [r["robot"] for r in params["robots"]] == ["cell-a"]
+
+
+@pytest.mark.parametrize("robot_name, robot, expected", [
+    ("cell-a", None, "cell-a"),  # the config's name first
+    (None, None, "arm3"),  # else the description's
+    (None, "broken.yaml", "broken"),  # else the file's stem (read-only commands still open)
+])
+def test_one_rule_names_the_robot(tmp_path, robot_name, robot, expected):
+    """``config.robot_name``: what the daemon, its page, ``robid web`` and the operator's
+    commands call the robot."""
+    from robid_link.config import robot_name as rule
+    from robid_link.ident.model.robot import description_name
+
+    (tmp_path / "broken.yaml").write_text("joints: 3\n")
+    path = _named(write_config(tmp_path), robot_name, robot and str(tmp_path / robot))
+    cfg = load_daemon_config(path)
+    assert rule(cfg, description_name(cfg.robot, cfg.lock)) == expected
 
 
 def test_status_and_results_print_the_report_of_a_finished_run(cell, capsys):

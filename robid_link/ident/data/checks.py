@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from robid_link.exceptions import DataWarning, ExcitationWarning
-from robid_link.ident.data.preprocess import CHUNK, Piece, Problem
+from robid_link.ident.data.preprocess import CHUNK, Piece, Prepared, Problem
 from robid_link.ident.model.regressor import rigid_regressor
 from robid_link.ident.model.robot import Robot
 
@@ -68,9 +68,11 @@ def sanity_checks(pb: Problem, nominal: bool) -> list[str]:
         name = Path(prep.log.path).name
         if pb.transmission is None:
             out += _position_checks(robot, prep.log.q, name)
+        out += _speed_check(robot, prep, name)
         peak = np.maximum(tau.max(axis=0), -tau.min(axis=0))  # |τ|'s peak, no copy of τ
         flat = max(5, int(0.05 * prep.filt.fs))  # a clipped signal sits flat at its peak
-        for j in range(robot.n):
+        held = prep.log.held  # a partial log: no checks of torques it does not hold
+        for j in np.flatnonzero(held):
             at_peak = np.abs(tau[:, j]) >= peak[j] - 1e-9 * max(peak[j], 1.0)
             limit = robot.limits.tau_max[j]
             if peak[j] > 0 and _longest_run(at_peak) >= flat:
@@ -85,15 +87,18 @@ def sanity_checks(pb: Problem, nominal: bool) -> list[str]:
             sl = slice(trim, len(prep.log) - trim, step)
             q, qd, qdd, meas = prep.rows(sl)
             pred = rigid_regressor(robot, q, qd, qdd) @ robot.nominal
-            for j in range(robot.n):
+            for j in np.flatnonzero(held):
                 sp, sm = pred[:, j].std(), meas[:, j].std()
                 if sp < 1e-9 or sm < 1e-9:
                     continue
                 r = np.corrcoef(pred[:, j], meas[:, j])[0, 1]
                 ratio = sm / sp
-                if r < -0.5:
-                    out.append(f"{name}: tau{j + 1} has the opposite sign of the a-priori model "
-                               f"(correlation {r:.2f}): sign convention?")
+                scale, sigma = (_model_scale((qd, qdd, meas), pred, j) if r < 0
+                                else (1.0, 0.0))
+                if scale < -0.5 and scale < -SIGN_SIGMAS * sigma:  # the sign's evidence
+                    out.append(f"{name}: tau{j + 1} has the opposite sign of the a-priori "
+                               f"model (scale {scale:.3g} ± {sigma:.2g} beside friction and "
+                               f"rotor inertia; correlation {r:.2f}): sign convention?")
                 elif r > 0.5 and not 1 / 3 < ratio < 3:
                     out.append(f"{name}: tau{j + 1} is {ratio:.3g}× the a-priori model's "
                                f"torque: {_scale_cause(robot, (qd, qdd, meas), pred, j, ratio)}")
@@ -130,6 +135,46 @@ def _position_checks(robot: Robot, q: np.ndarray, name: str) -> list[str]:
         else:
             out.append(f"{where}: wrong units or gear ratio?")
     return out
+
+
+#: a motion whose every joint stays under this fraction of its speed limit crawls
+CRAWL = 1e-3
+
+
+def _speed_check(robot: Robot, prep: Prepared, name: str) -> list[str]:
+    """A motion that spans its joints' ranges at a crawl no robot excites dynamics with: the
+    time stamps are likely not in seconds (milliseconds at a rate the rate check allows)."""
+    limit = robot.limits.qd_max
+    step = max(1, len(prep.log) // 4000)  # thinned rows: no whole array of a long log
+    _, qd, _, _ = prep.rows(slice(prep.filt.settle, len(prep.log) - prep.filt.settle, step))
+    fast = np.percentile(np.abs(qd), 95, axis=0)
+    span = np.ptp(prep.log.q, axis=0)
+    ok = np.isfinite(limit) & (limit > 0)
+    if not ok.any() or np.any(fast[ok] >= CRAWL * limit[ok]) or span.max() < 0.05:
+        return []
+    return [f"{name}: the motion crawls (every joint under {CRAWL:g} of its speed limit over "
+            f"{prep.log.t[-1] - prep.log.t[0]:.4g} s): is the time column in seconds?"]
+
+
+#: a sign alarm needs the a-priori model's scale under −0.5 and this many standard errors
+#: below zero
+SIGN_SIGMAS = 5.0
+
+
+def _model_scale(rows: tuple[np.ndarray, np.ndarray, np.ndarray], pred: np.ndarray, j: int
+                 ) -> tuple[float, float]:
+    """The scale of the a-priori model's torque in joint ``j``'s measured torque, fitted beside
+    what it lacks (viscous and Coulomb friction, rotor inertia, an offset), and its standard
+    error (the residual's lag-1 correlation widens it: the rows are filtered). A correlation
+    below zero alone is no evidence of a flipped sign: friction the model lacks can make it."""
+    qd, qdd, meas = (r[:, j] for r in rows)  # q̇, q̈ and the filtered torque of the rows
+    cols = np.column_stack([pred[:, j], qd, np.sign(qd), qdd, np.ones_like(qd)])
+    coef, *_ = np.linalg.lstsq(cols, meas, rcond=None)
+    e = meas - cols @ coef
+    rho = float(np.clip(np.corrcoef(e[:-1], e[1:])[0, 1], -0.99, 0.99)) if e.std() > 0 else 0.0
+    var = float(e.var()) * (1 + max(rho, 0.0)) / (1 - max(rho, 0.0))
+    inv = np.linalg.pinv(cols.T @ cols)
+    return float(coef[0]), float(np.sqrt(max(var * inv[0, 0], 0.0)))
 
 
 def _scale_cause(robot: Robot, rows: tuple[np.ndarray, np.ndarray, np.ndarray],

@@ -38,11 +38,11 @@ __all__ = [
     "split",
     "motion_span",
     "held_out_ranges",
-    "noise_floor",
     "Problem",
     "build_problem",
     "shift_torque",
     "check_counts",
+    "check_torque_coverage",
     "butter_lowpass_sos",
     "sos_steady_state",
     "FILTER_ORDER",
@@ -108,6 +108,9 @@ class Prepared:
     tau_model: np.ndarray | None = None  # the current model's torque on every raw sample
     #: known torques (model file), already subtracted from ``tau`` and ``tau_f``
     tau_known: np.ndarray | None = None
+    #: (N, n) rows × joints whose torque enters the joint's equation (None: all): False for a
+    #: partial log's missing torques and where a joint sticks (friction at rest is static)
+    tau_mask: np.ndarray | None = None
     channels: _Channels = field(default_factory=_Channels, compare=False, repr=False)
 
     @property
@@ -339,37 +342,6 @@ def held_out_ranges(valid: Sequence[Piece]) -> str:
     return "; ".join(f"{name} {', '.join(r)}" for name, r in by_file.items())
 
 
-def _rejected_share(filt: ZeroPhaseFilter, points: int = 4096) -> float:
-    """Share of white noise's variance in ``raw − filtered`` for the zero-phase filter:
-    the mean over the band of (1 − |H|²)² (|H|² because the filter runs twice)."""
-    w = np.linspace(0.0, math.pi, points)
-    z1 = np.exp(-1j * w)
-    h = np.ones_like(z1)
-    for b0, b1, b2, _, a1, a2 in filt.sos:
-        h = h * (b0 + b1 * z1 + b2 * z1**2) / (1.0 + a1 * z1 + a2 * z1**2)
-    return float(np.mean((1.0 - np.abs(h) ** 2) ** 2))
-
-
-def noise_floor(pieces: Sequence[Piece]) -> np.ndarray | None:
-    """Per joint, the torque measurement noise (N·m, standard deviation) that no model of
-    the motion can explain: the raw torque's content above the filter's cutoff, where an
-    excitation (a few Hz) has none, scaled to the whole band as white noise. Validation RMSE
-    on raw torque cannot fall below it. None when the filter is off (nothing to compare)."""
-    if not pieces or not pieces[0].prep.filt.active:
-        return None
-    acc, rows = 0.0, 0
-    for pc in pieces:
-        for lo in range(pc.lo, pc.hi, CHUNK):
-            hi = min(pc.hi, lo + CHUNK)
-            d = pc.prep.tau[lo:hi] - pc.prep.tau_f_rows(lo, hi)
-            acc = acc + np.sum(d * d, axis=0)
-            rows += d.shape[0]
-    if rows == 0:
-        return None
-    share = _rejected_share(pieces[0].prep.filt)
-    return np.asarray(np.sqrt(acc / rows / max(share, 1e-12)))
-
-
 def filter_windows(piece: Piece, interval: int = 1, chunk: int = CHUNK
                    ) -> Iterator[tuple[int, int, int, int, bool]]:
     """Chunks [a, b) of a piece's rows kept at ``interval`` (on the grid of its filtering
@@ -430,6 +402,7 @@ def build_problem(robot: Robot, data: Sequence[Log], model: Model, *,
     """Prepare the logs (filter, differentiate, split) for a model's identification."""
     if interval < 1:
         raise DataError(f"--interval must be at least 1, got {interval}")
+    check_torque_coverage(robot, data)
     transmission = robot.transmission if motor_side else None
     shift = sum(float(s.opts.get("seconds", 0.0)) for s in model.specs if s.name == "delay")
     if shift:
@@ -455,11 +428,38 @@ def build_problem(robot: Robot, data: Sequence[Log], model: Model, *,
         if rest:
             notes.append("the robot stands still at the end of " + ", ".join(rest) + ": that "
                          "rest is not held out (it would test gravity alone) but trains")
+    joined = joined_logs_note([*data, *(validate or ())])
+    if joined:
+        notes.append(joined)
     if len(data) > 1 and not validate:
         notes.append("validation holds out the end of each file; use --validate with a "
                      "different motion for an honest check of generalisation")
     return Problem(robot, model, model.blocks(robot), train, valid, preps, vpreps, interval,
                    block_len, source, notes, transmission)
+
+
+def check_torque_coverage(robot: Robot, data: Sequence[Log]) -> None:
+    """Partial logs (each holding some joints' torque) are joined: joint j's equation takes its
+    rows from the logs that hold its torque. A joint that no data log holds is refused."""
+    held = np.zeros(robot.n, dtype=bool)
+    for lg in data:
+        held |= lg.held
+    if held.all():
+        return
+    j = int(np.flatnonzero(~held)[0])
+    files = ", ".join(Path(lg.path).name for lg in data)
+    raise DataError(f"joint {j + 1} ({robot.joint_names[j]}): no log holds its torque "
+                    f"(tau{j + 1} in none of {files})")
+
+
+def joined_logs_note(data: Sequence[Log]) -> str | None:
+    """What a joined identification says of its partial logs (None: every log is full)."""
+    parts = [f"{Path(lg.path).name} τ{','.join(str(j + 1) for j in np.flatnonzero(lg.held))}"
+             for lg in data if lg.partial]
+    if not parts:
+        return None
+    return ("partial logs joined (each joint's equation from the logs that hold its "
+            "torque): " + "; ".join(parts))
 
 
 def shift_torque(log: Log, seconds: float) -> Log:

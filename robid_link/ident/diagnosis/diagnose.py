@@ -13,10 +13,12 @@ ranking (verdict.py); the sentence of evidence under each suggestion (evidence.p
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from robid_link.exceptions import DataError
 from robid_link.ident.data.logs import Log
 from robid_link.ident.data.preprocess import Prepared
 from robid_link.ident.diagnosis.candidates import (
@@ -28,7 +30,13 @@ from robid_link.ident.diagnosis.candidates import (
     screen_notes,
     structural_screen,
 )
-from robid_link.ident.diagnosis.evidence import Signatures
+from robid_link.ident.diagnosis.evidence import Counterbalance, Signatures, counterbalances
+from robid_link.ident.diagnosis.limits import (
+    limited_candidates,
+    limits_note,
+    log_limits,
+    within_limits,
+)
 from robid_link.ident.diagnosis.residuals import profile_rows, residual_dict, residual_pool
 from robid_link.ident.diagnosis.scoring import (
     cross_validation,
@@ -47,6 +55,7 @@ from robid_link.ident.diagnosis.verdict import (
     P_MAX,
     Diagnosis,
     Suggestion,
+    floor_doubts,
     judge,
     not_transferring_note,
     rank,
@@ -78,12 +87,17 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     Candidates are scored on OLS/WLS residuals, so an IRLS result (or one of another method
     than ``method``) is not reused.
     """
+    partial = next((lg for lg in (*data, *(validate or ())) if lg.partial), None)
+    if partial is not None:  # its residual pool and scores are joint × row matrices
+        raise DataError(f"{Path(partial.path).name}: the diagnosis needs every joint's torque "
+                        "in each log, this log holds only some (a campaign's channels: N); "
+                        "identify joins such logs, diagnose does not")
     result = fit_or_reuse(robot, data, model, result, validate=validate, cutoff_hz=cutoff_hz,
                           interval=interval, method=method, motor_side=motor_side)
     pool = residual_pool(robot, result)
     odd = _unexplained(pool.preps[0], pool.design, pool.theta, resonance_hints)
     notes = one_motion_note([*data, *(validate or ())])
-    doubts = result_doubts(result)
+    doubts = result_doubts(result) + floor_doubts(result)
     # the candidates: profiled, then screened (structure, then in-sample) on a few rows
     rows = profile_rows(robot, pool)
     candidates, profiled = profile_candidates(
@@ -93,10 +107,14 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                                    pool.problem.transmission, candidates)
     insample = insample_screen(rows, structural.new)
     kept = refine_survivors(rows, insample.kept, profiled)
+    limits = log_limits(pool.preps[: len(pool.problem.preps)])
+    limited = limited_candidates(kept, limits)
+    laws = {c.joint: c for c in counterbalances(rows, [k.block for k in kept]) if c.fits}
     del rows  # the profiling rows' dense regressor: not needed by the union pass
     notes += screen_notes(structural, insample)
     absorbed, residuals = structural.absorbed, residual_dict(pool)
     if not kept and not pool.vpieces:  # nothing can show a gain: no union pass
+        notes += limits_note(limits, {})
         return Diagnosis(result, model.labels(), None, [], [], absorbed, odd, notes,
                          residuals, doubts=doubts)
     union = union_design(robot, pool, kept)
@@ -104,6 +122,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     if transfer is not None:
         doubts += model_transfer_doubts(robot, pool.problem, transfer, pool.base.independent)
     if not kept:  # nothing can show a gain: no candidate pass
+        notes += limits_note(limits, {})
         return Diagnosis(result, model.labels(), None, [], [], absorbed, odd, notes,
                          residuals, doubts=doubts)
     cv = cross_validation(union, pool)
@@ -114,11 +133,32 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         sug = suggestion(blk, score, signatures)
         scored.append(sug if transfer is None else
                       with_transfer(sug, score, transfer, union.positions[k]))
-    ranked = rank(judge(scored))
+    verdicts, held_back = within_limits(judge(scored), limited, limits.fs)
+    ranked = rank(verdicts)
+    notes += _known_torque_pointers(ranked.suggested, laws)
     notes += not_transferring_note(ranked.not_transferring)
+    notes += limits_note(limits, held_back)
+    if held_back:
+        doubts.append(f"the rate limits the diagnosis: {', '.join(held_back)} cut the error "
+                      "but the log cannot separate them (see the notes)")
     return Diagnosis(result, model.labels(), [float(x) for x in cv.base], ranked.suggested,
                      ranked.rejected[:10], absorbed, odd, notes, residuals,
-                     not_transferring=ranked.not_transferring, doubts=doubts)
+                     not_transferring=ranked.not_transferring, doubts=doubts,
+                     limited=[sug for sug, _ in held_back.values()])
+
+
+def _known_torque_pointers(suggested: Sequence[Suggestion], laws: Mapping[int, Counterbalance]
+                           ) -> list[str]:
+    """A spring suggestion whose joint a counterbalance law fits points to ``known_torque``:
+    the entry on the suggestion, the filled-in example in a note."""
+    out = []
+    for sug in suggested:
+        law = laws.get(sug.joint or 0) if sug.effect == "spring" else None
+        if law is not None:
+            sug.known_torque = law.entry()
+            sug.evidence += "; a counterbalance law fits it: known_torque (see the notes)"
+            out.append(law.note())
+    return out
 
 
 def fit_or_reuse(robot: Robot, data: Sequence[Log], model: Model, result: IdentResult | None,

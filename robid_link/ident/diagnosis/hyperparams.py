@@ -17,7 +17,7 @@ from robid_link.ident.model.robot import Robot
 #: friction_drift's time constants from here on mean a linear drift (see effects.py)
 LINEAR_DRIFT = 1e5
 
-__all__ = ["ProfileRows", "profile_effect", "refine_effect", "screen", "basis", "bounds"]
+__all__ = ["ProfileRows", "profile_effect", "refine_effect", "screen", "basis", "bounds", "Beyond"]
 
 
 def basis(x: np.ndarray) -> np.ndarray:
@@ -37,7 +37,7 @@ class ProfileRows:
     resid_filtered: np.ndarray  # the parallel-filtered residual (screen, ripple spectrum)
     model_cols: np.ndarray  # the model's dense regressor on these rows (N, n, p)
     _helpers: dict[tuple[int, ...], np.ndarray] = field(default_factory=dict, repr=False)
-    _beyond_model: _Beyond | None = field(default=None, repr=False)
+    _beyond_model: Beyond | None = field(default=None, repr=False)
 
     def rows_of(self, blk: Block) -> list[int]:
         """The joints whose torque ``blk`` loads (a coupled motor's friction: several)."""
@@ -63,20 +63,20 @@ class ProfileRows:
             self._helpers[key] = out.reshape(-1, out.shape[2])
         return self._helpers[key]
 
-    def beyond(self, blk: Block) -> _Beyond:
+    def beyond(self, blk: Block) -> Beyond:
         rows = self.rows_of(blk)
-        return _Beyond(self.helper_basis(rows), self.resid[:, rows].reshape(-1))
+        return Beyond(self.helper_basis(rows), self.resid[:, rows].reshape(-1))
 
     def stacked(self, blk: Block, cols: np.ndarray) -> np.ndarray:
         """A block's (N, n, k) columns on its rows, stacked like ``beyond``'s residual."""
         return cols[:, self.rows_of(blk), :].reshape(-1, cols.shape[2])
 
     @property
-    def beyond_model(self) -> _Beyond:
+    def beyond_model(self) -> Beyond:
         """The filtered residual (joints stacked) projected off the model's column space."""
         if self._beyond_model is None:
             model = basis(self.model_cols.reshape(-1, self.model_cols.shape[2]))
-            self._beyond_model = _Beyond(model, self.resid_filtered.reshape(-1))
+            self._beyond_model = Beyond(model, self.resid_filtered.reshape(-1))
         return self._beyond_model
 
 
@@ -94,15 +94,24 @@ def bounds(rows: ProfileRows, blk: Block, hyper: str) -> tuple[float, float]:
 
 
 def profile_effect(rows: ProfileRows, blocks: list[Block], refine: bool = True) -> list[Block]:
-    """Choose the free hyper-parameter of one effect on all its candidate joints.
+    """Choose the free hyper-parameters of one effect on all its candidate joints.
 
     For each grid value the candidate's columns are evaluated on the profiling rows beyond the
     joint's own friction and model row; the value that explains most of each joint's raw
-    residual wins. ``refine=False`` stops at the grid (``refine_effect`` finishes later, for
-    the candidates that survive the screen).
+    residual wins. Several hyper-parameters (Stribeck's velocity and shape) are chosen in
+    turn, twice round, each with the others at their last choice. ``refine=False`` stops at
+    the grid (``refine_effect`` finishes later, for the candidates that survive the screen).
     """
+    free = blocks[0].free_hypers()
+    for _ in range(1 if len(free) == 1 else 2):
+        for hyper in free:
+            blocks = _profile_one(rows, blocks, hyper)
+    return refine_effect(rows, blocks) if refine else blocks
+
+
+def _profile_one(rows: ProfileRows, blocks: list[Block], hyper: str) -> list[Block]:
+    """One hyper-parameter of ``blocks`` on its grid (a ripple's period: from the spectrum)."""
     eff = blocks[0].effect
-    hyper = blocks[0].free_hypers()[0]
     grids = [np.array(b.grid(hyper, rows.robot, rows.states.transmission)) for b in blocks]
     if eff.name == "ripple":  # the period from the residual's spectrum in q
         chosen = [b.with_opts(**{hyper: _period_from_residual(
@@ -119,14 +128,21 @@ def profile_effect(rows: ProfileRows, blocks: list[Block], refine: bool = True) 
         chosen = _profile_effect_grid(rows, blocks, hyper, values)
     else:
         chosen = _profile_effect_grid(rows, blocks, hyper, np.stack(grids, axis=1))
-    return refine_effect(rows, chosen) if refine else chosen
+    return chosen
 
 
 def refine_effect(rows: ProfileRows, chosen: list[Block]) -> list[Block]:
     """Continuous refinement of each joint's grid choice: a bounded scalar minimisation
-    (Brent, in the logarithm) between the choice's grid neighbours, within the bounds."""
+    (Brent, in the logarithm) between the choice's grid neighbours, within the bounds; with
+    several hyper-parameters each in turn, the first once more at the end."""
+    hypers = [h for h in chosen[0].effect.hypers if h in chosen[0].opts]
+    for hyper in hypers + hypers[:1] if len(hypers) > 1 else hypers:
+        chosen = _refine_one(rows, chosen, hyper)
+    return chosen
+
+
+def _refine_one(rows: ProfileRows, chosen: list[Block], hyper: str) -> list[Block]:
     eff = chosen[0].effect
-    hyper = next(h for h in eff.hypers if h in chosen[0].opts)
     out = []
     for b in chosen:
         lo, hi = bounds(rows, b, hyper)
@@ -152,9 +168,9 @@ def refine_effect(rows: ProfileRows, chosen: list[Block]) -> list[Block]:
         whole = eff.name == "ripple" or b.joint is None
         beyond = rows.beyond_model if eff.name == "ripple" else (
             rows.beyond(b) if b.joint is not None else
-            _Beyond(np.zeros((rows.resid.size, 0)), rows.resid.reshape(-1)))
+            Beyond(np.zeros((rows.resid.size, 0)), rows.resid.reshape(-1)))
 
-        def cost(logv: float, b: Block = b, beyond: _Beyond = beyond, whole: bool = whole
+        def cost(logv: float, b: Block = b, beyond: Beyond = beyond, whole: bool = whole
                  ) -> float:
             cols = b.with_opts(**{hyper: math.exp(logv)}).columns(rows.robot, rows.states)
             return -beyond.share(cols.reshape(-1, cols.shape[2]) if whole
@@ -188,7 +204,7 @@ def _period_from_residual(q: np.ndarray, r: np.ndarray, span: tuple[float, float
     return float(nfft * delta / best)
 
 
-class _Beyond:
+class Beyond:
     """What columns explain of ``y`` beyond a fixed helper block: ``y`` is projected off the
     helpers' basis once, so each trial costs a product with the basis."""
 
@@ -218,7 +234,7 @@ def _profile_effect_grid(rows: ProfileRows, blocks: list[Block], hyper: str,
             if b.joint is not None:
                 score[gi, bi] = beyond[bi].share(rows.stacked(b, cols))
             else:  # a global effect: all joints' residual together
-                score[gi, bi] = _Beyond(no_helpers, rows.resid.reshape(-1)).share(
+                score[gi, bi] = Beyond(no_helpers, rows.resid.reshape(-1)).share(
                     cols.reshape(-1, cols.shape[2]))
     best = np.argmax(score, axis=0)
     return [b.with_opts(**{hyper: float(values[best[bi], bi])}) for bi, b in enumerate(blocks)]

@@ -79,8 +79,10 @@ def residual_rows(pieces: Sequence[Piece], step: int
         for a, b, ca, cb, at_edge in filter_windows(pc, step):
             filtered = prep.filt.apply(prep.tau[ca:cb] - model[ca:cb], edges=at_edge)
             idx = np.arange(a, b, step)
-            res.append(filtered[a - ca: b - ca: step])
-            raw.append(prep.tau[idx] - model[idx])
+            # rows without a joint's torque (partial logs, sticks) show no residual there
+            keep = 1.0 if prep.tau_mask is None else prep.tau_mask[idx]
+            res.append(filtered[a - ca: b - ca: step] * keep)
+            raw.append((prep.tau[idx] - model[idx]) * keep)
             parts["q"].append(prep.q[idx])
             parts["qd"].append(prep.qd[idx])
             parts["qdd"].append(prep.qdd[idx])

@@ -13,8 +13,8 @@ from robid_link.ident.fit.results import IdentResult
 from robid_link.ident.model.effects import effect_label
 
 __all__ = ["Suggestion", "Diagnosis", "Verdicts", "GAIN_MIN", "P_MAX", "TRANSFER_MIN",
-           "judge", "rank", "result_doubts", "not_transferring_note", "physics_order",
-           "prefer_simpler"]
+           "judge", "rank", "result_doubts", "floor_doubts", "not_transferring_note",
+           "physics_order", "prefer_simpler"]
 
 #: a suggestion must cut its joint's held-out RMSE by at least this fraction …
 GAIN_MIN = 0.05
@@ -46,6 +46,8 @@ class Suggestion:
     side: str | None = None  # "joint" / "motor" when the effect names its side
     #: relative cut of the validation logs' RMSE on the effect's rows (None: no such logs)
     transfer: float | None = None
+    #: a spring whose law a counterbalance fits: the model file's ``known_torque`` entry
+    known_torque: dict[str, Any] | None = None
 
     def label(self) -> str:
         return effect_label(self.effect, self.joint, self.side)
@@ -54,7 +56,8 @@ class Suggestion:
         return {"effect": self.effect, "joint": self.joint, "side": self.side,
                 "label": self.label(), "rmse": self.rmse, "gain": self.gain,
                 "transfer_gain": self.transfer, "p_value": self.p_value,
-                "evidence": self.evidence, **self.fields, "hyper_parameters": self.hypers}
+                "evidence": self.evidence, **self.fields, "hyper_parameters": self.hypers,
+                **({"known_torque": self.known_torque} if self.known_torque else {})}
 
 
 @dataclass
@@ -72,6 +75,8 @@ class Diagnosis:
     not_transferring: list[Suggestion] = field(default_factory=list)
     #: why the model cannot be called adequate though nothing is missing
     doubts: list[str] = field(default_factory=list)
+    #: suggestions that cut the error but that the log cannot separate (limits.py)
+    limited: list[Suggestion] = field(default_factory=list)
 
     @property
     def verdict(self) -> str:
@@ -87,6 +92,7 @@ class Diagnosis:
                 "suggestions": [s.as_dict() for s in self.suggestions],
                 "not_useful": [s.as_dict() for s in self.rejected],
                 "not_transferring": [s.as_dict() for s in self.not_transferring],
+                "limited_by_the_log": [s.as_dict() for s in self.limited],
                 "doubts": self.doubts,
                 "absorbed": self.absorbed, "unexplained": self.unexplained,
                 "notes": self.notes}
@@ -111,6 +117,10 @@ class Diagnosis:
             lines.append(f"  does not transfer: {s.label()} (cross-validated gain "
                          f"{100 * s.gain:.1f} %, on the validation logs "
                          f"{100 * (s.transfer or 0.0):+.1f} %)")
+        if self.limited:
+            lines.append("  the log cannot separate: " + ", ".join(
+                f"{s.label()} (gain {100 * s.gain:.1f} %)" for s in self.limited[:SUMMARY_MAX])
+                + " — not suggested (see the notes)")
         for d in self.doubts:
             lines.append(f"  doubt: {d}")
         for u in self.unexplained:
@@ -167,20 +177,37 @@ def not_transferring_note(lost: list[Suggestion]) -> list[str]:
 
 
 def result_doubts(result: IdentResult) -> list[str]:
-    """Why a model with nothing missing still cannot be called adequate."""
+    """Why a model with nothing missing still cannot be called adequate: piled-up
+    extrapolation, and what makes the fit unfit (physically impossible, worse than CAD)."""
     out = []
     extrap = [n for n in result.notes if "the model extrapolates" in n]
     if len(extrap) >= EXTRAPOLATION_MAX:
         out.append(f"{len(extrap)} extrapolation warnings: the validation motion leaves the "
                    "training ranges, so its error says little about the model")
+    return out + result.doubts
+
+
+def floor_doubts(result: IdentResult) -> list[str]:
+    """A joint whose held-out residual is not measurement noise — above the noise estimate
+    (AT_FLOOR×), or near it in size but not white — is not modelled adequately, whether or
+    not a catalog effect is suggested for it."""
     try:
-        val, nom = result.validation, result.nominal
+        at, val = result.at_noise_floor, result.validation
     except (AttributeError, ValueError):  # no held-out rows
-        return out
-    if (val is not None and nom is not None and val.relative_error is not None
-            and nom.relative_error is not None and val.relative_error > nom.relative_error):
-        out.append(f"held-out relative error {100 * val.relative_error:.3g} % is above the "
-                   f"a-priori (CAD) model's {100 * nom.relative_error:.3g} %")
+        return []
+    floor, white = result.noise_floor, result.whiteness
+    if at is None or val is None or floor is None or white is None:
+        return []
+    out = []
+    for j, ok in enumerate(at):
+        if ok:
+            continue
+        ratio = float(val.rmse[j] / max(floor[j], 1e-300))
+        size = (f"held-out error {val.rmse[j]:.3g} N·m is {ratio:.2g}× the noise estimate "
+                f"{floor[j]:.3g} N·m")
+        why = white.sentence(j) if not white.white[j] else "its residual is white"
+        out.append(f"joint {result.joints[j]['joint']}: {size} and {why}: the model leaves "
+                   "more than measurement noise")
     return out
 
 

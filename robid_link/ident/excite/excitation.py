@@ -345,9 +345,10 @@ def write_trajectory(path: str | Path, traj: Trajectory) -> tuple[Path, Path]:
     """CSV ``t,q1..qn`` at the controller's rate plus a YAML header beside it."""
     p = Path(path)
     n = traj.q.shape[1]
-    header = ",".join(["t"] + [f"q{j}" for j in range(1, n + 1)])
-    np.savetxt(p, np.column_stack((traj.t, traj.q)), delimiter=",", header=header, comments="",
-               fmt="%.10g")
+    from robid_link.ident.data.logs import write_numeric_csv
+
+    write_numeric_csv(p, ["t"] + [f"q{j}" for j in range(1, n + 1)],
+                      np.column_stack((traj.t, traj.q)))
     meta = {"robot": traj.robot, "rate_hz": traj.rate_hz, "kind": traj.kind,
             "samples": int(traj.t.size), **traj.header}
     y = p.with_suffix(".yaml")

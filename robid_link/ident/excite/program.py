@@ -17,7 +17,7 @@ from robid_link.ident.model.robot import Robot
 from robid_link.jobs import MotionProgram, check_name
 
 __all__ = ["check_program", "reduced_speed", "make_program", "trajectory_files",
-           "program_trajectory"]
+           "program_trajectory", "with_logged_torques"]
 
 def program_trajectory(traj: ex.Trajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """q, q̇, q̈ of a program at its own rate (analytic for Fourier runs)."""
@@ -59,6 +59,19 @@ def reduced_speed(traj: ex.Trajectory, k: float) -> ex.Trajectory:
         q = CubicSpline(traj.t, traj.q, axis=0)(np.minimum(t * k, traj.t[-1]))
     h["reduced_speed"] = k
     return ex.Trajectory(t, q, traj.rate_hz, traj.kind, traj.robot, h)
+
+
+def with_logged_torques(robot: Robot, traj: ex.Trajectory, joints: Sequence[int], exp_id: str
+                        ) -> ex.Trajectory:
+    """The trajectory whose header tells the controller to log the torques of ``joints``
+    (from 1) only — its signal budget; positions of every axis are logged regardless (the
+    regressor of any joint needs q, q̇, q̈ of all)."""
+    js = sorted({int(j) for j in joints})
+    if not js or len(js) != len(joints) or js[0] < 1 or js[-1] > robot.n:
+        raise ConfigError(f"experiment {exp_id}: log_torques {list(joints)}: expected distinct "
+                          f"joint numbers 1..{robot.n}")
+    return ex.Trajectory(traj.t, traj.q, traj.rate_hz, traj.kind, traj.robot,
+                         {**traj.header, "log_torques": js})
 
 
 # ----------------------------------------------------------------------------- rendering

@@ -200,7 +200,7 @@ def _quad(g: np.ndarray) -> _Quad:
     """From augmented Grams summed over joints and the blocks wanted: (p+2, p+2) per joint."""
     p = g.shape[-1] - 2
     tot = g.sum(axis=0)
-    n = float(g[0, p + 1, p + 1])
+    n = float(g[:, p + 1, p + 1].max())  # samples (a partial log's: of the joints it holds)
     if n <= 0:
         raise EstimationError("a cross-validation fold has no samples")
     return _Quad(tot[:p, :p] / n, tot[:p, p] / n, float(tot[p, p]) / n, n)
@@ -370,14 +370,31 @@ class ConsistentFit:
         }
 
 
+def pieces_by_file(train: Sequence[Piece]) -> tuple[list[Log], list[list[Piece]]]:
+    """The training pieces grouped by their log, in order of first appearance."""
+    files: list[Log] = []
+    per_file: list[list[Piece]] = []
+    for pc in train:
+        for k, lg in enumerate(files):
+            if lg is pc.prep.log:
+                per_file[k].append(pc)
+                break
+        else:
+            files.append(pc.prep.log)
+            per_file.append([pc])
+    return files, per_file
+
+
 def fit_consistent(design: Design, train: Sequence[Piece], names: Sequence[str], *,
                    nominal: np.ndarray | None, interval: int, block_len: int,
-                   lam: float | None = None) -> ConsistentFit:
+                   lam: float | None = None,
+                   grams: Sequence[Grams] | None = None) -> ConsistentFit:
     """Fit standard inertial parameters (log-Cholesky) + effects with the CAD prior.
 
     ``design`` must hold all columns (standard parameters first, effects after). With ``lam``
     None, λ is chosen by cross-validation on ``train`` (note 4); the validation data is never
-    seen here.
+    seen here. ``grams``: the design's Grams per file of ``pieces_by_file(train)``, when the
+    caller has them already.
     """
     robot = design.robot
     n_rigid = 10 * robot.n
@@ -389,17 +406,9 @@ def fit_consistent(design: Design, train: Sequence[Piece], names: Sequence[str],
             or design.blocks[0].effect.name != "rigid_body":
         raise EstimationError("--method consistent needs the model's rigid_body effect first "
                               "and all its standard columns in the design")
-    files: list[Log] = []
-    per_file: list[list[Piece]] = []
-    for pc in train:
-        for k, lg in enumerate(files):
-            if lg is pc.prep.log:
-                per_file[k].append(pc)
-                break
-        else:
-            files.append(pc.prep.log)
-            per_file.append([pc])
-    grams = [accumulate(design, pcs, interval, block_len) for pcs in per_file]
+    files, per_file = pieces_by_file(train)
+    if grams is None:
+        grams = [accumulate(design, pcs, interval, block_len) for pcs in per_file]
     theta_cad = np.asarray(nominal, dtype=float)
     j0 = _realizable(pseudo_inertia(theta_cad.reshape(-1, 10)))
     _, m_full = _whitened_map(j0)

@@ -83,6 +83,11 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
     slots' Grams are added in slot order.
     """
     total = sum(_n_rows(pc, interval) for pc in pieces)
+    # a partial log's piece gives rows only to the joints whose torque it holds
+    held = {id(pc): np.ascontiguousarray(pc.prep.log.held, dtype=np.uint8) for pc in pieces}
+    n_rows = np.zeros(design.robot.n, dtype=np.int64)
+    for pc in pieces:
+        n_rows += _n_rows(pc, interval) * held[id(pc)].astype(np.int64)
     k_blocks = int(min(max_blocks, max(2, total // max(1, block_len))))
     p, n = design.p, design.robot.n
     sizes = np.diff(design.offsets)
@@ -98,6 +103,7 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
     rows = max((w[3] - w[2] for _, w, _ in tasks), default=0)
     bufs: list[np.ndarray | None] = [None] * len(slots)  # one chunk buffer per slot
     no_weight = np.ones((0, n))
+    left_out = [np.zeros(n) for _ in slots]  # rows without a joint's torque, per slot
 
     def work(task: tuple[Piece, tuple[int, int, int, int, bool], int], slot: int) -> None:
         pc, window, at = task
@@ -106,8 +112,12 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
         c, y, idx = design_rows(design, pc, window, interval, bufs[slot])
         bid = (np.arange(at, at + c.shape[0]) * k_blocks) // total
         sw = np.sqrt(row_weight(c, y, idx)) if row_weight is not None else no_weight
+        if pc.prep.tau_mask is not None:  # rows without a joint's torque: not its equation
+            mw = pc.prep.tau_mask[idx].astype(float)
+            left_out[slot] += (c.shape[0] - mw.sum(axis=0)) * held[id(pc)]
+            sw = mw if row_weight is None else sw * mw
         _gram_serial(c, np.ascontiguousarray(y), np.ascontiguousarray(sw), bid, offsets,
-                     slots[slot])
+                     held[id(pc)], slots[slot])
 
     in_slots(tasks, work)
     bufs.clear()
@@ -122,7 +132,7 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
         upper = gc[j, :, :s, :s]
         full = upper + np.triu(upper, 1).transpose(0, 2, 1)
         g[j][np.ix_(np.arange(k_blocks), sup, sup)] = full
-    return Grams(g, np.full(n, total))
+    return Grams(g, n_rows - sum(left_out))
 
 
 def _joint_parts(sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -195,10 +205,12 @@ def _gram_joint(c, y, sw, j, off, s, bid, g):
 
 
 @numba.njit(cache=True, nogil=True)
-def _gram_serial(c, y, sw, bid, offsets, g):
-    """Every joint's rows of a chunk into its Grams g[j] (n, K, w, w), on this thread."""
+def _gram_serial(c, y, sw, bid, offsets, held, g):
+    """Every held joint's rows of a chunk into its Grams g[j] (n, K, w, w), on this thread
+    (``held[j]`` 0: the chunk's log holds no torque of joint j, its rows are left out)."""
     for j in range(offsets.size - 1):
-        _gram_joint(c, y, sw, j, offsets[j], offsets[j + 1] - offsets[j], bid, g[j])
+        if held[j]:
+            _gram_joint(c, y, sw, j, offsets[j], offsets[j + 1] - offsets[j], bid, g[j])
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -345,7 +357,7 @@ def _robust_scale(design: Design, pieces: Sequence[Piece], interval: int,
         for pc in pieces
         for c, y, _ in design_chunks(design, pc, interval=interval, filtered=True)
     ]
-    r = np.concatenate(res, axis=0)
-    med = np.median(r, axis=0)
-    mad = 1.4826 * np.median(np.abs(r - med), axis=0)
-    return np.maximum(mad, 1e-9 * max(float(np.abs(r).max()), 1e-12))
+    r = np.concatenate(res, axis=0)  # NaN where a partial log holds no torque
+    med = np.nanmedian(r, axis=0)
+    mad = 1.4826 * np.nanmedian(np.abs(r - med), axis=0)
+    return np.maximum(mad, 1e-9 * max(float(np.nanmax(np.abs(r))), 1e-12))

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from robid_link.exceptions import ConditioningWarning
+from robid_link.exceptions import ConditioningWarning, DataError
 from robid_link.ident.data.checks import data_checks
 from robid_link.ident.data.currents import (
     identify_current_gains,
@@ -26,7 +26,8 @@ from robid_link.ident.data.currents import (
 )
 from robid_link.ident.data.logs import Log, file_sha256, load_log
 from robid_link.ident.data.preprocess import Problem, build_problem, check_counts
-from robid_link.ident.fit.consistent import ConsistentFit, fit_consistent
+from robid_link.ident.data.sticks import without_sticks
+from robid_link.ident.fit.consistent import ConsistentFit, fit_consistent, pieces_by_file
 from robid_link.ident.fit.design import Design, make_design, structural_mask, with_predictions
 from robid_link.ident.fit.estimate import Fit, Grams, accumulate, fit
 from robid_link.ident.fit.results import (
@@ -53,6 +54,7 @@ __all__ = [
     "Estimate",
     "estimate",
     "estimate_consistent",
+    "assemble_consistent",
     "result_of",
 ]
 
@@ -73,14 +75,17 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
     """
     pb = build_problem(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
                        interval=interval, motor_side=motor_side)
+    pb, _ = without_sticks(pb)
     pb = without_known_torques(pb, model.known)
     pb = with_current_gains(pb, model.known)
     pb = with_model_torque(pb)
     pb, hypers = with_profiled_hypers(pb)
-    asm = assemble(pb, Path(data[0].path).name)
-    est = estimate(pb, asm, method, weight)
     if method == "consistent":
-        est = estimate_consistent(pb, asm, est)
+        asm, full = assemble_consistent(pb, Path(data[0].path).name)
+        est = estimate_consistent(pb, asm, estimate(pb, asm, "ols"), full)
+    else:
+        asm = assemble(pb, Path(data[0].path).name)
+        est = estimate(pb, asm, method, weight)
     notes = [*est.notes, *data_checks(pb, stacklevel=_CALLER)]
     return result_of(pb, asm, est, method=method, hypers=hypers, notes=notes,
                      files=(data, validate or ()))
@@ -98,7 +103,14 @@ def load_logs(robot: Robot, paths: Sequence[str | Path], fs: float | None = None
                                                    topic=topic,
                                                    effort_current=robot.effort_current))
         if motor_side:
-            log.q, log.qd, log.qdd, log.tau = robot.to_joint_side(log.q, log.qd, log.qdd, log.tau)
+            held = log.held
+            tau_m = np.where(held, log.tau, 0.0)
+            log.q, log.qd, log.qdd, log.tau = robot.to_joint_side(log.q, log.qd, log.qdd, tau_m)
+            if log.tau_held is not None:  # τ_j = Σ_m T[m, j] τ_m: every motor of j logged
+                assert robot.transmission is not None
+                coupled = robot.transmission != 0
+                log.tau_held = ~np.any(coupled & ~held[:, None], axis=0)
+                log.tau[:, ~log.tau_held] = np.nan
         else:
             log.q = robot.remove_offsets(log.q)
         logs.append(log)
@@ -110,6 +122,11 @@ def with_current_gains(pb: Problem, known: Sequence[KnownTorque]) -> Problem:
     parameters, every log's torque completed with them, a note per gain."""
     if not any(p.log.currents is not None for p in (*pb.preps, *pb.vpreps)):
         return pb
+    partial = next((p.log for p in (*pb.preps, *pb.vpreps) if p.log.partial), None)
+    if partial is not None:  # a motor's gain reads every joint its torque reaches
+        raise DataError(f"{Path(partial.path).name}: drive current gains are identified from "
+                        "logs that hold every joint's torque, this log holds only some; give "
+                        "the gains (transmission.current_gain) or log every joint")
     design, _, _ = make_design(pb.robot, pb.blocks, pb.transmission)
     found = identify_current_gains(pb, design, known)
     if found is None:
@@ -143,8 +160,12 @@ def with_profiled_hypers(pb: Problem) -> tuple[Problem, dict[str, dict[str, floa
     if not free:
         return pb, chosen
     blocks = list(pb.blocks)
-    for eff_name, hyper in sorted({(b.effect.name, h) for _, b, h in free}):
-        targets = [(k, b) for k, b, h in free if b.effect.name == eff_name and h == hyper]
+    order = sorted({(b.effect.name, list(b.effect.hypers).index(h), h) for _, b, h in free})
+    several = {e for e, i, _ in order if i > 0}  # twice round for Stribeck's (vs, shape)
+    order += [o for o in order if o[0] in several]
+    for eff_name, _, hyper in order:  # an effect's hyper-parameters in its own order
+        targets = [(k, blocks[k]) for k, b, h in free  # with the choices made so far
+                   if b.effect.name == eff_name and h == hyper]
         best = _grid_choice(pb, blocks, targets, hyper)
         for k, b in targets:
             blocks[k] = b.with_opts(**{hyper: best[k]})
@@ -190,6 +211,33 @@ def assemble(pb: Problem, where: str) -> Assembly:
 
 
 @dataclass(frozen=True)
+class FullAssembly:
+    """The consistent fit's design (every standard column) and its Grams per file."""
+
+    design: Design
+    grams: list[Grams]
+
+
+def assemble_consistent(pb: Problem, where: str) -> tuple[Assembly, FullAssembly]:
+    """``assemble`` for the consistent fit: one pass over the rows with every standard
+    column, per file; the base design's columns are a subset of them, so with one file its
+    Grams are read out of the full ones instead of a second pass."""
+    design, base, names = make_design(pb.robot, pb.blocks, pb.transmission)
+    cols = np.arange(len(names))
+    full = Design(pb.robot, tuple(pb.blocks), cols,
+                  structural_mask(pb.robot, pb.blocks, cols, pb.transmission))
+    _, per_file = pieces_by_file(pb.train)
+    grams = [accumulate(full, pcs, pb.interval, pb.block_len) for pcs in per_file]
+    if len(grams) == 1:
+        sel = np.concatenate((design.cols, [full.p, full.p + 1]))
+        base_grams = Grams(grams[0].g[:, :, sel[:, None], sel], grams[0].n_rows.copy())
+    else:  # blocks span the files together: the base Grams take their own pass
+        base_grams = accumulate(design, pb.train, pb.interval, pb.block_len)
+    check_counts(int(base_grams.n_rows.sum()), design.p, where)
+    return Assembly(design, base, names, base_grams), FullAssembly(full, grams)
+
+
+@dataclass(frozen=True)
 class Estimate:
     """An estimator's answer: θ of ``design``'s columns with its covariance, the parameter
     table, the errors on the training rows, and the notes so far."""
@@ -228,8 +276,9 @@ def estimate(pb: Problem, asm: Assembly, method: str, weight: str = "bisquare") 
     n_rows = grams.n_rows
     ms = f.rss / np.maximum(n_rows, 1)
     var = np.maximum(ms - f.mean_res**2, 0.0)
-    fit_err = ErrorStats(np.sqrt(ms), np.sqrt(var), var, int(n_rows[0]))
-    return Estimate(f.theta, f.cov, params, fit_err, f.cond, least, int(n_rows[0]),
+    # partial logs, sticking rows: joints have rows of their own; the count is the largest
+    fit_err = ErrorStats(np.sqrt(ms), np.sqrt(var), var, int(n_rows.max()))
+    return Estimate(f.theta, f.cov, params, fit_err, f.cond, least, int(n_rows.max()),
                     asm.design, notes)
 
 
@@ -243,15 +292,21 @@ def _parameters(pb: Problem, asm: Assembly, f: Fit) -> list[Parameter]:
                                                strict=True))]
 
 
-def estimate_consistent(pb: Problem, asm: Assembly, est: Estimate) -> Estimate:
+def estimate_consistent(pb: Problem, asm: Assembly, est: Estimate,
+                        fa: FullAssembly | None = None) -> Estimate:
     """The physically consistent fit with the CAD prior on all standard columns; the
     base-parameter OLS estimate ``est`` stays for conditioning and notes. Its θ belongs to
-    the full design (the result's held-out figures are computed on it)."""
-    cols = np.arange(len(asm.names))
-    full = Design(pb.robot, tuple(pb.blocks), cols,
-                  structural_mask(pb.robot, pb.blocks, cols, pb.transmission))
+    the full design (the result's held-out figures are computed on it). ``fa``: the full
+    design and its Grams from ``assemble_consistent`` (else built here)."""
+    if fa is None:
+        cols = np.arange(len(asm.names))
+        full = Design(pb.robot, tuple(pb.blocks), cols,
+                      structural_mask(pb.robot, pb.blocks, cols, pb.transmission))
+    else:
+        full = fa.design
     cons = fit_consistent(full, pb.train, asm.names, nominal=pb.robot.nominal,
-                          interval=pb.interval, block_len=pb.block_len)
+                          interval=pb.interval, block_len=pb.block_len,
+                          grams=None if fa is None else fa.grams)
     val = evaluate_held_out(pb, full, cons.theta).validation
     val_ols = evaluate_held_out(pb, asm.design, est.theta).validation
     cons.validation_ols = None if val_ols is None else val_ols.as_dict()

@@ -63,6 +63,17 @@ def make_parameter_set(robot: Robot, identify_doc: Mapping[str, Any], *, run_id:
         "elasticity": [dict(e) for e in (elasticity or {}).get("joints", [])],
         "relative_error": identify_doc.get("relative_error"),
     }
+    # what makes the set unfit for a controller: the fit's doubts (physically impossible,
+    # worse than CAD) and standard inertials of no body; the link uploads an unfit set only
+    # when the operator forces it
+    unfit = [str(d) for d in identify_doc.get("doubts") or []]
+    why = None if theta is None else physical_problem(np.asarray(theta))
+    if why is not None:
+        from robid_link.ident.fit.physics import REMEDY
+
+        unfit.append(f"the standard inertials describe no body that can exist ({why}); {REMEDY}")
+    doc["unfit"] = unfit
+    doc["uploadable"] = not unfit
     doc["sha256"] = set_sha256(doc)
     return doc
 

@@ -14,7 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from robid_link.ident.data.preprocess import CHUNK, Prepared, Problem, noise_floor
+from robid_link.ident.data.noise import AT_FLOOR, LagSums, Whiteness, noise_floor
+from robid_link.ident.data.preprocess import CHUNK, Prepared, Problem
 from robid_link.ident.fit.design import Design, predict_torque
 from robid_link.ident.model.dynamics import rigid_torque
 from robid_link.ident.model.threads import SLOTS, in_slots
@@ -48,12 +49,25 @@ class ErrorStats:
         }
 
 
+def row_mask(prep: Prepared, a: int, b: int) -> np.ndarray | None:
+    """(b − a, n) bool: which joints' torques count on rows a..b of a prepared log — the
+    joints the log holds (a partial log) and, of those, the rows where the joint does not
+    stick (``tau_mask``); None when every torque counts."""
+    m = None if prep.tau_mask is None else prep.tau_mask[a:b]
+    if prep.log.partial:
+        held = prep.log.held
+        m = np.broadcast_to(held, (b - a, held.size)) if m is None else m & held
+    return m
+
+
 class StatsAccumulator:
-    """Streams residuals e and measured τ (m, n) into ErrorStats."""
+    """Streams residuals e and measured τ (m, n) into ErrorStats; with a mask (a partial log,
+    sticking rows) each joint's figures come from the rows where its torque counts."""
 
     def __init__(self, n: int) -> None:
         self.s1 = np.zeros(n)
         self.s2 = np.zeros(n)
+        self.counts = np.zeros(n, dtype=np.int64)
         self.count = 0
         self.norm_e = 0.0
         self.norm_tau = 0.0
@@ -62,13 +76,20 @@ class StatsAccumulator:
         """Add another accumulator's sums (chunks summed apart, then in order)."""
         self.s1 += other.s1
         self.s2 += other.s2
+        self.counts += other.counts
         self.count += other.count
         self.norm_e += other.norm_e
         self.norm_tau += other.norm_tau
 
-    def add(self, e: np.ndarray, tau: np.ndarray) -> None:
+    def add(self, e: np.ndarray, tau: np.ndarray, mask: np.ndarray | None = None) -> None:
+        """``mask`` (m, n) or (n,): which joints' torques count on each row (None: all);
+        a joint a log does not hold has NaN there, never summed."""
+        if mask is not None:
+            mask = np.broadcast_to(mask, e.shape)
+            e, tau = np.where(mask, e, 0.0), np.where(mask, tau, 0.0)
         self.s1 += e.sum(axis=0)
         self.s2 += (e * e).sum(axis=0)
+        self.counts += e.shape[0] if mask is None else mask.sum(axis=0)
         self.count += e.shape[0]
         self.norm_e += float(np.linalg.norm(e, axis=1).sum())
         self.norm_tau += float(np.linalg.norm(tau, axis=1).sum())
@@ -76,8 +97,9 @@ class StatsAccumulator:
     def stats(self) -> ErrorStats | None:
         if self.count == 0:
             return None
-        mean = self.s1 / self.count
-        ms = self.s2 / self.count
+        with np.errstate(invalid="ignore", divide="ignore"):  # a joint with no rows: NaN
+            mean = self.s1 / self.counts
+            ms = self.s2 / self.counts
         var = np.maximum(ms - mean * mean, 0.0)
         rel = self.norm_e / self.norm_tau if self.norm_tau > 0 else None
         return ErrorStats(np.sqrt(ms), np.sqrt(var), var, self.count, rel,
@@ -138,6 +160,8 @@ class HeldOut:
     validation: ErrorStats | None
     nominal: ErrorStats | None
     traces: list[dict[str, Any]]
+    #: the raw residual's autocorrelation on the held-out rows, against white noise
+    whiteness: Whiteness | None = None
 
 
 def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> HeldOut:
@@ -157,7 +181,8 @@ def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> He
     for pc, a, b in tasks:
         firsts.append(seen[pc.prep.log.path])
         seen[pc.prep.log.path] += b - a
-    out: list[tuple[StatsAccumulator, StatsAccumulator | None, dict[str, np.ndarray]] | None]
+    out: list[tuple[StatsAccumulator, StatsAccumulator | None, dict[str, np.ndarray],
+                    LagSums] | None]
     out = [None] * len(tasks)
     bufs: list[np.ndarray | None] = [None] * SLOTS
 
@@ -171,22 +196,26 @@ def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> He
         known = pc.prep.tau_known
         if known is not None:  # known torques: subtracted from τ, added back to both
             tau, pred = tau + known[a:b], pred + known[a:b]
+        m = row_mask(pc.prep, a, b)
         acc = StatsAccumulator(robot.n)
-        acc.add(tau - pred, tau)
+        acc.add(tau - pred, tau, m)
+        lag = LagSums(robot.n)
+        lag.add(tau - pred, m)
         nom = None
         if robot.nominal is not None:
             pred_nom = rigid_torque(robot, st.q, st.qd, st.qdd, robot.nominal)
             if known is not None:
                 pred_nom = pred_nom + known[a:b]
             nom = StatsAccumulator(robot.n)
-            nom.add(tau - pred_nom, tau)
+            nom.add(tau - pred_nom, tau, m)
         step = max(1, total[pc.prep.log.path] // TRACE_SAMPLES)
         keep = (-firsts[k]) % step
         out[k] = (acc, nom, {"t": pc.prep.log.t[a + keep:b:step], "tau": tau[keep::step],
-                             "pred": pred[keep::step]})
+                             "pred": pred[keep::step]}, lag)
 
     in_slots(range(len(tasks)), work)
     acc = StatsAccumulator(robot.n)
+    lags = LagSums(robot.n)
     nom = StatsAccumulator(robot.n) if robot.nominal is not None else None
     parts: dict[str, dict[str, list[np.ndarray]]] = {}
     for (pc, _, _), done in zip(tasks, out, strict=True):
@@ -194,12 +223,13 @@ def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> He
         acc.merge(done[0])
         if nom is not None and done[1] is not None:
             nom.merge(done[1])
+        lags.merge(done[3])
         tr = parts.setdefault(pc.prep.log.path, {"t": [], "tau": [], "pred": []})
         for key in ("t", "tau", "pred"):
             tr[key].append(done[2][key])
     traces = [{"file": path, **{key: np.concatenate(v) for key, v in tr.items()}}
               for path, tr in parts.items()]
-    return HeldOut(acc.stats(), None if nom is None else nom.stats(), traces)
+    return HeldOut(acc.stats(), None if nom is None else nom.stats(), traces, lags.result())
 
 
 @dataclass
@@ -242,12 +272,37 @@ class IdentResult:
 
     @cached_property
     def noise_floor(self) -> np.ndarray | None:
-        """Per joint, the raw torque's measurement noise (N·m; ``preprocess.noise_floor``) on
-        the held-out rows (else the training rows): the validation RMSE, taken on raw torque,
-        cannot fall below it; the fit RMSE, on filtered torque, holds almost none of it."""
+        """Per joint, the raw torque's measurement noise (N·m; ``noise.noise_floor``: from its
+        third differences, which no smooth torque inflates): the validation RMSE, taken on raw
+        torque, cannot fall below it; the fit RMSE, on filtered torque, holds almost none of
+        it. Read on every row the problem keeps (training and held out): one sensor."""
         if self.problem is None:
             return None
-        return noise_floor(self.problem.valid or self.problem.train)
+        return noise_floor([*self.problem.train, *self.problem.valid])
+
+    @property
+    def doubts(self) -> list[str]:
+        """What makes this fit unfit to hand a controller (``physics.fit_doubts``): physically
+        impossible base parameters, held-out errors above the CAD model's; each with the
+        remedy."""
+        from robid_link.ident.fit.physics import fit_doubts
+
+        return fit_doubts(self)
+
+    @property
+    def whiteness(self) -> Whiteness | None:
+        """The held-out raw residual's autocorrelation against white noise (None: no rows)."""
+        return self.held_out.whiteness
+
+    @property
+    def at_noise_floor(self) -> list[bool] | None:
+        """Per joint: the validation error at the noise estimate (≤ AT_FLOOR×) **and** its
+        residual white — what is left is measurement noise. None without held-out rows."""
+        val, floor, white = self.validation, self.noise_floor, self.whiteness
+        if val is None or floor is None or white is None:
+            return None
+        return [bool(val.rmse[j] <= AT_FLOOR * floor[j] and white.white[j])
+                for j in range(len(self.joints))]
 
     @property
     def validation(self) -> ErrorStats | None:
@@ -302,9 +357,12 @@ class IdentResult:
             "rmse": _list(self.rmse),
             "rmse_fit": _list(self.fit.rmse),
             "noise_floor": None if self.noise_floor is None else _list(self.noise_floor),
+            "at_noise_floor": self.at_noise_floor,
+            "residual_whiteness": None if self.whiteness is None else [
+                self.whiteness.joint(j) for j in range(len(self.joints))],
             "errors_on": {"rmse": "raw torque, held-out rows", "rmse_fit": "low-pass filtered "
-                          "torque, training rows", "noise_floor": "raw torque content above "
-                          "the cutoff, scaled to the band (white noise)"},
+                          "torque, training rows", "noise_floor": "robust scale of the raw "
+                          "torque's third differences (white noise)"},
             "rmse_nominal": None if self.nominal is None else _list(self.nominal.rmse),
             "relative_error": None if val is None else _num(val.relative_error),
             "relative_error_nominal": None if self.nominal is None
@@ -320,6 +378,7 @@ class IdentResult:
                               "interval": self.interval},
             "data_files": self.data_files,
             "notes": self.notes,
+            "doubts": self.doubts,
             "consistent": None if self.consistent is None else self.consistent.as_dict(),
         }
 
@@ -352,15 +411,10 @@ class IdentResult:
             if self.nominal is not None and self.nominal.relative_error is not None:
                 rel += f"; CAD model {100 * self.nominal.relative_error:.2f} %"
             lines.append(rel)
-        lines.append("  RMSE val: raw torque on held-out rows; noise: its measurement noise (raw "
-                     "content above the cutoff), which no model explains; RMSE fit: filtered "
-                     "torque on training rows")
-        if val is not None and floor is not None:
-            at = [str(jt["joint"]) for j, jt in enumerate(self.joints)
-                  if val.rmse[j] <= 1.2 * floor[j]]
-            if at:
-                lines.append(f"  joint(s) {', '.join(at)}: validation error at the noise floor "
-                             "(what is left is measurement noise)")
+        lines.append("  RMSE val: raw torque on held-out rows; noise: its measurement noise (from "
+                     "the raw torque's third differences), which no model explains; RMSE fit: "
+                     "filtered torque on training rows")
+        lines += self._floor_lines()
         lines += ["", f"  {'parameter':<12}{'value':>12}{'std':>11}{'std %':>8}  stands for"]
         for p in self.parameters:
             pct = p.rel_std_pct
@@ -370,11 +424,36 @@ class IdentResult:
         if self.notes:
             lines.append("")
             lines += [f"  [{i}] {n}" for i, n in enumerate(self.notes, 1)]
+        doubts = self.doubts
+        if doubts:
+            lines.append("")
+            lines += [f"  doubt: {d}" for d in doubts]
         return "\n".join(lines)
 
 
+    def _floor_lines(self) -> list[str]:
+        """Which joints sit at the noise floor (at the estimate and white), and which have a
+        residual that is not white (more than measurement noise, whatever its size)."""
+        at, white = self.at_noise_floor, self.whiteness
+        if at is None or white is None:
+            return []
+        names = [str(jt["joint"]) for jt in self.joints]
+        on = [names[j] for j, ok in enumerate(at) if ok]
+        out = []
+        if on:
+            out.append(f"  joint(s) {', '.join(on)}: validation error at the noise floor, residual "
+                       "white (what is left is measurement noise)")
+        coloured = [j for j in range(len(names)) if not white.white[j]]
+        if coloured:
+            worst = max(coloured, key=lambda j: float(np.abs(white.acf[:, j]).max()))
+            out.append(f"  joint(s) {', '.join(names[j] for j in coloured)}: residual not white "
+                       f"(joint {names[worst]}: {white.sentence(worst).split('(', 1)[1]}: more "
+                       "than measurement noise")
+        return out
+
+
 def _f(x: float) -> str:
-    return f"{x:.4g}"
+    return f"{x:.4g}" if math.isfinite(x) else "—"  # no rows hold the joint's torque
 
 
 def _num(x: float | None) -> float | None:
@@ -384,5 +463,6 @@ def _num(x: float | None) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _list(a: np.ndarray) -> list[float]:
-    return [float(v) for v in np.asarray(a)]
+def _list(a: np.ndarray) -> list[float | None]:
+    """Numbers for JSON; a joint without figures (no held-out rows hold its torque): None."""
+    return [float(v) if math.isfinite(v) else None for v in np.asarray(a, dtype=float)]

@@ -269,8 +269,11 @@ class Stribeck(Effect):
     name = "stribeck"
     sided = True
     doc = "breakaway friction above Coulomb, decaying as exp(−|q̇/vs|^δ)"
+    # both profiled (the velocity first): a fixed shape leaves part of a breakaway unexplained
     hypers = {"vs": Hyper(0.05, (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.4),
-                          "Stribeck velocity, rad/s (of the side's velocity)", "velocity")}
+                          "Stribeck velocity, rad/s (of the side's velocity)", "velocity"),
+              "shape": Hyper(2.0, (0.5, 0.75, 1.0, 1.5, 2.0, 3.0),
+                             "shape exponent δ of exp(−|q̇/vs|^δ): 1 exponential, 2 Gaussian")}
     options = frozenset({"vs", "shape"})
 
     def param_names(self, robot, joint, opts):
@@ -279,7 +282,7 @@ class Stribeck(Effect):
     def columns(self, robot, st, joint, opts):
         v = st.motor_velocity(joint)
         vs = float(opts.get("vs", self.hypers["vs"].default))
-        shape = float(opts.get("shape", 2.0))
+        shape = float(opts.get("shape", self.hypers["shape"].default))
         return _motor_row(st, robot.n, joint, [np.exp(-np.abs(v / vs) ** shape) * moving_sign(v)])
 
 

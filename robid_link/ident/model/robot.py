@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from robid_link.exceptions import RobotError
+from robid_link.exceptions import RobidError, RobotError
 from robid_link.ident.model.robot_check import (
     UrdfJoint,
     check_urdf,
@@ -26,7 +26,8 @@ from robid_link.ident.model.robot_check import (
 from robid_link.safeopen import file_problem
 from robid_link.yamlio import check_keys, read_yaml_mapping
 
-__all__ = ["Robot", "Limits", "load_robot", "STANDARD_NAMES", "standard_parameter_names"]
+__all__ = ["Robot", "Limits", "load_robot", "description_name", "STANDARD_NAMES",
+           "standard_parameter_names"]
 
 #: Pinocchio's order of the ten standard inertial parameters of one link.
 STANDARD_NAMES = ("m", "mx", "my", "mz", "xx", "xy", "yy", "xz", "yz", "zz")
@@ -163,6 +164,15 @@ def load_robot(path: str | Path, lock: Sequence[str] = (), *, allow_unlimited: b
     if suffix == ".urdf":
         return _load_urdf(p, lock, allow_unlimited)
     raise RobotError(f"{p}: unknown robot format '{suffix}' (expected .yaml, .yml or .urdf)")
+
+
+def description_name(path: str | Path, lock: Sequence[str] = ()) -> str | None:
+    """The name a robot description gives its robot; None when it does not load (the
+    operator's read-only commands still open the store: ``config.robot_name``)."""
+    try:
+        return load_robot(path, lock).name
+    except RobidError:
+        return None
 
 
 def _num(x: Any, where: str, src: Path) -> float:

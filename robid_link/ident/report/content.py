@@ -124,14 +124,9 @@ def _verdict(res: Mapping[str, Any] | None, dg: Mapping[str, Any] | None) -> dic
         return {"code": code, "text": text}
     if res is None:
         return {"code": "none", "text": "no identification in this report"}
-    rmse, floor = res.get("rmse") or [], res.get("noise_floor")
-    if floor:
-        at = [str(k + 1) for k, (r, f) in enumerate(zip(rmse, floor, strict=False))
-              if r is not None and f is not None and r <= 1.2 * f]
-        text = (f"not diagnosed; joint(s) {', '.join(at)} at the noise floor" if at
-                else "not diagnosed: run robid diagnose to learn which effect is missing")
-    else:
-        text = "not diagnosed: run robid diagnose to learn which effect is missing"
+    at = [str(k + 1) for k, ok in enumerate(res.get("at_noise_floor") or []) if ok]
+    text = (f"not diagnosed; joint(s) {', '.join(at)} at the noise floor (residual white)" if at
+            else "not diagnosed: run robid diagnose to learn which effect is missing")
     return {"code": "not_diagnosed", "text": text}
 
 

@@ -79,9 +79,13 @@ def _torque_figures(res: IdentResult, out: Path) -> list[Path]:
     plt = _pyplot()
     paths = []
     for j, jt in enumerate(res.joints):
+        if all(np.isnan(tr["tau"][:, j]).all() for tr in res.traces):
+            continue  # partial logs: no held-out log holds this joint's torque
         fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(10, 5.5),
                                        gridspec_kw={"height_ratios": [2, 1]})
         for tr in res.traces:
+            if np.isnan(tr["tau"][:, j]).all():  # a partial log without this joint's torque
+                continue
             t = tr["t"] - tr["t"][0]
             ax1.plot(t, tr["tau"][:, j], lw=0.8, color="0.3", label="measured")
             ax1.plot(t, tr["pred"][:, j], lw=0.9, color="tab:blue", label="model")

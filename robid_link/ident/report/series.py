@@ -163,23 +163,30 @@ def residual_stats(res: IdentResult, resid: dict[int, tuple[np.ndarray, np.ndarr
     raw: list[np.ndarray] = []
     smooth: list[np.ndarray] = []
     vel: list[np.ndarray] = []
+    held: list[np.ndarray] = []  # a partial log's piece counts for the joints it holds
     for pc in pieces:
         prep = pc.prep
         r, rf = resid[id(prep)]
         raw.append(r[pc.lo: pc.hi])
         smooth.append(rf[pc.lo: pc.hi: step])
         vel.append(prep.qd[pc.lo: pc.hi: step])
-    r_all = np.concatenate(raw)
+        held.append(prep.log.held)
     n_dec = sum(x.shape[0] for x in smooth)
-    smooth_mean, vel_mean = np.concatenate(smooth).mean(axis=0), np.concatenate(vel).mean(axis=0)
     joints = []
-    for j in range(r_all.shape[1]):
-        rj = r_all[:, j]
+    for j in range(pb.robot.n):
+        mine = [k for k, h in enumerate(held) if h[j]]
+        if not mine:  # partial logs: none of these rows holds the joint's torque
+            joints.append({"joint": j + 1, "mean": None, "std": None, "n": 0, "outside": 0,
+                           "hist": {"edges": [], "counts": []}, "acf": [], "ccf": []})
+            continue
+        rj = np.concatenate([raw[k][:, j] for k in mine])
         mean, std = float(rj.mean()), float(rj.std())
         half = 4.0 * std if std > 0 else 1.0
         counts, edges = np.histogram(rj, bins=HIST_BINS, range=(mean - half, mean + half))
-        e = [x[:, j] - smooth_mean[j] for x in smooth]
-        u = [x[:, j] - vel_mean[j] for x in vel]
+        sj = [smooth[k][:, j] for k in mine]
+        vj = [vel[k][:, j] for k in mine]
+        e = [x - np.concatenate(sj).mean() for x in sj]
+        u = [x - np.concatenate(vj).mean() for x in vj]
         ee, uu = sum(float(x @ x) for x in e), sum(float(x @ x) for x in u)
         acf = _xcorr(e, e, LAGS) / ee if ee > 0 else np.zeros(2 * LAGS + 1)
         ccf = _xcorr(e, u, LAGS) / math.sqrt(ee * uu) if ee > 0 and uu > 0 else \

@@ -3,8 +3,10 @@ operator commands use, async and backend-neutral (a cell's SQLite, a plant's Pos
 
 What a store keeps, and the guarantees every backend gives:
 
-- **runs** (``run_id``, ``campaign``, ``trigger``, ``state`` in ``RUN_STATES``, ``created``,
-  ``started``, ``finished``, ``spec`` (a dict), ``error``, ``step``), each with its
+- **runs** (``run_id``, ``campaign``, ``trigger``, ``state`` in ``RUN_STATES``,
+  ``state_since`` (when the run entered its state: set by ``create_run`` and by every
+  ``set_run`` that changes the state, kept by one that does not), ``created``, ``started``,
+  ``finished``, ``spec`` (a dict), ``error``, ``step``), each with its
   **experiments** in order (``run_id``, ``exp_id``, ``position``, ``kind``, ``state``,
   ``attempt``, ``nonce``, ``program_sha``, ``done_sha``, ``done_size``, ``log_sha``,
   ``error``, ``updated``) and a **journal** of steps (``seq``, ``time``, ``run_id``,
@@ -40,7 +42,10 @@ from robid_link.jobs import MotionProgram
 __all__ = ["AsyncStore", "RUN_STATES", "STEP_FIELDS", "log_file", "log_url", "is_url",
            "pick_param_set", "acknowledged_sets"]
 
-RUN_STATES = ("queued", "running", "completed", "failed", "cancelled")
+#: ``interrupted``: a daemon restarted under the run; it finished the run's bookkeeping (logs
+#: announced before the restart stored, what needs no motion done) and waits for an operator's
+#: ``resume`` before any further motion (``state_since`` says since when)
+RUN_STATES = ("queued", "running", "interrupted", "completed", "failed", "cancelled")
 #: the columns of an experiment a step may set
 STEP_FIELDS = frozenset({"attempt", "nonce", "program_sha", "done_sha", "done_size", "log_sha",
                          "error"})
@@ -144,7 +149,8 @@ class AsyncStore(abc.ABC):
 
     @abc.abstractmethod
     async def unfinished_runs(self) -> list[str]:
-        """Queued and running runs, oldest first: what a starting daemon resumes."""
+        """Queued and running runs, oldest first: what a starting daemon finds interrupted
+        (it finishes their bookkeeping; none moves again before an operator resumes it)."""
 
     @abc.abstractmethod
     async def given_without_run(self) -> list[dict[str, Any]]:
@@ -173,9 +179,10 @@ class AsyncStore(abc.ABC):
         """The journal (of one run, or all) in order."""
 
     # ----------------------------------------------------------------- raw logs
+    @abc.abstractmethod
     def log_path(self, sha: str) -> Path:
-        """Where the raw log of ``sha`` is (no I/O)."""
-        return log_file(self.dir, sha)
+        """Where the raw log of ``sha`` is (no I/O): under ``dir``, or the ``log_store``
+        folder that holds the logs instead."""
 
     @abc.abstractmethod
     async def put_log(self, data: bytes, *, run_id: str | None = None,

@@ -12,7 +12,7 @@ from typing import Any
 
 from sqlalchemy import Connection, Engine, create_engine, event, select, text
 from sqlalchemy.engine import URL, make_url
-from sqlalchemy.exc import ArgumentError, DBAPIError
+from sqlalchemy.exc import ArgumentError, DBAPIError, InterfaceError, OperationalError
 
 from robid_link.config import check_store_url as config_store_url
 from robid_link.exceptions import ConfigError, StoreFullError, StoreLockedError
@@ -100,6 +100,12 @@ class PostgresBackend:
         """Two daemons starting at once on an empty or older database: one migrates, the
         other waits for it inside its own transaction and then finds the schema current."""
         conn.execute(text("SELECT pg_advisory_xact_lock(:c)"), {"c": LOCK_CLASS})
+
+    @staticmethod
+    def lost(err: DBAPIError) -> bool:
+        """The server went away or does not answer (a connection lost, refused, reset)."""
+        return bool(err.connection_invalidated) or isinstance(err, (OperationalError,
+                                                                    InterfaceError))
 
     def full(self, err: DBAPIError) -> StoreFullError | None:
         if getattr(err.orig, "sqlstate", None) == "53100":  # disk_full

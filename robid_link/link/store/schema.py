@@ -3,8 +3,10 @@ versioned migrations, run by the project when a daemon opens the store.
 
 Version 1 is the schema of the SQLite-only store (no version table); version 2 adds the plant:
 a robot on every run, log, program and approval (one store, many robots), where each raw log
-lives, the ``robots`` directory, and a model version on results. ``migrate`` brings a store to
-``SCHEMA_VERSION`` in one transaction, under a lock against a second daemon migrating at once.
+lives, the ``robots`` directory, and a model version on results; version 3 the time a run
+entered its state (``state_since``: since when an interrupted run waits for its operator).
+``migrate`` brings a store to ``SCHEMA_VERSION`` in one transaction, under a lock against a
+second daemon migrating at once.
 
 Why not Alembic: the schema is nine tables and each step a few lines of Core DDL, tested on
 both backends by the store's suite; the runner is ~50 lines with no script folder, ini file or
@@ -37,7 +39,7 @@ __all__ = ["SCHEMA_VERSION", "metadata", "robots", "runs", "experiments", "journ
            "schema_version"]
 
 #: the schema this code reads and writes
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 metadata = MetaData()
 
@@ -57,7 +59,7 @@ runs = Table(
     Column("campaign", Text, nullable=False), Column("trigger", Text, nullable=False),
     Column("state", Text, nullable=False), Column("created", Float, nullable=False),
     Column("started", Float), Column("finished", Float), Column("spec", Text, nullable=False),
-    Column("error", Text), Column("step", Text))
+    Column("error", Text), Column("step", Text), Column("state_since", Float))
 
 experiments = Table(
     "experiments", metadata,
@@ -170,8 +172,14 @@ def _v1_to_v2(conn: Connection) -> None:
     robots.create(conn)
 
 
+def _v2_to_v3(conn: Connection) -> None:
+    """When each run entered its state (NULL for the runs before: read as their creation)."""
+    if "state_since" not in {c["name"] for c in inspect(conn).get_columns("runs")}:
+        conn.execute(text("ALTER TABLE runs ADD COLUMN state_since FLOAT"))
+
+
 #: version k → the step from k to k + 1
-MIGRATIONS: dict[int, Callable[[Connection], None]] = {1: _v1_to_v2}
+MIGRATIONS: dict[int, Callable[[Connection], None]] = {1: _v1_to_v2, 2: _v2_to_v3}
 
 
 def migrate(conn: Connection, where: str) -> int:

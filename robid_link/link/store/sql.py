@@ -18,11 +18,18 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import Connection, and_, delete, func, insert, or_, select, true, update
+from sqlalchemy import Connection, and_, case, delete, func, insert, or_, select, true, update
 from sqlalchemy.exc import DBAPIError
 from sqlalchemy.sql import ColumnElement
 
-from robid_link.exceptions import ConfigError, RobidError, StoreFullError
+from robid_link.exceptions import (
+    ConfigError,
+    RobidError,
+    StoreFullError,
+    StoreLockedError,
+    StoreLockLostError,
+    StoreUnavailableError,
+)
 from robid_link.jobs import MotionProgram
 from robid_link.link.store import schema as sc
 from robid_link.link.store.base import (
@@ -67,6 +74,8 @@ class Store:
         self.conn: Connection | None = None
         self._lock_fd: int | None = None
         self._create = create
+        #: the one line once a lost connection's robot lock could not be taken again
+        self.lock_lost: str | None = None
         if url is None and self.dir is None:
             raise ValueError("a store needs a state dir or a URL")
         self.backend: SqliteBackend | PostgresBackend = (
@@ -88,7 +97,8 @@ class Store:
         try:
             self.conn = self.engine.connect()
         except DBAPIError as err:
-            raise RobidError(f"{self.where}: cannot connect ({_first_line(err)})") from err
+            raise StoreUnavailableError(f"{self.where}: cannot connect "
+                                        f"({_first_line(err)})") from err
         if self.exclusive:
             self.backend.lock(self.conn, self.robot)
         try:
@@ -148,9 +158,21 @@ class Store:
     def _connection(self) -> Connection:
         if self.conn is None:
             raise RuntimeError(f"{self.where}: the store is closed")
+        if self.lock_lost:
+            raise StoreLockLostError(self.lock_lost)
         if self.conn.invalidated and self.exclusive:
             # the session was lost (server restart): a new one must take the robot again
-            self.backend.lock(self.conn, self.robot)
+            try:
+                self.backend.lock(self.conn, self.robot)
+            except StoreLockedError as err:  # another daemon took the robot meanwhile
+                self.lock_lost = (f"{self.where}: lock on robot {self.robot} lost with the "
+                                  f"connection, another daemon holds it now: no further "
+                                  f"motion from this daemon; stop it")
+                self.conn.invalidate()  # this session holds nothing: never write through it
+                raise StoreLockLostError(self.lock_lost) from err
+            except DBAPIError as err:
+                raise StoreUnavailableError(f"{self.where}: cannot reconnect "
+                                            f"({_first_line(err)})") from err
         return self.conn
 
     @contextmanager
@@ -166,8 +188,7 @@ class Store:
             full = self.backend.full(err)
             if full is not None:
                 raise full from err
-            if err.connection_invalidated:
-                raise RobidError(f"{self.where}: connection lost ({_first_line(err)})") from err
+            self._unavailable(err)
             raise
 
     @contextmanager
@@ -178,9 +199,15 @@ class Store:
             with conn.begin():
                 yield conn
         except DBAPIError as err:
-            if err.connection_invalidated:
-                raise RobidError(f"{self.where}: connection lost ({_first_line(err)})") from err
+            self._unavailable(err)
             raise
+
+    def _unavailable(self, err: DBAPIError) -> None:
+        """A lost connection or a server that does not answer: StoreUnavailableError, one
+        line naming the store (a password is never in it)."""
+        if self.backend.lost(err):
+            raise StoreUnavailableError(f"{self.where}: connection lost "
+                                        f"({_first_line(err)})") from err
 
     def _mine(self, column: Any) -> ColumnElement[bool]:
         """Rows of this store's robot (all rows for a store opened for no robot)."""
@@ -257,7 +284,7 @@ class Store:
         with self._tx() as c:
             c.execute(insert(sc.runs).values(run_id=run_id, robot=self.robot, campaign=campaign,
                                              trigger=trigger, state="queued", created=now,
-                                             spec=json.dumps(spec)))
+                                             spec=json.dumps(spec), state_since=now))
             if experiments:
                 c.execute(insert(sc.experiments), [
                     {"run_id": run_id, "exp_id": exp_id, "position": pos, "kind": kind,
@@ -279,6 +306,9 @@ class Store:
             values["error"] = error
         if state == "running":
             values["started"] = func.coalesce(r.c.started, now)
+        # since when the run is in its state: kept by an update that does not change it
+        values["state_since"] = case((r.c.state == state,
+                                      func.coalesce(r.c.state_since, r.c.created)), else_=now)
         with self._tx() as c:
             c.execute(update(r).where(r.c.run_id == run_id).values(**values))
             self._journal(c, run_id, None, state, {"error": error} if error else {})
@@ -318,6 +348,8 @@ class Store:
     def _run_dict(self, c: Connection, row: Any) -> dict[str, Any]:
         d = _row(row)
         d["spec"] = json.loads(d["spec"])
+        if d.get("state_since") is None:  # a run of an older store, untouched since
+            d["state_since"] = d["created"]
         exps = self._experiments(c, d["run_id"])
         d["experiments"] = exps
         d["progress"] = {"stored": sum(e["log_sha"] is not None for e in exps),
@@ -533,10 +565,19 @@ class Store:
         return pick_param_set(self.param_sets(robot), robot, ref)
 
     def approve_param_set(self, sha: str, by: str) -> None:
+        """Approve this robot's set ``sha``; another robot's is refused naming both."""
         ps = sc.param_sets
         with self._tx() as c:
-            c.execute(update(ps).where(ps.c.sha256 == sha, self._mine(ps.c.robot))
-                      .values(approved=time.time(), approved_by=by))
+            done = c.execute(update(ps).where(ps.c.sha256 == sha, self._mine(ps.c.robot))
+                             .values(approved=time.time(), approved_by=by)).rowcount
+            if not done:
+                other = c.execute(select(ps.c.robot, ps.c.version)
+                                  .where(ps.c.sha256 == sha)).first()
+                if other is None:
+                    raise ConfigError(f"parameter set {sha[:12]}: not in the store")
+                raise ConfigError(f"parameter set {other.version} of robot {other.robot} "
+                                  f"({sha[:12]}): this store is robot {self.robot}'s; approve "
+                                  f"it with robot {other.robot}'s daemon")
 
     def record_upload(self, robot: str, sha: str, run_id: str | None, state: str,
                       error: str | None = None) -> None:

@@ -78,6 +78,14 @@ class SqliteBackend:
     def migration_lock(self, conn: Connection) -> None:
         """BEGIN IMMEDIATE already holds the file's write lock."""
 
+    @staticmethod
+    def lost(err: DBAPIError) -> bool:
+        """The file cannot be reached for now (held by another writer past the timeout,
+        its folder unreadable); a query that is wrong is not that."""
+        text = str(err.orig).lower()
+        return bool(err.connection_invalidated) or any(
+            w in text for w in ("locked", "busy", "unable to open"))
+
     def full(self, err: DBAPIError) -> StoreFullError | None:
         text = str(err.orig)
         if "full" in text or "disk" in text:

@@ -15,6 +15,7 @@ from typing import Any, TypeVar
 
 from robid_link.jobs import MotionProgram
 from robid_link.link.store.base import AsyncStore
+from robid_link.link.store.files import CellFiles
 from robid_link.link.store.sql import RESERVE_BYTES, Store
 
 __all__ = ["ThreadedStore", "SqliteStore", "PostgresStore", "open_store"]
@@ -75,6 +76,8 @@ class ThreadedStore(AsyncStore):
         self.dir = Path(state_dir)
         self._reserve_bytes = reserve_bytes
         self._options = options
+        # where the logs are, by the blocking store's own rule (no I/O: usable while closed)
+        self._files = CellFiles(self.dir, options.get("log_store"))
         self._store: Store | None = None
         self._thread: _StoreThread | None = None
 
@@ -167,6 +170,9 @@ class ThreadedStore(AsyncStore):
         return list(await self._call("journal", run_id))
 
     # ----------------------------------------------------------------- raw logs
+    def log_path(self, sha: str) -> Path:
+        return self._files.log_path(sha)
+
     async def put_log(self, data: bytes, *, run_id: str | None = None,
                       exp_id: str | None = None) -> str:
         return str(await self._call("put_log", data, run_id=run_id, exp_id=exp_id))

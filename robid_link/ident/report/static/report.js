@@ -289,6 +289,7 @@
     for (const el of figs("residual-histogram")) {
       try {
         const j = +el.dataset.joint, st = rs.joints[j - 1], un = units(j).tau;
+        if (!st.n) { caption(el, "no " + rs.rows + " rows hold this joint's torque (partial logs)"); continue; }
         const e = st.hist.edges, w = e[1] - e[0], n = st.n;
         const x = [], dens = [], pdf = [];
         for (let i = 0; i < st.hist.counts.length; i++) {
@@ -310,6 +311,7 @@
       for (const el of figs(name)) {
         try {
           const j = +el.dataset.joint, st = rs.joints[j - 1];
+          if (!st.n) { caption(el, "no " + rs.rows + " rows hold this joint's torque (partial logs)"); continue; }
           const vals = st[key];
           const out = vals.filter((v, i) => Math.abs(v) > rs.band && !(key === "acf" && i === rs.lags)).length;
           const top = key === "acf" ? 1 : Math.min(1, 1.15 * Math.max(2 * rs.band, ...vals.map(Math.abs)));

@@ -1,0 +1,153 @@
+"""Where a joint sticks: friction at rest is static — anywhere within ±Fc, set by whatever else
+acts — so no velocity law of friction describes the rows where a joint rests at its reversals
+(a closed loop without friction compensation waits there until its error has built up the
+breakaway torque). Those rows are found in the raw positions and left out of that joint's
+equation (``Prepared.tau_mask``); what they hold, the log cannot tell."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from robid_link.ident.data.preprocess import Prepared, Problem
+
+__all__ = ["Sticks", "find_sticks", "without_sticks", "sticks_note", "STILL_WINDOW_S",
+           "STICK_FACTOR", "STICK_SHARE_MIN"]
+
+#: half-width of the window a joint's raw speed is read over (s)
+STILL_WINDOW_S = 0.005
+#: a still run longer than this multiple of its speed's climb out of it is a stick
+STICK_FACTOR = 1.5
+#: a joint sticks when its sticks hold at least this share of its samples
+STICK_SHARE_MIN = 0.002
+
+
+@dataclass(frozen=True)
+class Sticks:
+    """Where one joint sticks in the training logs: the share of samples in sticks, the longest
+    stick (s), how many, and the speed under which the filtered velocity smears them."""
+
+    joint: int  # from 0
+    share: float
+    longest_s: float
+    count: int
+    speed: float
+
+
+def _filtered(prep: Prepared) -> np.ndarray:
+    ok = np.zeros(len(prep.log), bool)
+    for seg in prep.log.segments:
+        if seg.stop - seg.start >= 3 * prep.filt.settle:
+            ok[seg] = True
+    return ok
+
+
+def _diff_scale(x: np.ndarray) -> np.ndarray:
+    """Robust scale of white noise on x from its third differences (as the torque noise)."""
+    if x.shape[0] < 8:
+        return np.zeros(x.shape[1])
+    d = np.diff(x, 3, axis=0)
+    return 1.4826 * np.median(np.abs(d), axis=0) / math.sqrt(20.0)
+
+
+def _climb(speed: np.ndarray, level: float) -> float:
+    """Samples until ``speed`` (leaving a still run) first reaches ``level``; inf if never."""
+    above = np.flatnonzero(speed >= level)
+    return float(above[0] + 1) if above.size else math.inf
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    edges = np.diff(np.concatenate(([0], mask.astype(np.int8), [0])))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist(),
+                    strict=True))
+
+
+def find_sticks(prep: Prepared, typical: np.ndarray) -> tuple[np.ndarray, list[list[float]]]:
+    """(rows × joints that stick, widened by the filter's smear; per joint the durations (s) of
+    its sticks). ``typical``: each joint's 95th-percentile speed over the logs.
+
+    A still run is where the raw position's speed over ±STILL_WINDOW_S stays under v_still
+    (what its noise and 0.2 % of the typical speed allow). A joint that sticks rests there and
+    leaves at once: its speed climbs from v_still to 10·v_still in a small part of the rest's
+    length. A smooth passage through zero speed climbs as slowly as it fell (a reversal at
+    constant q̈ spends a quarter of the climb's time under v_still; a rest-to-rest motion's
+    flat turn about as long as its climb). A run longer than STICK_FACTOR times the faster of
+    its two climbs, with motion on both sides, is a stick. The filtered states smear it over
+    one period of the cutoff on each side, so those rows go too."""
+    fs = prep.filt.fs
+    dt = 1.0 / fs
+    w = max(1, int(round(STILL_WINDOW_S * fs)))
+    smear = max(1, int(round(fs / prep.filt.cutoff_hz)))
+    n = prep.q.shape[1]
+    out = np.zeros(prep.q.shape, bool)
+    durations: list[list[float]] = [[] for _ in range(n)]
+    for seg in prep.log.segments:
+        if seg.stop - seg.start < max(3 * prep.filt.settle, 8 * w):
+            continue
+        q = prep.log.q[seg]
+        v = np.zeros_like(q)
+        v[w:-w] = (q[2 * w:] - q[: -2 * w]) / (2 * w * dt)
+        sigma_v = _diff_scale(q) * math.sqrt(2.0) / (2 * w * dt)
+        for j in range(n):
+            v_still = max(4.0 * float(sigma_v[j]), 2e-3 * float(typical[j]))
+            if not v_still > 0:
+                continue
+            stick = np.zeros(q.shape[0], bool)
+            speed = np.abs(v[:, j])
+            for a, b in _runs(speed[w:-w] < v_still):
+                a, b = a + w, b + w  # back to the segment's rows
+                if a <= 2 * w or b >= q.shape[0] - 2 * w:
+                    continue  # at the segment's edge: a rest, not a stick
+                climb = min(_climb(speed[a - 1:w:-1], 10 * v_still),
+                            _climb(speed[b:q.shape[0] - w], 10 * v_still))
+                if b - a >= 4 * w and b - a > STICK_FACTOR * climb:
+                    stick[a:b] = True
+                    durations[j].append((b - a) * dt)
+            if stick.any():
+                wide = np.convolve(stick, np.ones(2 * smear + 1), "same") > 0
+                out[seg.start:seg.stop, j] = wide
+    return out, durations
+
+
+def without_sticks(pb: Problem) -> tuple[Problem, list[Sticks]]:
+    """The problem with each sticking joint's stick rows left out of its equation (training and
+    validation logs alike), a note per joint; the sticks found in the training logs."""
+    speeds = np.concatenate([np.abs(p.qd[_filtered(p)]) for p in pb.preps])
+    if not speeds.size:
+        return pb, []
+    typical = np.percentile(speeds, 95, axis=0)
+    found = [(p, *find_sticks(p, typical)) for p in (*pb.preps, *pb.vpreps)]
+    train = found[: len(pb.preps)]
+    total = sum(len(p.log) for p in pb.preps)
+    sticks = []
+    for j in range(pb.robot.n):
+        durs = [d for _, _, ds in train for d in ds[j]]
+        rows = sum(float(m[:, j].sum()) for _, m, _ in train)
+        if not durs or rows / total < STICK_SHARE_MIN:
+            continue
+        zone = np.concatenate([np.abs(p.qd[m[:, j], j]) for p, m, _ in train])
+        sticks.append(Sticks(j, rows / total, max(durs), len(durs),
+                             float(np.percentile(zone, 95))))
+    if not sticks:
+        return pb, []
+    def masked(prep: Prepared, stuck: np.ndarray) -> Prepared:
+        keep = np.ones(prep.q.shape, bool) if prep.tau_mask is None else prep.tau_mask.copy()
+        for st in sticks:
+            keep[:, st.joint] &= ~stuck[:, st.joint]
+        return replace(prep, tau_mask=keep)
+
+    preps = [masked(p, m) for p, m, _ in found]
+    return pb.with_preps(preps[: len(pb.preps)], preps[len(pb.preps):],
+                         [sticks_note(sticks, pb.preps[0])]), sticks
+
+
+def sticks_note(sticks: Sequence[Sticks], prep: Prepared) -> str:
+    parts = [f"joint {s.joint + 1} ({s.count} rests up to {s.longest_s:.3g} s; "
+             f"{100 * s.share:.3g} % of the samples left out, speeds under {s.speed:.3g})"
+             for s in sticks]
+    return ("rests within the motion (sticks at reversals, pauses): " + ", ".join(parts)
+            + ": friction at rest is static, so the rests and their smear by one period of the "
+            f"{prep.filt.cutoff_hz:.3g} Hz cutoff are left out of the joint's equation")
