@@ -497,7 +497,7 @@ class Daemon:
             try:
                 await cp.preflight(self.cfg, self.store, self.ctx, name, str(trigger))
             except ApprovalError as err:  # unattended: only approved programs
-                log.warning("%s start refused: %s", trigger, err)
+                log.warning("start of %s refused: %s", name, err)
                 raise
         run_id = await cp.create_run(self.cfg, self.store, name, trigger,
                                      force=req.get("force") is True)

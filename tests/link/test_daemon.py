@@ -253,7 +253,7 @@ def test_a_web_start_runs_only_approved_programs(tmp_path: Path, controller: Any
 
     with controller() as ctrl:
         refused, runs, ran = with_daemon(cfg, body)
-    assert re.fullmatch(r"web start refused: program of experiment rigid_body \(\w{12}\) is "
+    assert re.fullmatch(r"web start refused: the program of experiment rigid_body \(\w{12}\) is "
                         r"not approved; run: robid campaign approve one --config \S+", refused)
     assert runs == 0 and ctrl.handled[1:] == []
     assert ran["state"] == "completed" and ran["trigger"] == "web" and len(ctrl.handled) == 1
