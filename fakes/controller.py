@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import abc
 import io
+import json
 import logging
 import os
 import threading
@@ -170,8 +171,6 @@ class ControllerCore:
         """Load an uploaded parameter set: from now on the closed loop's feedforward uses it
         (like a controller that loads new dynamic parameters). A set that does not fit this
         robot raises RobidError and the previous set stays in use."""
-        import json
-
         from robid_link.ident.fit.paramset import feedforward
 
         try:

@@ -17,6 +17,7 @@ import pinocchio as pin
 
 from robid_link.exceptions import ConfigError
 from robid_link.fakes.plant_loop import COMPILED_EFFECTS, integrate, model_params
+from robid_link.ident.excite.excitation import MAX_RATE_HZ, MIN_RATE_HZ
 from robid_link.ident.model.effects import moving_sign
 from robid_link.ident.model.robot import Robot
 from robid_link.ident.model.robot_check import inertia_problem
@@ -47,8 +48,6 @@ GLOBAL_EFFECTS = {"delay", "payload"}
 #: parameters that must be > 0 (a division or an exponent) or ≥ 0 (a physical magnitude)
 _POSITIVE = {"period", "vs", "shape", "tau_s", "alpha", "jm"}
 _NON_NEGATIVE = {"fv", "fc", "fs", "fc_pos", "fc_neg", "ia", "mu", "mass", "k", "d", "a"}
-#: bounds that keep a simulation finite: a rate beyond any controller, spreads below 100 %
-MAX_RATE_HZ = 100_000.0
 CLOSED_LOOP_ONLY = {"elasticity"}
 
 
@@ -230,9 +229,9 @@ def _truth_from_doc(doc: dict[str, Any], robot: Robot) -> Truth:
     if mode == "inverse" and any(e["name"] in CLOSED_LOOP_ONLY for e in effects):
         raise ConfigError("effects: 'elasticity' needs mode: closed_loop")
     rate = doc.get("rate_hz", 1000.0)
-    if not _finite(rate) or not 0 < rate <= MAX_RATE_HZ:
-        raise ConfigError(f"rate_hz: expected a positive number up to {MAX_RATE_HZ:g}, "
-                          f"got {_short(rate)}")
+    if not _finite(rate) or not MIN_RATE_HZ <= rate <= MAX_RATE_HZ:
+        raise ConfigError(f"rate_hz: expected a sampling rate in [{MIN_RATE_HZ:g}, "
+                          f"{MAX_RATE_HZ:g}] Hz, got {_short(rate)}")
     return Truth(inertials, effects, noise.get("tau", 0.0), float(noise.get("q_resolution", 0.0)),
                  float(rate), mode, side, dict(doc.get("controller") or {}))
 

@@ -196,16 +196,20 @@ def _plant_keys(doc: dict[str, Any], base: Path) -> dict[str, Any]:
 
 
 def _num(doc: dict[str, Any], key: str, where: str, default: Any, *, positive: bool = True,
-         integer: bool = False) -> Any:
+         integer: bool = False, high: float = 1e9) -> Any:
     v = doc.get(key, default)
     if v is None:
         return None
     kinds = int if integer else (int, float)
+    sign = "a positive" if positive else "a non-negative"
+    what = f"{sign} {'integer' if integer else 'number'}"
     if (isinstance(v, bool) or not isinstance(v, kinds)
             or not (isinstance(v, int) or math.isfinite(v)) or (v <= 0 if positive else v < 0)):
-        sign = "a positive" if positive else "a non-negative"
-        raise ConfigError(f"{where}.{key}: expected {sign} {'integer' if integer else 'number'}"
-                          f", got {v!r}")
+        raise ConfigError(f"{where}.{key}: expected {what}, got {v!r}")
+    if v > high:  # 10**400 is an int: it would overflow a float later (a sleep, a timeout)
+        shown = (str(v) if isinstance(v, int) and v < 10 ** 15 else f"{v:.3g}" if v < 1e300
+                 else f"an integer of {v.bit_length()} bits")
+        raise ConfigError(f"{where}.{key}: expected {what} up to {high:g}, got {shown}")
     return v
 
 
@@ -289,7 +293,7 @@ def _campaign(name: str, raw: Any, base: Path) -> CampaignDef:
         identify=raw.get("identify", True), diagnose=raw.get("diagnose", False),
         model=_path(base, raw["model"], f"{w}.model") if raw.get("model") else None,
         add=tuple(add), method=method,
-        retries=_num(raw, "retries", w, 2, positive=False, integer=True),
+        retries=_num(raw, "retries", w, 2, positive=False, integer=True, high=1000),
         backoff_s=_num(raw, "backoff_s", w, 2.0, positive=False),
         timeout_s=_num(raw, "timeout_s", w, None), reduced_speed_first=rsf,
         cutoff_hz=_num(raw, "cutoff_hz", w, None), motor_side=raw.get("motor_side", False),

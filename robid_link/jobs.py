@@ -191,41 +191,50 @@ class ParameterSet(Record):
         """The set, or ModelError: not a set of this format, or damaged (hash)."""
         if not isinstance(doc, Mapping):
             raise ModelError("parameter set: expected a JSON object")
+        name = _set_name(doc)
         if doc.get("format") != PARAMETER_SET_FORMAT:
-            raise ModelError(f"parameter set: format {doc.get('format')!r}, expected "
+            raise ModelError(f"{name}: format {doc.get('format')!r}, expected "
                              f"{PARAMETER_SET_FORMAT}")
         try:
             sha = set_sha256(doc)
         except (TypeError, ValueError) as err:
-            raise ModelError(f"parameter set: not canonical JSON ({err})") from err
+            raise ModelError(f"{name}: not canonical JSON ({err})") from err
         if doc.get("sha256") != sha:
-            raise ModelError("parameter set: content does not match its sha256 (damaged)")
+            # short: a controller's refusal quotes it in an 80-character RAPID string
+            raise ModelError(f"{name}: damaged (sha256 mismatch)")
         return cls(dict(doc))
 
     def check(self, n_joints: int) -> None:
         """What a controller needs of the set for an ``n_joints`` robot; ModelError names the
         problem."""
+        name = _set_name(self.doc)
         fr = self.doc.get("friction") or {}
         lists = [fr.get(k, [0.0] * n_joints) if isinstance(fr, Mapping) else None
                  for k in ("viscous", "coulomb", "offset")]
         inert = self.doc.get("standard_inertials")
         if not all(_numbers(v, n_joints) for v in lists) or (
                 inert is not None and not _numbers(inert, 10 * n_joints)):
-            raise ModelError(f"parameter set: sizes do not fit a {n_joints}-joint robot")
+            raise ModelError(f"{name}: sizes do not fit a {n_joints}-joint robot")
         if inert is not None and not all(math.isfinite(x) for x in inert):
-            raise ModelError("parameter set: standard inertials hold a non-finite number")
+            raise ModelError(f"{name}: standard inertials hold a non-finite number")
         if not all(math.isfinite(x) for v in lists for x in v or ()):
-            raise ModelError("parameter set: friction holds a non-finite number")
+            raise ModelError(f"{name}: friction holds a non-finite number")
         for r in self.doc.get("ripple") or []:
             ok = isinstance(r, Mapping) and all(
                 isinstance(r.get(k), int | float) and not isinstance(r.get(k), bool)
                 for k in ("joint", "period", "sin", "cos"))
             if not ok:
-                raise ModelError("parameter set: a ripple entry lacks a number of joint, "
-                                 "period, sin or cos")
+                raise ModelError(f"{name}: a ripple entry lacks a number of joint, period, "
+                                 "sin or cos")
             if not 1 <= r["joint"] <= n_joints or not r["period"] > 0:
-                raise ModelError(f"parameter set: ripple of joint {r['joint']} (period "
+                raise ModelError(f"{name}: ripple of joint {r['joint']} (period "
                                  f"{r['period']}) does not fit a {n_joints}-joint robot")
+
+
+def _set_name(doc: Mapping[str, Any]) -> str:
+    """A parameter set as errors name it: by the hash it claims."""
+    sha = doc.get("sha256")
+    return f"parameter set {sha[:12]}" if isinstance(sha, str) and sha else "parameter set"
 
 
 @dataclass(frozen=True)

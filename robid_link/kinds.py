@@ -14,6 +14,9 @@ from robid_link.yamlio import check_keys
 __all__ = ["KindOptions", "KIND_OPTIONS", "experiment_options"]
 
 Validator = Callable[[dict[str, Any], str], None]
+#: the lowest controller rate a trajectory can plausibly have (Hz), as the worker's
+#: ``ident.excite.excitation.MIN_RATE_HZ`` (this room imports nothing of the worker)
+MIN_RATE_HZ = 10.0
 
 
 def _no_check(opts: dict[str, Any], where: str) -> None:
@@ -66,8 +69,8 @@ def _bounded(opts: Mapping[str, Any], where: str, key: str, lo: float, hi: float
 def _check_common(opts: Mapping[str, Any], where: str) -> None:
     if "duration_s" in opts:
         _bounded(opts, where, "duration_s", 0.1, 3600.0)
-    if "rate_hz" in opts:
-        _bounded(opts, where, "rate_hz", 1.0, 10_000.0)
+    if "rate_hz" in opts:  # the plausible rates of a trajectory (ident.excite MIN_RATE_HZ)
+        _bounded(opts, where, "rate_hz", MIN_RATE_HZ, 10_000.0)
 
 
 def _check_rigid_body(opts: dict[str, Any], where: str) -> None:
@@ -105,6 +108,7 @@ def _check_custom(opts: dict[str, Any], where: str) -> None:
 
 
 def _check_verify(opts: dict[str, Any], where: str) -> None:
+    _check_common(opts, where)
     sp = opts["speed"]
     if isinstance(sp, bool) or not isinstance(sp, int | float) or not 0 < sp <= 1:
         raise ConfigError(f"{where}.speed: expected a fraction of the limits in (0, 1], "
@@ -112,6 +116,7 @@ def _check_verify(opts: dict[str, Any], where: str) -> None:
 
 
 def _check_elasticity(opts: dict[str, Any], where: str) -> None:
+    _check_common(opts, where)
     joints = opts["joints"]
     if joints is not None and (not isinstance(joints, list) or not joints or not all(
             isinstance(j, int) and not isinstance(j, bool) and 1 <= j <= 64 for j in joints)):
@@ -127,10 +132,15 @@ def _check_elasticity(opts: dict[str, Any], where: str) -> None:
             isinstance(x, int | float) and not isinstance(x, bool) and abs(x) <= 3600
             for x in pose)):
         raise ConfigError(f"{where}.pose_deg: expected one angle (degrees) per joint")
+    _bounded(opts, where, "f_min_hz", 1e-3, 500.0)
+    _bounded(opts, where, "f_max_hz", 1e-3, 500.0)
     lo, hi = opts["f_min_hz"], opts["f_max_hz"]
-    if not (isinstance(lo, int | float) and isinstance(hi, int | float) and 0 < lo < hi <= 500):
-        raise ConfigError(f"{where}.f_max_hz: expected 0 < f_min_hz < f_max_hz ≤ 500, got "
-                          f"{lo!r}, {hi!r}")
+    if lo >= hi:
+        raise ConfigError(f"{where}.f_min_hz: expected a frequency below f_max_hz {hi:g} Hz, "
+                          f"got {lo:g}")
+    if isinstance(opts.get("rate_hz"), int | float) and hi > 0.2 * opts["rate_hz"]:
+        raise ConfigError(f"{where}.f_max_hz: {hi:g} Hz is above 20 % of rate_hz "
+                          f"{opts['rate_hz']:g} (the sines need ≥ 5 samples a period)")
     steps = opts["steps"]
     if isinstance(steps, bool) or not isinstance(steps, int) or not 4 <= steps <= 200:
         raise ConfigError(f"{where}.steps: expected a whole number in 4..200, got {steps!r}")

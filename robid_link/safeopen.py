@@ -7,7 +7,8 @@ import os
 import stat
 from pathlib import Path
 
-__all__ = ["read_regular", "describe", "NotRegularError", "TooLargeError"]
+__all__ = ["read_regular", "describe", "file_problem", "NotRegularError",
+           "TooLargeError"]
 
 
 class NotRegularError(OSError):
@@ -55,3 +56,26 @@ def read_regular(path: str | os.PathLike[str], max_bytes: int) -> bytes:
 def describe(err: OSError, path: str | os.PathLike[str]) -> str:
     """One line for an error of :func:`read_regular`."""
     return f"{Path(path)}: {err.strerror or err}"
+
+
+_KINDS = ((stat.S_ISDIR, "is a folder, not a file"), (stat.S_ISFIFO, "is a FIFO"),
+          (stat.S_ISCHR, "is a character device"), (stat.S_ISBLK, "is a block device"),
+          (stat.S_ISSOCK, "is a socket"))
+
+
+def file_problem(path: str | os.PathLike[str]) -> str | None:
+    """Why ``path`` (followed through links) is not a regular file a command can read, as the
+    end of a sentence naming it (``not found``, ``is a folder, not a file``, ``is a FIFO, not
+    a regular file``), or None. A FIFO would block the reader, a device never end."""
+    try:
+        mode = os.stat(path).st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        return "not found"
+    except OSError as err:
+        return f"cannot be read ({err.strerror or err})"
+    if stat.S_ISREG(mode):
+        return None
+    for test, text in _KINDS:
+        if test(mode):
+            return text if test is stat.S_ISDIR else f"{text}, not a regular file"
+    return "is not a regular file"

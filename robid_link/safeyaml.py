@@ -7,7 +7,9 @@ the file and the line. Imports no wing.
 
 from __future__ import annotations
 
+import os
 import re
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +17,7 @@ import yaml
 from yaml.events import AliasEvent, MappingStartEvent, SequenceStartEvent
 
 from robid_link.exceptions import ConfigError, RobidError
+from robid_link.safeopen import file_problem
 
 __all__ = ["load_yaml", "load_yaml_file", "read_bounded", "MAX_YAML_BYTES", "MAX_YAML_ALIASES",
            "MAX_YAML_DEPTH", "MAX_YAML_NODES"]
@@ -146,13 +149,20 @@ def load_yaml(data: bytes | str, what: str, *, max_bytes: int = MAX_YAML_BYTES,
 
 
 def read_bounded(path: str | Path, max_bytes: int, error: type[RobidError] = ConfigError) -> bytes:
-    """The bytes of a regular file, refused (one line naming it) when larger than max_bytes."""
+    """The bytes of a regular file, refused (one line naming it) when larger than max_bytes
+    or not a regular file (opened without blocking: a FIFO never hangs the reader)."""
     p = Path(path)
     try:
-        with open(p, "rb") as fh:
-            data = fh.read(max_bytes + 1)
+        fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except OSError as err:
         raise error(f"{p}: cannot read: {err.strerror or err}") from err
+    with os.fdopen(fd, "rb") as fh:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise error(f"{p}: {file_problem(p) or 'is not a regular file'}")
+        try:
+            data = fh.read(max_bytes + 1)
+        except OSError as err:
+            raise error(f"{p}: cannot read: {err.strerror or err}") from err
     if len(data) > max_bytes:
         raise error(f"{p}: larger than the {max_bytes} bytes allowed")
     return data

@@ -15,6 +15,7 @@ from typing import Any
 import yaml
 
 from robid_link.exceptions import ConfigError, RobidError
+from robid_link.safeopen import file_problem
 from robid_link.safeyaml import load_yaml_file
 
 __all__ = ["read_yaml_mapping", "check_keys", "yaml_type"]
@@ -55,10 +56,11 @@ def read_yaml_mapping(path: str | Path, what: str, error: type[RobidError] = Con
                       must_exist: bool = True) -> dict[str, Any]:
     """``safe_load`` a YAML file that must hold a mapping; ``what`` names it in errors."""
     p = Path(path)
-    if not p.is_file():
-        if must_exist:
-            raise error(f"{p}: {what} not found")
+    problem = file_problem(p)
+    if problem == "not found" and not must_exist:
         return {}
+    if problem:
+        raise error(f"{p}: {what} {problem}")
     try:
         doc = load_yaml_file(p, error=error)  # bounded: size, aliases, nesting
     except yaml.YAMLError as err:

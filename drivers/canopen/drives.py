@@ -57,6 +57,7 @@ from robid_link.link.options import (
     Number,
     Option,
     Options,
+    Retired,
     Table,
     Text,
     Vector,
@@ -110,8 +111,8 @@ class CanopenDrivesDriver(Driver):
     ``following_error_rad``, ``heartbeat_ms``, ``heartbeat_timeout_s``, ``boot_timeout_s``,
     ``state_timeout_s``, ``settle_timeout_s``, ``standstill_rad_s``, ``max_missed``,
     ``overrun_streak``, ``max_approach_rad``, ``bus_options`` (extra python-can arguments),
-    ``robot_file`` (accepted for older configs, no longer needed: the feedforward's inverse
-    dynamics runs in the worker on the daemon's robot),
+    ``robot_file`` (refused: no longer used, the feedforward's inverse dynamics runs in the
+    worker on the daemon's robot),
     ``sync_echo`` (the drive's UNSIGNED8 object, mappable, that holds the counter of the SYNC
     at which its TPDO values were latched: ``"0x2100:0"`` by default; each TPDO carries it, so
     a late answer is still put at its own SYNC; the driver sets 0x1019 so SYNCs carry a
@@ -123,7 +124,7 @@ class CanopenDrivesDriver(Driver):
 
     An uploaded parameter set is the driver's own feedforward: every setpoint carries the set's
     model torque (a table the worker computes, ``feedforward_table``) as torque offset 0x60B2
-    (see ``cia402_feedforward``).
+    (``feedforward.torque_offsets``, mapped in RPDO1 by ``cia402``).
     """
 
     name = "canopen_drives"
@@ -134,14 +135,15 @@ class CanopenDrivesDriver(Driver):
         host=Text(None, expect="the socketcand server's host name or address"),
         port=Integer(None, low=1, high=65535,
                      expect="the socketcand server's TCP port (1..65535)"),
-        robot_file=File(None, exists=True),
+        robot_file=Retired("the feedforward's inverse dynamics runs in the worker on the "
+                           "daemon's robot, the config's robot:"),
         nodes=Vector(Integer(low=1, high=127, expect="a node id in 1..127"), per_joint=True,
                      unique=True, hint="a list of node ids, one per joint"),
         sync_period_s=Number(0.004, low=0.001, high=0.1),
         counts_per_rad=Vector(Number(above=0), per_joint=True,
                               hint="encoder counts per joint radian, one per joint"),
         rated_torque_nm=Vector(Number(above=0), None, per_joint=True),
-        eds=File(exists=True, hint="the drives' EDS file"), record_dir=Folder(None),
+        eds=File(exists=True, hint="the drives' EDS file"), record_dir=Folder(None, created=True),
         following_error_rad=Number(0.15, low=1e-6),
         heartbeat_ms=Integer(100, low=1, high=65535),
         heartbeat_timeout_s=Number(0.35, low=0.001), boot_timeout_s=Number(2.0, low=0.01),
@@ -188,7 +190,6 @@ class CanopenDrivesDriver(Driver):
         self.tpdo2 = tpdo2_struct(32 if fine else 16)
         self.overrun_streak, self.max_approach = o.overrun_streak, o.max_approach_rad
         self.bus_options = dict(o.bus_options or {})
-        self.robot_file = None if o.robot_file is None else str(o.robot_file)
         self.parameters: KeptParameterSet | None = None
         self.network: canopen.Network | None = None
         self.axes: list[Axis] = []

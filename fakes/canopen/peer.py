@@ -256,9 +256,7 @@ class Cia402Peer(Peer):
         bus: dict[str, Any] = {"interface": self.interface, "channel": self.channel}
         if self.server is not None:
             bus.update(channel="can0", host="127.0.0.1", port=self.server.port)
-        source = Path(self.core.robot.source)
-        robot_file = {"robot_file": str(source.resolve())} if source.is_file() else {}
-        return {"name": "canopen_drives", **bus, **robot_file, "bitrate": 1_000_000,
+        return {"name": "canopen_drives", **bus, "bitrate": 1_000_000,
                 "nodes": [d.id for d in self.drives],
                 "sync_period_s": self.period, "counts_per_rad": self.cpr,
                 "rated_torque_nm": self.rated, "eds": str(EDS),

@@ -8,9 +8,13 @@ that module and its line in ``GROUPS``.
 from __future__ import annotations
 
 import argparse
+import logging
+import os
 import sys
+import traceback
 import warnings
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from robid_link import __version__
@@ -18,7 +22,7 @@ from robid_link.cli import analyse, campaign, daemon, demo, fleet, params, robot
 from robid_link.cli.types import Command, OneLineParser, error_line
 from robid_link.exceptions import RobidError
 
-__all__ = ["main", "GROUPS"]
+__all__ = ["main", "GROUPS", "EXIT_INTERNAL"]
 
 #: the command groups, in the order ``robid --help`` lists their commands
 GROUPS = (analyse, robot, demo, daemon, campaign, runs, params, fleet, web)
@@ -49,12 +53,55 @@ def _parser() -> argparse.ArgumentParser:
     return ap
 
 
+class _OneLineLog(logging.Handler):
+    """The library's logged warnings (an unlimited joint accepted, a URDF part skipped) as
+    ``robid: warning: …`` lines on the stderr of the moment."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        print(f"robid: {record.levelname.lower()}: {record.getMessage()}", file=sys.stderr)
+
+
 def _one_line_warnings() -> None:
     def show(message: Warning | str, category: type[Warning], *args: Any, **kw: Any) -> None:
         print(f"robid: warning: {message}", file=sys.stderr)
 
     warnings.showwarning = show  # type: ignore[assignment]
     warnings.simplefilter("default")
+    library = logging.getLogger("robid_link")
+    if not any(isinstance(h, _OneLineLog) for h in library.handlers):
+        handler = _OneLineLog(logging.WARNING)
+        library.addHandler(handler)
+
+
+def _os_error_line(err: OSError) -> str:
+    """An OSError the command's own checks did not foresee, as ``file: reason``."""
+    reason = err.strerror or str(err) or type(err).__name__
+    if err.filename is None:
+        return reason
+    if err.filename2 is not None:
+        return f"{err.filename} → {err.filename2}: {reason}"
+    return f"{err.filename}: {reason}"
+
+
+def _internal_error_line(err: BaseException) -> str:
+    """A bug: one line with where it happened, and how to see the whole traceback."""
+    frames = traceback.extract_tb(err.__traceback__)
+    where = f" ({Path(frames[-1].filename).name}:{frames[-1].lineno})" if frames else ""
+    text = " ".join(str(err).split())[:200]
+    return (f"robid: internal error: {type(err).__name__}: {text}{where}; rerun with --debug "
+            "for the traceback and report it")
+
+
+def _quiet_broken_pipe() -> int:
+    """``robid status | head``: the reader left; no traceback, no 'Exception ignored'."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+    return 128 + 13  # the shell's status for a process ended by SIGPIPE
+
+
+#: exit status of a bug (an exception no check foresaw): EX_SOFTWARE of sysexits.h
+EXIT_INTERNAL = 70
 
 
 def _single_threaded_blas() -> None:
@@ -62,7 +109,6 @@ def _single_threaded_blas() -> None:
     numerical passes spread their chunks over the cores themselves (``threads.in_slots``),
     and a multi-threaded BLAS on small products only spins against them, and against the
     other processes of a shared machine. Read by OpenBLAS when numpy is first imported."""
-    import os
 
     if not any(k in os.environ for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
                                          "MKL_NUM_THREADS")):
@@ -70,6 +116,9 @@ def _single_threaded_blas() -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one command. Exit 0 on success, 2 on an error (one line on stderr), 70 on a bug
+    (one line; ``--debug`` shows the traceback), 130 when interrupted; a command may return
+    a status of its own (``campaign start --trigger timer`` with nothing to do)."""
     if "numpy" not in sys.modules:
         _single_threaded_blas()
     try:
@@ -83,11 +132,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         if command.check is not None:
             command.check(args)
         return int(command.run(args) or 0)
+    except BrokenPipeError:
+        return _quiet_broken_pipe()
     except RobidError as err:
         if args.debug:
             raise
         print(error_line(str(err)), file=sys.stderr)
         return 2
+    except OSError as err:  # a file the command reads or writes, beyond what it checked
+        if args.debug:
+            raise
+        print(error_line(_os_error_line(err)), file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("robid: interrupted", file=sys.stderr)
         return 130
+    except Exception as err:  # a bug: still one line, with a status of its own
+        if args.debug:
+            raise
+        print(_internal_error_line(err), file=sys.stderr)
+        return EXIT_INTERNAL

@@ -9,15 +9,24 @@ from typing import Any
 
 from robid_link.cli.types import (
     Command,
+    axes_of,
     axis_pair,
     bounded_int,
+    figure_path,
     output_path,
     positive_float,
+    rate_hz,
+    refuse_given,
     robot_options,
 )
-from robid_link.exceptions import ConfigError, RobidError
+from robid_link.exceptions import ConfigError, DataError, RobidError
 
-__all__ = ["COMMANDS"]
+__all__ = ["COMMANDS", "IRLS_WEIGHTS"]
+
+#: the weight functions of ``--method irls`` (``ident.fit.estimate.WEIGHTS``; listed here so
+#: that ``robid --help`` starts without numpy)
+IRLS_WEIGHTS = ("andrews", "bisquare", "cauchy", "fair", "huber", "logistic", "talwar",
+                "welsch")
 
 
 def _shared_inputs(p: argparse.ArgumentParser) -> None:
@@ -27,8 +36,8 @@ def _shared_inputs(p: argparse.ArgumentParser) -> None:
                         "repeat to identify on several")
     p.add_argument("--validate", action="append", metavar="LOG",
                    help="held-out log(s); default: the last 20 %% of each --data file")
-    p.add_argument("--fs", type=positive_float(1e6), metavar="HZ",
-                   help="sampling rate in Hz (needed for .mat logs)")
+    p.add_argument("--fs", type=rate_hz(1e6), metavar="HZ",
+                   help="sampling rate in Hz of .mat logs (the others carry time stamps)")
     _topic_option(p)
     p.add_argument("--cutoff", type=positive_float(1e6), metavar="HZ",
                    help="zero-phase low-pass cutoff (default 10 Hz, at most 40 %% of Nyquist)")
@@ -56,7 +65,7 @@ def _load_model(args: argparse.Namespace) -> Any:
         print(f"created {args.model} with the default model [{', '.join(DEFAULT_MODEL.labels())}]")
     model = load_model(args.model)
     for entry in args.add:
-        model = model.with_added(parse_effect(entry, f"--add {entry}"))
+        model = model.with_added(parse_effect(entry, f"--add {entry}"), f"--add {entry}")
     return model
 
 
@@ -84,18 +93,30 @@ def _identify_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--export-urdf", metavar="FILE", type=output_path("file"),
                    help="with --method consistent: write the robot's URDF with the "
                    "identified inertials")
-    p.add_argument("--weight", default="bisquare",
-                   help="IRLS weight: andrews, bisquare, cauchy, fair, huber, logistic, "
-                        "talwar, welsch")
+    p.add_argument("--weight", choices=IRLS_WEIGHTS, metavar="NAME",
+                   help="with --method irls: the weight function, one of "
+                        f"{', '.join(IRLS_WEIGHTS)} (default bisquare)")
     p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
                    help="write the result as JSON")
     p.add_argument("--out", metavar="DIR", type=output_path("dir"),
                    help="write report.html, figures, parameter table and YAML")
 
 
+def _fs_check(args: argparse.Namespace) -> None:
+    """``--fs`` sets the rate of .mat logs only: with none among the logs it would be
+    ignored."""
+    logs = [*args.data, *(getattr(args, "validate", None) or [])]
+    if args.fs is not None and not any(Path(x).suffix.lower() == ".mat" for x in logs):
+        raise ConfigError(f"--fs {args.fs:g}: applies to .mat logs only (the others carry "
+                          "their time stamps)")
+
+
 def _identify_check(args: argparse.Namespace) -> None:
     if args.export_urdf and args.method != "consistent":
         raise ConfigError("--export-urdf needs --method consistent (standard parameters)")
+    if args.method != "irls":
+        refuse_given(args, ["--weight"], f"applies to --method irls only, not {args.method}")
+    _fs_check(args)
 
 
 def _identify(args: argparse.Namespace) -> int:
@@ -103,7 +124,8 @@ def _identify(args: argparse.Namespace) -> int:
 
     robot, model, data, valid = _inputs(args)
     job = run_job(robot, data, model, validate=valid, cutoff_hz=args.cutoff,
-                  interval=args.interval, method=args.method, weight=args.weight,
+                  interval=args.interval, method=args.method,
+                  weight=args.weight or "bisquare",
                   motor_side=args.motor_side, json_files={"identify": args.json} if args.json
                   else None, report_dir=args.out, history=args.model or None)
     print(job.result.summary())
@@ -154,7 +176,7 @@ def _diagnose(args: argparse.Namespace) -> int:
 
 def _history_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("model_file", help="model file whose history (.history.jsonl) to show")
-    p.add_argument("--out", metavar="PNG", type=output_path("file"),
+    p.add_argument("--out", metavar="PNG", type=figure_path(),
                    help="plot per-joint RMSE per model version")
 
 
@@ -216,7 +238,8 @@ def _elasticity_options(p: argparse.ArgumentParser) -> None:
                    help="URDF joint to lock; repeatable")
     p.add_argument("--data", action="append", required=True, metavar="LOG",
                    help="stepped-sine log (.csv, .npz, .mat or a ROS bag); repeatable")
-    p.add_argument("--fs", type=positive_float(1e6), help="sampling rate in Hz (.mat logs)")
+    p.add_argument("--fs", type=rate_hz(1e6), metavar="HZ",
+                   help="sampling rate in Hz of .mat logs")
     _topic_option(p)
     p.add_argument("--joint", type=bounded_int(1, 64), action="append", default=[], metavar="J",
                    help="axis to fit (1-based); repeatable; default every excited axis")
@@ -239,10 +262,12 @@ def _elasticity(args: argparse.Namespace) -> int:
     from robid_link.ident.model.robot import load_robot
     from robid_link.ident.report.figures import write_json
 
+    pair = axis_pair(args.joints, "--joints") if args.joints is not None else None
     robot = load_robot(args.robot, args.lock)
+    axes_of(robot, "--joint", args.joint)
+    axes_of(robot, "--joints", pair or ())
     logs = [load_log(p, robot.n, args.fs, joint_names=robot.joint_names, topic=args.topic,
                      effort_current=robot.effort_current) for p in args.data]
-    pair = axis_pair(args.joints, "--joints") if args.joints else None
     schedule = None
     if args.schedule:
         schedule = read_yaml_mapping(args.schedule, "trajectory header").get("schedule")
@@ -252,8 +277,11 @@ def _elasticity(args: argparse.Namespace) -> int:
     if not joints and pair is None:  # every excited axis, and the pair excited together
         from robid_link.ident.elastic.frequency import detect_steps, excited_axes
 
-        steps = schedule if schedule is not None else detect_steps(
-            logs[0].t, logs[0].q, logs[0].tau)
+        try:
+            steps = schedule if schedule is not None else detect_steps(
+                logs[0].t, logs[0].q, logs[0].tau)
+        except DataError as err:
+            raise DataError(f"{logs[0].path}: {err}") from err
         joints, pairs = excited_axes(steps)
         pair = pairs[0] if pairs else None
     res = identify_elasticity(robot, logs, joints=joints, pair=pair, schedule=schedule,
@@ -274,12 +302,13 @@ COMMANDS = (
     Command(name="identify", help="identify the dynamic model from logs",
             options=_identify_options, check=_identify_check, run=_identify),
     Command(name="diagnose", help="find where the model fails and which effect is missing",
-            options=_diagnose_options, run=_diagnose),
+            options=_diagnose_options, check=_fs_check, run=_diagnose),
     Command(name="history", help="the error ladder of a model file",
             options=_history_options, run=_history),
     Command(name="model", help="edit a model file", commands=(
         Command(name="add", help="add an effect (creates the file from the default model)",
                 options=_model_add_options, run=_model_add),)),
     Command(name="elasticity", help="joint elasticity (two-mass / coupled) from "
-            "stepped-sine logs", options=_elasticity_options, run=_elasticity),
+            "stepped-sine logs", options=_elasticity_options, check=_fs_check,
+            run=_elasticity),
 )

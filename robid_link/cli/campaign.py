@@ -10,13 +10,18 @@ from typing import TYPE_CHECKING
 
 from robid_link.cli.runs import format_results, report_lines, wait_for_run
 from robid_link.cli.types import Command, config_option, output_path
-from robid_link.exceptions import DaemonUnreachable
+from robid_link.exceptions import ApprovalError, DaemonUnreachable
 from robid_link.link.control import PREFLIGHT_TIMEOUT_S, request
 
 if TYPE_CHECKING:
     from robid_link.config import DaemonConfig
 
-__all__ = ["COMMANDS"]
+__all__ = ["COMMANDS", "EXIT_NOTHING_TO_DO"]
+
+#: ``campaign start --trigger timer`` with a program nobody approved: no run, nothing moved.
+#: 6 is LSB's "program is not configured", which systemd names (status=6/NOTCONFIGURED): the
+#: nightly unit shows as failed with that name, never as a success (robid-nightly.service)
+EXIT_NOTHING_TO_DO = 6
 
 
 def _config(args: argparse.Namespace) -> DaemonConfig:
@@ -44,10 +49,16 @@ def _start_options(p: argparse.ArgumentParser) -> None:
 
 def _start(args: argparse.Namespace) -> int:
     cfg = _config(args)
-    run_id = request(cfg.control_socket, {"cmd": "start", "campaign": args.name,
-                                          "trigger": args.trigger,
-                                          **({"force": True} if args.force else {})},
-                     timeout_s=PREFLIGHT_TIMEOUT_S)["run_id"]
+    try:
+        run_id = request(cfg.control_socket, {"cmd": "start", "campaign": args.name,
+                                              "trigger": args.trigger,
+                                              **({"force": True} if args.force else {})},
+                         timeout_s=PREFLIGHT_TIMEOUT_S)["run_id"]
+    except ApprovalError as err:  # unattended, and nothing approved: nothing to do
+        if args.trigger != "timer":
+            raise
+        print(f"robid: nothing to do: {err}", file=sys.stderr)
+        return EXIT_NOTHING_TO_DO
     print(run_id)
     if not args.wait:
         if args.json:

@@ -12,7 +12,9 @@ from robid_link.cli.types import (
     Command,
     bounded_int,
     config_option,
+    known_peer,
     output_path,
+    refuse_given,
     robot_options,
     seed_option,
 )
@@ -23,13 +25,21 @@ __all__ = ["COMMANDS"]
 
 def _daemon(args: argparse.Namespace) -> int:
     """The daemon, with the operator's page as a service when the config has ``web.listen``
-    (the CLI hands it over: the link never imports the web room)."""
+    (the CLI hands it over: the link never imports the web room). The config's keys, driver
+    options and paths are checked here first (one error line, before the daemon's logging
+    starts); the daemon checks them again."""
     import asyncio
 
     from robid_link.config import load_daemon_config
+    from robid_link.link.checks import daemon_findings
     from robid_link.link.daemon import run_daemon
+    from robid_link.link.registry import make_driver
 
     cfg = load_daemon_config(args.config)
+    problems = daemon_findings(cfg, type(make_driver(cfg.driver)).options)
+    if problems:
+        more = f" (and {len(problems) - 1} more: robid config check)" if problems[1:] else ""
+        raise RobidError(f"{cfg.path}: {problems[0].line}{more}")
     services = []
     if cfg.web.listen:
         from robid_link.web.command import daemon_service
@@ -39,14 +49,23 @@ def _daemon(args: argparse.Namespace) -> int:
 
 
 def _config_check(args: argparse.Namespace) -> int:
-    """``robid config check``: one line per campaign, exit 1 when any would be refused."""
+    """``robid config check``: what the daemon's start checks, one line per path it needs and
+    per campaign (ok, or the key, file and problem); exit 1 when anything is wrong. Keys of
+    the wrong type or value are one error line (exit 2), as everywhere."""
     from robid_link.config import load_daemon_config
     from robid_link.link.campaign import check_config
+    from robid_link.link.checks import daemon_findings
     from robid_link.link.registry import make_driver
 
     cfg = load_daemon_config(args.config)
     driver = make_driver(cfg.driver)
-    bad = 0
+    findings = {f.key: f.line for f in daemon_findings(cfg, type(driver).options)}
+    local_logs = cfg.log_store is not None and "://" not in cfg.log_store
+    paths = ["robot", "state_dir", *(["log_store"] if local_logs else []), "control_socket",
+             *(k for k in findings if k.startswith("driver."))]
+    for key in paths:
+        print(findings.get(key, f"{key}: ok"))
+    bad = len(findings)
     for name, reason in check_config(cfg, driver).items():
         print(f"{name}: {'ok' if reason is None else reason}")
         bad += reason is not None
@@ -72,7 +91,7 @@ def _fake_controller_options(p: argparse.ArgumentParser) -> None:
                    "Coulomb friction, torque noise)")
     p.add_argument("--fault", help="never_answer, die, truncated_log, corrupt_log, "
                    "answer_twice, stale_semaphore, nan_log, fail, or one of the peer's own")
-    p.add_argument("--fault-count", type=bounded_int(0, 1_000_000), default=1, metavar="N",
+    p.add_argument("--fault-count", type=bounded_int(0, 1_000_000), metavar="N",
                    help="how many programs the fault hits (default 1)")
     seed_option(p)
 
@@ -111,7 +130,8 @@ def _fake_controller(args: argparse.Namespace) -> int:
         raise RobidError(f"--workdir: {args.workdir}: folder not found")
     try:
         peer = ctrl.make_peer(args.driver, robot, truth, args.workdir, fault=args.fault,
-                              fault_count=args.fault_count, seed=args.seed, exit_on_die=True,
+                              fault_count=1 if args.fault_count is None else args.fault_count,
+                              seed=args.seed, exit_on_die=True,
                               **options)
     except TypeError as err:  # an option the peer does not take
         raise RobidError(f"--option: {err}") from err
@@ -131,12 +151,18 @@ def _fake_controller(args: argparse.Namespace) -> int:
     return 0
 
 
+def _fake_controller_check(args: argparse.Namespace) -> None:
+    known_peer(args)
+    if not args.fault:
+        refuse_given(args, ["--fault-count"], "needs --fault (which fault to repeat)")
+
+
 COMMANDS = (
     Command(name="daemon", help="run the link daemon in the foreground (systemd unit)",
             options=config_option, run=_daemon),
     Command(name="fake-controller", help="the controller side of a driver's protocol over the "
             "simulated robot (tests, demos)", options=_fake_controller_options,
-            run=_fake_controller),
+            check=_fake_controller_check, run=_fake_controller),
     Command(name="config", help="check a daemon config without a daemon", commands=(
         Command(name="check", help="everything each campaign's run will need: one line per "
                 "campaign, ok or the reason", options=config_option, run=_config_check),)),

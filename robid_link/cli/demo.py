@@ -6,7 +6,7 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from robid_link.cli.types import Command, output_path
+from robid_link.cli.types import Command, known_peer, output_path
 
 __all__ = ["COMMANDS"]
 
@@ -34,5 +34,6 @@ def _demo(args: argparse.Namespace) -> int:
 
 COMMANDS = (
     Command(name="demo", help="the whole job on a simulated cell: fake controller, daemon, "
-            "campaign, identification, diagnosis, report", options=_demo_options, run=_demo),
+            "campaign, identification, diagnosis, report", options=_demo_options,
+            check=known_peer, run=_demo),
 )

@@ -36,13 +36,8 @@ def _engine_check(args: argparse.Namespace) -> None:
 
 def _open_store(text: str, *, write: bool = False) -> Any:
     from robid_link.cli.runs import open_store_option
-    from robid_link.link.store import Store
-    from robid_link.link.store.postgres import is_store_url
 
-    if not write:
-        return open_store_option(text)
-    url = text if is_store_url(text) else None
-    return Store(None if url else text, url=url, exclusive=False)
+    return open_store_option(text, readonly=not write)
 
 
 # ----------------------------------------------------------------------------- report
@@ -65,7 +60,7 @@ def _report_options(p: argparse.ArgumentParser) -> None:
 
 
 def _report_check(args: argparse.Namespace) -> None:
-    if not args.store:
+    if args.store is None:
         raise RobidError("--store: name the plant's store (postgresql://USER@HOST:PORT/DB or "
                          "a state dir)")
     _engine_check(args)
@@ -138,9 +133,12 @@ def _reidentify(args: argparse.Namespace) -> int:
         plan_jobs,
         reidentify,
     )
+    from robid_link.jobs import ModelCheckJob
+    from robid_link.link.worker import run_here
 
     since = parse_since(args.since) if args.since else None
     model = Path(args.model)
+    run_here(ModelCheckJob(str(model), ()))  # the model file, checked before any task starts
     if args.version is not None and not args.version.strip():
         raise RobidError("--version: expected a name")
     with _open_store(args.store, write=True) as store:

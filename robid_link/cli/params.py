@@ -9,7 +9,7 @@ import json
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from robid_link.cli.types import Command, config_option, output_path
+from robid_link.cli.types import Command, config_option, output_path, refuse_given
 from robid_link.exceptions import RobidError
 
 if TYPE_CHECKING:
@@ -34,6 +34,14 @@ def _options(p: argparse.ArgumentParser) -> None:
 def _check(args: argparse.Namespace) -> None:
     if args.params_cmd == "diff" and len(args.sets) not in (0, 2):
         raise RobidError("params diff: give two sets, or none (the set in use and the newest)")
+    if args.params_cmd == "approve" and len(args.sets) > 1:
+        raise RobidError(f"params approve: give one set, or none (the newest), not "
+                         f"{len(args.sets)}")
+    if args.params_cmd == "rollback" and args.sets:
+        raise RobidError(f"params rollback: takes no set (it goes back to the set before the "
+                         f"one in use), got {args.sets[0]!r}")
+    if args.params_cmd != "show":
+        refuse_given(args, ["--json"], "applies to params show only")
 
 
 def _via_daemon(args: argparse.Namespace, cfg: DaemonConfig) -> int:

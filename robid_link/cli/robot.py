@@ -10,15 +10,19 @@ from typing import Any
 
 from robid_link.cli.types import (
     Command,
+    axes_of,
     axis_pair,
     bounded_int,
+    figure_path,
     finite_float,
     output_path,
     positive_float,
+    rate_hz,
+    refuse_given,
     robot_options,
     seed_option,
 )
-from robid_link.exceptions import RobidError
+from robid_link.exceptions import ConfigError, RobidError
 
 __all__ = ["COMMANDS", "MAX_SAMPLES"]
 
@@ -33,7 +37,8 @@ def _show_robot_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--q", type=finite_float, nargs="+", metavar="DEG",
                    help="joint positions in degrees (metres for prismatic); default zeros")
     p.add_argument("--out", required=True, metavar="PNG",
-                   type=output_path("file", create_parents=True), help="the drawing (PNG)")
+                   type=figure_path(create_parents=True),
+                   help="the drawing (PNG; .svg, .pdf, .jpg by suffix)")
 
 
 def _show_robot(args: argparse.Namespace) -> int:
@@ -62,19 +67,19 @@ def _excite_options(p: argparse.ArgumentParser) -> None:
     robot_options(p)
     p.add_argument("--out", required=True, metavar="TRAJ", type=output_path("file"),
                    help="trajectory CSV (+ .yaml header)")
-    p.add_argument("--duration", type=positive_float(1e6), default=20.0, metavar="S",
+    p.add_argument("--duration", type=positive_float(1e6), metavar="S",
                    help="length in seconds, whole periods (default 20)")
-    p.add_argument("--harmonics", type=bounded_int(1, 50), default=8, metavar="K",
+    p.add_argument("--harmonics", type=bounded_int(1, 50), metavar="K",
                    help="Fourier harmonics per joint (default 8)")
-    p.add_argument("--base-hz", type=positive_float(100.0), default=0.1, metavar="HZ",
+    p.add_argument("--base-hz", type=positive_float(100.0), metavar="HZ",
                    help="Fourier base frequency (default 0.1)")
-    p.add_argument("--rate", type=positive_float(100_000.0), metavar="HZ",
+    p.add_argument("--rate", type=rate_hz(), metavar="HZ",
                    help="controller rate of the trajectory file (default 250; 2000 for "
                    "--kind elasticity)")
     p.add_argument("--model", help="model file whose base set is excited (default model)")
-    p.add_argument("--evaluations", type=bounded_int(1, 1_000_000), default=2500, metavar="N",
+    p.add_argument("--evaluations", type=bounded_int(1, 1_000_000), metavar="N",
                    help="optimizer budget per restart (3 restarts; default 2500)")
-    seed_option(p)
+    seed_option(p, default=None)
     p.add_argument("--kind", choices=("fourier", "elasticity"), default="fourier",
                    help="elasticity: stepped sines per --joint around --pose (schedule in the "
                         "header)")
@@ -84,12 +89,43 @@ def _excite_options(p: argparse.ArgumentParser) -> None:
                    help="elasticity: two axes excited together for the coupled fit; repeatable")
     p.add_argument("--pose", type=finite_float, nargs="+", metavar="DEG",
                    help="elasticity: the pose (degrees per joint)")
-    p.add_argument("--f-min", type=positive_float(1000.0), default=2.0, metavar="HZ",
+    p.add_argument("--f-min", type=positive_float(1000.0), metavar="HZ",
                    help="elasticity: lowest frequency (default 2)")
-    p.add_argument("--f-max", type=positive_float(1000.0), default=60.0, metavar="HZ",
+    p.add_argument("--f-max", type=positive_float(1000.0), metavar="HZ",
                    help="elasticity: highest frequency (default 60)")
-    p.add_argument("--steps", type=bounded_int(2, 500), default=24,
+    p.add_argument("--steps", type=bounded_int(3, 500), metavar="N",
                    help="elasticity: frequencies per axis (default 24)")
+
+
+#: the options of one --kind only, with the defaults their help states (the parser's default
+#: is None, so that an option of the other kind, which would be ignored, can be refused)
+_FOURIER_OPTIONS = {"--duration": 20.0, "--harmonics": 8, "--base-hz": 0.1,
+                    "--evaluations": 2500, "--seed": 0, "--model": None}
+_ELASTICITY_OPTIONS = {"--joint": None, "--pair": None, "--pose": None, "--f-min": 2.0,
+                       "--f-max": 60.0, "--steps": 24}
+
+
+def _excite_check(args: argparse.Namespace) -> None:
+    """An option of the other --kind would be ignored: refused before the robot is read; the
+    stepped sines' band must fit below the rate."""
+    other = _ELASTICITY_OPTIONS if args.kind == "fourier" else _FOURIER_OPTIONS
+    refuse_given(args, list(other), f"not used by --kind {args.kind}")
+    if args.kind == "elasticity":
+        full = _with_defaults(args)
+        rate = args.rate or 2000.0
+        if full.f_min >= full.f_max:
+            raise ConfigError(f"--f-min {full.f_min:g}: must be below --f-max {full.f_max:g}")
+        if full.f_max > 0.2 * rate:
+            raise ConfigError(f"--f-max {full.f_max:g}: above 20 % of --rate {rate:g} (raise "
+                              "--rate)")
+
+
+def _with_defaults(args: argparse.Namespace) -> argparse.Namespace:
+    """The options of ``--kind`` with their stated defaults where not given."""
+    own = _FOURIER_OPTIONS if args.kind == "fourier" else _ELASTICITY_OPTIONS
+    filled = {flag.lstrip("-").replace("-", "_"): default for flag, default in own.items()}
+    return argparse.Namespace(**{**vars(args), **{k: v for k, v in filled.items()
+                                                  if getattr(args, k) is None}})
 
 
 def _excite(args: argparse.Namespace) -> int:
@@ -99,6 +135,7 @@ def _excite(args: argparse.Namespace) -> int:
     from robid_link.ident.model.effects import load_model
     from robid_link.ident.model.robot import load_robot
 
+    args = _with_defaults(args)
     robot = load_robot(args.robot, args.lock, allow_unlimited=args.allow_unlimited)
     if args.kind == "elasticity":
         return _excite_elasticity(args, robot)
@@ -143,8 +180,14 @@ def _excite_elasticity(args: argparse.Namespace, robot: Any) -> int:
     from robid_link.ident.elastic.frequency import ElasticityOptions, elasticity_trajectory
     from robid_link.ident.excite.excitation import write_trajectory
 
+    pairs = [axis_pair(p) for p in args.pair]
+    axes_of(robot, "--joint", args.joint)
+    axes_of(robot, "--pair", [j for p in pairs for j in p])
+    if args.pose and len(args.pose) != robot.n:
+        raise RobidError(f"--pose: {len(args.pose)} values given, the robot has {robot.n} "
+                         "joints")
     pose = tuple(np.radians(args.pose)) if args.pose else None
-    opts = ElasticityOptions(joints=tuple(args.joint), pairs=tuple(map(axis_pair, args.pair)),
+    opts = ElasticityOptions(joints=tuple(args.joint), pairs=tuple(pairs),
                              pose=pose, f_min_hz=args.f_min,
                              f_max_hz=args.f_max, steps=args.steps, rate_hz=args.rate or 2000.0)
     traj = elasticity_trajectory(robot, opts)
@@ -196,7 +239,7 @@ COMMANDS = (
     Command(name="show-robot", help="draw the kinematic chain at a pose (PNG)",
             options=_show_robot_options, run=_show_robot),
     Command(name="excite", help="design an optimized excitation trajectory",
-            options=_excite_options, run=_excite),
+            options=_excite_options, check=_excite_check, run=_excite),
     Command(name="simulate", help="run a trajectory on the simulated robot, write a log",
             options=_simulate_options, run=_simulate),
 )

@@ -6,12 +6,20 @@ and the demo print too."""
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-from robid_link.cli.types import Command, bounded_int, output_path, positive_float
+from robid_link.cli.types import (
+    Command,
+    bounded_int,
+    figure_path,
+    output_path,
+    positive_float,
+    refuse_given,
+)
 from robid_link.exceptions import DaemonUnreachable, RobidError
 from robid_link.link.control import request
 
@@ -170,14 +178,34 @@ def store_reader(cfg: Any) -> Any:
     return open_reader(cfg, _robot_name(cfg))
 
 
-def open_store_option(text: str) -> Any:
-    """``--store URL``: a plant's PostgreSQL store (or a state dir's SQLite), read-only."""
+def open_store_option(text: str, *, readonly: bool = True) -> Any:
+    """``--store URL``: a plant's PostgreSQL store (or a state dir's SQLite), read-only
+    unless ``readonly`` is False (a writer of results that is no daemon)."""
     from robid_link.link.store import Store
+
+    url, folder = store_location(text)
+    return Store(folder, url=url, readonly=readonly, exclusive=False)
+
+
+def store_location(text: str) -> tuple[str | None, Path | None]:
+    """``--store``'s (URL, state dir): one of them, checked; an error names ``--store``."""
+    from robid_link.config import check_store_url
     from robid_link.link.store.postgres import is_store_url
+    from robid_link.link.store.sqlite import DB_NAME
 
     if is_store_url(text):
-        return Store(None, url=text, readonly=True)
-    return Store(text, readonly=True)
+        return check_store_url(text, "--store"), None
+    expect = "expected postgresql://USER@HOST:PORT/DB or a daemon's state dir"
+    if not text.strip() or "://" in text:
+        raise RobidError(f"--store {text!r}: {expect}")
+    folder = Path(text).expanduser()
+    if not folder.is_dir():
+        what = "no such folder" if not os.path.lexists(folder) else "not a folder"
+        raise RobidError(f"--store {folder}: {what} ({expect})")
+    if not (folder / DB_NAME).is_file():
+        raise RobidError(f"--store {folder}: holds no store (no {DB_NAME}: not a daemon's "
+                         "state dir, or no daemon ran there yet)")
+    return None, folder
 
 
 def store_option(p: argparse.ArgumentParser, *, required: bool = False) -> None:
@@ -217,7 +245,7 @@ def _plant_status(args: argparse.Namespace) -> dict[str, Any]:
 def _status(args: argparse.Namespace) -> int:
     from robid_link.config import load_daemon_config
 
-    if args.store:
+    if args.store is not None:
         ans = _plant_status(args)
     else:
         cfg = load_daemon_config(args.config)
@@ -236,9 +264,9 @@ def _status(args: argparse.Namespace) -> int:
 
         write_json(args.json, {"runs": ans["runs"], "status": ans["status"],
                                "drift": ans.get("drift", [])})
-    print(f"{'store' if args.store else 'daemon'}: {ans['status']}")
-    print(format_runs(ans["runs"], robots=bool(args.store)))
-    if not args.store:
+    print(f"{'daemon' if args.store is None else 'store'}: {ans['status']}")
+    print(format_runs(ans["runs"], robots=args.store is not None))
+    if args.store is None:
         for line in report_lines(cfg.state_dir, [r["run_id"] for r in ans["runs"]
                                                  if r["state"] == "completed"]):
             print(line)
@@ -257,27 +285,32 @@ def _results_options(p: argparse.ArgumentParser) -> None:
                    help="with --robot: each parameter over the stored runs, drift flagged")
     g.add_argument("--compare", nargs=2, metavar=("ROBOT_A", "ROBOT_B"),
                    help="the latest identification of two robots of one type side by side")
-    p.add_argument("--sigma", type=positive_float(1e3), default=5.0,
+    p.add_argument("--sigma", type=positive_float(1e3),
                    help="drift flag: change in combined standard errors (default 5)")
-    p.add_argument("--min-change", type=positive_float(10.0), default=0.10, metavar="FRACTION",
+    p.add_argument("--min-change", type=positive_float(10.0), metavar="FRACTION",
                    help="drift flag: change of the baseline, at the lower end of its 95 %% "
                    "interval (default 0.10)")
     p.add_argument("--json", metavar="FILE", type=output_path("file", create_parents=True),
                    help="write the trend as JSON")
-    p.add_argument("--out", metavar="PNG", type=output_path("file"),
+    p.add_argument("--out", metavar="PNG", type=figure_path(),
                    help="plot the trend of the flagged (or all physically readable) parameters")
 
 
 def _results_check(args: argparse.Namespace) -> None:
     if args.trend and not args.robot:
         raise RobidError("--trend: name the robot with --robot NAME")
+    if args.compare:
+        refuse_given(args, ["--robot"], "not used with --compare (it names its two robots)")
+    if not args.trend:
+        refuse_given(args, ["--sigma", "--min-change", "--json", "--out"],
+                     "applies to --trend only")
 
 
 def _results(args: argparse.Namespace) -> int:
     from robid_link.config import load_daemon_config
 
     robot = None if args.compare else args.robot
-    if args.store:
+    if args.store is not None:
         with open_store_option(args.store) as store:
             res = store.results(robot)
     else:
@@ -290,7 +323,7 @@ def _results(args: argparse.Namespace) -> int:
     if args.trend or args.compare:
         return _drift(args, res)
     print(format_results(res))
-    if not args.store:  # reports live on the cell's disk
+    if args.store is None:  # reports live on the cell's disk
         for line in report_lines(cfg.state_dir, [r["run_id"] for r in reversed(res)]):
             print(line)
     return 0
@@ -302,7 +335,8 @@ def _drift(args: argparse.Namespace, res: list[dict[str, Any]]) -> int:
     if args.compare:
         print(drift.compare(res, *args.compare))
         return 0
-    tr = drift.trend(res, args.robot, sigma=args.sigma, min_change=args.min_change)
+    tr = drift.trend(res, args.robot, sigma=5.0 if args.sigma is None else args.sigma,
+                     min_change=0.10 if args.min_change is None else args.min_change)
     shown = list(dict.fromkeys(f.parameter for f in tr.flags)) or [
         n for n in tr.values if drift.parameter_kind(n, tr.expressions[n])]
     print(tr.table(shown))

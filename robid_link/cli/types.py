@@ -8,15 +8,19 @@ from __future__ import annotations
 import argparse
 import math
 import os
-from collections.abc import Callable
+import stat
+import tempfile
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
-from robid_link.exceptions import RobidError
+from robid_link.exceptions import ConfigError, RobidError
 
 __all__ = ["Command", "OneLineParser", "error_line", "finite_float", "positive_float",
-           "bounded_int", "output_path", "robot_options", "seed_option", "config_option",
-           "axis_pair"]
+           "bounded_int", "output_path", "figure_path", "FIGURE_FORMATS", "robot_options",
+           "seed_option", "config_option", "axis_pair", "rate_hz", "MIN_RATE_HZ", "given",
+           "refuse_given", "known_peer", "axes_of"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -78,6 +82,25 @@ def positive_float(upper: float = _HUGE) -> Callable[[str], float]:
     return check
 
 
+#: sampling and controller rates a robot's log or trajectory can plausibly have (Hz): below,
+#: the samples cannot carry the dynamics (the default 10 Hz cutoff would be above Nyquist)
+MIN_RATE_HZ = 10.0
+
+
+def rate_hz(upper: float = 100_000.0) -> Callable[[str], float]:
+    """A sampling or controller rate in [MIN_RATE_HZ, upper] Hz."""
+
+    def check(text: str) -> float:
+        value = finite_float(text)
+        if not MIN_RATE_HZ <= value <= upper:
+            raise argparse.ArgumentTypeError(f"expected a rate in [{MIN_RATE_HZ:g}, {upper:g}] "
+                                             f"Hz, got {_shown(text)}")
+        return value
+
+    check.__name__ = "rate"
+    return check
+
+
 def bounded_int(lower: int, upper: int) -> Callable[[str], int]:
     """A whole number in [lower, upper] (no 1.5, no 10**100)."""
 
@@ -98,9 +121,11 @@ def bounded_int(lower: int, upper: int) -> Callable[[str], int]:
 
 
 def output_path(kind: str = "file", *, create_parents: bool = False) -> Callable[[str], str]:
-    """An output checked before the work: a file path must not name a folder and its folder
-    must exist (or be creatable when the command creates folders); a folder path must not
-    name a file and must be creatable."""
+    """An output checked before the work: a file path must not name a folder, a FIFO or a
+    device (an atomic write would replace it), and its folder must exist (or be creatable
+    when the command creates folders); a folder path must not name a file and must be
+    creatable. Writability is tried (a probe file), not guessed from the mode bits: root
+    passes ``os.access`` everywhere, yet cannot write under /proc or /sys."""
 
     def check(text: str) -> str:
         if not text:
@@ -108,6 +133,9 @@ def output_path(kind: str = "file", *, create_parents: bool = False) -> Callable
         p = Path(text)
         if kind == "file" and p.is_dir():
             raise argparse.ArgumentTypeError(f"{text}: is a folder, expected a file name")
+        if kind == "file" and p.exists() and not p.is_file():
+            raise argparse.ArgumentTypeError(f"{text}: is {_file_kind(p)}, expected a regular "
+                                             "file")
         if kind == "dir" and p.exists() and not p.is_dir():
             raise argparse.ArgumentTypeError(f"{text}: exists and is not a folder")
         if kind == "dir" and p.is_dir():
@@ -131,9 +159,67 @@ def output_path(kind: str = "file", *, create_parents: bool = False) -> Callable
     return check
 
 
+#: image formats the figures can be written in (matplotlib's Agg and vector backends)
+FIGURE_FORMATS = ("png", "svg", "pdf", "jpg", "jpeg")
+
+
+def figure_path(*, create_parents: bool = False) -> Callable[[str], str]:
+    """An output figure: an :func:`output_path` whose suffix is a known image format (no
+    suffix: PNG)."""
+    path_check = output_path("file", create_parents=create_parents)
+
+    def check(text: str) -> str:
+        suffix = Path(text).suffix.lower().lstrip(".")
+        if suffix and suffix not in FIGURE_FORMATS:
+            raise argparse.ArgumentTypeError(f"{text}: unknown image format .{suffix[:20]} "
+                                             f"(expected .{', .'.join(FIGURE_FORMATS)})")
+        return path_check(text)
+
+    check.__name__ = "figure path"
+    return check
+
+
+def _file_kind(p: Path) -> str:
+    mode = p.stat().st_mode
+    for test, name in ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
 def _writable(folder: Path, text: str) -> None:
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise argparse.ArgumentTypeError(f"{text}: folder {folder} is not writable")
+    try:
+        fd, probe = tempfile.mkstemp(dir=folder, prefix=".robid-probe-")
+    except OSError as err:
+        raise argparse.ArgumentTypeError(f"{text}: cannot write in folder {folder} "
+                                         f"({err.strerror or err})") from None
+    os.close(fd)
+    os.unlink(probe)
+
+
+def given(args: argparse.Namespace, flag: str) -> bool:
+    """Whether the user gave ``flag`` (an option whose default is None, False or empty)."""
+    return getattr(args, flag.lstrip("-").replace("-", "_")) not in (None, False, [])
+
+
+def refuse_given(args: argparse.Namespace, flags: Sequence[str], reason: str) -> None:
+    """Refuse the first of ``flags`` the user gave, where it would be ignored: one line
+    naming the option and why (``--weight: applies to --method irls only, not ols``)."""
+    for flag in flags:
+        if given(args, flag):
+            raise ConfigError(f"{flag}: {reason}")
+
+
+def known_peer(args: argparse.Namespace) -> None:
+    """``--driver`` of the fake controller (demo, fake-controller): a peer that exists, checked
+    before anything starts."""
+    from robid_link.link.registry import available_peers
+
+    peers = available_peers()
+    if args.driver not in peers:
+        raise ConfigError(f"--driver {args.driver}: no fake peer of that name (available: "
+                          f"{', '.join(sorted(peers))})")
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -155,8 +241,9 @@ def robot_options(p: argparse.ArgumentParser) -> None:
                    "(logged as a warning); otherwise such a robot file is refused")
 
 
-def seed_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seed", type=bounded_int(0, 2**32 - 1), default=0,
+def seed_option(p: argparse.ArgumentParser, default: int | None = 0) -> None:
+    """``--seed``; ``default=None`` where a check must see whether it was given."""
+    p.add_argument("--seed", type=bounded_int(0, 2**32 - 1), default=default,
                    help="random seed (default 0)")
 
 
@@ -170,4 +257,14 @@ def axis_pair(text: str, option: str = "--pair") -> tuple[int, int]:
         a, b = (int(x) for x in text.split(","))
     except ValueError as err:
         raise RobidError(f"{option} {text}: expected two axes J1,J2") from err
+    if a < 1 or b < 1 or a == b:
+        raise RobidError(f"{option} {text}: expected two different axes, numbered from 1")
     return (a, b)
+
+
+def axes_of(robot: Any, option: str, axes: Sequence[int]) -> None:
+    """The axes an option names exist on the robot (checked once it is read)."""
+    n = int(robot.n)
+    beyond = [j for j in axes if j > n]
+    if beyond:
+        raise RobidError(f"{option} {beyond[0]}: the robot has {n} joints")

@@ -16,8 +16,11 @@ from typing import Any
 from robid_link.exceptions import ConfigError, RobidError
 from robid_link.fleet.engine import Engine
 from robid_link.fleet.tasks import reidentify_run
+from robid_link.safeopen import describe, read_regular
 
 __all__ = ["plan_jobs", "reidentify", "default_version", "parse_since"]
+
+_MODEL_BYTES = 1 << 20
 
 
 def parse_since(text: str) -> float:
@@ -39,10 +42,10 @@ def plan_jobs(store: Any, model: Path, robots: str = "*", since: float | None = 
               ) -> list[dict[str, Any]]:
     """One job per completed run (of the robots matching the glob ``robots``, created since
     ``since``) whose logs the store knows: what ``reidentify_run`` takes."""
-    try:
-        text = model.read_text()
+    try:  # never blocks on a FIFO; a model file is a few kB
+        text = read_regular(model, _MODEL_BYTES).decode("utf-8", "replace")
     except OSError as err:
-        raise ConfigError(f"--model {model}: {err.strerror}") from err
+        raise ConfigError(f"--model {describe(err, model)}") from err
     names = [r["robot"] for r in store.robots() if fnmatch.fnmatchcase(r["robot"], robots)]
     if not names:
         raise ConfigError(f"--robot {robots}: no robot of the store matches")

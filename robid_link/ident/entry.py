@@ -75,7 +75,7 @@ def _model(path: str | None, add: tuple[str, ...]) -> Any:
 
     model = load_model(path) if path else DEFAULT_MODEL
     for entry in add:
-        model = model.with_added(parse_effect(entry, f"add {entry}"))
+        model = model.with_added(parse_effect(entry, f"add {entry}"), f"add {entry}")
     return model
 
 
@@ -148,7 +148,7 @@ def verify(job: jb.VerifyJob) -> jb.VerifyOutcome:
         tr = run_.program.trajectory()
         ref = Trajectory(tr.t - tr.t[0], tr.q, tr.rate_hz, tr.kind, tr.robot, dict(tr.header))
         log = _log(run_.log, robot)
-        res = tracking(robot, ref, log.t, log.q)
+        res = tracking(robot, ref, log.t, log.q, f"verification log {run_.log}")
         records.append({"kind": "verify", "experiment": run_.exp_id, "phase": run_.phase,
                         "robot": robot.name, "tracking": res.as_dict()})
     if job.report_dir:

@@ -28,6 +28,7 @@ from robid_link.exceptions import (
     StoreUnavailableError,
 )
 from robid_link.jobs import MotionProgram
+from robid_link.link.checks import ModelWatch, campaign_findings
 from robid_link.link.cycle import CyclePolicy, MotionWithheld, Withdrawn, run_cycle
 from robid_link.link.driver import CAP_UPLOAD, Driver, FeedforwardSource, parameter_bytes
 from robid_link.link.store import AsyncStore, Store
@@ -73,26 +74,29 @@ def after_upload(camp: CampaignDef, exp_id: str) -> bool:
 def check_capabilities(cfg: DaemonConfig, driver: Driver) -> None:
     """Refuse, before anything moves, a campaign that needs what the driver cannot do (an
     upload of the identified parameters needs ``CAP_UPLOAD``)."""
+    for name in cfg.campaigns:
+        refusal = _capability_refusal(cfg, name, driver)
+        if refusal:
+            raise ConfigError(f"{cfg.path}: {refusal}")
+
+
+def _capability_refusal(cfg: DaemonConfig, name: str, driver: Driver) -> str | None:
+    """Why campaign ``name`` needs what the driver cannot do, or None (the daemon's start and
+    ``robid config check`` say it in the same words)."""
     caps = frozenset(driver.capabilities)
-    for name, camp in cfg.campaigns.items():
-        if camp.upload and CAP_UPLOAD not in caps:
-            raise ConfigError(f"{cfg.path}: campaigns.{name}.upload: driver {driver.name!r} "
-                              f"cannot upload parameters (capabilities: "
-                              f"{', '.join(sorted(caps)) or 'none'}); set upload: false or "
-                              "use a driver that can")
-
-
-def _check_driver_caps(cfg: DaemonConfig, name: str, caps: frozenset[str], driver: str
-                       ) -> None:
     if cfg.campaigns[name].upload and CAP_UPLOAD not in caps:
-        raise ConfigError(f"campaigns.{name}.upload: driver {driver!r} cannot upload "
-                          "parameters; set upload: false or use a driver that can")
+        return (f"campaigns.{name}.upload: driver {driver.name!r} cannot upload parameters "
+                f"(capabilities: {', '.join(sorted(caps)) or 'none'}); set upload: false or "
+                "use a driver that can")
+    return None
 
 
 def _model_job(cfg: DaemonConfig, name: str) -> jb.ModelCheckJob:
+    """The campaign's model check; first its files (model, custom trajectories) are there."""
     camp = cfg.campaigns[name]
-    if camp.model is not None and not camp.model.is_file():
-        raise ConfigError(f"campaigns.{name}.model: {camp.model}: file not found")
+    files = campaign_findings(cfg, name)
+    if files:
+        raise ConfigError(files[0].line)
     return jb.ModelCheckJob(str(camp.model) if camp.model else None, camp.add)
 
 
@@ -105,24 +109,28 @@ def _program_job(cfg: DaemonConfig, exp_id: str, exp: ExperimentDef, slow: float
 async def preflight(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: str,
                     trigger: str = "operator") -> None:
     """Everything a run of ``campaign`` will need, checked before any program is given: the
-    model file and ``add:`` effects load, every program generates and passes the limits; a
-    start from the web page is refused here unless every program is approved."""
+    model file and ``add:`` effects load, every program generates and passes the limits; an
+    unattended start (timer, web page) is refused here unless every program is approved."""
     await run_in_worker(ctx, _model_job(cfg, campaign))
     programs = await prepare_programs(cfg, store, ctx, campaign)
-    if trigger == "web":
+    if trigger in UNATTENDED:
         await check_approved(cfg, store, campaign, programs, trigger)
 
 
 async def check_approved(cfg: DaemonConfig, store: AsyncStore, campaign: str,
                          programs: list[tuple[str, MotionProgram]], trigger: str) -> None:
-    """ApprovalError (one line) unless an operator approved every program of an unattended
-    start (``UNATTENDED``)."""
-    for exp_id, prog in programs:
-        if not await store.approved(prog.sha256):
-            what = "web start" if trigger == "web" else "unattended run"
-            raise ApprovalError(f"{what} refused: program of experiment {exp_id} "
-                                f"({prog.sha256[:12]}) is not approved; run: robid campaign "
-                                f"approve {campaign} --config {cfg.path}")
+    """ApprovalError (one line: which program, how many, how to approve them) unless an
+    operator approved every program of an unattended start (``UNATTENDED``): a timer has
+    nothing to do, a web start is refused."""
+    missing = [(e, p) for e, p in programs if not await store.approved(p.sha256)]
+    if missing:
+        exp_id, prog = missing[0]
+        more = f" ({len(missing)} of {len(programs)} are not)" if len(missing) > 1 else ""
+        what = ("web start refused" if trigger == "web" else
+                f"campaign {campaign}: nothing to do unattended")
+        raise ApprovalError(f"{what}: the program of experiment {exp_id} "
+                            f"({prog.sha256[:12]}) is not approved{more}; run: robid campaign "
+                            f"approve {campaign} --config {cfg.path}")
 
 
 def check_config(cfg: DaemonConfig, driver: Driver) -> dict[str, str | None]:
@@ -132,7 +140,9 @@ def check_config(cfg: DaemonConfig, driver: Driver) -> dict[str, str | None]:
     cfg = _joints_known(cfg)
     for name in cfg.campaigns:
         try:
-            _check_driver_caps(cfg, name, frozenset(driver.capabilities), driver.name)
+            refusal = _capability_refusal(cfg, name, driver)
+            if refusal:
+                raise ConfigError(refusal)
             run_here(_model_job(cfg, name))
             for exp_id, exp, slow in plan(cfg.campaigns[name]):
                 run_here(_program_job(cfg, exp_id, exp, slow))
@@ -243,7 +253,7 @@ async def _generated(cfg: DaemonConfig, store: AsyncStore, ctx: Any, campaign: s
 
 async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx: Any, run_id: str,
                       n_joints: int, kill_hook: Callable[[str], None] = lambda step: None,
-                      *, may_give: bool = True,
+                      models: ModelWatch | None = None, *, may_give: bool = True,
                       on_withdrawn: Withdrawn = lambda exp_id, nonce: None) -> None:
     """Run or resume ``run_id`` to completed/failed (logs are checked for ``n_joints``, the
     robot's). Cancellation leaves it resumable, and so does a store that cannot be written
@@ -251,7 +261,8 @@ async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx:
     given withdrawn first). Without ``may_give`` (a daemon's first look at
     a run it found unfinished) only its bookkeeping is done — what was given before is taken
     and stored, what needs no motion is computed — and it stops ``interrupted`` where a program
-    or a parameter set would go to the controller."""
+    or a parameter set would go to the controller. ``models``: a model file edited since it was
+    last read is reloaded with a line in the log."""
     run = await store.run(run_id)
     camp = cfg.campaigns.get(run["campaign"])
     if camp is None:
@@ -266,7 +277,10 @@ async def execute_run(cfg: DaemonConfig, store: AsyncStore, driver: Driver, ctx:
             await check_approved(cfg, store, run["campaign"], programs, run["trigger"])
 
         # the identification's inputs, before the first motion (a config edited since start)
-        await run_in_worker(ctx, _model_job(cfg, run["campaign"]))
+        model = await run_in_worker(ctx, _model_job(cfg, run["campaign"]))
+        changed = models.seen(cfg, run["campaign"], model.effects) if models else None
+        if changed:
+            log.info("run=%s %s", run_id, changed)
 
         async def check(path: str) -> jb.LogCheck:
             return await run_in_worker(ctx, jb.LogCheckJob(path, n_joints))
@@ -505,8 +519,6 @@ async def upload_set(store: AsyncStore, driver: Driver, robot: str, sha: str, ru
     physically impossible) only when forced; every attempt is recorded; the controller's
     acknowledgement (or its absence: the set is withdrawn, the controller keeps its old one) is
     the outcome."""
-    import json
-
     row = next((s for s in await store.param_sets(robot) if s["sha256"] == sha), None)
     if row is None:
         raise ConfigError(f"robot {robot}: no parameter set {sha[:12]}")

@@ -174,8 +174,8 @@ class ControlServer:
         try:
             req = _parse(line)
             return await self._handler(req)
-        except RobidError as err:
-            return {"ok": False, "error": str(err)}
+        except RobidError as err:  # its class goes along: the CLI tells 'nothing to do' apart
+            return {"ok": False, "error": str(err), "error_class": type(err).__name__}
         except (ValueError, RecursionError) as err:
             return {"ok": False, "error": f"bad request: {str(err).splitlines()[0][:200]}"}
         except Exception as err:  # a bug in a command answers one line; runs go on
@@ -241,5 +241,14 @@ def request(path: str | Path, req: dict[str, Any], timeout_s: float = 30.0) -> d
         raise DaemonUnreachable(f"control_socket: {path}: the daemon closed the connection")
     answer = json.loads(buf)
     if not answer.get("ok", False):
-        raise RobidError(answer.get("error", "the daemon refused the request"))
+        raise _error_class(answer.get("error_class"))(
+            answer.get("error", "the daemon refused the request"))
     return answer
+
+
+def _error_class(name: Any) -> type[RobidError]:
+    """The daemon's error class by name (one of ``robid_link.exceptions``), else RobidError."""
+    from robid_link import exceptions
+
+    cls = getattr(exceptions, str(name), None) if name in exceptions.__all__ else None
+    return cls if isinstance(cls, type) and issubclass(cls, RobidError) else RobidError

@@ -19,6 +19,7 @@ from typing import Any, TextIO
 
 from robid_link.config import DaemonConfig, robot_name, with_joint_count
 from robid_link.exceptions import (
+    ApprovalError,
     ConfigError,
     DriverError,
     RobidError,
@@ -27,6 +28,7 @@ from robid_link.exceptions import (
 )
 from robid_link.jobs import WORKER_PRELOAD, RobotInfo, RobotInfoJob
 from robid_link.link import campaign as cp
+from robid_link.link.checks import ModelWatch, campaign_findings, daemon_findings
 from robid_link.link.control import ControlServer
 from robid_link.link.driver import Done
 from robid_link.link.notify import Notifier
@@ -130,6 +132,8 @@ class Daemon:
         self.ready = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
         self._stack: contextlib.AsyncExitStack | None = None
+        self.models = ModelWatch()
+        self._refused: set[str] = set()  # campaigns whose files were missing at start
 
     def stop(self) -> None:
         """Ask ``wait_stopped`` to return (the signal handlers of ``run_daemon`` call it)."""
@@ -145,6 +149,8 @@ class Daemon:
         cfg = self.cfg
         stack = contextlib.AsyncExitStack()
         try:
+            self.driver = make_driver(cfg.driver)
+            self._check_config()
             self.robot = await run_in_worker(self.ctx, RobotInfoJob(str(cfg.robot), cfg.lock))
             # campaigns with a channels budget split their experiments by the joint count
             self.cfg = cfg = with_joint_count(cfg, self.robot.n)
@@ -156,7 +162,6 @@ class Daemon:
             description = await asyncio.to_thread(cfg.robot.read_bytes)
             await self.store.register_robot(self.robot.name, cfg.robot.name, description,
                                             cfg.lock)
-            self.driver = make_driver(cfg.driver)
             self.driver.bind_feedforward(cp.feedforward_source(cfg, self.ctx))
             cp.check_capabilities(cfg, self.driver)  # before anything can move
             self.driver.bind_robot(self.robot)
@@ -198,6 +203,22 @@ class Daemon:
         stack, self._stack = self._stack, None
         assert stack is not None
         await stack.aclose()
+
+    def _check_config(self) -> None:
+        """What ``robid config check`` checks besides the keys: a path the daemon needs is an
+        error (no start); a campaign's missing file a warning (its starts are refused)."""
+        cfg = self.cfg
+        problems = daemon_findings(cfg, type(self.driver).options)
+        if problems:
+            more = (f" (and {len(problems) - 1} more: robid config check --config {cfg.path})"
+                    if len(problems) > 1 else "")
+            raise ConfigError(f"{cfg.path}: {problems[0].line}{more}")
+        for name in cfg.campaigns:
+            for finding in campaign_findings(cfg, name):
+                log.warning("%s: campaign %s: its runs will be refused: %s", cfg.path, name,
+                            finding.line)
+                self._refused.add(name)
+            self.models.seen(cfg, name)
 
     async def _closed_store(self) -> None:
         assert self.store is not None
@@ -250,7 +271,7 @@ class Daemon:
         may_give = run_id not in self._bookkeeping
         self._run_task = asyncio.create_task(
             cp.execute_run(self.cfg, self.store, self.driver, self.ctx, run_id, self.robot.n,
-                           self._kill, may_give=may_give,
+                           self._kill, self.models, may_give=may_give,
                            on_withdrawn=lambda e, n: self._withdrawn.append((run_id, e, n))),
             name=f"robid-run-{run_id}")
 
@@ -341,6 +362,8 @@ class Daemon:
         """One line per campaign a run of which would be refused (``start`` checks again)."""
         assert self.store is not None
         for name in self.cfg.campaigns:
+            if name in self._refused:
+                continue  # said at start
             try:
                 await cp.preflight(self.cfg, self.store, self.ctx, name)
             except (StoreFullError, StoreUnavailableError) as err:
@@ -469,10 +492,14 @@ class Daemon:
         await self.store.require_space()
         trigger = req.get("trigger", "operator")
         self._check_room()
-        if str(req.get("campaign")) in self.cfg.campaigns:  # else create_run says so
-            await cp.preflight(self.cfg, self.store, self.ctx, str(req.get("campaign")),
-                               str(trigger))
-        run_id = await cp.create_run(self.cfg, self.store, str(req.get("campaign")), trigger,
+        name = str(req.get("campaign"))
+        if name in self.cfg.campaigns:  # else create_run says so
+            try:
+                await cp.preflight(self.cfg, self.store, self.ctx, name, str(trigger))
+            except ApprovalError as err:  # unattended: only approved programs
+                log.warning("start of %s refused: %s", name, err)
+                raise
+        run_id = await cp.create_run(self.cfg, self.store, name, trigger,
                                      force=req.get("force") is True)
         self._queue.put_nowait(run_id)
         log.info("run=%s queued campaign=%s trigger=%s", run_id, req.get("campaign"), trigger)

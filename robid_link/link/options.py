@@ -29,7 +29,7 @@ from typing import Any
 from robid_link.exceptions import ConfigError
 
 __all__ = ["Options", "Values", "Option", "REQUIRED", "Integer", "Number", "Flag", "Text",
-           "Choice", "Vector", "Table", "File", "Folder", "Secret", "Url"]
+           "Choice", "Vector", "Table", "File", "Folder", "Secret", "Url", "Retired"]
 
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 _SHOWN = 60  # characters of a refused value shown in a message
@@ -122,7 +122,7 @@ class Number(Option):
 
     def convert(self, key: str, value: Any) -> float:
         if (isinstance(value, bool) or not isinstance(value, int | float)
-                or not math.isfinite(value)
+                or abs(value) > 1e300 or not math.isfinite(value)  # 10**400: no float
                 or (self.low is not None and value < self.low)
                 or (self.above is not None and not value > self.above)
                 or (self.high is not None and value > self.high)):
@@ -244,6 +244,18 @@ class Table(Option):
         return dict(value)
 
 
+class Retired(Option):
+    """An option a driver no longer reads: given, it is refused in one line saying ``why``
+    (never accepted and ignored, which would hide that the config says something untrue)."""
+
+    def __init__(self, why: str) -> None:
+        super().__init__(None)
+        self.why = why
+
+    def convert(self, key: str, value: Any) -> Any:
+        raise ConfigError(f"{key}: no longer used ({self.why}); remove it from the config")
+
+
 class _PathOption(Option):
     kind = "path"
 
@@ -294,9 +306,16 @@ class File(_PathOption):
 
 
 class Folder(_PathOption):
-    """A folder path; ``exists``: the folder must be there."""
+    """A folder path; ``exists``: the folder must be there when the config is read;
+    ``created``: the driver makes it when missing (else it must be there when the driver opens:
+    ``robid config check`` and the daemon's start say so first)."""
 
     kind = "folder"
+
+    def __init__(self, default: Any = REQUIRED, *, exists: bool = False, created: bool = False,
+                 hint: str = "") -> None:
+        super().__init__(default, exists=exists, hint=hint)
+        self.created = created
 
     def _found(self, path: Path) -> bool:
         return path.is_dir()

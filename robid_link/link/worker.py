@@ -136,14 +136,20 @@ async def run_in_worker(ctx: Any, job: Job, *, on_start: Callable[[], None] | No
     send.close()
     if on_start is not None:
         on_start()
+    answered = False
     try:
         try:
             status, value, message = await asyncio.to_thread(recv.recv)
+            answered = True
         except EOFError:
             await asyncio.to_thread(proc.join, 5.0)
             raise WorkerError(f"worker process {job.TYPE} died (exit code "
                               f"{proc.exitcode})") from None
     finally:
+        if answered:  # it ends on its own: its exit runs multiprocessing's finalizers, which
+            # unlink and unregister the named semaphore numba's threads made; terminated
+            # here, it left that to the resource tracker ("leaked semaphore" at exit)
+            await asyncio.to_thread(proc.join, 5.0)
         if proc.is_alive():
             proc.terminate()
         await asyncio.to_thread(proc.join, 5.0)

@@ -197,8 +197,11 @@ def test_unacknowledged_or_refused_parameters(tmp_path: Path, robot: Robot) -> N
         assert peer.core.feedforward is None and peer.vars["robid_params"] == ""
     with rws(tmp_path / "b", robot, 1) as (driver, peer):
         bad = {**doc, "friction": {"viscous": [1.0]}}
-        with pytest.raises(DriverError, match="refused parameter set .*sha256"):
+        # the controller's whole reason fits in its 80-character RAPID string
+        with pytest.raises(DriverError, match=r"refused parameter set .*: damaged \(sha256 "
+                                              r"mismatch\)"):
             asyncio.run(_upload(driver, bad, 20.0))
+        assert len(peer.vars["robid_params_ack"]) <= 80
         assert peer.core.feedforward is None
 
 

@@ -164,7 +164,7 @@ def test_set_kept_by_a_restarted_driver_and_refused_set_changes_nothing(
         async def first() -> None:
             async with make() as driver:
                 await driver.upload_parameters(doc, timeout_s=10)
-                for wrong, why in ((bad, "does not match its sha256"),
+                for wrong, why in ((bad, r"damaged \(sha256 mismatch\)"),
                                    (other, "for robot another")):
                     with pytest.raises(DriverError, match=f"parameter set refused: .*{why}"):
                         await driver.upload_parameters(wrong, timeout_s=10)
@@ -230,6 +230,8 @@ def test_program_over_socketcand_in_process(tmp_path: Path, robot: Robot,
     ({"interface": "socketcand", "host": "127.0.0.1"}, "driver.port"),
     ({"interface": "socketcand", "host": "127.0.0.1", "port": 70000}, "driver.port"),
     ({"robot_file": "/nonexistent/arm.yaml"}, "driver.robot_file"),
+    # an existing file too: the option is refused, not silently ignored
+    ({"robot_file": str(EDS)}, r"driver\.robot_file: no longer used \(.*\); remove it"),
 ])
 def test_socketcand_and_robot_file_options_name_the_key(opts: dict[str, Any], key: str) -> None:
     base = {"nodes": [1, 2, 3], "counts_per_rad": [1e5] * 3, "eds": str(EDS)}

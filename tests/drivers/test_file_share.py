@@ -224,7 +224,7 @@ def test_a_parameter_set_the_controller_refuses_is_an_error(tmp_path: Path) -> N
         async with driver:
             await driver.upload_parameters(bad, timeout_s=10)
 
-    with peer, pytest.raises(DriverError, match="does not match its sha256"):
+    with peer, pytest.raises(DriverError, match=r"damaged \(sha256 mismatch\)"):
         asyncio.run(go())
     assert peer.core.feedforward is None
 

@@ -207,7 +207,7 @@ def test_closed_loop_log_identifies(industrial6, tmp_path):
         ("effects: [[viscous]]", "effects[0]: expected a mapping, got list"),
         ("inertials: [[1, 2]]", "inertials: expected 3 rows of 10"),
         ("noise: {tau: 1, bias: 2}", "noise: unknown key 'bias' (known: q_resolution, tau)"),
-        ("rate_hz: -5", "rate_hz: expected a positive number"),
+        ("rate_hz: -5", "rate_hz: expected a sampling rate in [10, 100000] Hz"),
         ("effects: [{name: viscous, fv: abc}]", "effects[0].fv: expected a finite number"),
         # an empty value of the wrong type is wrong, not absent (the fuzz found `perturb: []`)
         ("perturb: []", "perturb: expected a mapping, got list"),

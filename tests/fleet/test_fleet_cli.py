@@ -92,6 +92,11 @@ def test_status_and_results_read_the_plant_store(plant_url: tuple[str, dict]) ->
     (["fleet", "--store", "x", "--scheduler", "h:1"], "expected an address like tcp://"),
     (["fleet"], "--store: name the plant's store"),
     (["status", "--store", "postgresql://robid:hunter2@h/robid"], "the URL holds a password"),
+    (["status", "--store", ""], "--store '': expected postgresql://USER@HOST:PORT/DB or a "),
+    (["results", "--store", "/dev/null"], "--store /dev/null: not a folder"),
+    (["results", "--store", "/nonexistent/robid"], "--store /nonexistent/robid: no such folder"),
+    (["fleet", "reidentify", "--store", "/nonexistent/robid", "--model", "m.yaml"],
+     "m.yaml: model file not found"),  # checked before any store or task
 ])
 def test_bad_inputs_are_one_line(args: list[str], message: str) -> None:
     out = robid(*args)

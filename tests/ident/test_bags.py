@@ -235,7 +235,8 @@ def test_zero_header_stamps_fall_back_to_receive_time(tmp_path, arm3, motion):
 
 def test_a_folder_that_is_not_a_bag(tmp_path, arm3):
     (tmp_path / "notabag").mkdir()
-    with pytest.raises(DataError, match="notabag: log file not found"):
+    with pytest.raises(DataError, match=r"notabag: a folder, but not a ROS 2 bag \(no "
+                                        r"metadata\.yaml\)"):
         _load(tmp_path / "notabag", arm3)
     csv = tmp_path / "x.csv"
     csv.write_text("t,q1\n")

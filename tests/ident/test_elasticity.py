@@ -241,7 +241,7 @@ def test_campaign_kind_and_worker(plant_log):
     assert [f["joints"] for f in page["bode"]["frfs"]] == [[1]]
     assert len(page["bode"]["frfs"][0]["f_hz"]) == 14
     assert page["bode"]["joints"][0]["k"] == pytest.approx(joint["k"])
-    for bad, key in [({"steps": 2}, "steps"), ({"f_min_hz": 80.0}, "f_max_hz"),
+    for bad, key in [({"steps": 2}, "steps"), ({"f_min_hz": 80.0}, "f_min_hz"),
                      ({"joints": [0]}, "joints"), ({"pose_deg": "up"}, "pose_deg"),
                      ({"pairs": [[2, 2]]}, "pairs"), ({"pairs": [2, 3]}, "pairs")]:
         with pytest.raises(ConfigError, match=rf"e\.{key}: expected"):

@@ -225,3 +225,18 @@ def test_elasticity_section_shows_what_the_fit_found_in_the_log(tmp_path):
     page = render_html({**report_document(elasticity=res, robot=robot),
                         "bode": {"frfs": [], "joints": [old], "notes": [], "coupled": None}})
     assert "Fc arm" in page
+
+
+def test_every_function_of_the_report_script_is_used():
+    """A helper nobody calls (``caption`` was one) is dead weight in every report file."""
+    import re
+    from pathlib import Path
+
+    import robid_link.ident.report as report_pkg
+
+    js = (Path(report_pkg.__file__).parent / "static" / "report.js").read_text()
+    declared = re.findall(r"\bfunction\s+([A-Za-z_$][\w$]*)\s*\(", js)
+    declared += re.findall(r"\bconst\s+([A-Za-z_$][\w$]*)\s*=\s*(?:\([^)]*\)|\w+)\s*=>", js)
+    assert declared
+    unused = [n for n in declared if len(re.findall(rf"(?<![\w$.]){re.escape(n)}\b", js)) < 2]
+    assert not unused, unused

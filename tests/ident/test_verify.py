@@ -62,7 +62,7 @@ def test_a_damaged_or_foreign_parameter_set_is_refused(industrial6: Robot,
     doc = make_parameter_set(industrial6, identify(
         industrial6, load_logs(industrial6, [log.path]), DEFAULT_MODEL).to_dict(), run_id="r")
     bad = {**doc, "friction": {**doc["friction"], "viscous": [9.0] * 6}}
-    with pytest.raises(ModelError, match="does not match its sha256"):
+    with pytest.raises(ModelError, match=r"damaged \(sha256 mismatch\)"):
         feedforward(bad, 6)
     with pytest.raises(ModelError, match="do not fit a 3-joint robot"):
         feedforward(doc, 3)

@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 
 from robid_link.config import load_daemon_config
-from robid_link.exceptions import ConfigError, UnsafeProgramError
+from robid_link.exceptions import ApprovalError, ConfigError, UnsafeProgramError
 from robid_link.jobs import MotionProgram
 from robid_link.link.control import request
 from robid_link.link.daemon import Daemon
@@ -212,19 +212,23 @@ def test_unsafe_program_never_reaches_the_share(tmp_path: Path, controller: Any)
 
 
 def test_unattended_runs_need_approved_programs(tmp_path: Path, controller: Any) -> None:
+    """A timer start with a program nobody approved is refused at once (nothing to do: no run
+    queued, nothing given to the controller); approved, it runs."""
     cfg = write_config(tmp_path, {"one": ONE})
 
-    async def body(d: Daemon) -> tuple[dict, dict, dict]:
-        refused = await start(d, trigger="timer")
+    async def body(d: Daemon) -> tuple[str, list[Any], dict, dict]:
+        with pytest.raises(ApprovalError) as refused:
+            await start(d, trigger="timer")
+        runs = await d.store.runs()  # type: ignore[union-attr]
         approved = await d.handle({"cmd": "approve", "campaign": "one"})
         ran = await start(d, trigger="timer")
-        return refused, approved, ran
+        return str(refused.value), runs, approved, ran
 
     with controller() as ctrl:
-        refused, approved, ran = with_daemon(cfg, body)
-    assert refused["state"] == "failed"
-    assert "unattended run refused: program of experiment rigid_body" in refused["error"]
-    assert "robid campaign approve one" in refused["error"]
+        refused, runs, approved, ran = with_daemon(cfg, body)
+    assert refused.startswith("campaign one: nothing to do unattended: the program of "
+                              "experiment rigid_body (")
+    assert "robid campaign approve one" in refused and runs == []
     assert approved["approved"][0]["sha256"] == ran["experiments"][0]["program_sha"]
     assert ran["state"] == "completed" and len(ctrl.handled) == 1
 
@@ -249,7 +253,7 @@ def test_a_web_start_runs_only_approved_programs(tmp_path: Path, controller: Any
 
     with controller() as ctrl:
         refused, runs, ran = with_daemon(cfg, body)
-    assert re.fullmatch(r"web start refused: program of experiment rigid_body \(\w{12}\) is "
+    assert re.fullmatch(r"web start refused: the program of experiment rigid_body \(\w{12}\) is "
                         r"not approved; run: robid campaign approve one --config \S+", refused)
     assert runs == 0 and ctrl.handled[1:] == []
     assert ran["state"] == "completed" and ran["trigger"] == "web" and len(ctrl.handled) == 1

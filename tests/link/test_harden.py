@@ -176,7 +176,7 @@ def test_bad_friction_joints_are_refused_at_load(tmp_path: Path, joints: list[in
 
 
 @pytest.mark.parametrize("change, message", [
-    ({"model": "missing.yaml"}, "missing.yaml: file not found"),
+    ({"model": "missing.yaml"}, "missing.yaml: model file not found"),
     ({"add": ["no_such_effect@2"]}, "no_such_effect"),
     ({"experiments": [{"kind": "friction", "joints": [7]}]}, "joints: 7"),
 ])

@@ -77,6 +77,15 @@ def test_readonly_store_needs_one(tmp_path: Path, backend: Backend) -> None:
         backend.reader(tmp_path / "none")
 
 
+@pytest.mark.parametrize("readonly", [True, False])
+def test_a_damaged_sqlite_file_is_one_line(tmp_path: Path, readonly: bool) -> None:
+    """Junk in robid.sqlite: the reader and the daemon say which state dir, not a traceback."""
+    (tmp_path / "robid.sqlite").write_bytes(b"\x00junk" * 300)
+    with pytest.raises(RobidError, match=rf"^state_dir: {tmp_path}: cannot (read its store|"
+                                         r"connect) \(file is not a database\)$"):
+        Store(tmp_path, readonly=readonly).close()
+
+
 @pytest.mark.parametrize("change, message", [
     ({"robot": None}, "missing key 'robot'"),
     ({"colour": 1}, r"unknown key 'colour' \(known: campaigns, control_socket, driver, "),

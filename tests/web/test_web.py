@@ -354,7 +354,7 @@ def test_the_daemons_page_starts_only_approved_programs(tmp_path):
 
     status, answer, runs = asyncio.run(go())
     assert status == 400 and runs == 0
-    assert answer["error"].startswith("web start refused: program of experiment ")
+    assert answer["error"].startswith("web start refused: the program of experiment ")
     assert "robid campaign approve nightly --config" in answer["error"]
     assert "\n" not in answer["error"]
 

@@ -20,6 +20,7 @@ import numpy as np
 
 from robid_link.exceptions import DataError, DataWarning, RobidError
 from robid_link.ident.data.bags import is_bag, read_bag
+from robid_link.safeopen import file_problem
 
 __all__ = ["Log", "load_log", "file_sha256", "write_log_csv", "read_numeric_csv",
            "write_numeric_csv", "MAX_LOG_BYTES", "MAX_ARRAY_BYTES"]
@@ -113,14 +114,17 @@ def load_log(path: str | Path, n_joints: int, fs: float | None = None, *,
     (:mod:`.bags`) needs the robot's ``joint_names`` (joints are matched by name); ``topic``
     picks its topic and ``effort_current`` marks joints whose effort is a drive current."""
     p = Path(path)
-    if p.exists() and is_bag(p):
+    problem = None if p.is_dir() else file_problem(p)
+    if problem:
+        raise DataError(f"{p}: log file {problem}")
+    if is_bag(p):
         if joint_names is None or len(joint_names) != n_joints:
             raise DataError(f"{p}: a ROS recording needs the robot's joint names")
         return _load_bag(p, joint_names, topic, effort_current, fs)
+    if p.is_dir():
+        raise DataError(f"{p}: a folder, but not a ROS 2 bag (no metadata.yaml)")
     if topic is not None:
         raise DataError(f"{p}: --topic {topic} applies to ROS bags, this is not one")
-    if not p.is_file():
-        raise DataError(f"{p}: log file not found")
     suffix = p.suffix.lower()
     if suffix == ".csv":
         cols = _read_csv(p)

@@ -325,7 +325,10 @@ def split(preps: Sequence[Prepared], validate: Sequence[Prepared] | None,
             if hi - lo > 2 * trim:
                 valid.append(Piece(prep, lo, hi, seg.start, seg.stop))
     if not train:
-        raise DataError("no training data left after trimming the filter's edges")
+        names = ", ".join(str(prep.log.path) for prep in preps)
+        raise DataError(f"{names}: no training data left after trimming the filter's edges "
+                        f"({', '.join(f'{len(prep.log)} samples' for prep in preps)}; a longer "
+                        "log or a higher --cutoff)")
     return train, valid
 
 

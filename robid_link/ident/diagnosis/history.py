@@ -15,6 +15,7 @@ from typing import Any
 
 from robid_link.atomic import append_durable
 from robid_link.exceptions import ModelError
+from robid_link.safeopen import file_problem
 
 __all__ = ["history_path", "result_record", "append_record", "read_history", "latest_hypers"]
 
@@ -91,9 +92,12 @@ MAX_HISTORY_BYTES = 64 * 1024 * 1024
 
 def read_history(model_file: str | Path) -> list[dict[str, Any]]:
     path = history_path(model_file)
-    if not path.is_file():
+    problem = file_problem(path)
+    if problem == "not found":
         raise ModelError(f"{model_file}: no history yet ({path.name}); run identify or "
                          "diagnose with --model first")
+    if problem:
+        raise ModelError(f"{path}: {problem}")
     if path.stat().st_size > MAX_HISTORY_BYTES:
         raise ModelError(f"{path}: larger than the {MAX_HISTORY_BYTES} bytes allowed")
     try:

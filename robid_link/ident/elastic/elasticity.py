@@ -9,14 +9,14 @@ friction on the arm side; Kg gravity's stiffness at the pose, from the rigid mod
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
-from robid_link.exceptions import EstimationError
+from robid_link.exceptions import DataError, EstimationError, RobidError
 from robid_link.ident.data.logs import Log
 from robid_link.ident.elastic.fitting import (
     CoupledElasticity,
@@ -39,6 +39,8 @@ __all__ = ["two_mass_frf", "three_mass_frf", "coupled_frf", "arm_coulomb_frf", "
            "arm_swing", "gravity_stiffness", "JointElasticity", "CoupledElasticity",
            "ElasticityResult", "fit_two_mass", "fit_coupled", "identify_elasticity",
            "elasticity_figures", "bode_cells"]
+
+_T = TypeVar("_T")
 
 
 @dataclass
@@ -113,8 +115,8 @@ def identify_elasticity(robot: Robot, logs: Sequence[Log], *, joints: Sequence[i
     coupled = None
     targets: list[tuple[int, ...]] = [(j,) for j in joints] + ([tuple(pair)] if pair else [])
     kg = _gravity_stiffness_of_logs(robot, logs, side, inertials, notes)
-    found = None if schedule is not None else [log_schedule(log.t, log.q, log.tau)
-                                               for log in logs]
+    found = None if schedule is not None else [
+        _named(log.path, log_schedule, log.t, log.q, log.tau) for log in logs]
     for target in targets:
         frf = _merged_frf(logs, target, schedule, tau_model, found)
         frfs.append(frf)
@@ -159,6 +161,14 @@ def _gravity_stiffness_of_logs(robot: Robot, logs: Sequence[Log], side: str,
     return gravity_stiffness(robot, pose, np.asarray(theta, dtype=float))
 
 
+def _named(path: str, analysis: Callable[..., _T], *args: Any) -> _T:
+    """The frequency analysis works on arrays: its data errors get the log's name here."""
+    try:
+        return analysis(*args)
+    except DataError as err:
+        raise DataError(f"{path}: {err}") from err
+
+
 def _merged_frf(logs: Sequence[Log], target: tuple[int, ...],
                 schedule: Sequence[dict[str, Any]] | None,
                 tau_model: Sequence[np.ndarray] | None,
@@ -168,11 +178,12 @@ def _merged_frf(logs: Sequence[Log], target: tuple[int, ...],
         tm = tau_model[i] if tau_model is not None else None
         try:
             if schedule is not None:
-                parts.append(frf_from_schedule(log.t, log.q, log.tau, schedule, target, tm))
+                parts.append(_named(log.path, frf_from_schedule, log.t, log.q, log.tau,
+                                    schedule, target, tm))
             else:
-                parts.append(frf_from_log(log.t, log.q, log.tau, target, tm,
-                                          steps=found[i] if found else None))
-        except Exception as err:  # one log without this joint's steps is fine if another has
+                parts.append(_named(log.path, frf_from_log, log.t, log.q, log.tau, target, tm,
+                                    found[i] if found else None))
+        except RobidError as err:  # one log without this joint's steps is fine if another has
             if len(logs) == 1:
                 raise
             last = err

@@ -67,7 +67,7 @@ def stepped_sine_schedule(robot: Robot, opts: ElasticityOptions) -> list[dict[st
                           f"({opts.f_max_hz})")
     if opts.f_max_hz > 0.2 * opts.rate_hz:
         raise ConfigError(f"elasticity: f_max {opts.f_max_hz:g} Hz above 20 % of the rate "
-                          f"{opts.rate_hz:g} Hz: raise --rate")
+                          f"{opts.rate_hz:g} Hz (raise the rate)")
     if opts.steps < 3:
         raise ConfigError(f"elasticity: {opts.steps} steps is too few (at least 3)")
     joints = opts.joints or (() if opts.pairs else tuple(range(1, robot.n + 1)))

@@ -157,9 +157,11 @@ class _Fit:
 
 
 def _lsq(pars: Sequence[_Par], resid: Callable[[dict[str, float]], np.ndarray],
-         max_nfev: int | None = None, diff_step: float | None = None) -> _Fit:
+         max_nfev: int | None = None, diff_step: float | None = None, what: str = ""
+         ) -> _Fit:
     """Bounded least squares (trust region reflective) in the parametrisation of ``pars``;
-    the covariance from the Jacobian scaled by the residual variance."""
+    the covariance from the Jacobian scaled by the residual variance. ``what``: the joint(s)
+    an error names."""
     from scipy.optimize import least_squares
 
     def values(x: np.ndarray) -> dict[str, float]:
@@ -176,8 +178,8 @@ def _lsq(pars: Sequence[_Par], resid: Callable[[dict[str, float]], np.ndarray],
     try:
         cov = np.linalg.inv(res.jac.T @ res.jac) * rss / max(n - x0.size, 1)
     except np.linalg.LinAlgError as err:
-        raise EstimationError("elasticity fit: singular Jacobian (too few or too noisy "
-                              "points)") from err
+        raise EstimationError(f"{what + ': ' if what else ''}elasticity fit: singular "
+                              "Jacobian (too few or too noisy FRF points)") from err
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     vals = values(res.x)
     std = {p.name: float(vals[p.name] * s if p.log else s * p.scale)
@@ -284,7 +286,8 @@ def _fit_siso(frf: Frf, start: dict[str, float], kg: float, hold: float, sig: np
     fit = _lsq(_siso_pars(start, frf, fc=fc, third=third),
                lambda v: _logres(_siso_model(frf, v, kg, hold, warm, friction), frf.g, sig),
                max_nfev=max_nfev if fc or third else None,
-               diff_step=1e-4 if fc and friction == "stick-slip" else None)  # integrated
+               diff_step=1e-4 if fc and friction == "stick-slip" else None,  # integrated
+               what=f"joint {frf.joints[0]}")
     fit.extra.update(hold_s=hold, friction=friction if fc else None)
     return fit
 
@@ -522,7 +525,7 @@ def fit_coupled(frf: Frf, notes: list[str] | None = None, kg: np.ndarray | None 
     holds = [0.0] + ([1.0 / frf.rate_hz] if frf.rate_hz else [])
     fits = []
     for hold in holds:
-        fit = _lsq(pars, partial(resid, hold=hold))
+        fit = _lsq(pars, partial(resid, hold=hold), what=f"joints {j1},{j2}")
         fit.extra["hold_s"] = hold
         fits.append(fit)
     fit = min(fits, key=lambda x: x.rss)

@@ -18,9 +18,12 @@ import yaml
 from robid_link.exceptions import ConfigError
 from robid_link.ident.model.effects import DEFAULT_MODEL, Model, States
 from robid_link.ident.model.robot import Robot
+from robid_link.safeopen import file_problem
 from robid_link.yamlio import read_yaml_mapping
 
 __all__ = [
+    "MIN_RATE_HZ",
+    "MAX_RATE_HZ",
     "FourierTrajectory",
     "Trajectory",
     "random_fourier",
@@ -38,6 +41,10 @@ __all__ = [
 
 #: fraction of each limit a scaled trajectory may use
 LIMIT_MARGIN = 0.9
+#: the rates a robot's trajectory, log or simulated plant can plausibly have (Hz): below, the
+#: samples cannot carry the dynamics (the default 10 Hz cutoff would be above Nyquist)
+MIN_RATE_HZ = 10.0
+MAX_RATE_HZ = 100_000.0
 
 
 @dataclass(frozen=True)
@@ -355,10 +362,12 @@ def read_trajectory(path: str | Path) -> Trajectory:
 
     p = Path(path)
     y = p.with_suffix(".yaml")
-    if not p.is_file():
-        raise ConfigError(f"{p}: trajectory file not found")
-    if not y.is_file():
-        raise ConfigError(f"{p}: header file {y.name} not found")
+    problem = file_problem(p)
+    if problem:
+        raise ConfigError(f"{p}: trajectory file {problem}")
+    problem = file_problem(y)
+    if problem:
+        raise ConfigError(f"{p}: header file {y.name} {problem}")
     meta = read_yaml_mapping(y, "trajectory header")
     for key in ("rate_hz", "kind"):
         if key not in meta:
@@ -366,9 +375,9 @@ def read_trajectory(path: str | Path) -> Trajectory:
     if meta["kind"] not in ("fourier", "sweep", "stepped_sine", "custom"):
         raise ConfigError(f"{y}: kind: expected fourier, sweep, stepped_sine or custom")
     rate = meta["rate_hz"]
-    if not _finite_number(rate) or not 0 < rate <= 100_000:
-        raise ConfigError(f"{y}: rate_hz: expected a number in (0, 100000], got "
-                          f"{repr(rate)[:30]}")
+    if not _finite_number(rate) or not MIN_RATE_HZ <= rate <= MAX_RATE_HZ:
+        raise ConfigError(f"{y}: rate_hz: expected a rate in [{MIN_RATE_HZ:g}, "
+                          f"{MAX_RATE_HZ:g}] Hz, got {repr(rate)[:30]}")
     rate = float(rate)
     header, arr = read_numeric_csv(p, ConfigError, "a header t,q1..qn", max_bytes=1 << 30)
     n = len(header) - 1

@@ -60,8 +60,15 @@ def experiment_trajectory(robot: Robot, kind: str, opts: Mapping[str, Any],
     its options are checked again (``where`` names them in errors)."""
     spec = EXPERIMENT_KINDS.get(kind)
     if spec is None:
-        raise ConfigError(f"kind: expected one of {', '.join(EXPERIMENT_KINDS)}, got {kind!r}")
-    return spec.generate(robot, experiment_options(kind, opts, where), base_dir)
+        raise ConfigError(f"{where}.kind: expected one of {', '.join(EXPERIMENT_KINDS)}, "
+                          f"got {kind!r}")
+    checked = experiment_options(kind, opts, where)
+    try:
+        return spec.generate(robot, checked, base_dir)
+    except ConfigError as err:  # the checks against the robot name the option, not the entry
+        if str(err).startswith(where):
+            raise
+        raise type(err)(f"{where}: {err}") from err
 
 
 # ----------------------------------------------------------------------------- rigid_body

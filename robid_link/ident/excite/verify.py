@@ -107,13 +107,14 @@ def _peak_trace(t: np.ndarray, e: np.ndarray) -> tuple[tuple[float, ...], tuple[
             tuple(round(float(x), 5) for x in peak[keep]))
 
 
-def tracking(robot: Robot, ref: Trajectory, t_log: np.ndarray, q_log: np.ndarray
-             ) -> Tracking:
+def tracking(robot: Robot, ref: Trajectory, t_log: np.ndarray, q_log: np.ndarray,
+             where: str = "verification log") -> Tracking:
     """Errors of a log against the path it was asked to follow (the reference is
-    interpolated onto the log's time stamps; the log's time starts with the path's)."""
+    interpolated onto the log's time stamps; the log's time starts with the path's).
+    ``where`` names the log in errors."""
     if q_log.ndim != 2 or q_log.shape[1] != robot.n or q_log.shape[0] < 10:
-        raise DataError(f"verification log: expected ≥ 10 samples of {robot.n} joints, got "
-                        f"shape {q_log.shape}")
+        raise DataError(f"{where}: expected ≥ 10 samples of {robot.n} joints, got shape "
+                        f"{q_log.shape}")
     t = t_log - t_log[0]
     inside = t <= ref.t[-1]
     q_ref = np.column_stack([np.interp(t[inside], ref.t, ref.q[:, j]) for j in range(robot.n)])

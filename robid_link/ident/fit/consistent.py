@@ -399,12 +399,13 @@ def fit_consistent(design: Design, train: Sequence[Piece], names: Sequence[str],
     robot = design.robot
     n_rigid = 10 * robot.n
     if nominal is None:
-        raise EstimationError("consistent identification needs the robot's inertials as prior "
-                              "(URDF <inertial> or MDH 'inertial:' entries); this robot has none")
+        raise EstimationError(f"{robot.source}: --method consistent needs the robot's "
+                              "inertials as prior (URDF <inertial> or MDH 'inertial:' entries); "
+                              "this robot file has none")
     if design.p < n_rigid or not np.array_equal(design.cols[:n_rigid], np.arange(n_rigid)) \
             or design.blocks[0].effect.name != "rigid_body":
-        raise EstimationError("consistent identification needs the rigid_body effect first and "
-                              "all its standard columns in the design")
+        raise EstimationError("--method consistent needs the model's rigid_body effect first "
+                              "and all its standard columns in the design")
     files, per_file = pieces_by_file(train)
     if grams is None:
         grams = [accumulate(design, pcs, interval, block_len) for pcs in per_file]

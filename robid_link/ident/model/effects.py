@@ -628,30 +628,39 @@ class Model:
 
     specs: tuple[EffectSpec, ...]
     known: tuple[KnownTorque, ...] = ()
+    #: where each entry came from (``model.yaml: effects[2]``, ``--add viscous@9``), for the
+    #: errors found once the robot is known; not part of the model's identity
+    origins: tuple[str, ...] = field(default=(), compare=False)
 
     @classmethod
     def parse(cls, entries: Sequence[Any], where: str = "effects") -> Model:
         specs = tuple(parse_effect(e, f"{where}[{i}]") for i, e in enumerate(entries))
-        return cls(specs)
+        return cls(specs, origins=tuple(f"{where}[{i}]" for i in range(len(specs))))
+
+    def _origin(self, k: int) -> str:
+        return self.origins[k] if len(self.origins) == len(self.specs) else "effects"
 
     def labels(self) -> list[str]:
         return [s.label() for s in self.specs]
 
-    def with_added(self, spec: EffectSpec) -> Model:
-        kept = [s for s in self.specs if not (s.name == spec.name and s.joint == spec.joint
-                                              and s.side == spec.side)]
-        return Model((*kept, spec), self.known)
+    def with_added(self, spec: EffectSpec, origin: str = "") -> Model:
+        kept = [(s, self._origin(k)) for k, s in enumerate(self.specs)
+                if not (s.name == spec.name and s.joint == spec.joint and s.side == spec.side)]
+        return Model((*(s for s, _ in kept), spec), self.known,
+                     (*(o for _, o in kept), origin or f"added {spec.label()}"))
 
     def blocks(self, robot: Robot) -> list[Block]:
         """Resolve entries to per-joint blocks; declared replacements drop overlapping blocks."""
         chosen: dict[tuple[str, int | None, str | None], Block] = {}
-        for s in self.specs:
+        for k, s in enumerate(self.specs):
             eff = REGISTRY[s.name]
             if s.joint is not None and s.joint > robot.n:
-                raise ModelError(f"effect {s.label()}: the robot has {robot.n} joints")
+                raise ModelError(f"{self._origin(k)}: effect {s.label()}: the robot has "
+                                 f"{robot.n} joints")
             if s.side == "motor" and robot.transmission is None:
-                raise ModelError(f"effect {s.label()}: a motor's friction needs the robot's "
-                                 "'transmission' (gear ratios and couplings)")
+                raise ModelError(f"{self._origin(k)}: effect {s.label()}: a motor's friction "
+                                 f"needs the robot's 'transmission' (gear ratios and couplings; "
+                                 f"{robot.source} has none)")
             joints: list[int | None]
             if not eff.per_joint:
                 joints = [None]
@@ -703,9 +712,10 @@ def load_model(path: str | Path | None) -> Model:
         model = Model.parse(doc["effects"], "effects")
     except ModelError as err:
         raise ModelError(f"{p}: {err}") from err
-    if "known_torque" in doc:  # errors found later (joints, linearity) name the file too
-        model = Model(model.specs, parse_known_torques(doc["known_torque"],
-                                                       f"{p}: known_torque"))
+    origins = tuple(f"{p}: {o}" for o in model.origins)
+    known = (parse_known_torques(doc["known_torque"], f"{p}: known_torque")
+             if "known_torque" in doc else ())  # errors found later name the file too
+    model = Model(model.specs, known, origins)
     if not any(spec.name == "rigid_body" for spec in model.specs):
         # identification, validation and diagnosis all start from the rigid-body model
         raise ModelError(f"{p}: effects: 'rigid_body' missing (every model identifies the rigid "

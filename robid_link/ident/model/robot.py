@@ -16,7 +16,14 @@ import numpy as np
 import pinocchio as pin
 
 from robid_link.exceptions import RobidError, RobotError
-from robid_link.ident.model.robot_check import UrdfJoint, check_urdf, inertia_problem
+from robid_link.ident.model.robot_check import (
+    UrdfJoint,
+    check_urdf,
+    inertia_problem,
+    native_stderr,
+    parser_summary,
+)
+from robid_link.safeopen import file_problem
 from robid_link.yamlio import check_keys, read_yaml_mapping
 
 __all__ = ["Robot", "Limits", "load_robot", "description_name", "STANDARD_NAMES",
@@ -146,8 +153,9 @@ def load_robot(path: str | Path, lock: Sequence[str] = (), *, allow_unlimited: b
     warning. A URDF continuous joint is bounded to one turn (±180°) for those checks.
     """
     p = Path(path)
-    if not p.is_file():
-        raise RobotError(f"{p}: robot description not found")
+    problem = file_problem(p)
+    if problem:
+        raise RobotError(f"{p}: robot description {problem}")
     suffix = p.suffix.lower()
     if suffix in (".yaml", ".yml"):
         if lock:
@@ -470,10 +478,14 @@ def _coupling(coupling: Any, names: Sequence[str], p: Path, key: str) -> np.ndar
 def _load_urdf(p: Path, lock: Sequence[str], allow_unlimited: bool) -> Robot:
     text, urdf_joints = check_urdf(p)
     try:
-        full = pin.buildModelFromXML(text)
+        with native_stderr() as said:
+            full = pin.buildModelFromXML(text)
     except (RuntimeError, ValueError) as err:
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise RobotError(f"{p}: cannot parse URDF: {first[:200]}") from err
+        raise RobotError(f"{p}: cannot parse URDF: {parser_summary(said) or first[:200]}"
+                         ) from err
+    if parser_summary(said):  # a part robid does not use (a visual's mesh) did not parse
+        _log.warning("%s: the URDF parser skipped: %s", p, parser_summary(said))
     if lock:
         ids = []
         for nm in lock:

@@ -8,8 +8,13 @@ so the file is read here first (bounded, no DOCTYPE or entities).
 from __future__ import annotations
 
 import math
+import os
 import re
+import sys
+import tempfile
 import xml.etree.ElementTree as ET
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,7 +23,8 @@ import numpy as np
 from robid_link.exceptions import RobotError
 from robid_link.safeyaml import read_bounded
 
-__all__ = ["inertia_problem", "UrdfJoint", "check_urdf", "MAX_URDF_BYTES"]
+__all__ = ["inertia_problem", "UrdfJoint", "check_urdf", "MAX_URDF_BYTES", "native_stderr",
+           "parser_summary"]
 
 #: a URDF with meshes referenced by path is a few hundred kB
 MAX_URDF_BYTES = 32 * 1024 * 1024
@@ -166,6 +172,43 @@ def _check_joint(joint: ET.Element, p: Path, seen: set[str], links: set[str]) ->
     return UrdfJoint(name, kind, lo, hi, caps["velocity"], caps["effort"], problem)
 
 
+def _end_link(joint: ET.Element, end: str) -> str:
+    elem = joint.find(end)
+    return "" if elem is None else str(elem.get("link", ""))
+
+
+def _check_tree(p: Path, edges: list[tuple[str, str, str]], links: set[str]) -> None:
+    """The links and joints form one tree: no joint on a single link, one parent joint per
+    link, one root, no loop. urdfdom reports these on stderr or not at all (a joint whose
+    parent is its own child is dropped silently)."""
+    parent_of: dict[str, tuple[str, str]] = {}  # child link → (joint, parent link)
+    for joint, parent, child in edges:
+        where = f"joint '{joint[:60]}'"
+        if parent == child:
+            raise RobotError(f"{p}: {where}: parent and child are both link '{child[:60]}' "
+                             "(a loop; a joint connects two different links)")
+        if child in parent_of:
+            raise RobotError(f"{p}: link '{child[:60]}' is the child of joints "
+                             f"'{parent_of[child][0][:60]}' and '{joint[:60]}' (a URDF is a "
+                             "tree: one parent joint per link)")
+        parent_of[child] = (joint, parent)
+    roots = sorted(links - set(parent_of))
+    for link in sorted(parent_of):  # a loop: following the parents never reaches a root
+        path, at = [], link
+        while at in parent_of and at not in path:
+            path.append(at)
+            at = parent_of[at][1]
+        if at in path:
+            cycle = path[path.index(at):]
+            names = " → ".join(f"'{parent_of[x][0][:40]}'" for x in reversed(cycle))
+            raise RobotError(f"{p}: joints {names} form a loop (link '{at[:60]}' is its own "
+                             "ancestor)")
+    if len(roots) > 1:
+        raise RobotError(f"{p}: links '{roots[0][:60]}' and '{roots[1][:60]}' both have no "
+                         "parent joint: a URDF is one tree (attach one of them with a joint "
+                         "or remove it)")
+
+
 def check_urdf(path: str | Path) -> tuple[str, dict[str, UrdfJoint]]:
     """Read and check a URDF; returns its text and its joints by name."""
     p = Path(path)
@@ -186,9 +229,50 @@ def check_urdf(path: str | Path) -> tuple[str, dict[str, UrdfJoint]]:
     if not links:
         raise RobotError(f"{p}: the URDF has no <link>")
     seen: set[str] = set()
-    joints = {j.name: j for j in (_check_joint(e, p, seen, links) for e in root.findall("joint"))}
+    elems = root.findall("joint")
+    joints = {j.name: j for j in (_check_joint(e, p, seen, links) for e in elems)}
+    _check_tree(p, [(str(e.get("name")), _end_link(e, "parent"), _end_link(e, "child"))
+                    for e in elems], links)
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as err:
         raise RobotError(f"{p}: not a UTF-8 text file") from err
     return text, joints
+
+
+#: urdfdom's lines that only say that an earlier line failed
+_GENERIC = ("joint xml is not initialized correctly", "link xml is not initialized correctly",
+            "The XML stream does not contain a valid URDF model")
+
+
+@contextmanager
+def native_stderr() -> Iterator[list[str]]:
+    """What C++ code (urdfdom, Pinocchio) writes to file descriptor 2 during the block, as
+    lines in the yielded list instead of on the terminal. It writes to the descriptor, not
+    to ``sys.stderr``, so the descriptor itself is pointed at a temporary file."""
+    lines: list[str] = []
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 2)
+            try:
+                yield lines
+            finally:
+                os.dup2(saved, 2)
+                tmp.seek(0)
+                text = tmp.read(64 * 1024).decode("utf-8", "replace")
+                lines.extend(line.strip() for line in text.splitlines() if line.strip())
+    finally:
+        os.close(saved)
+
+
+def parser_summary(lines: list[str]) -> str:
+    """urdfdom's messages in one line: the first two that say something (``Error:`` prefixes,
+    its source locations and the generic follow-ups dropped)."""
+    said = []
+    for line in lines:
+        text = re.sub(r"^(Error|Warning|Info|Debug):\s*", "", line).strip()
+        if text and not text.startswith("at line ") and text not in _GENERIC:
+            said.append(text)
+    return " ".join("; ".join(dict.fromkeys(said[:2])).split())[:300]

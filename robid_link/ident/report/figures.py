@@ -132,7 +132,6 @@ def draw_robot(robot: Robot, q: np.ndarray, path: str | Path) -> Path:
         o, u = pts_a[j + 1], axes[j] * 0.12 * span
         color = "tab:red" if robot.joint_types[j] == "revolute" else "tab:green"
         ax.quiver(*o, *u, color=color, arrow_length_ratio=0.25)
-        ax.text(*(o + 0.03 * span), f"{j + 1}:{robot.joint_names[j]}", fontsize=8)
     ax.scatter(*pts_a.T, color="k", s=12)
     c = pts_a.mean(axis=0)
     for setter, k in ((ax.set_xlim, 0), (ax.set_ylim, 1), (ax.set_zlim, 2)):
@@ -140,13 +139,65 @@ def draw_robot(robot: Robot, q: np.ndarray, path: str | Path) -> Path:
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_zlabel("z [m]")
-    qs = ", ".join(f"{v:.3g}" for v in np.asarray(q))
-    ax.set_title(f"{robot.name} at q = [{qs}] (arrows: joint axes)")
+    ax.set_title(f"{robot.name} at q = [{_pose_text(robot, q)}] (arrows: joint axes)")
+    _place_labels(fig, ax, _joint_labels(robot, pts_a[1:], span))
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     _save_figure(fig, p, 100)
     plt.close(fig)
     return p
+
+
+def _pose_text(robot: Robot, q: np.ndarray) -> str:
+    """The pose as the user gives it: degrees for revolute joints, metres for prismatic."""
+    return ", ".join(f"{np.degrees(v):.4g}°" if kind == "revolute" else f"{v:.4g} m"
+                     for v, kind in zip(np.asarray(q, dtype=float), robot.joint_types,
+                                        strict=True))
+
+
+def _joint_labels(robot: Robot, origins: np.ndarray, span: float
+                  ) -> list[tuple[np.ndarray, str]]:
+    """One label per place: joints whose origins coincide (a wrist, a shoulder's two axes)
+    share one label instead of printing over each other."""
+    groups: list[tuple[np.ndarray, list[str]]] = []
+    for j, o in enumerate(origins):
+        name = f"{j + 1}:{robot.joint_names[j]}"
+        for at, names in groups:
+            if np.linalg.norm(at - o) < 0.02 * span:
+                names.append(name)
+                break
+        else:
+            groups.append((o, [name]))
+    return [(at, ", ".join(names)) for at, names in groups]
+
+
+#: label offsets tried in turn (points from the joint), nearest first
+_LABEL_OFFSETS = ((6, 6), (6, -14), (-6, 6), (-6, -14), (14, 18), (14, -26), (-14, 18),
+                  (-14, -26), (26, 0), (-26, 0), (30, 30), (30, -38), (-30, 30), (-30, -38))
+
+
+def _place_labels(fig: Any, ax: Any, labels: list[tuple[np.ndarray, str]]) -> None:
+    """Joint labels in screen space, each at the first offset where it overlaps no label
+    placed before (joints a few millimetres apart project onto one spot)."""
+    from mpl_toolkits.mplot3d import proj3d
+
+    fig.canvas.draw()  # fixes the projection and gives a renderer
+    renderer = fig.canvas.get_renderer()
+    proj = ax.get_proj()
+    placed: list[Any] = []
+    for at, label in labels:
+        x2, y2, _ = proj3d.proj_transform(*at, proj)
+        for k, (dx, dy) in enumerate(_LABEL_OFFSETS):
+            text = ax.annotate(
+                label, (x2, y2), xytext=(dx, dy), textcoords="offset points",
+                ha="left" if dx > 0 else "right", fontsize=8,
+                bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8},
+                arrowprops={"arrowstyle": "-", "lw": 0.5, "color": "0.4"} if k >= 4 else None)
+            box = text.get_window_extent(renderer)
+            if not any(box.overlaps(other) for other in placed) or k == len(_LABEL_OFFSETS) - 1:
+                placed.append(box)
+                break
+            text.remove()
 
 
 def residual_figures(res: dict[str, np.ndarray], joints: list[dict[str, Any]], out_dir: str | Path

@@ -24,6 +24,7 @@ from sqlalchemy.sql import ColumnElement
 
 from robid_link.exceptions import (
     ConfigError,
+    RobidError,
     StoreFullError,
     StoreLockedError,
     StoreLockLostError,
@@ -100,6 +101,14 @@ class Store:
                                         f"({_first_line(err)})") from err
         if self.exclusive:
             self.backend.lock(self.conn, self.robot)
+        try:
+            self._schema()
+        except DBAPIError as err:  # a damaged file, or a database that is not robid's
+            raise RobidError(f"{self.where}: cannot read its store ({_first_line(err)})"
+                             ) from err
+
+    def _schema(self) -> None:
+        """A reader checks the schema's version; a writer creates or migrates it."""
         if self.readonly:
             with self._read() as c:
                 sc.check_readable(c, self.where)

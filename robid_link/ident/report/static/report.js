@@ -67,13 +67,6 @@
     el.innerHTML = '<div class="err">this figure could not be drawn: ' + String(err).replace(/</g, "&lt;") + "</div>";
   }
 
-  function caption(el, html) {
-    const c = document.createElement("div");
-    c.className = "cap";
-    c.innerHTML = html;
-    el.appendChild(c);
-  }
-
   function make(el, opts, data) {
     const u = new uPlot(Object.assign({width: width(el), legend: {show: true}}, opts), data, el);
     u.root.dataset.drawn = "1";
