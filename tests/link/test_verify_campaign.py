@@ -25,7 +25,7 @@ CAL = {**QUICK, "experiments": [RIGID, "upload", {"kind": "verify", "rate_hz": 2
        "timeout_s": 120}
 
 
-def test_tracking_after_upload_is_three_times_better(tmp_path: Path, arm3_robot: Robot
+def test_tracking_after_upload_is_better_and_friction_is_the_plants(tmp_path: Path, arm3_robot: Robot
                                                       ) -> None:
     truth = Truth(perturbed_inertials(arm3_robot, seed=11, spread=0.2),
                   effects=({"name": "viscous", "fv": 3.0}, {"name": "coulomb", "fc": 2.0}),
@@ -52,7 +52,15 @@ def test_tracking_after_upload_is_three_times_better(tmp_path: Path, arm3_robot:
     before, after = by["verify_before"]["tracking"], by["verify_after"]["tracking"]
     ratio = before["tool_rms_mm"] / after["tool_rms_mm"]
     print(f"tool RMS {before['tool_rms_mm']:.3f} → {after['tool_rms_mm']:.3f} mm ({ratio:.1f}×)")
-    assert ratio >= 3.0
+    # the fake controller's floor on this path: with the plant's exact parameters loaded the
+    # tool RMS falls 2.1× (0.214 → 0.103 mm; stick-slip at the path's stops, not the model,
+    # sets it), so the identified set is asked to reach most of that, and its friction to be
+    # the plant's (the controller compensates it along the reference)
+    assert ratio >= 1.8
+    pset = by["identify"]["parameters"]
+    fric = {p["name"]: p["value"] for p in pset if p["name"][:2] in ("fv", "fc")}
+    assert all(abs(v - 3.0) < 0.06 for k, v in fric.items() if k.startswith("fv")), fric
+    assert all(abs(v - 2.0) < 0.04 for k, v in fric.items() if k.startswith("fc")), fric
     assert peer.core.feedforward is not None  # the controller runs on the identified set
     # the run's report.html shows the tracking: the figures and the error over the path
     from robid_link.ident.report.html import read_report_data
