@@ -60,6 +60,9 @@ _SG_D2 = np.array([5, 0, -3, -4, -3, 0, 5]) / 42.0
 _FAULT_CODE = EMCY_OVER_CURRENT
 #: the fake drives' manufacturer object with the torque actual value in mN·m (INTEGER32)
 TORQUE_FINE = (0x2101, 0)
+#: SYNCs at rest that separate two runs: the master streams the next program (its approach
+#: first) about 7 SYNCs after the last one ended
+RUN_REST = 5
 _MASTER_LOST = EMCY_HEARTBEAT  # here: no SYNC from the master
 
 
@@ -172,8 +175,8 @@ class Cia402Peer(Peer):
     ``answer_lag_periods`` (each SYNC's TPDOs go out up to that many periods late, at random
     and in order: a loaded socketcand host or network),
     ``fault_node`` (joint number the faults hit), ``fault_after_s`` (into the motion). A run
-    starts with the first moving setpoint after a rest of ten SYNCs; the core's fault schedule
-    is consumed per run. Faults beyond the core's: ``drive_fault`` (EMCY and 0x603F),
+    starts with the first moving setpoint after a rest of ``RUN_REST`` SYNCs; the core's fault
+    schedule is consumed per run. Faults beyond the core's: ``drive_fault`` (EMCY and 0x603F),
     ``drive_fault_quiet`` (its EMCY is lost: only 0x603F tells), ``no_boot``,
     ``heartbeat_loss``, ``following_error``, ``dropped_frames``, and two a hostile bus plays:
     ``foreign_tpdo`` (the fault node's TPDO1 goes out under the next node's COB-ID too) and
@@ -444,7 +447,7 @@ class Cia402Peer(Peer):
     # -- runs and faults
     def _runs(self, cmd: np.ndarray) -> None:
         moving = bool(np.any(cmd != self.hist[-1]))
-        if moving and self.idle >= 10:
+        if moving and self.idle >= RUN_REST:
             self.run_fault = self.core.take_fault()
             self.run_start = self.k
             self.core.handled.append(("motion", str(self.k)))

@@ -25,8 +25,8 @@ CAL = {**QUICK, "experiments": [RIGID, "upload", {"kind": "verify", "rate_hz": 2
        "timeout_s": 120}
 
 
-def test_tracking_after_upload_is_better_and_friction_is_the_plants(tmp_path: Path, arm3_robot: Robot
-                                                      ) -> None:
+def test_tracking_after_upload_is_better_and_friction_is_the_plants(tmp_path: Path,
+                                                                     arm3_robot: Robot) -> None:
     truth = Truth(perturbed_inertials(arm3_robot, seed=11, spread=0.2),
                   effects=({"name": "viscous", "fv": 3.0}, {"name": "coulomb", "fc": 2.0}),
                   noise_tau=0.2, q_resolution=2 * np.pi / 2**20, rate_hz=1000.0,
