@@ -21,7 +21,7 @@ from robid_link.demo import HIDDEN
 
 VALIDATE = [pytest.mark.slow, pytest.mark.skipif(not os.environ.get("ROBID_VALIDATE"),
                                                  reason="make validate")]
-LINKS = [pytest.param("abb_rws", marks=VALIDATE), "canopen_drives",
+LINKS = [pytest.param("abb_rws", marks=VALIDATE), pytest.param("canopen_drives", marks=VALIDATE),
          pytest.param("modbus_plc", marks=VALIDATE), pytest.param("serial_line", marks=VALIDATE)]
 
 
