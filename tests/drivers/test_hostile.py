@@ -105,7 +105,8 @@ def test_a_hostile_controller_never_takes_the_link(spec: dict[str, Any], line: s
     if not moves:  # refused before any motion command
         assert got["given"] == 0 and got["plc_runs"] == 0, got
     assert all(got["status_during"]) and got["status_after"], got  # the daemon serves
-    assert got["peak_rss_mb"] < MAX_RSS_MB, got
+    # what the cell allocated (the shared libraries' file pages depend on the page cache)
+    assert got["peak_anon_mb"] < MAX_RSS_MB, got
     assert got["outside"] == [] and got.get("elsewhere_hits", 0) == 0, got
 
 
