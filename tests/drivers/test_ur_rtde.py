@@ -592,6 +592,10 @@ def test_a_robot_that_is_not_a_ur_arm_and_a_script_too_big_are_refused(ur6: Robo
 
 
 # ------------------------------------------------------------------------ the daemon
+@pytest.mark.slow
+@pytest.mark.skipif(not os.environ.get("ROBID_VALIDATE"),
+                    reason="make validate (make test: the contract suite and the golden "
+                           "transcripts over ur_rtde)")
 def test_campaign_over_ur_rtde_with_the_controller_as_a_process(tmp_path: Path) -> None:
     from tests.link.conftest import campaign_via_cli, process, write_config
 
