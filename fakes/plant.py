@@ -17,10 +17,10 @@ import pinocchio as pin
 
 from robid_link.exceptions import ConfigError
 from robid_link.fakes.plant_loop import COMPILED_EFFECTS, integrate, model_params
-from robid_link.ident.excite.excitation import MAX_RATE_HZ, MIN_RATE_HZ
 from robid_link.ident.model.effects import moving_sign
 from robid_link.ident.model.robot import Robot
 from robid_link.ident.model.robot_check import inertia_problem
+from robid_link.kinds import MAX_RATE_HZ, MIN_RATE_HZ
 from robid_link.yamlio import check_keys, read_yaml_mapping
 
 __all__ = ["Truth", "Plant", "perturbed_inertials", "load_truth", "EFFECT_PARAMS"]

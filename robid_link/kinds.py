@@ -14,9 +14,12 @@ from robid_link.yamlio import check_keys
 __all__ = ["KindOptions", "KIND_OPTIONS", "experiment_options"]
 
 Validator = Callable[[dict[str, Any], str], None]
-#: the lowest controller rate a trajectory can plausibly have (Hz), as the worker's
-#: ``ident.excite.excitation.MIN_RATE_HZ`` (this room imports nothing of the worker)
+#: the rates a robot's log, trajectory or controller can plausibly have (Hz): below, the
+#: samples cannot carry the dynamics (the default 10 Hz cutoff would be above Nyquist, or the
+#: time is not in seconds); above, no robot controller runs. The one home of these bounds:
+#: the config, the CLI, the worker's logs and trajectories and the fake plant read them here.
 MIN_RATE_HZ = 10.0
+MAX_RATE_HZ = 100_000.0
 
 
 def _no_check(opts: dict[str, Any], where: str) -> None:

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from robid_link.exceptions import ConfigError, RobidError
+from robid_link.kinds import MAX_RATE_HZ, MIN_RATE_HZ
 
 __all__ = ["Command", "OneLineParser", "error_line", "finite_float", "positive_float",
            "bounded_int", "output_path", "figure_path", "FIGURE_FORMATS", "robot_options",
@@ -82,12 +83,7 @@ def positive_float(upper: float = _HUGE) -> Callable[[str], float]:
     return check
 
 
-#: sampling and controller rates a robot's log or trajectory can plausibly have (Hz): below,
-#: the samples cannot carry the dynamics (the default 10 Hz cutoff would be above Nyquist)
-MIN_RATE_HZ = 10.0
-
-
-def rate_hz(upper: float = 100_000.0) -> Callable[[str], float]:
+def rate_hz(upper: float = MAX_RATE_HZ) -> Callable[[str], float]:
     """A sampling or controller rate in [MIN_RATE_HZ, upper] Hz."""
 
     def check(text: str) -> float:

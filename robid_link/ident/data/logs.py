@@ -20,6 +20,7 @@ import numpy as np
 
 from robid_link.exceptions import DataError, DataWarning, RobidError
 from robid_link.ident.data.bags import is_bag, read_bag
+from robid_link.kinds import MAX_RATE_HZ, MIN_RATE_HZ
 from robid_link.safeopen import file_problem
 
 __all__ = ["Log", "load_log", "file_sha256", "write_log_csv", "read_numeric_csv",
@@ -34,10 +35,6 @@ MAX_ARRAY_BYTES = 1 << 30
 GAP_FACTOR = 2.5
 #: relative jitter of the time step above which the log is resampled onto a uniform grid
 JITTER_TOL = 0.01
-#: sampling rates a robot's log can have (Hz): below, its time is not in seconds (or the log
-#: cannot hold the dynamics); above, neither
-MIN_RATE_HZ = 10.0
-MAX_RATE_HZ = 100_000.0
 #: time units a log's time column is often written in, by their size in seconds
 _TIME_UNITS = (("milliseconds", 1e-3), ("microseconds", 1e-6), ("nanoseconds", 1e-9),
                ("minutes", 60.0))

@@ -18,12 +18,11 @@ import yaml
 from robid_link.exceptions import ConfigError
 from robid_link.ident.model.effects import DEFAULT_MODEL, Model, States
 from robid_link.ident.model.robot import Robot
+from robid_link.kinds import MAX_RATE_HZ, MIN_RATE_HZ
 from robid_link.safeopen import file_problem
 from robid_link.yamlio import read_yaml_mapping
 
 __all__ = [
-    "MIN_RATE_HZ",
-    "MAX_RATE_HZ",
     "FourierTrajectory",
     "Trajectory",
     "random_fourier",
@@ -41,10 +40,6 @@ __all__ = [
 
 #: fraction of each limit a scaled trajectory may use
 LIMIT_MARGIN = 0.9
-#: the rates a robot's trajectory, log or simulated plant can plausibly have (Hz): below, the
-#: samples cannot carry the dynamics (the default 10 Hz cutoff would be above Nyquist)
-MIN_RATE_HZ = 10.0
-MAX_RATE_HZ = 100_000.0
 
 
 @dataclass(frozen=True)
