@@ -209,25 +209,24 @@ def run(spec: dict[str, Any]) -> dict[str, Any]:
         if elsewhere is not None:
             peer_opts["redirect_to"] = elsewhere.url
         reset_peak()
-        anon = AnonPeak().__enter__()
-        peer = make_peer(spec["driver"], robot, default_truth(robot, rate_hz=200.0),
-                         work / "cell", fault=spec.get("fault"),
-                         fault_count=int(spec.get("fault_count", 1)), **peer_opts)
-        with peer:
-            driver = {**peer.driver_options(), **spec.get("driver_over", {})}
-            camp = {"experiments": [spec.get("experiment", FRICTION)], "identify": False,
-                    "timeout_s": float(spec.get("timeout_s", 20)), "backoff_s": 0.05,
-                    "retries": int(spec.get("retries", 0))}
-            cfg = {"robot": str(ARM3), "state_dir": str(work / "state"),
-                   "control_socket": str(work / "ctl.sock"), "driver": driver,
-                   "worker_start_method": "forkserver", "campaigns": {"c": camp}}
-            cfg_path = work / "daemon.yaml"
-            cfg_path.write_text(yaml.safe_dump(cfg))
-            out = asyncio.run(_cell(spec, cfg_path, peer, work))
-            out["stops"] = _stop_times(peer)
-            out["plc_runs"] = len(getattr(peer, "runs", []))
-            out["outside"] = sorted(os.listdir(work / "outside"))
-        anon.__exit__(None, None, None)
+        with AnonPeak() as anon:
+            peer = make_peer(spec["driver"], robot, default_truth(robot, rate_hz=200.0),
+                             work / "cell", fault=spec.get("fault"),
+                             fault_count=int(spec.get("fault_count", 1)), **peer_opts)
+            with peer:
+                driver = {**peer.driver_options(), **spec.get("driver_over", {})}
+                camp = {"experiments": [spec.get("experiment", FRICTION)], "identify": False,
+                        "timeout_s": float(spec.get("timeout_s", 20)), "backoff_s": 0.05,
+                        "retries": int(spec.get("retries", 0))}
+                cfg = {"robot": str(ARM3), "state_dir": str(work / "state"),
+                       "control_socket": str(work / "ctl.sock"), "driver": driver,
+                       "worker_start_method": "forkserver", "campaigns": {"c": camp}}
+                cfg_path = work / "daemon.yaml"
+                cfg_path.write_text(yaml.safe_dump(cfg))
+                out = asyncio.run(_cell(spec, cfg_path, peer, work))
+                out["stops"] = _stop_times(peer)
+                out["plc_runs"] = len(getattr(peer, "runs", []))
+                out["outside"] = sorted(os.listdir(work / "outside"))
         out["peak_rss_mb"] = peak_rss_mb()
         out["peak_anon_mb"] = anon.peak
     if elsewhere is not None:
