@@ -96,6 +96,13 @@ async def run_cycle(store: AsyncStore, driver: Driver, run_id: str, exp_id: str,
     attempt, nonce, state = int(row["attempt"]), row["nonce"], row["state"]
     if state == "attempt_failed" and nonce:  # killed before the old 'ready' was taken back
         await driver.withdraw(exp_id, nonce)
+    if state == "attempt_failed" and attempt > policy.retries:
+        # stopped between the last allowed attempt's failure and its verdict: a restart buys
+        # no further attempt
+        err = row.get("error") or "its last attempt failed"
+        await store.step(run_id, exp_id, "failed", error=err)
+        raise CycleError(f"experiment {exp_id}: {err} (after {attempt} attempt"
+                         f"{'s' if attempt > 1 else ''}; a restart adds none)")
     if state not in ("giving", "given", "taken"):
         nonce = None  # pending, or a failed attempt: start a new one
     take_s = policy.timeout_s

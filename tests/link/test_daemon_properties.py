@@ -218,3 +218,42 @@ def test_a_log_that_cannot_be_fetched_never_keeps_a_program_out() -> None:
     asyncio.run(Daemon._withdraw_row(me, row))  # type: ignore[arg-type]
     assert calls == [("fetch", "friction"), ("withdraw", "friction", "n1"),
                      ("step", "friction", "withdrawn")]
+
+
+def test_a_restart_after_the_last_attempt_failed_gives_no_further_attempt() -> None:
+    """A stop between the last allowed attempt's failure and its verdict (the journal holds
+    'attempt_failed', not 'failed'): the resume takes the old program back and fails the
+    experiment; it once gave attempt 2 of an experiment with ``retries: 0`` (seen in the
+    many-scenario run)."""
+    from types import SimpleNamespace
+
+    from robid_link.exceptions import CycleError
+    from robid_link.link.cycle import CyclePolicy, run_cycle
+
+    calls: list[tuple[Any, ...]] = []
+
+    class Driver:
+        def __getattr__(self, name: str) -> Any:
+            async def record(*a: Any, **k: Any) -> None:
+                calls.append((name, *a))
+            return record
+
+    class Store:
+        async def experiment(self, run_id: str, exp_id: str) -> dict[str, Any]:
+            return {"log_sha": None, "attempt": 1, "nonce": "n1", "state": "attempt_failed",
+                    "error": "file_share: no answer within 1.5 s"}
+
+        async def step(self, run_id: str, exp_id: str, state: str, **fields: Any) -> None:
+            calls.append(("step", exp_id, state, fields.get("error")))
+
+    program = SimpleNamespace(exp_id="friction", files={}, sha256="0" * 64)
+
+    async def check(path: str) -> None:
+        raise AssertionError("nothing to check")
+
+    with pytest.raises(CycleError, match=r"experiment friction: file_share: no answer within "
+                       r"1\.5 s \(after 1 attempt; a restart adds none\)"):
+        asyncio.run(run_cycle(Store(), Driver(), "r", "friction", program,  # type: ignore
+                              CyclePolicy(timeout_s=1.5, retries=0), check))
+    assert calls == [("withdraw", "friction", "n1"),
+                     ("step", "friction", "failed", "file_share: no answer within 1.5 s")]
