@@ -84,7 +84,8 @@ def _controller(driver: str, workdir: Path) -> Any:
 async def _campaign(cfg_path: Path, log_file: Path, name: str = "demo") -> dict[str, Any]:
     from robid_link.cli.runs import wait_for_run
     from robid_link.link.control import PREFLIGHT_TIMEOUT_S, request
-    from robid_link.link.daemon import Daemon, setup_logging
+    from robid_link.link.daemon import Daemon
+    from robid_link.link.notify import setup_logging
 
     cfg = load_daemon_config(cfg_path)
     with open(log_file, "a") as log:

@@ -117,7 +117,7 @@ def _fake_controller(args: argparse.Namespace) -> int:
 
     from robid_link.atomic import atomic_write
     from robid_link.ident.model.robot import load_robot
-    from robid_link.link.daemon import setup_logging
+    from robid_link.link.notify import setup_logging
     from robid_link.link.registry import fake_module
 
     setup_logging("info")

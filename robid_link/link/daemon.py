@@ -11,11 +11,10 @@ import logging
 import multiprocessing
 import os
 import signal
-import sys
 import time
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from contextlib import AbstractAsyncContextManager
-from typing import Any, TextIO
+from typing import Any
 
 from robid_link.config import DaemonConfig, robot_name, with_joint_count
 from robid_link.exceptions import (
@@ -31,46 +30,14 @@ from robid_link.link import campaign as cp
 from robid_link.link.checks import ModelWatch, campaign_findings, daemon_findings
 from robid_link.link.control import ControlServer
 from robid_link.link.driver import Done
-from robid_link.link.notify import Notifier
+from robid_link.link.notify import Notifier, setup_logging
 from robid_link.link.registry import make_driver
 from robid_link.link.store import AsyncStore, open_store
 from robid_link.link.worker import run_in_worker
 
-__all__ = ["Daemon", "setup_logging"]
+__all__ = ["Daemon"]
 
 log = logging.getLogger("robid.daemon")
-
-_PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3,
-             logging.CRITICAL: 2}
-
-
-class _LineFormatter(logging.Formatter):
-    """One line per record, ``key=value`` fields in the message; under journald the line
-    starts with its syslog priority (``<6>``) and journald adds the time."""
-
-    def __init__(self, journald: bool) -> None:
-        super().__init__()
-        self.journald = journald
-
-    def format(self, record: logging.LogRecord) -> str:
-        msg = record.getMessage().replace("\n", " | ")
-        if self.journald:
-            return f"<{_PRIORITY.get(record.levelno, 6)}>{record.name}: {msg}"
-        stamp = time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(record.created))
-        return f"{stamp} {record.levelname.lower():<7} {record.name}: {msg}"
-
-
-def setup_logging(level: str = "info", stream: TextIO | None = None) -> None:
-    """robid's log lines to ``stream`` (stdout, for journald), replacing earlier handlers."""
-    root = logging.getLogger("robid")
-    for h in list(root.handlers):
-        root.removeHandler(h)
-    handler = logging.StreamHandler(stream or sys.stdout)
-    handler.setFormatter(_LineFormatter(bool(os.environ.get("JOURNAL_STREAM"))))
-    root.addHandler(handler)
-    root.setLevel(level.upper())
-    root.propagate = False
-
 
 def _kill_hook(spec: str | None) -> Any:
     """``ROBID_FAULT_KILL_AFTER=step[:n]``: SIGKILL this process after the n-th such step."""

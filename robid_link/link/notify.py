@@ -1,14 +1,18 @@
-"""sd_notify over ``NOTIFY_SOCKET`` (READY, STATUS, WATCHDOG, STOPPING), a few lines instead of
-a dependency; silent when not run by systemd."""
+"""systemd's side of the daemon: sd_notify over ``NOTIFY_SOCKET`` (READY, STATUS, WATCHDOG,
+STOPPING), a few lines instead of a dependency, silent when not run by systemd; and the log's one
+line per record, with its syslog priority under journald."""
 
 from __future__ import annotations
 
 import logging
 import os
 import socket
+import sys
+import time
 from collections.abc import Mapping
+from typing import TextIO
 
-__all__ = ["Notifier"]
+__all__ = ["Notifier", "setup_logging"]
 
 log = logging.getLogger("robid.notify")
 
@@ -46,3 +50,35 @@ class Notifier:
             log.warning("sd_notify to %r failed: %s", self.address, err)
             return False
         return True
+
+
+_PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3,
+             logging.CRITICAL: 2}
+
+
+class _LineFormatter(logging.Formatter):
+    """One line per record, ``key=value`` fields in the message; under journald the line
+    starts with its syslog priority (``<6>``) and journald adds the time."""
+
+    def __init__(self, journald: bool) -> None:
+        super().__init__()
+        self.journald = journald
+
+    def format(self, record: logging.LogRecord) -> str:
+        msg = record.getMessage().replace("\n", " | ")
+        if self.journald:
+            return f"<{_PRIORITY.get(record.levelno, 6)}>{record.name}: {msg}"
+        stamp = time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(record.created))
+        return f"{stamp} {record.levelname.lower():<7} {record.name}: {msg}"
+
+
+def setup_logging(level: str = "info", stream: TextIO | None = None) -> None:
+    """robid's log lines to ``stream`` (stdout, for journald), replacing earlier handlers."""
+    root = logging.getLogger("robid")
+    for h in list(root.handlers):
+        root.removeHandler(h)
+    handler = logging.StreamHandler(stream or sys.stdout)
+    handler.setFormatter(_LineFormatter(bool(os.environ.get("JOURNAL_STREAM"))))
+    root.addHandler(handler)
+    root.setLevel(level.upper())
+    root.propagate = False

@@ -236,7 +236,7 @@ def run(spec: dict[str, Any]) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    from robid_link.link.daemon import setup_logging
+    from robid_link.link.notify import setup_logging
 
     setup_logging("warning", sys.stderr)
     if sys.argv[1] == "warm":

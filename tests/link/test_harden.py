@@ -278,7 +278,7 @@ def test_full_disk_while_recording_a_failure_does_not_crash_the_daemon(
 def test_internal_error_line_carries_its_cause(tmp_path: Path,
                                                monkeypatch: pytest.MonkeyPatch,
                                                caplog: pytest.LogCaptureFixture) -> None:
-    from robid_link.link.daemon import _LineFormatter
+    from robid_link.link.notify import _LineFormatter
 
     async def boom(*args: Any, **kw: Any) -> None:
         raise RuntimeError("boom at step 3")
