@@ -8,7 +8,8 @@ it is compiled and simulated, then the arm follows it in real time and every RTD
 its recipe at its frequency, time-stamped by the controller's clock; at its end runtime_state
 goes back to stopped (1). Own faults (``fault_at``: the share of the path where they strike):
 ``rtde_drop`` (RTDE connections reset), ``rtde_stall`` (the stream stops, connection kept),
-``rtde_slow`` (one package in ``slow_every``), ``rtde_not_found`` (``missing_field`` answered
+``rtde_slow`` (one package in ``slow_every``), ``rtde_garbage`` (one data package of the
+largest size, zeros), ``rtde_not_found`` (``missing_field`` answered
 NOT_FOUND at the next set-up), ``rtde_refuse_v2`` (the next version request refused). Core faults:
 ``fail`` is a protective stop, ``die`` the controller gone, ``never_answer`` a program that never
 moves nor ends, ``truncated_log``/``corrupt_log`` one short / foreign-recipe data package,
@@ -52,7 +53,8 @@ class UrRtdePeer(RtdeServer, Peer):
     driver = "ur_rtde"
     #: the contract suite's robot: a UR controller moves six revolute joints
     contract_robot = "industrial6.yaml"
-    faults = ("rtde_drop", "rtde_stall", "rtde_slow", "rtde_not_found", "rtde_refuse_v2")
+    faults = ("rtde_drop", "rtde_stall", "rtde_slow", "rtde_garbage", "rtde_not_found",
+              "rtde_refuse_v2")
     unsupported = {
         "stale_semaphore": "RTDE answers carry no nonce and the driver sends a program only "
                            "while the controller is stopped: no earlier run can end into it",
@@ -100,6 +102,7 @@ class UrRtdePeer(RtdeServer, Peer):
         self._programs = 0
         self._received = 0  # programs and stop requests received on the script port
         self.stops: list[str] = []  # stop requests received: dashboard, script (stopj)
+        self.stop_times: list[float] = []  # time.time() of each of them
         self.programs: list[str] = []  # names of the programs received, in order
 
     def driver_options(self) -> dict[str, Any]:
@@ -268,6 +271,7 @@ class UrRtdePeer(RtdeServer, Peer):
         self._received += 1
         if _STOP_ONLY.match(text):
             self.stops.append("script")
+            self.stop_times.append(time.time())
             self._stop_program("script")
             return
         self._programs += 1
@@ -382,6 +386,7 @@ class UrRtdePeer(RtdeServer, Peer):
         name = self.programs[-1] if self.programs else "<unnamed>"
         if command == "stop":
             self.stops.append("dashboard")
+            self.stop_times.append(time.time())
             return "Stopped" if self._stop_program("dashboard") else "Failed to execute: stop"
         if command == "pause":
             if runtime != 2:

@@ -230,6 +230,12 @@ class RtdeServer:
                 c.stalled = True
             if c.stalled or (fault == "rtde_slow" and k % self.slow_every):
                 continue
+            if fault == "rtde_garbage" and struck and id(m) not in c.damaged:
+                # a data package's header announcing the largest size RTDE allows, zeros for
+                # its payload (a controller's corrupted send buffer)
+                c.damaged.add(id(m))
+                c.writer.write(struct.pack(">HB", 0xFFFF, 85) + bytes(0xFFFF - 3))
+                continue
             values: list[Any] = [c.recipe]
             for name in c.names:
                 v = self._value(name, nxt - self._boot, sample)

@@ -7,7 +7,8 @@ the memory the hostile controller could make the daemon take).
 
 SPEC (JSON): ``driver``, ``fault``, ``fault_count`` (1), ``peer`` (peer options), ``driver_over``
 (daemon driver options), ``experiment`` (a friction sweep by default), ``retries`` (0),
-``timeout_s`` (the take's, 20), ``mute_clients`` (control-socket clients that send and never
+``timeout_s`` (the take's, 20), ``robot`` (an example robot's name, arm3; a UR controller moves
+industrial6), ``mute_clients`` (control-socket clients that send and never
 read), ``symlink_inbox`` (the share's inbox replaced by a link after the daemon opened).
 """
 
@@ -27,7 +28,8 @@ from typing import Any
 
 import yaml
 
-ARM3 = Path(__file__).resolve().parents[2] / "examples" / "robots" / "arm3.yaml"
+ROBOTS = Path(__file__).resolve().parents[2] / "examples" / "robots"
+ARM3 = ROBOTS / "arm3.yaml"
 FRICTION = {"kind": "friction", "speeds": [0.5], "joints": [1], "rate_hz": 100}
 
 
@@ -74,7 +76,7 @@ def reset_peak() -> None:
 
 def _stop_times(peer: Any) -> list[float]:
     """When the controller side saw a stop/abort (each peer keeps its own record)."""
-    for name in ("stops", "aborts"):
+    for name in ("stop_times", "stops", "aborts"):
         if hasattr(peer, name):
             return list(getattr(peer, name))
     return list(peer.quick_stops()) if hasattr(peer, "quick_stops") else []
@@ -199,7 +201,8 @@ def run(spec: dict[str, Any]) -> dict[str, Any]:
     from robid_link.fakes.controller import default_truth, make_peer
     from robid_link.ident.model.robot import load_robot
 
-    robot = load_robot(ARM3)
+    robot_path = ROBOTS / f"{spec.get('robot', 'arm3')}.yaml"
+    robot = load_robot(robot_path)
     elsewhere = _Elsewhere() if spec.get("fault") == "redirect" else None
     with tempfile.TemporaryDirectory(prefix="robid-hostile-") as tmp:
         work = Path(tmp)
@@ -218,7 +221,7 @@ def run(spec: dict[str, Any]) -> dict[str, Any]:
                 camp = {"experiments": [spec.get("experiment", FRICTION)], "identify": False,
                         "timeout_s": float(spec.get("timeout_s", 20)), "backoff_s": 0.05,
                         "retries": int(spec.get("retries", 0))}
-                cfg = {"robot": str(ARM3), "state_dir": str(work / "state"),
+                cfg = {"robot": str(robot_path), "state_dir": str(work / "state"),
                        "control_socket": str(work / "ctl.sock"), "driver": driver,
                        "worker_start_method": "forkserver", "campaigns": {"c": camp}}
                 cfg_path = work / "daemon.yaml"

@@ -64,6 +64,19 @@ CASES: list[tuple[str, dict[str, Any], str | None, bool, bool]] = [
     ("serial-silent-run", {"driver": "serial_line", "fault": "silent_run",
                            "driver_over": QUICK_SERIAL},
      r"controller silent while experiment friction runs", True, True),
+    # Universal Robots: the stream stalls mid-motion (connection kept); a data package of the
+    # largest size RTDE allows, zeros; the controller gone (no stop can reach it: the line
+    # says so)
+    ("ur-rtde-stall", {"driver": "ur_rtde", "fault": "rtde_stall", "robot": "industrial6"},
+     r"the RTDE stream stopped: no data package for 1 s during experiment friction; program "
+     r"stopped \(dashboard\)", True, True),
+    ("ur-rtde-garbage", {"driver": "ur_rtde", "fault": "rtde_garbage", "robot": "industrial6"},
+     r"corrupt RTDE data package: 65532 bytes, the recipe needs \d+; program stopped", True,
+     True),
+    ("ur-controller-gone", {"driver": "ur_rtde", "fault": "die", "robot": "industrial6"},
+     r"RTDE connection to [\d.:]+ lost during experiment friction \(connection closed\); "
+     r"could not stop the program \(dashboard Connection refused; script port Connection "
+     r"refused\)", False, True),
     # 7: the share's inbox replaced by a link after the daemon opened it
     ("share-symlinked-inbox", {"driver": "file_share", "fault": None, "symlink_inbox": True},
      r"inbox: a symbolic link; refusing to write through it", False, False),
