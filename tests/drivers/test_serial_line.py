@@ -51,20 +51,28 @@ async def _cycle(driver: Driver, program: MotionProgram) -> bytes:
         return data
 
 
+#: the log in small pieces either way: plain chunks, or compressed blocks
+MODES = {"plain": {"compress": False, "chunk_bytes": 512}, "zlog": {"block_bytes": 1024}}
+
+
+@pytest.mark.parametrize("mode", MODES)
 def test_flipped_bits_are_resent_and_the_log_arrives_intact(tmp_path: Path, robot: Robot,
-                                                            program: MotionProgram) -> None:
+                                                            program: MotionProgram,
+                                                            mode: str) -> None:
     with _peer(tmp_path, robot, fault="flip_bytes", flip_rate=0.2) as peer:
-        driver = _driver(peer, robot, chunk_bytes=512, io_timeout_s=0.3, retries=30)
+        driver = _driver(peer, robot, io_timeout_s=0.3, retries=30, **MODES[mode])
         data = asyncio.run(_cycle(driver, program))
         assert peer.frames_bad > 0 and driver.bad_frames > 0  # both ways
+        assert (peer.blocks_sent > 0) == (mode == "zlog")
     run = peer.core.handled
     assert len(run) == 1 and data.startswith(b"t,q1,q2,q3,tau1")
 
 
+@pytest.mark.parametrize("mode", MODES)
 def test_cable_pulled_mid_log_reopens_and_resumes(tmp_path: Path, robot: Robot,
-                                                  program: MotionProgram) -> None:
+                                                  program: MotionProgram, mode: str) -> None:
     with _peer(tmp_path, robot, fault="cable_pulled", pull_s=0.8) as peer:
-        driver = _driver(peer, robot, chunk_bytes=512, io_timeout_s=0.3, reopen_s=5)
+        driver = _driver(peer, robot, io_timeout_s=0.3, reopen_s=5, **MODES[mode])
         data = asyncio.run(_cycle(driver, program))
     assert driver.reopened == 1  # type: ignore[attr-defined]
     # intact: the base checked size and SHA-256 against DONE; a clean run gives the same log
