@@ -29,6 +29,18 @@ from typing import Any
 
 import serial  # type: ignore[import-untyped]
 
+from robid_link.drivers.serial_frames import (
+    ERROR_CODES,
+    MAX_LINE,
+    Pending,
+    block_at,
+    block_header,
+    chunk_at,
+    decode_frame,
+    encode_frame,
+    number,
+    starts,
+)
 from robid_link.drivers.serial_zlog import BlockError, block_length, decode_answer
 from robid_link.exceptions import DriverError
 from robid_link.jobs import MotionProgram
@@ -40,13 +52,6 @@ __all__ = ["SerialLineDriver", "encode_frame", "decode_frame", "ERROR_CODES", "M
 
 log = logging.getLogger("robid.driver.serial_line")
 
-#: what a controller's ERR code means (docs/serial_line_protocol.md)
-ERROR_CODES = {1: "program missing or incomplete", 2: "motion supervision triggered",
-               3: "joint limit reached", 4: "emergency stop", 5: "not in automatic mode",
-               6: "log storage full", 7: "aborted by the daemon", 8: "busy with another program",
-               9: "no log for this experiment and nonce"}
-#: the longest frame either side accepts (a 16 KiB chunk in base64 plus its header)
-MAX_LINE = 24_000
 #: waits between attempts to reopen a vanished port (within ``reopen_s``)
 REOPEN_BACKOFF = Backoff(0.05, 0.5)
 #: the attempts whose answers are kept (given by this driver, newest last) and the answers
@@ -63,39 +68,12 @@ MAX_BLOCK = 1 << 20
 MAX_PAYLOAD_OVER = 1024
 
 
-def encode_frame(*fields: object) -> bytes:
-    """One frame: the fields joined by spaces, ``*`` and the body's CRC-32 in 8 hex digits."""
-    body = " ".join(str(f) for f in fields).encode("ascii", "replace")
-    return body + b"*%08X\n" % zlib.crc32(body)
-
-
-def decode_frame(line: bytes) -> list[str] | None:
-    """The fields of a frame, None when its CRC fails or it is not a frame (line noise)."""
-    body, star, crc = line.rstrip(b"\r\n").rpartition(b"*")
-    if not star or crc != b"%08X" % zlib.crc32(body):  # exact: a flipped case bit counts too
-        return None
-    try:
-        return body.decode("ascii").split(" ")
-    except UnicodeDecodeError:
-        return None
-
-
 class _Renegotiate(Exception):
     """A block request met a reopened port: ask CAPS again before the next ZGET."""
 
 
-class _Pending:
-    """The one request in flight: a predicate on answer frames and the future it resolves;
-    ``payload``: the block that came with a ZBLK answer. With ``quiet`` (a ZGET: binary bytes
-    may follow a damaged header) a damaged frame is resent only once the line is quiet."""
-
-    def __init__(self, match: Callable[[list[str]], bool], quiet: bool = False) -> None:
-        self.match, self.quiet = match, quiet
-        self.future: asyncio.Future[list[str]] = asyncio.get_running_loop().create_future()
-        self.resend = asyncio.Event()
-        self.damaged = False
-        self.payload = b""
-        self.why = "no answer"
+class _BlockLost(Exception):
+    """No intact answer to a ZGET after ``retries`` + 1 tries (the reason as its text)."""
 
 
 class SerialLineDriver(Driver):
@@ -136,7 +114,7 @@ class SerialLineDriver(Driver):
         self._lost_reason = ""
         self._fault: DriverError | None = None
         self._lock = asyncio.Lock()
-        self._pending: _Pending | None = None
+        self._pending: Pending | None = None
         self._answers: dict[tuple[str, str], list[str]] = {}
         self._waiting: set[tuple[str, str]] = set()
         # bounded memories: the attempts given (answers kept only for these), the taken ones
@@ -214,7 +192,7 @@ class SerialLineDriver(Driver):
                         block = None
                     elif (k := buf.find(b"\n")) >= 0:
                         line, buf = bytes(buf[: k + 1]), buf[k + 1:]
-                        block = self._block_header(line)
+                        block = block_header(line, self.block_bytes + MAX_PAYLOAD_OVER)
                         if block is None:
                             self.bridge.call(self._on_line, line)
                     else:
@@ -224,16 +202,6 @@ class SerialLineDriver(Driver):
         except (serial.SerialException, OSError, TypeError) as err:
             if not self._stop_reader.is_set():
                 self.bridge.call(self._on_lost, _reason(err))
-
-    def _block_header(self, line: bytes) -> tuple[bytes, int] | None:
-        """``(header, zlen)`` when ``line`` is an intact ZBLK header whose payload follows."""
-        if not line.startswith(b"ZBLK "):
-            return None
-        fields = decode_frame(line)
-        if fields is None or len(fields) != 9 or not fields[7].isdigit():
-            return None
-        zlen = int(fields[7])
-        return (line, zlen) if 0 < zlen <= self.block_bytes + MAX_PAYLOAD_OVER else None
 
     async def _close_port(self) -> None:
         self._up.clear()
@@ -372,7 +340,7 @@ class SerialLineDriver(Driver):
 
     async def _exchange(self, fields: list[object], match: Callable[[list[str]], bool],
                         what: str, reply_bytes: int = 64, tries: int | None = None,
-                        block: bool = False) -> _Pending:
+                        block: bool = False) -> Pending:
         """``_request``, giving the answered request (``block``: a ZGET, whose answer's
         payload is in ``payload``)."""
         line = encode_frame(*fields)
@@ -383,7 +351,7 @@ class SerialLineDriver(Driver):
             for _ in range(tries):
                 if block and self.zlog is None:
                     raise _Renegotiate
-                self._pending = pending = _Pending(match, quiet=block)
+                self._pending = pending = Pending(match, quiet=block)
                 try:
                     await self._send(line)
                     if await self._reply(pending, self.io_timeout_s + wire_s):
@@ -397,7 +365,7 @@ class SerialLineDriver(Driver):
             raise DriverError(f"serial port {self.port}: no valid answer to {what} after "
                               f"{tries} tries ({why}: line noise or no controller)")
 
-    async def _reply(self, pending: _Pending, timeout_s: float) -> bool:
+    async def _reply(self, pending: Pending, timeout_s: float) -> bool:
         """True once the answer came, False on a NAK, a damaged frame or silence. Bytes still
         arriving (earlier answers queued on a slow line) are not silence: resending then would
         only lengthen the queue."""
@@ -434,14 +402,14 @@ class SerialLineDriver(Driver):
             sha = _sha256(data)
             pid = program.exp_id
             await self._request(["PROG", pid, name, len(data), sha],
-                                _starts("OK", "PROG", pid, name), what=f"PROG {name}")
+                                starts("OK", "PROG", pid, name), what=f"PROG {name}")
             offset, stalls = 0, 0
             while offset < len(data):
                 chunk = data[offset: offset + self.chunk]
                 got = await self._request(
                     ["PUT", pid, name, offset, base64.b64encode(chunk).decode()],
-                    _starts("ACK", "PUT", pid, name, size=5), what=f"PUT {name} at {offset}")
-                acked = _int(got[4], f"PUT {name}")
+                    starts("ACK", "PUT", pid, name, size=5), what=f"PUT {name} at {offset}")
+                acked = number(got[4], f"PUT {name}")
                 if acked > len(data):
                     raise DriverError(f"serial port {self.port}: controller acknowledged "
                                       f"{acked} bytes of {name}, {len(data)} were sent")
@@ -479,7 +447,7 @@ class SerialLineDriver(Driver):
                         raise self._error(exp_id, fields)
                     if len(fields) != 5 or not _HEX64.fullmatch(fields[4].lower()):
                         raise DriverError(f"serial port {self.port}: malformed DONE frame")
-                    return Done(exp_id, nonce, fields[4].lower(), _int(fields[3], "DONE"))
+                    return Done(exp_id, nonce, fields[4].lower(), number(fields[3], "DONE"))
                 if self._fault is not None:
                     raise self._fault
                 tick = self._tick
@@ -504,7 +472,7 @@ class SerialLineDriver(Driver):
                 self._answers.pop(key, None)
 
     def _error(self, exp_id: str, fields: list[str]) -> DriverError:
-        code = _int(fields[3], "ERR") if len(fields) > 3 else 0
+        code = number(fields[3], "ERR") if len(fields) > 3 else 0
         text = " ".join(fields[4:])
         return DriverError(f"controller on {self.port} reports experiment {exp_id} failed: "
                            f"error {code} ({ERROR_CODES.get(code, 'unknown error code')})"
@@ -533,8 +501,17 @@ class SerialLineDriver(Driver):
         try:
             while True:
                 off = len(data) if ahead is None else ahead[0] + ahead[1]
-                answer = (await self._ask_block(done, off, total) if off < total
-                          else (["EOF"], b""))
+                try:
+                    answer = (await self._ask_block(done, off, total) if off < total
+                              else (["EOF"], b""))
+                except _BlockLost as lost:  # what was decoded before it is kept
+                    if ahead is not None:
+                        with contextlib.suppress(BlockError):
+                            data += await ahead[2]
+                        ahead = None
+                    raise DriverError(f"{self._block_name(done, off)} not received intact "
+                                      f"({lost}); fetch stopped, {len(data)} bytes kept for "
+                                      "a resume") from None
                 if ahead is not None:
                     decoding, ahead = ahead[2], None
                     try:
@@ -569,16 +546,14 @@ class SerialLineDriver(Driver):
             try:
                 answer = await self._exchange(
                     ["ZGET", done.exp_id, done.nonce, off, size],
-                    _block_at(done.exp_id, done.nonce, off), what=f"ZGET at {off}",
+                    block_at(done.exp_id, done.nonce, off), what=f"ZGET at {off}",
                     reply_bytes=size + MAX_PAYLOAD_OVER, block=True)
             except _Renegotiate:
                 continue
             except DriverError as err:
                 if self._fault is not None:
                     raise
-                raise DriverError(f"{self._block_name(done, off)} not received intact "
-                                  f"({err}); fetch stopped, {off} bytes kept for a resume"
-                                  ) from None
+                raise _BlockLost(str(err)) from None
             got = answer.future.result()
             if got[0] == "ERR":
                 raise self._error(done.exp_id, got)
@@ -611,7 +586,7 @@ class SerialLineDriver(Driver):
             off = len(data)
             got = await self._request(
                 ["GET", done.exp_id, done.nonce, off, self.chunk],
-                _chunk_at(done.exp_id, done.nonce, off), what=f"GET at {off}",
+                chunk_at(done.exp_id, done.nonce, off), what=f"GET at {off}",
                 reply_bytes=4 * self.chunk // 3 + 64)
             if got[0] == "ERR":
                 raise self._error(done.exp_id, got)
@@ -640,25 +615,6 @@ class SerialLineDriver(Driver):
                             lambda f: f[:4] == ["OK", "ABORT", exp_id, nonce], what="ABORT")
 
 
-def _starts(*prefix: str, size: int | None = None) -> Callable[[list[str]], bool]:
-    """Accepts the frames that begin with ``prefix`` (and have ``size`` fields, if given)."""
-    want = list(prefix)
-    return lambda f: f[: len(want)] == want and (size is None or len(f) == size)
-
-
-def _chunk_at(exp_id: str, nonce: str, offset: int) -> Callable[[list[str]], bool]:
-    """Accepts the answer to ``GET`` at ``offset``: its DATA or EOF, or an ERR."""
-    return lambda f: len(f) >= 4 and f[1:3] == [exp_id, nonce] and (
-        f[0] == "ERR" or (f[0] in ("DATA", "EOF") and f[3] == str(offset)))
-
-
-def _block_at(exp_id: str, nonce: str, offset: int) -> Callable[[list[str]], bool]:
-    """Accepts the answer to ``ZGET`` at ``offset``: its ZBLK or EOF, or an ERR."""
-    return lambda f: len(f) >= 4 and f[1:3] == [exp_id, nonce] and (
-        f[0] == "ERR" or (f[0] == "EOF" and f[3] == str(offset))
-        or (f[0] == "ZBLK" and len(f) == 9 and f[3] == str(offset)))
-
-
 _HEX64 = re.compile(r"[0-9a-f]{64}")
 
 
@@ -666,13 +622,6 @@ def _sha256(data: bytes) -> str:
     import hashlib
 
     return hashlib.sha256(data).hexdigest()
-
-
-def _int(text: str, what: str) -> int:
-    try:
-        return int(text)
-    except ValueError as err:
-        raise DriverError(f"{what} frame: {text!r} is not a number") from err
 
 
 def _reason(err: BaseException) -> str:

@@ -61,12 +61,12 @@ def decode_block(codec: str, payload: bytes, rawlen: int) -> bytes:
 def _inflate(payload: bytes, limit: int) -> bytes:
     inflater = zlib.decompressobj()
     try:
-        out = inflater.decompress(payload, limit)
+        out = inflater.decompress(payload, limit + 1)  # one more tells a bomb
     except zlib.error as err:
         raise BlockError(f"damaged zlib stream ({err})") from None
+    if len(out) > limit:
+        raise BlockError(f"inflates beyond {limit} bytes")
     if not inflater.eof:
-        if inflater.unconsumed_tail or len(out) >= limit:
-            raise BlockError(f"inflates beyond {limit} bytes")
         raise BlockError("zlib stream ends early")
     if inflater.unused_data:
         raise BlockError("bytes after the zlib stream")

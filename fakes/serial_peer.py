@@ -105,6 +105,7 @@ class SerialPeer(Peer):
         self._blocks: dict[tuple[str, str, int, int], concurrent.futures.Future[Block]] = {}
         self._pool: concurrent.futures.ThreadPoolExecutor | None = None
         self.blocks_sent = 0
+        self.blocks_asked: list[int] = []  # the offset of every ZGET, in order
         self._tx, self._rx = _Pacer(pace_baud), _Pacer(pace_baud)
         self._rng = random.Random(seed)
         self._fd_lock, self._write_lock = threading.Lock(), threading.Lock()
@@ -313,6 +314,7 @@ class SerialPeer(Peer):
         off, most = int(offset), int(size)
         if not self.zlog or off < 0 or not 1 <= most <= MAX_BLOCK:
             raise ValueError("ZGET")
+        self.blocks_asked.append(off)
         res = self._results.get((exp_id, nonce))
         if res is None:
             self._write("ERR", exp_id, nonce, 9, "no log")
