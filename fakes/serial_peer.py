@@ -6,14 +6,18 @@ same name).
 Own faults: ``flip_bytes`` (a bit flipped in ``flip_rate`` of the frames either way: CRCs
 catch them, frames are resent), ``cable_pulled`` (mid-log the line is gone for ``pull_s`` and
 returns as a new device: the driver reopens it and resumes), ``device_gone`` (the device
-vanishes for good after GO). ``pace_baud`` paces both directions at 10 bits per byte, since a
-pty ignores the baud rate.
+vanishes for good after GO), ``corrupt_block`` (a log block damaged on the line
+``corrupt_times`` times). ``pace_baud`` paces both directions at 10 bits per byte, since a
+pty ignores the baud rate. Logs go down in compressed blocks (``zlog1``, ``serial_zlog``; the
+next block is compressed while one is on the line); ``zlog=False`` plays an older controller
+that knows neither CAPS nor ZGET.
 """
 
 from __future__ import annotations
 
 import base64
 import binascii
+import concurrent.futures
 import hashlib
 import logging
 import os
@@ -28,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from robid_link.fakes.controller import ControllerCore, Peer, RunResult
+from robid_link.fakes.serial_zlog import MAX_BLOCK, block_length, encode_block
 
 __all__ = ["SerialPeer", "frame", "frame_fields"]
 
@@ -35,6 +40,10 @@ log = logging.getLogger("robid.fake_controller")
 PROGRAM_FILES = ("traj.csv", "traj.yaml")
 #: the longest line either side accepts (page: "Frames")
 MAX_LINE = 24_000
+#: the capabilities this controller speaks (page: "Negotiation")
+CAPABILITIES = ("zlog1",)
+#: a compressed block: bytes covered, their CRC-32, codec, payload
+Block = tuple[int, int, str, bytes]
 
 
 def frame(*fields: object) -> bytes:
@@ -80,16 +89,23 @@ class SerialPeer(Peer):
     #: ``endless_log`` (DONE announces 2^40 bytes and GET answers forever), ``done_flood``
     #: (100 000 unsolicited DONE frames while a program runs), ``stalled_put`` (PUT is never
     #: acknowledged past 0), ``silent_run`` (no STAT answered while the program runs until an
-    #: ABORT). Every ABORT is kept in ``aborts`` (its wall-clock time).
-    faults = ("flip_bytes", "cable_pulled", "device_gone", "endless_log", "done_flood",
-              "stalled_put", "silent_run")
+    #: ABORT), ``zip_bomb`` (every log block inflates to a thousand times its size). Every
+    #: ABORT is kept in ``aborts`` (its wall-clock time).
+    faults = ("flip_bytes", "cable_pulled", "device_gone", "corrupt_block", "endless_log",
+              "done_flood", "stalled_put", "silent_run", "zip_bomb")
 
     def __init__(self, core: ControllerCore, workdir: Path, *, baudrate: int = 921600,
                  pace_baud: int = 0, flip_rate: float = 0.05, pull_s: float = 1.0,
-                 seed: int = 0) -> None:
+                 seed: int = 0, zlog: bool = True, corrupt_times: int = 2) -> None:
         super().__init__(core, workdir)
         self.link = Path(workdir) / "tty"
         self.baudrate, self.flip_rate, self.pull_s = baudrate, flip_rate, pull_s
+        self.zlog, self._corrupt_left = zlog, corrupt_times
+        self._corrupt_at: int | None = None
+        self._blocks: dict[tuple[str, str, int, int], concurrent.futures.Future[Block]] = {}
+        self._pool: concurrent.futures.ThreadPoolExecutor | None = None
+        self.blocks_sent = 0
+        self.blocks_asked: list[int] = []  # the offset of every ZGET, in order
         self._tx, self._rx = _Pacer(pace_baud), _Pacer(pace_baud)
         self._rng = random.Random(seed)
         self._fd_lock, self._write_lock = threading.Lock(), threading.Lock()
@@ -136,6 +152,7 @@ class SerialPeer(Peer):
         if self._threads:
             return
         self._plug()
+        self._pool = concurrent.futures.ThreadPoolExecutor(1, "fake-serial-zlog")
         for target, name in ((self._serve, "fake-serial"), (self._work, "fake-serial-job")):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
@@ -147,6 +164,9 @@ class SerialPeer(Peer):
         for t in self._threads:
             t.join(30)
         self._threads.clear()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
         self._unplug()
 
     # -- bytes
@@ -264,12 +284,7 @@ class SerialPeer(Peer):
         if res is None:
             self._write("ERR", exp_id, nonce, 9, "no log")
             return
-        if off > 0 and self.core.fault == "cable_pulled" and not self._pulled:
-            self._pulled = True  # mid-log: the line is gone for a while, then a new device
-            log.info("serial cable pulled at offset %d for %g s", off, self.pull_s)
-            self._unplug()
-            time.sleep(self.pull_s)
-            self._plug()
+        if self._cable_pulled_at(off):
             return
         chunk = res.delivered[off: off + min(int(size), 16384)]
         if res.fault == "endless_log":  # a logger that never stops writing
@@ -278,6 +293,68 @@ class SerialPeer(Peer):
             self._write("DATA", exp_id, nonce, off, base64.b64encode(chunk).decode())
         else:
             self._write("EOF", exp_id, nonce, off)
+
+    def _cable_pulled_at(self, off: int) -> bool:
+        """``cable_pulled``: mid-log the line is gone for a while, then a new device."""
+        if off > 0 and self.core.fault == "cable_pulled" and not self._pulled:
+            self._pulled = True
+            log.info("serial cable pulled at offset %d for %g s", off, self.pull_s)
+            self._unplug()
+            time.sleep(self.pull_s)
+            self._plug()
+            return True
+        return False
+
+    def _on_caps(self, *names: str) -> None:
+        if not self.zlog:
+            raise ValueError("CAPS")  # an older controller: an unknown frame
+        self._write("CAPS", *[n for n in names if n in CAPABILITIES])
+
+    def _on_zget(self, exp_id: str, nonce: str, offset: str, size: str) -> None:
+        off, most = int(offset), int(size)
+        if not self.zlog or off < 0 or not 1 <= most <= MAX_BLOCK:
+            raise ValueError("ZGET")
+        self.blocks_asked.append(off)
+        res = self._results.get((exp_id, nonce))
+        if res is None:
+            self._write("ERR", exp_id, nonce, 9, "no log")
+            return
+        if self._cable_pulled_at(off):
+            return
+        data = res.delivered
+        if res.fault == "endless_log":  # a logger that never stops writing
+            endless = b"0.001,0.1,0.2,0.3,1.5,2.5,3.5\n" * (most // 30 + 1)
+            rawlen, rawcrc, codec, payload = _compress(endless, 0, most)
+        elif off >= len(data):
+            self._write("EOF", exp_id, nonce, off)
+            return
+        else:
+            rawlen, rawcrc, codec, payload = self._block(exp_id, nonce, data, off, most)
+        zcrc = f"{zlib.crc32(payload):08X}"
+        if self.core.fault == "zip_bomb":  # a thousand times the block's size of zeros
+            codec, payload = "z", zlib.compress(bytes(1000 * most), 9)[: most + 1024]
+            zcrc = f"{zlib.crc32(payload):08X}"
+        elif self.core.fault == "corrupt_block" and off > 0 and self._corrupt_left > 0 \
+                and self._corrupt_at in (None, off):
+            self._corrupt_at, self._corrupt_left = off, self._corrupt_left - 1
+            payload = bytes([payload[0] ^ 0x10]) + payload[1:]  # damaged after its CRC
+        if res.fault != "endless_log" and off + rawlen < len(data):  # the next one meanwhile
+            self._prefetch(exp_id, nonce, data, off + rawlen, most)
+        self.blocks_sent += 1
+        self._send(frame("ZBLK", exp_id, nonce, offset, rawlen, f"{rawcrc:08X}", codec,
+                         len(payload), zcrc) + payload)
+
+    def _block(self, exp_id: str, nonce: str, data: bytes, off: int, most: int) -> Block:
+        future = self._blocks.pop((exp_id, nonce, off, most), None)
+        return _compress(data, off, most) if future is None else future.result()
+
+    def _prefetch(self, exp_id: str, nonce: str, data: bytes, off: int, most: int) -> None:
+        key = (exp_id, nonce, off, most)
+        if key in self._blocks or self._pool is None:
+            return
+        while len(self._blocks) >= 4:  # the daemon asked elsewhere: forget the oldest
+            self._blocks.pop(next(iter(self._blocks))).cancel()
+        self._blocks[key] = self._pool.submit(_compress, data, off, most)
 
     def _on_clear(self, exp_id: str, nonce: str) -> None:
         self._results.pop((exp_id, nonce), None)
@@ -344,3 +421,10 @@ class SerialPeer(Peer):
             if res.fault == "answer_twice":
                 time.sleep(0.05)
                 self._answer(key)
+
+
+def _compress(data: bytes, off: int, most: int) -> Block:
+    """The block of ``data`` at ``off`` of at most ``most`` bytes, compressed."""
+    raw = data[off: off + block_length(data, off, most)]
+    codec, payload = encode_block(raw)
+    return len(raw), zlib.crc32(raw), codec, payload

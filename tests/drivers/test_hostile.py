@@ -55,7 +55,7 @@ CASES: list[tuple[str, dict[str, Any], str | None, bool, bool]] = [
      r"drive fault \(no EMCY received\), error code 0x603F = 0x2310 continuous over-current",
      True, True),
     # 4: an endless log; an unsolicited DONE flood; a transfer that never progresses; a
-    # controller silent while its program runs
+    # controller silent while its program runs; a compressed block that is a zip bomb
     ("serial-endless-log", {"driver": "serial_line", "fault": "endless_log"},
      r"announces a log of 1099511627776 bytes, over driver\.max_log_bytes", True, True),
     ("serial-done-flood", {"driver": "serial_line", "fault": "done_flood"}, None, False, True),
@@ -77,6 +77,9 @@ CASES: list[tuple[str, dict[str, Any], str | None, bool, bool]] = [
      r"RTDE connection to [\d.:]+ lost during experiment friction \(connection closed\); "
      r"could not stop the program \(dashboard Connection refused; script port Connection "
      r"refused\)", False, True),
+    # a log block that inflates to a thousand times its size (the caps hold after inflating)
+    ("serial-zip-bomb", {"driver": "serial_line", "fault": "zip_bomb"},
+     r"block at offset 0 not decoded after 9 tries \(inflates beyond \d+ bytes\)", True, True),
     # 7: the share's inbox replaced by a link after the daemon opened it
     ("share-symlinked-inbox", {"driver": "file_share", "fault": None, "symlink_inbox": True},
      r"inbox: a symbolic link; refusing to write through it", False, False),

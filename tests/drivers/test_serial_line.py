@@ -1,11 +1,14 @@
 """The serial line driver against its fake controller on a pty pair: flipped bits are caught
-by the frame CRCs and resent, a cable pulled mid-log is reopened and the log resumes intact,
-a device that vanishes is one line, config errors name the key, frames round-trip."""
+by the frame CRCs and resent, a cable pulled mid-log is reopened and the log resumes intact
+(plain chunks and compressed blocks alike), a damaged block is asked again and one damaged
+for good is one line, an older controller gets plain GET, a zip bomb is refused, a device
+that vanishes is one line, config errors name the key, frames round-trip."""
 
 from __future__ import annotations
 
 import asyncio
 import hashlib
+import re
 import time
 from pathlib import Path
 from typing import Any
@@ -51,20 +54,28 @@ async def _cycle(driver: Driver, program: MotionProgram) -> bytes:
         return data
 
 
+#: the log in small pieces either way: plain chunks, or compressed blocks
+MODES = {"plain": {"compress": False, "chunk_bytes": 512}, "zlog": {"block_bytes": 1024}}
+
+
+@pytest.mark.parametrize("mode", MODES)
 def test_flipped_bits_are_resent_and_the_log_arrives_intact(tmp_path: Path, robot: Robot,
-                                                            program: MotionProgram) -> None:
+                                                            program: MotionProgram,
+                                                            mode: str) -> None:
     with _peer(tmp_path, robot, fault="flip_bytes", flip_rate=0.2) as peer:
-        driver = _driver(peer, robot, chunk_bytes=512, io_timeout_s=0.3, retries=30)
+        driver = _driver(peer, robot, io_timeout_s=0.3, retries=30, **MODES[mode])
         data = asyncio.run(_cycle(driver, program))
         assert peer.frames_bad > 0 and driver.bad_frames > 0  # both ways
+        assert (peer.blocks_sent > 0) == (mode == "zlog")
     run = peer.core.handled
     assert len(run) == 1 and data.startswith(b"t,q1,q2,q3,tau1")
 
 
+@pytest.mark.parametrize("mode", MODES)
 def test_cable_pulled_mid_log_reopens_and_resumes(tmp_path: Path, robot: Robot,
-                                                  program: MotionProgram) -> None:
+                                                  program: MotionProgram, mode: str) -> None:
     with _peer(tmp_path, robot, fault="cable_pulled", pull_s=0.8) as peer:
-        driver = _driver(peer, robot, chunk_bytes=512, io_timeout_s=0.3, reopen_s=5)
+        driver = _driver(peer, robot, io_timeout_s=0.3, reopen_s=5, **MODES[mode])
         data = asyncio.run(_cycle(driver, program))
     assert driver.reopened == 1  # type: ignore[attr-defined]
     # intact: the base checked size and SHA-256 against DONE; a clean run gives the same log
@@ -113,3 +124,62 @@ def test_frames_round_trip_and_any_flipped_bit_is_caught() -> None:
             bad = bytearray(frame)
             bad[k] ^= 1 << bit
             assert decode_frame(bytes(bad)) is None, (k, bit)
+
+
+def test_a_damaged_block_is_asked_again(tmp_path: Path, robot: Robot,
+                                        program: MotionProgram) -> None:
+    with _peer(tmp_path, robot, fault="corrupt_block", corrupt_times=2) as peer:
+        driver = _driver(peer, robot, block_bytes=1024)
+        data = asyncio.run(_cycle(driver, program))
+    assert driver.bad_blocks == 2 and driver.zlog  # type: ignore[attr-defined]
+    with _peer(tmp_path / "again", robot) as clean:
+        assert asyncio.run(_cycle(_driver(clean, robot), program)) == data
+
+
+def test_a_block_damaged_every_time_is_one_line_and_the_fetch_resumes(
+        tmp_path: Path, robot: Robot, program: MotionProgram) -> None:
+    """``retries`` + 1 damaged copies of one block stop the fetch with one line naming the
+    log and the block; the bytes before it are kept, and the next fetch starts there (never
+    from 0), so the stored log is whole."""
+    with _peer(tmp_path, robot, fault="corrupt_block", corrupt_times=4) as peer:
+        driver = _driver(peer, robot, block_bytes=1024, retries=2)
+
+        async def go() -> tuple[str, bytes, list[int]]:
+            async with driver:
+                await driver.put_program(program)
+                await driver.give_ready("exp1", "c0ffee01")
+                done = await driver.take_done("exp1", "c0ffee01", timeout_s=60)
+                with pytest.raises(DriverError) as err:
+                    await driver.fetch_logs(done)
+                before = len(peer.blocks_asked)
+                data = await driver.fetch_logs(done)
+                return str(err.value), data, peer.blocks_asked[before:]
+
+        line, data, again = asyncio.run(go())
+    stopped = re.fullmatch(r"serial port \S+: log of experiment exp1 \(nonce c0ffee01\): "
+                           r"block at offset (\d+) not received intact \(.*payload CRC.*\); "
+                           r"fetch stopped, \1 bytes kept for a resume", line)
+    assert stopped, line
+    assert again[0] == min(again) == int(stopped.group(1)) > 0  # resumed there, never from 0
+    with _peer(tmp_path / "again", robot) as clean:
+        assert asyncio.run(_cycle(_driver(clean, robot), program)) == data
+
+
+def test_an_older_controller_without_compression_gets_plain_get(
+        tmp_path: Path, robot: Robot, program: MotionProgram) -> None:
+    with _peer(tmp_path, robot, zlog=False) as peer:
+        driver = _driver(peer, robot)
+        data = asyncio.run(_cycle(driver, program))
+        assert peer.blocks_sent == 0 and driver.zlog is False  # type: ignore[attr-defined]
+    with _peer(tmp_path / "again", robot) as clean:
+        assert asyncio.run(_cycle(_driver(clean, robot), program)) == data
+
+
+def test_a_zip_bomb_is_refused_without_inflating_it(tmp_path: Path, robot: Robot,
+                                                    program: MotionProgram) -> None:
+    with _peer(tmp_path, robot, fault="zip_bomb") as peer:
+        driver = _driver(peer, robot, retries=1)
+        with pytest.raises(DriverError, match=r"block at offset 0 not decoded after 2 tries "
+                                              r"\(inflates beyond \d+ bytes\)") as err:
+            asyncio.run(_cycle(driver, program))
+    assert "\n" not in str(err.value)
