@@ -31,6 +31,7 @@ from robid_link.ident.elastic.sines import (
     harmonics,
     noise_bins,
     sine_amplitudes,
+    sine_fit,
     without_transient,
 )
 
@@ -105,28 +106,27 @@ class _Point(NamedTuple):
     noise_y: np.ndarray
     noise_u: np.ndarray
     inflate: float
-    harmonics: np.ndarray
+    harmonics: np.ndarray | None  # one joint's (a pair's fit needs none)
 
 
 def _point(t: np.ndarray, qm: np.ndarray, tau: np.ndarray, f: float, periods: float) -> _Point:
     """One step window (blocks of whole periods); drift the first channel's mean velocity."""
     blocks = int(max(2, min(10, periods // 2)))
-    y, yb = sine_amplitudes(t, qm, f, blocks)
-    u, ub = sine_amplitudes(t, tau, f, blocks)
+    m = qm.shape[1]
+    fit = sine_fit(t, np.column_stack((qm, tau)), f, blocks)  # both signals, one design
+    u = fit.amplitude[m:]
     # coherence of the first channel pair from the blocks (Welch-like, 1 = noise-free)
-    sy, su = yb[:, 0], ub[:, 0]
+    sy, su = fit.blocks[:, 0], fit.blocks[:, m]
     coh = float(abs(np.sum(sy * su.conj())) ** 2
                 / max(np.sum(abs(sy) ** 2) * np.sum(abs(su) ** 2), 1e-300))
     spread = float(np.std(su) / math.sqrt(blocks))
     snr = float(abs(u[0]) / max(spread, 1e-300))
     tc = t - t.mean()
     drift = float(tc @ (qm[:, 0] - qm[:, 0].mean()) / max(float(tc @ tc), 1e-300))
-    k, bins_y = noise_bins(t, qm, f)
-    bins_u = noise_bins(t, tau, f)[1]
-    y, noise_y, inflate = without_transient(k, y, bins_y)
-    u, noise_u, _ = without_transient(k, u, bins_u)
-    return _Point(y, u, coh, snr, drift, noise_y, noise_u, inflate,
-                  harmonics(t, qm[:, 0], f))
+    k, bins = noise_bins(t, fit.residual, f)
+    yu, noise, inflate = without_transient(k, fit.amplitude, bins)
+    return _Point(yu[:m], yu[m:], coh, snr, drift, noise[:, :m], noise[:, m:], inflate,
+                  harmonics(t, qm[:, 0], f) if m == 1 else None)
 
 
 

@@ -5,11 +5,38 @@ a steady sine. Convention x(t) = Re(X e^{jωt}), t the log's time."""
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["sine_amplitudes", "harmonics", "noise_bins", "without_transient", "period_blocks",
-           "unexplained_share", "refine_frequency"]
+__all__ = ["SineFit", "sine_fit", "sine_amplitudes", "harmonics", "noise_bins",
+           "without_transient", "period_blocks", "unexplained_share", "refine_frequency"]
+
+
+class SineFit(NamedTuple):
+    """A sine at one frequency on a polynomial (the drift), per column of a window: the
+    complex amplitude over the whole window and over each block, and what the whole window's
+    fit leaves."""
+
+    amplitude: np.ndarray  # (m,)
+    blocks: np.ndarray  # (blocks, m)
+    residual: np.ndarray  # (N, m)
+
+
+def sine_fit(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1, degree: int = 1
+             ) -> SineFit:
+    """X per column of ``x`` (x ≈ a + b·t (+ c·t²) + Re(X e^{jωt})), by least squares on
+    [1, t, …, cos, sin] (the drift's ramp removed), over the whole window and over ``blocks``
+    equal sub-windows, with the whole window's residual."""
+    x = x.reshape(len(t), -1)
+    tc = t - t.mean()
+    turn = np.exp(1j * (2 * math.pi * f_hz) * t)
+    sines = [turn.real, turn.imag]
+    a = np.column_stack([tc ** p for p in range(degree + 1)] + sines)
+    coef = np.linalg.lstsq(a, x, rcond=None)[0]
+    edges = np.linspace(0, len(t), blocks + 1).astype(int)
+    return SineFit(_amplitude(coef), _block_amplitudes(t, x, sines, edges, degree),
+                   x - a @ coef)
 
 
 def sine_amplitudes(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1,
@@ -17,49 +44,73 @@ def sine_amplitudes(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1,
     """Complex amplitudes X (x ≈ a + b·t (+ c·t²) + Re(X e^{jωt})) per column of ``x``, by
     least squares on [1, t, …, cos, sin] (the drift's ramp removed), over the whole window and
     over ``blocks`` equal sub-windows. Returns (X (m,), X per block (blocks, m))."""
-    x = x.reshape(len(t), -1)
-    tc = t - t.mean()
+    fit = sine_fit(t, x, f_hz, blocks, degree)
+    return fit.amplitude, fit.blocks
 
-    def fit(sl: slice) -> np.ndarray:
-        w = 2 * math.pi * f_hz * t[sl]
-        a = np.column_stack([tc[sl] ** p for p in range(degree + 1)] + [np.cos(w), np.sin(w)])
-        coef = np.linalg.lstsq(a, x[sl], rcond=None)[0]
-        return coef[-2] - 1j * coef[-1]
 
-    whole = fit(slice(None))
-    edges = np.linspace(0, len(t), blocks + 1).astype(int)
-    per = np.array([fit(slice(a, b)) for a, b in zip(edges[:-1], edges[1:], strict=True)])
-    return whole, per
+def _amplitude(coef: np.ndarray) -> np.ndarray:
+    """X from the cos and sin coefficients, the last two rows of a least-squares solution."""
+    return coef[-2] - 1j * coef[-1]
+
+
+def _block_amplitudes(t: np.ndarray, x: np.ndarray, sines: list[np.ndarray],
+                      edges: np.ndarray, degree: int) -> np.ndarray:
+    """The sine's amplitude over each block [edges[i], edges[i + 1]) with a polynomial of
+    ``degree`` of its own: all blocks' normal equations summed at once, the polynomial in each
+    block's own centred and scaled time (the sine's coefficients do not depend on how the
+    polynomial's span is written; this keeps the small systems well conditioned)."""
+    sizes = np.diff(edges)
+    if np.any(sizes < degree + 3):  # too short to fit: one least-squares fit per block
+        tc = t - t.mean()
+        a = np.column_stack([tc ** p for p in range(degree + 1)] + sines)
+        return np.array([_amplitude(np.linalg.lstsq(a[i:j], x[i:j], rcond=None)[0])
+                         for i, j in zip(edges[:-1], edges[1:], strict=True)])
+    block = np.repeat(np.arange(sizes.size), sizes)
+    lo, hi = t[edges[:-1]], t[edges[1:] - 1]
+    mid, half = 0.5 * (lo + hi), np.maximum(0.5 * (hi - lo), 1e-300)
+    local = (t - mid[block]) / half[block]
+    a = np.column_stack([local ** p for p in range(degree + 1)] + sines)
+    gram = np.add.reduceat(a[:, :, None] * a[:, None, :], edges[:-1], axis=0)
+    rhs = np.add.reduceat(a[:, :, None] * x[:, None, :], edges[:-1], axis=0)
+    return _amplitude(np.moveaxis(np.linalg.solve(gram, rhs), 1, 0))
+
+
+def _powers(base: np.ndarray, most: int) -> np.ndarray:
+    """base¹ … base^most (most, N) by repeated products (|base| = 1: no exponential each)."""
+    out = np.empty((most, base.size), dtype=complex)
+    out[0] = base
+    for h in range(1, most):
+        np.multiply(out[h - 1], base, out=out[h])
+    return out
 
 
 def harmonics(t: np.ndarray, x: np.ndarray, f: float, most: int = 9) -> np.ndarray:
     """Complex amplitudes of x's first ``most`` harmonics of f (on a line: the drift)."""
     tc = t - t.mean()
-    w = 2 * math.pi * f * t
-    cols = [np.ones(t.size), tc]
-    for h in range(1, most + 1):
-        cols += [np.cos(h * w), np.sin(h * w)]
-    coef = np.linalg.lstsq(np.column_stack(cols), x, rcond=None)[0][2:]
+    turns = _powers(np.exp(2j * math.pi * f * t), most)
+    cols = np.empty((t.size, 2 + 2 * most))
+    cols[:, 0], cols[:, 1] = 1.0, tc
+    cols[:, 2::2], cols[:, 3::2] = turns.real.T, turns.imag.T
+    coef = np.linalg.lstsq(cols, x, rcond=None)[0][2:]
     return coef[0::2] - 1j * coef[1::2]
 
 
-def noise_bins(t: np.ndarray, x: np.ndarray, f: float, most: int = 8
+def noise_bins(t: np.ndarray, residual: np.ndarray, f: float, most: int = 8
                ) -> tuple[np.ndarray, np.ndarray]:
-    """The residual of x's sine fit at f (on a line: the drift), as amplitudes at the
-    neighbouring frequencies f ± k/T of the window T (k = 1…``most``, above f/4): orthogonal
-    to the sine over whole periods, they carry the noise an amplitude at f carries (its
-    spectrum is smooth there) and the leakage of a decaying transient (smooth in k).
+    """The ``residual`` of a sine fit at f on a line (the drift; ``sine_fit``), as amplitudes
+    at the neighbouring frequencies f ± k/T of the window T (k = 1…``most``, above f/4):
+    orthogonal to the sine over whole periods, they carry the noise an amplitude at f carries
+    (its spectrum is smooth there) and the leakage of a decaying transient (smooth in k).
     Returns (k, (bins, m) complex amplitudes scaled like X)."""
-    x = x.reshape(len(t), -1)
-    tc = t - t.mean()
-    w = 2 * math.pi * f * t
-    a = np.column_stack((np.ones(t.size), tc, np.cos(w), np.sin(w)))
-    res = x - a @ np.linalg.lstsq(a, x, rcond=None)[0]
+    res = residual.reshape(len(t), -1)
     span = float(t[-1] - t[0]) + float(np.median(np.diff(t)))
     k = np.r_[-most:0, 1:most + 1]
-    k = k[f + k / span > 0.25 * f]
-    basis = np.exp(-2j * math.pi * np.outer(f + k / span, t))
-    return k, 2.0 / t.size * (basis @ res)
+    keep = f + k / span > 0.25 * f
+    # e^{−2πj(f + k/T)t} = (e^{−2πjt/T})^k · e^{−2πjft}: two exponentials per sample
+    rot = res * np.exp(-2j * math.pi * f * t)[:, None]
+    up = _powers(np.exp(-2j * math.pi * t / span), most)
+    bins = np.concatenate((up[::-1].conj() @ rot, up @ rot))
+    return k[keep], 2.0 / t.size * bins[keep]
 
 
 def without_transient(k: np.ndarray, y: np.ndarray, bins: np.ndarray
