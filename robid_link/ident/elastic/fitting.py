@@ -24,7 +24,7 @@ from robid_link.ident.elastic.models import (
     arm_coulomb_frf,
     as_logged,
     coupled_frf,
-    logged_log_derivatives,
+    logged_with_derivatives,
     motor_and_arm,
 )
 from robid_link.ident.elastic.results import CoupledElasticity, JointElasticity
@@ -197,14 +197,14 @@ def _lsq(pars: Sequence[_Par], resid: Callable[[dict[str, float]], np.ndarray],
 
 def f_test(small: _Fit, big: _Fit) -> tuple[float, float]:
     """F statistic and p-value of the extended fit ``big`` against the nested ``small``."""
-    from scipy.stats import f as f_dist
+    from scipy.special import betainc  # F's tail by its incomplete beta: no scipy.stats import
 
     extra = big.k - small.k
     dof = max(big.n - big.k, 1)
     if big.rss >= small.rss or extra <= 0:
         return 0.0, 1.0
     stat = (small.rss - big.rss) / extra / (big.rss / dof)
-    return float(stat), float(f_dist.sf(stat, extra, dof))
+    return float(stat), float(betainc(0.5 * dof, 0.5 * extra, dof / (dof + extra * stat)))
 
 
 def _sigma_log(frf: Frf) -> np.ndarray:
@@ -292,17 +292,29 @@ def _fit_siso(frf: Frf, start: dict[str, float], kg: float, hold: float, sig: np
     warm: dict[str, np.ndarray] = {}
     pars = _siso_pars(start, frf, fc=fc, third=third)
     names = [p.name for p in pars]
+    last: dict[tuple[float, ...], tuple[np.ndarray, dict[str, np.ndarray]]] = {}
+
+    def linear(v: dict[str, float]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """The linear model and its derivatives, once per point (residual, then Jacobian)."""
+        key = tuple(v.values())
+        if key not in last:
+            last.clear()
+            last[key] = logged_with_derivatives(
+                frf.f_hz, v["jm"], v["ja"], v["k"], v["d"], v["ba"], kg, _third(v),
+                (v["f3"], v["z3"]) if third else None, delay_s=v["delay_s"], hold_s=hold)
+        return last[key]
+
+    def resid(v: dict[str, float]) -> np.ndarray:
+        model = (linear(v)[0] if not fc else _siso_model(frf, v, kg, hold, warm, friction))
+        return _logres(model, frf.g, sig)
 
     def jac(v: dict[str, float]) -> np.ndarray:  # the linear model's, analytic
-        dlog = logged_log_derivatives(frf.f_hz, v["jm"], v["ja"], v["k"], v["d"], v["ba"], kg,
-                                      _third(v), (v["f3"], v["z3"]) if third else None, hold)
+        dlog = linear(v)[1]
         cols = np.column_stack([dlog[n] for n in names]) / sig[:, None]
         return np.concatenate((cols.real, cols.imag))
 
     # an extension the data do not need is ill-determined: its fit only has to show that
-    fit = _lsq(pars,
-               lambda v: _logres(_siso_model(frf, v, kg, hold, warm, friction), frf.g, sig),
-               max_nfev=max_nfev if fc or third else None,
+    fit = _lsq(pars, resid, max_nfev=max_nfev if fc or third else None,
                diff_step=1e-4 if fc and friction == "stick-slip" else None,  # integrated
                what=f"joint {frf.joints[0]}", jac=None if fc else jac)
     fit.extra.update(hold_s=hold, friction=friction if fc else None)

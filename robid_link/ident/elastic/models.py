@@ -12,7 +12,7 @@ from collections.abc import Sequence
 import numpy as np
 
 __all__ = ["two_mass_frf", "three_mass_frf", "motor_and_arm", "arm_coulomb_frf",
-           "coupled_frf", "as_logged", "logged_log_derivatives"]
+           "coupled_frf", "as_logged", "logged_with_derivatives"]
 
 
 def _arm(s: np.ndarray, ja: float, ba: float | np.ndarray, kg: float,
@@ -127,16 +127,17 @@ def as_logged(f_hz: np.ndarray, g: np.ndarray, jm: float | Sequence[float], *,
     return g * np.exp(-1j * w * float(np.asarray(delay_s)))
 
 
-def logged_log_derivatives(f_hz: np.ndarray, jm: float, ja: float, k: float, d: float,
-                           ba: float, kg: float, third: tuple[float, float, float] | None = None,
-                           f3_z3: tuple[float, float] | None = None, hold_s: float = 0.0
-                           ) -> dict[str, np.ndarray]:
-    """∂ log G/∂p of the two- (three-) mass G as logged (``as_logged``) for each parameter p
-    (jm, ja, k, d, ba, delay_s; j3, f3, z3 of a third mass given as ``third`` = (j3, k3, d3)
-    with ``f3_z3`` its frequency and damping ratio, k3 = j3 (2π f3)², d3 = 2 z3 j3 (2π f3)):
-    what the fit's Jacobian is made of. With G = N/D, N = A + Z, D = Jm s² N + Z A:
-    ∂G = (∂N − G ∂D)/D; an arm term ∂A adds ∂A to N and ∂A (Jm s² + Z) to D, a spring term
-    ∂Z adds ∂Z and ∂Z (Jm s² + A)."""
+def logged_with_derivatives(f_hz: np.ndarray, jm: float, ja: float, k: float, d: float,
+                            ba: float, kg: float, third: tuple[float, float, float] | None = None,
+                            f3_z3: tuple[float, float] | None = None, *, delay_s: float = 0.0,
+                            hold_s: float = 0.0) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The two- (three-) mass G as logged (``as_logged(motor_and_arm(…))``) and ∂ log G/∂p
+    for each parameter p (jm, ja, k, d, ba, delay_s; j3, f3, z3 of a third mass given as
+    ``third`` = (j3, k3, d3) with ``f3_z3`` its frequency and damping ratio, k3 = j3 (2π f3)²,
+    d3 = 2 z3 j3 (2π f3)): the fit's model and Jacobian in one evaluation. With G = N/D,
+    N = A + Z, D = Jm s² N + Z A: ∂G = (∂N − G ∂D)/D; an arm term ∂A adds ∂A to N and
+    ∂A (Jm s² + Z) to D, a spring term ∂Z adds ∂Z and ∂Z (Jm s² + A); Jm adds s² N to D (and
+    −1/Jm² to the hold's 1/Jm term)."""
     f = np.asarray(f_hz, dtype=float)
     w = 2 * np.pi * f
     s = 1j * w
@@ -150,26 +151,22 @@ def logged_log_derivatives(f_hz: np.ndarray, jm: float, ja: float, k: float, d: 
         x = 0.5 * w * hold_s
         sinc = np.sin(x) / x
         motor = -(x * x * np.cos(x) / np.sin(x) ** 2 - sinc) / (w * w)  # × 1/Jm in the log
-        logged = g * sinc + motor / jm
+        held = g * sinc + motor / jm
+        shift = -x  # the hold's half sample
     else:
-        sinc, motor, logged = np.ones_like(w), np.zeros_like(w), g
-
-    def dlog(d_num: np.ndarray, d_den: np.ndarray, d_inv_jm: float = 0.0) -> np.ndarray:
-        return (sinc * (d_num - g * d_den) / den + motor * d_inv_jm) / logged
-
-    by_arm, by_spring = jm * s2 + z, jm * s2 + arm
-    out = {"jm": dlog(0.0 * s, s2 * num, -1.0 / (jm * jm)),
-           "ja": dlog(s2, s2 * by_arm), "ba": dlog(s, s * by_arm),
-           "k": dlog(np.ones_like(s), by_spring), "d": dlog(s, s * by_spring),
+        sinc, motor, held, shift = np.ones_like(w), np.zeros_like(w), g, 0.0 * w
+    # ∂ log G_logged per unit change of an arm term (∂A) and of a spring term (∂Z)
+    scale = sinc / (den * held)
+    per_arm, per_spring = scale * (1 - g * (jm * s2 + z)), scale * (1 - g * (jm * s2 + arm))
+    out = {"jm": -(scale * g * s2 * num + motor / (jm * jm * held)),
+           "ja": s2 * per_arm, "ba": s * per_arm, "k": per_spring, "d": s * per_spring,
            "delay_s": -1j * w}
     if third is not None and f3_z3 is not None:
         j3 = third[0]
         f3, z3 = f3_z3
         om = 2 * np.pi * f3
         q = om * om + 2 * z3 * om * s  # Z3 = j3·q, the arm's term T = j3 q s²/(s² + q)
-        t_q = j3 * s2 * s2 / (s2 + q) ** 2  # ∂T/∂q
-        for name, d_arm in (("j3", q * s2 / (s2 + q)),
-                            ("f3", t_q * 2 * np.pi * (2 * om + 2 * z3 * s)),
-                            ("z3", t_q * 2 * om * s)):
-            out[name] = dlog(d_arm, d_arm * by_arm)
-    return out
+        t_q = j3 * s2 * s2 / (s2 + q) ** 2 * per_arm  # ∂T/∂q, in log G
+        out.update(j3=q * s2 / (s2 + q) * per_arm, f3=t_q * 2 * np.pi * (2 * om + 2 * z3 * s),
+                   z3=t_q * 2 * om * s)
+    return held * np.exp(1j * (shift - w * delay_s)), out

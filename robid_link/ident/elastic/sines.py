@@ -4,39 +4,141 @@ a steady sine. Convention x(t) = Re(X e^{jωt}), t the log's time."""
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
+import numba
 import numpy as np
 
-__all__ = ["SineFit", "sine_fit", "sine_amplitudes", "harmonics", "noise_bins",
-           "without_transient", "period_blocks", "unexplained_share", "refine_frequency"]
+__all__ = ["StepSines", "step_sines", "sine_amplitudes", "without_transient",
+           "period_blocks", "unexplained_share", "refine_frequency"]
 
 
-class SineFit(NamedTuple):
-    """A sine at one frequency on a polynomial (the drift), per column of a window: the
-    complex amplitude over the whole window and over each block, and what the whole window's
-    fit leaves."""
+class StepSines(NamedTuple):
+    """What one stepped-sine window shows at its frequency f, per column: the complex amplitude
+    over the whole window and over each block (a sine on a line, the drift, by least squares),
+    the residual's amplitudes at the neighbouring frequencies f + k/T (``noise_bins``) and one
+    column's harmonics (None when not asked)."""
 
     amplitude: np.ndarray  # (m,)
     blocks: np.ndarray  # (blocks, m)
-    residual: np.ndarray  # (N, m)
+    k: np.ndarray  # (bins,)
+    bins: np.ndarray  # (bins, m)
+    harmonics: np.ndarray | None  # (most_harmonics,)
 
 
-def sine_fit(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1, degree: int = 1
-             ) -> SineFit:
-    """X per column of ``x`` (x ≈ a + b·t (+ c·t²) + Re(X e^{jωt})), by least squares on
-    [1, t, …, cos, sin] (the drift's ramp removed), over the whole window and over ``blocks``
-    equal sub-windows, with the whole window's residual."""
-    x = x.reshape(len(t), -1)
-    tc = t - t.mean()
-    turn = np.exp(1j * (2 * math.pi * f_hz) * t)
-    sines = [turn.real, turn.imag]
-    a = np.column_stack([tc ** p for p in range(degree + 1)] + sines)
-    coef = np.linalg.lstsq(a, x, rcond=None)[0]
-    edges = np.linspace(0, len(t), blocks + 1).astype(int)
-    return SineFit(_amplitude(coef), _block_amplitudes(t, x, sines, edges, degree),
-                   x - a @ coef)
+def step_sines(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int, *,
+               harmonics_of: int | None = None, most_bins: int = 8, most_harmonics: int = 9
+               ) -> StepSines:
+    """The sine at ``f_hz`` in each column of ``x`` over the window t: x ≈ a + b·t +
+    Re(X e^{jωt}) over the whole window and over ``blocks`` equal sub-windows; the residual of
+    the whole window's fit as amplitudes at f ± k/T (k = 1…``most_bins``, above f/4: orthogonal
+    to the sine over whole periods, they carry the noise an amplitude at f carries — its
+    spectrum is smooth there — and the leakage of a decaying transient, smooth in k); the
+    first ``most_harmonics`` harmonics of column ``harmonics_of`` on a line. The normal
+    equations of every fit are summed in one pass over the samples (numba), time centred and
+    scaled to [−1, 1] in each window (the sines' coefficients do not depend on how the line is
+    written; the small systems stay well conditioned)."""
+    t = np.ascontiguousarray(t, dtype=float)
+    x = np.ascontiguousarray(x.reshape(len(t), -1), dtype=float)
+    m = x.shape[1]
+    w = 2 * math.pi * f_hz
+    edges = np.linspace(0, len(t), blocks + 1).astype(np.int64)
+    nh = most_harmonics if harmonics_of is not None else 0
+    gram, rhs = np.zeros((blocks + 1, 4, 4)), np.zeros((blocks + 1, 4, m))
+    hgram, hrhs = np.zeros((2 + 2 * nh, 2 + 2 * nh)), np.zeros(2 + 2 * nh)
+    _window_sums(t, x, w, edges, harmonics_of or 0, nh, gram, rhs, hgram, hrhs)
+    coef = _solve(gram, rhs)  # [0]: the whole window, then the blocks
+    span = float(t[-1] - t[0]) + float(np.median(np.diff(t)))
+    bins = np.zeros((2 * most_bins, m), dtype=complex)
+    _residual_bins(t, x, w, np.ascontiguousarray(coef[0]), span, bins)
+    k = np.r_[-most_bins:0, 1:most_bins + 1]
+    keep = f_hz + k / span > 0.25 * f_hz
+    harm = None
+    if nh:
+        hc = _solve(hgram[None], hrhs[None, :, None])[0, 2:, 0]
+        harm = hc[0::2] - 1j * hc[1::2]
+    amp = coef[:, 2] - 1j * coef[:, 3]
+    return StepSines(amp[0], amp[1:], k[keep], 2.0 / t.size * bins[keep], harm)
+
+
+def _solve(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Each symmetric system (upper triangles summed) solved; by the SVD where singular."""
+    full = np.triu(gram) + np.swapaxes(np.triu(gram, 1), -1, -2)
+    try:
+        return np.linalg.solve(full, rhs)
+    except np.linalg.LinAlgError:
+        return np.array([np.linalg.lstsq(g, r, rcond=None)[0] for g, r in zip(full, rhs,
+                                                                                strict=True)])
+
+
+@numba.njit(cache=True, nogil=True)
+def _window_sums(t, x, w, edges, hcol, nh, gram, rhs, hgram, hrhs):
+    """Upper triangles of the normal equations of [1, u, cos ωt, sin ωt] per column: the whole
+    window into [0], block b into [b + 1] (u each one's time scaled to [−1, 1]); of
+    [1, u, cos hωt, sin hωt …] (h ≤ nh) on column ``hcol`` into hgram, hrhs."""
+    n, m = x.shape
+    mid0, half0 = 0.5 * (t[0] + t[n - 1]), 0.5 * (t[n - 1] - t[0])
+    half0 = half0 if half0 > 0 else 1.0
+    row = np.empty(4)
+    hrow = np.empty(2 + 2 * nh)
+    for b in range(edges.size - 1):
+        i0, i1 = edges[b], edges[b + 1]
+        mid, half = 0.5 * (t[i0] + t[i1 - 1]), max(0.5 * (t[i1 - 1] - t[i0]), 1e-300)
+        for i in range(i0, i1):
+            c, s = math.cos(w * t[i]), math.sin(w * t[i])
+            u0 = (t[i] - mid0) / half0
+            row[0], row[1], row[2], row[3] = 1.0, u0, c, s
+            _add_outer(row, x[i], gram[0], rhs[0])
+            row[1] = (t[i] - mid) / half
+            _add_outer(row, x[i], gram[b + 1], rhs[b + 1])
+            if nh:
+                hrow[0], hrow[1] = 1.0, u0
+                ch, sh = c, s
+                for h in range(nh):  # cos, sin of (h + 1)ωt by the angle sum
+                    hrow[2 + 2 * h], hrow[3 + 2 * h] = ch, sh
+                    ch, sh = ch * c - sh * s, sh * c + ch * s
+                xi = x[i, hcol]
+                for p in range(hrow.size):
+                    hrhs[p] += hrow[p] * xi
+                    for q in range(p, hrow.size):
+                        hgram[p, q] += hrow[p] * hrow[q]
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_outer(row, xi, gram, rhs):
+    for p in range(row.size):
+        for j in range(xi.size):
+            rhs[p, j] += row[p] * xi[j]
+        for q in range(p, row.size):
+            gram[p, q] += row[p] * row[q]
+
+
+@numba.njit(cache=True, nogil=True)
+def _residual_bins(t, x, w, coef, span, bins):
+    """Σ r(t) e^{−2πj(f + k/T)t} per column of the residual r of the whole window's fit
+    ``coef`` (4, m), k = −K…−1, 1…K in the rows of ``bins`` (2K, m); e^{−2πjkt/T} as powers
+    of one exponential per sample."""
+    n, m = x.shape
+    most = bins.shape[0] // 2
+    mid0, half0 = 0.5 * (t[0] + t[n - 1]), 0.5 * (t[n - 1] - t[0])
+    half0 = half0 if half0 > 0 else 1.0
+    turns = np.empty(most, dtype=np.complex128)
+    for i in range(n):
+        c, s = math.cos(w * t[i]), math.sin(w * t[i])
+        u0 = (t[i] - mid0) / half0
+        step = complex(math.cos(2 * math.pi * t[i] / span), -math.sin(2 * math.pi * t[i] / span))
+        power = complex(1.0, 0.0)
+        for k in range(most):
+            power *= step
+            turns[k] = power
+        for j in range(m):
+            r = x[i, j] - (coef[0, j] + coef[1, j] * u0 + coef[2, j] * c + coef[3, j] * s)
+            rz = complex(r * c, -r * s)  # r e^{−jωt}
+            for k in range(most):
+                bins[most + k, j] += turns[k] * rz
+                bins[most - 1 - k, j] += turns[k].conjugate() * rz
 
 
 def sine_amplitudes(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1,
@@ -44,73 +146,19 @@ def sine_amplitudes(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1,
     """Complex amplitudes X (x ≈ a + b·t (+ c·t²) + Re(X e^{jωt})) per column of ``x``, by
     least squares on [1, t, …, cos, sin] (the drift's ramp removed), over the whole window and
     over ``blocks`` equal sub-windows. Returns (X (m,), X per block (blocks, m))."""
-    fit = sine_fit(t, x, f_hz, blocks, degree)
-    return fit.amplitude, fit.blocks
-
-
-def _amplitude(coef: np.ndarray) -> np.ndarray:
-    """X from the cos and sin coefficients, the last two rows of a least-squares solution."""
-    return coef[-2] - 1j * coef[-1]
-
-
-def _block_amplitudes(t: np.ndarray, x: np.ndarray, sines: list[np.ndarray],
-                      edges: np.ndarray, degree: int) -> np.ndarray:
-    """The sine's amplitude over each block [edges[i], edges[i + 1]) with a polynomial of
-    ``degree`` of its own: all blocks' normal equations summed at once, the polynomial in each
-    block's own centred and scaled time (the sine's coefficients do not depend on how the
-    polynomial's span is written; this keeps the small systems well conditioned)."""
-    sizes = np.diff(edges)
-    if np.any(sizes < degree + 3):  # too short to fit: one least-squares fit per block
-        tc = t - t.mean()
-        a = np.column_stack([tc ** p for p in range(degree + 1)] + sines)
-        return np.array([_amplitude(np.linalg.lstsq(a[i:j], x[i:j], rcond=None)[0])
-                         for i, j in zip(edges[:-1], edges[1:], strict=True)])
-    block = np.repeat(np.arange(sizes.size), sizes)
-    lo, hi = t[edges[:-1]], t[edges[1:] - 1]
-    mid, half = 0.5 * (lo + hi), np.maximum(0.5 * (hi - lo), 1e-300)
-    local = (t - mid[block]) / half[block]
-    a = np.column_stack([local ** p for p in range(degree + 1)] + sines)
-    gram = np.add.reduceat(a[:, :, None] * a[:, None, :], edges[:-1], axis=0)
-    rhs = np.add.reduceat(a[:, :, None] * x[:, None, :], edges[:-1], axis=0)
-    return _amplitude(np.moveaxis(np.linalg.solve(gram, rhs), 1, 0))
-
-
-def _powers(base: np.ndarray, most: int) -> np.ndarray:
-    """base¹ … base^most (most, N) by repeated products (|base| = 1: no exponential each)."""
-    out = np.empty((most, base.size), dtype=complex)
-    out[0] = base
-    for h in range(1, most):
-        np.multiply(out[h - 1], base, out=out[h])
-    return out
-
-
-def harmonics(t: np.ndarray, x: np.ndarray, f: float, most: int = 9) -> np.ndarray:
-    """Complex amplitudes of x's first ``most`` harmonics of f (on a line: the drift)."""
+    x = x.reshape(len(t), -1)
     tc = t - t.mean()
-    turns = _powers(np.exp(2j * math.pi * f * t), most)
-    cols = np.empty((t.size, 2 + 2 * most))
-    cols[:, 0], cols[:, 1] = 1.0, tc
-    cols[:, 2::2], cols[:, 3::2] = turns.real.T, turns.imag.T
-    coef = np.linalg.lstsq(cols, x, rcond=None)[0][2:]
-    return coef[0::2] - 1j * coef[1::2]
 
+    def fit(sl: slice) -> np.ndarray:
+        w = 2 * math.pi * f_hz * t[sl]
+        a = np.column_stack([tc[sl] ** p for p in range(degree + 1)] + [np.cos(w), np.sin(w)])
+        coef = np.linalg.lstsq(a, x[sl], rcond=None)[0]
+        return coef[-2] - 1j * coef[-1]
 
-def noise_bins(t: np.ndarray, residual: np.ndarray, f: float, most: int = 8
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """The ``residual`` of a sine fit at f on a line (the drift; ``sine_fit``), as amplitudes
-    at the neighbouring frequencies f ± k/T of the window T (k = 1…``most``, above f/4):
-    orthogonal to the sine over whole periods, they carry the noise an amplitude at f carries
-    (its spectrum is smooth there) and the leakage of a decaying transient (smooth in k).
-    Returns (k, (bins, m) complex amplitudes scaled like X)."""
-    res = residual.reshape(len(t), -1)
-    span = float(t[-1] - t[0]) + float(np.median(np.diff(t)))
-    k = np.r_[-most:0, 1:most + 1]
-    keep = f + k / span > 0.25 * f
-    # e^{−2πj(f + k/T)t} = (e^{−2πjt/T})^k · e^{−2πjft}: two exponentials per sample
-    rot = res * np.exp(-2j * math.pi * f * t)[:, None]
-    up = _powers(np.exp(-2j * math.pi * t / span), most)
-    bins = np.concatenate((up[::-1].conj() @ rot, up @ rot))
-    return k[keep], 2.0 / t.size * bins[keep]
+    whole = fit(slice(None))
+    edges = np.linspace(0, len(t), blocks + 1).astype(int)
+    per = np.array([fit(slice(a, b)) for a, b in zip(edges[:-1], edges[1:], strict=True)])
+    return whole, per
 
 
 def without_transient(k: np.ndarray, y: np.ndarray, bins: np.ndarray
@@ -122,15 +170,26 @@ def without_transient(k: np.ndarray, y: np.ndarray, bins: np.ndarray
     left 0.7 % of G, over ±3 0.2 %). The noise is what a quartic through all the bins leaves.
     Returns (X less the transient, the noise per bin, the factor from the noise's mean square
     to the variance of X)."""
-    local = np.abs(k) <= 3
+    at_zero, residual, factor = _bin_projections(tuple(int(v) for v in k))
+    return y - at_zero @ bins, residual @ bins, factor
+
+
+@functools.lru_cache(maxsize=64)
+def _bin_projections(k: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, float]:
+    """For the bins k (one set serves most steps): the row that takes the local quadratic's
+    value at k = 0 from the bins, the projection onto what the quartic leaves, and the factor
+    from the noise's mean square to the variance of X."""
+    ks = np.array(k, dtype=float)
+    local = np.abs(ks) <= 3
     deg = 2 if local.sum() >= 5 else (1 if local.sum() >= 3 else 0)
-    basis = np.vander(k[local].astype(float), deg + 1, increasing=True)
-    coef, *_ = np.linalg.lstsq(basis, bins[local], rcond=None)
+    basis = np.vander(ks[local], deg + 1, increasing=True)
+    at_zero = np.zeros(ks.size)
+    at_zero[local] = np.linalg.pinv(basis)[0]
     lever = float(np.linalg.inv(basis.T @ basis)[0, 0])
-    wide = np.vander(k.astype(float), min(5, max(k.size - 3, 1)), increasing=True)
-    noise = bins - wide @ np.linalg.lstsq(wide, bins, rcond=None)[0]
-    dof = max(k.size - wide.shape[1], 1)
-    return y - coef[0], noise, k.size / dof * (1.0 + lever)
+    wide = np.vander(ks, min(5, max(ks.size - 3, 1)), increasing=True)
+    residual = np.eye(ks.size) - wide @ np.linalg.pinv(wide)
+    dof = max(ks.size - wide.shape[1], 1)
+    return at_zero, residual, ks.size / dof * (1.0 + lever)
 
 
 def period_blocks(t: np.ndarray, x: np.ndarray, f: float) -> tuple[np.ndarray, np.ndarray]:
