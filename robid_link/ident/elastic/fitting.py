@@ -21,6 +21,7 @@ import numpy as np
 from robid_link.exceptions import EstimationError
 from robid_link.ident.elastic.frequency import Frf
 from robid_link.ident.elastic.models import (
+    LOGGED_PARAMETERS,
     arm_coulomb_frf,
     as_logged,
     coupled_frf,
@@ -291,17 +292,19 @@ def _fit_siso(frf: Frf, start: dict[str, float], kg: float, hold: float, sig: np
     friction = "df" if third else friction  # the stick-slip kernel has two masses
     warm: dict[str, np.ndarray] = {}
     pars = _siso_pars(start, frf, fc=fc, third=third)
-    names = [p.name for p in pars]
-    last: dict[tuple[float, ...], tuple[np.ndarray, dict[str, np.ndarray]]] = {}
+    if not fc:  # the Jacobian's columns are the parameters'
+        assert tuple(p.name for p in pars) == LOGGED_PARAMETERS[:len(pars)]
+    last: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray]] = {}
 
-    def linear(v: dict[str, float]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def linear(v: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
         """The linear model and its derivatives, once per point (residual, then Jacobian)."""
         key = tuple(v.values())
         if key not in last:
             last.clear()
             last[key] = logged_with_derivatives(
-                frf.f_hz, v["jm"], v["ja"], v["k"], v["d"], v["ba"], kg, _third(v),
-                (v["f3"], v["z3"]) if third else None, delay_s=v["delay_s"], hold_s=hold)
+                frf.f_hz, v["jm"], v["ja"], v["k"], v["d"], v["ba"], kg,
+                (v["f3"], v["z3"], v["j3"]) if third else None, delay_s=v["delay_s"],
+                hold_s=hold)
         return last[key]
 
     def resid(v: dict[str, float]) -> np.ndarray:
@@ -309,8 +312,7 @@ def _fit_siso(frf: Frf, start: dict[str, float], kg: float, hold: float, sig: np
         return _logres(model, frf.g, sig)
 
     def jac(v: dict[str, float]) -> np.ndarray:  # the linear model's, analytic
-        dlog = linear(v)[1]
-        cols = np.column_stack([dlog[n] for n in names]) / sig[:, None]
+        cols = linear(v)[1] / sig[:, None]
         return np.concatenate((cols.real, cols.imag))
 
     # an extension the data do not need is ill-determined: its fit only has to show that
