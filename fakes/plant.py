@@ -16,7 +16,7 @@ import numpy as np
 import pinocchio as pin
 
 from robid_link.exceptions import ConfigError
-from robid_link.fakes.plant_loop import COMPILED_EFFECTS, integrate, model_params
+from robid_link.fakes.plant_kernel import COMPILED_EFFECTS, integrate, model_params
 from robid_link.ident.model.effects import moving_sign
 from robid_link.ident.model.robot import Robot
 from robid_link.ident.model.robot_check import inertia_problem

@@ -168,6 +168,80 @@ def test_two_mass_joint_resonance(tmp_path):
     assert peak == pytest.approx(expected, rel=0.02)
 
 
+def test_compiled_loop_is_the_python_loop(industrial6, monkeypatch):
+    """The compiled closed and open loop (fakes/plant_kernel.py) step as Plant._integrate:
+    elastic joints (one with a third mass), viscous friction and Coulomb friction whose
+    stick-slip step runs at every reversal, a controller faster than the log."""
+    traj = random_fourier(industrial6, harmonics=5, base_hz=0.2, seed=2)
+    t = np.arange(0.0, 1.0, 0.001)
+    effects = ({"name": "elasticity", "joint": 2, "k": 2e4, "d": 20.0, "jm": 2.0, "j2": 0.0,
+                "k2": 0.0, "d2": 0.0},
+               {"name": "elasticity", "joint": 5, "k": 300.0, "d": 0.2, "jm": 0.01,
+                "j2": 0.005, "k2": 200.0, "d2": 0.1},
+               {"name": "viscous", "fv": 1.0}, {"name": "coulomb", "fc": 3.0})
+    plant = Plant(industrial6, Truth(industrial6.nominal * 1.02, effects=effects,
+                                     mode="closed_loop", controller={"rate_hz": 2000.0}))
+    states = traj.evaluate(t)
+    tau = np.random.default_rng(0).normal(size=(t.size, 6)) * 20
+    assert plant._compiled()
+    fast = [plant.run(t, *states), plant.run_open_loop(t, tau, states[0][0])]
+    monkeypatch.setattr(Plant, "_compiled", lambda self: False)
+    slow = [plant.run(t, *states), plant.run_open_loop(t, tau, states[0][0])]
+    for a, b in zip(fast, slow, strict=True):
+        assert np.any(np.diff(np.sign(b["qd"]), axis=0) != 0)  # friction reverses
+        for key in ("q", "qd", "qdd", "tau"):
+            np.testing.assert_allclose(a[key], b[key], rtol=0,
+                                       atol=1e-9 * np.abs(b[key]).max())
+
+
+def test_composite_mass_matrix_is_pinocchio_crba(industrial6, tmp_path):
+    """The plant loop's mass matrix (composite rigid body) on a serial arm, prismatic joints
+    and a branched tree."""
+    from robid_link.fakes.plant_kernel import composite_mass_matrix, model_params
+    from robid_link.ident.model.dynamics import placements
+    from robid_link.ident.model.regressor import robot_arrays
+
+    (tmp_path / "cart.yaml").write_text(
+        "name: cart\nallow_unlimited: true\njoints:\n"
+        "  - {name: rail, type: prismatic, alpha: 0, a: 0, theta: 30, d: 0.2}\n"
+        "  - {name: shoulder, alpha: -90, a: 0.1, theta: -90, d: 0.05}\n"
+        "  - {name: slide, type: prismatic, alpha: 90, a: 0.3, theta: 10, d: -0.1}\n"
+        "  - {name: wrist, alpha: 45, a: 0.05, theta: 20, d: 0.1}\n")
+    inertial = ('<inertial><origin xyz="0.1 0.02 -0.03" rpy="0.1 0.2 0.3"/><mass value="{}"/>'
+                '<inertia ixx="0.3" ixy="0.01" ixz="0.02" iyy="0.4" iyz="0.03" izz="0.5"/>'
+                '</inertial>')
+    joint = ('<joint name="{}" type="{}"><parent link="{}"/><child link="{}"/><origin '
+             'xyz="0.1 0.2 0.3" rpy="0.3 -0.2 0.1"/><axis xyz="{}"/><limit lower="-3" '
+             'upper="3" effort="10" velocity="2"/></joint>')
+    (tmp_path / "tree.urdf").write_text(
+        '<robot name="tree"><link name="base"/>'
+        + "".join(f'<link name="{n}">{inertial.format(m)}</link>'
+                  for n, m in (("a", 2.0), ("b", 1.5), ("c", 1.0), ("e", 0.7)))
+        + joint.format("j1", "revolute", "base", "a", "0 0 1")
+        + joint.format("j2", "revolute", "a", "b", "0 1 0")
+        + joint.format("j3", "prismatic", "a", "c", "1 0 0")
+        + joint.format("j4", "revolute", "b", "e", "0.6 0 0.8") + "</robot>")
+    rng = np.random.default_rng(0)
+    for robot in (industrial6, load_robot(tmp_path / "cart.yaml"),
+                  load_robot(tmp_path / "tree.urdf")):
+        r0s, p0s, axes, revolute, parents, _, _ = robot_arrays(robot)
+        n = robot.n
+        params = model_params(robot.model) * rng.uniform(0.5, 2.0)
+        params[0::10] += 1.0  # the cart's links carry no inertials of their own
+        model = robot.model.copy()
+        for j in range(n):
+            model.inertias[j + 1] = pin.Inertia.FromDynamicParameters(params[10 * j: 10 * j + 10])
+        for _ in range(3):
+            q = rng.uniform(-1.5, 1.5, n)
+            rot, pos, ours = np.empty((n, 3, 3)), np.empty((n, 3)), np.empty((n, n))
+            placements(q, r0s, p0s, axes, revolute, rot, pos)
+            composite_mass_matrix(axes, revolute, parents, params, rot, pos,
+                                  np.empty((n, 10)), ours)
+            ref = pin.crba(model, model.createData(), robot.pin_q(q[None])[0])
+            ref = np.triu(ref) + np.triu(ref, 1).T
+            np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+
+
 @pytest.mark.filterwarnings("ignore::robid_link.exceptions.ExcitationWarning")
 def test_closed_loop_log_identifies(industrial6, tmp_path):
     """Forward dynamics with Coulomb friction: the default model fits to the noise level."""

@@ -78,6 +78,92 @@ def test_no_second_resonance_on_a_two_mass_frf():
         assert notes == []
 
 
+def test_step_sines_are_the_least_squares_fits():
+    """The one-pass sums (numba) give what least squares on the explicit designs gives: the
+    sine on a line over the window and its blocks, the residual's neighbouring bins, the
+    harmonics of one column."""
+    from robid_link.ident.elastic.sines import step_sines
+
+    rng = np.random.default_rng(4)
+    f, rate = 7.3, 2000.0
+    t = 31.2 + np.arange(int(6 / f * rate)) / rate
+    x = np.column_stack([0.2 + 0.01 * t + 1e-3 * np.sin(2 * np.pi * f * t + 0.3)
+                         + 2e-4 * np.cos(4 * np.pi * f * t), 5.0 * np.cos(2 * np.pi * f * t)])
+    x = x + 1e-5 * rng.normal(size=x.shape)
+    got = step_sines(t, x, f, 3, harmonics_of=0)
+
+    def sine(tt: np.ndarray, xx: np.ndarray) -> np.ndarray:
+        w = 2 * np.pi * f * tt
+        a = np.column_stack((np.ones(tt.size), tt - tt.mean(), np.cos(w), np.sin(w)))
+        coef = np.linalg.lstsq(a, xx, rcond=None)[0]
+        return coef[2] - 1j * coef[3], xx - a @ coef
+
+    whole, res = sine(t, x)
+    np.testing.assert_allclose(got.amplitude, whole, rtol=1e-10)
+    edges = np.linspace(0, t.size, 4).astype(int)  # three equal blocks
+    for i, (a, b) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
+        np.testing.assert_allclose(got.blocks[i], sine(t[a:b], x[a:b])[0], rtol=1e-9)
+    span = t[-1] - t[0] + 1 / rate
+    basis = np.exp(-2j * np.pi * np.outer(f + got.k / span, t))
+    np.testing.assert_allclose(got.bins, 2 / t.size * basis @ res, rtol=1e-7,
+                               atol=1e-9 * np.abs(got.bins).max())
+    w = 2 * np.pi * f * t
+    cols = [np.ones(t.size), t - t.mean()] + [g(h * w) for h in range(1, 10)
+                                              for g in (np.cos, np.sin)]
+    coef = np.linalg.lstsq(np.column_stack(cols), x[:, 0], rcond=None)[0][2:]
+    np.testing.assert_allclose(got.harmonics, coef[0::2] - 1j * coef[1::2], rtol=1e-8,
+                               atol=1e-12)
+
+
+def test_fitted_model_and_its_jacobian():
+    """The fit's model and ∂ log G are the model as logged and its derivatives (central
+    differences), with the hold and a third mass; the F-test's p is the F distribution's."""
+    from scipy.stats import f as f_dist
+
+    from robid_link.ident.elastic.fitting import _Fit, f_test
+    from robid_link.ident.elastic.models import (
+        LOGGED_PARAMETERS,
+        as_logged,
+        logged_with_derivatives,
+        motor_and_arm,
+    )
+
+    f = np.geomspace(2, 60, 24)
+    kg = -300.0
+
+    def third(v: dict[str, float]) -> tuple[float, float, float] | None:
+        if "j3" not in v:
+            return None
+        k3 = v["j3"] * (2 * math.pi * v["f3"]) ** 2
+        return v["j3"], k3, 2 * v["z3"] * math.sqrt(k3 * v["j3"])
+
+    def log_model(v: dict[str, float], hold: float) -> np.ndarray:
+        g = motor_and_arm(f, v["jm"], v["ja"], v["k"], v["d"], v["ba"], kg, third(v))[0]
+        return np.log(as_logged(f, g, v["jm"], delay_s=v["delay_s"], hold_s=hold))
+
+    full = {"jm": 0.8, "ja": 2.5, "k": 9000.0, "d": 6.0, "ba": 1.5, "delay_s": 1e-4,
+            "j3": 0.6, "f3": 40.0, "z3": 0.05}
+    for hold in (0.0, 1 / 2000):
+        for v in (full, {n: x for n, x in full.items() if n not in ("j3", "f3", "z3")}):
+            g, dlog = logged_with_derivatives(
+                f, v["jm"], v["ja"], v["k"], v["d"], v["ba"], kg,
+                (v["f3"], v["z3"], v["j3"]) if "j3" in v else None, delay_s=v["delay_s"],
+                hold_s=hold)
+            np.testing.assert_allclose(np.log(g), log_model(v, hold), rtol=1e-12)
+            assert dlog.shape == (f.size, len(v))
+            for col, name in enumerate(LOGGED_PARAMETERS[:len(v)]):
+                x = v[name]
+                h = 1e-6 * abs(x)
+                num = (log_model({**v, name: x + h}, hold)
+                       - log_model({**v, name: x - h}, hold)) / (2 * h)
+                np.testing.assert_allclose(dlog[:, col], num, rtol=0,
+                                           atol=1e-5 * np.abs(num).max())
+    small = _Fit({}, {}, 40.0, 48, np.zeros(6), np.eye(6))
+    big = _Fit({}, {}, 25.0, 48, np.zeros(9), np.eye(9))
+    stat, p = f_test(small, big)
+    assert p == pytest.approx(float(f_dist.sf(stat, 3, 39)), rel=1e-10)
+
+
 def test_coupled_fit_recovers_jcop_from_a_2x2_frf():
     f = np.geomspace(2, 60, 24)
     kg = np.array([[-250.0, -50.0], [-50.0, -50.0]])

@@ -25,7 +25,13 @@ from robid_link.ident.elastic.fitting import (
     fit_coupled,
     fit_two_mass,
 )
-from robid_link.ident.elastic.frequency import Frf, frf_from_log, frf_from_schedule, log_schedule
+from robid_link.ident.elastic.frequency import (
+    Frf,
+    frf_from_log,
+    frf_from_schedule,
+    log_rate,
+    log_schedule,
+)
 from robid_link.ident.elastic.models import (
     arm_coulomb_frf,
     as_logged,
@@ -117,8 +123,9 @@ def identify_elasticity(robot: Robot, logs: Sequence[Log], *, joints: Sequence[i
     kg = _gravity_stiffness_of_logs(robot, logs, side, inertials, notes)
     found = None if schedule is not None else [
         _named(log.path, log_schedule, log.t, log.q, log.tau) for log in logs]
+    rates = [log_rate(log.t) for log in logs]
     for target in targets:
-        frf = _merged_frf(logs, target, schedule, tau_model, found)
+        frf = _merged_frf(logs, target, schedule, tau_model, found, rates)
         frfs.append(frf)
         cols = [j - 1 for j in target]
         if len(target) == 1:
@@ -157,7 +164,8 @@ def _gravity_stiffness_of_logs(robot: Robot, logs: Sequence[Log], side: str,
             notes.append("no inertials for the arm's gravity stiffness: K is the spring plus "
                          "gravity's ∂g/∂q at the pose (give the robot's inertials)")
         return np.zeros((robot.n, robot.n))
-    pose = np.median(np.concatenate([log.q for log in logs]), axis=0)
+    pose = np.array([np.median(np.concatenate([log.q[:, j] for log in logs]))
+                     for j in range(robot.n)])  # column by column: a third of the time
     return gravity_stiffness(robot, pose, np.asarray(theta, dtype=float))
 
 
@@ -172,17 +180,18 @@ def _named(path: str, analysis: Callable[..., _T], *args: Any) -> _T:
 def _merged_frf(logs: Sequence[Log], target: tuple[int, ...],
                 schedule: Sequence[dict[str, Any]] | None,
                 tau_model: Sequence[np.ndarray] | None,
-                found: Sequence[Sequence[dict[str, Any]]] | None) -> Frf:
+                found: Sequence[Sequence[dict[str, Any]]] | None, rates: Sequence[float]
+                ) -> Frf:
     parts = []
     for i, log in enumerate(logs):
         tm = tau_model[i] if tau_model is not None else None
         try:
             if schedule is not None:
                 parts.append(_named(log.path, frf_from_schedule, log.t, log.q, log.tau,
-                                    schedule, target, tm))
+                                    schedule, target, tm, rates[i]))
             else:
                 parts.append(_named(log.path, frf_from_log, log.t, log.q, log.tau, target, tm,
-                                    found[i] if found else None))
+                                    found[i] if found else None, rates[i]))
         except RobidError as err:  # one log without this joint's steps is fine if another has
             if len(logs) == 1:
                 raise

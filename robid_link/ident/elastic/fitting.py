@@ -21,9 +21,11 @@ import numpy as np
 from robid_link.exceptions import EstimationError
 from robid_link.ident.elastic.frequency import Frf
 from robid_link.ident.elastic.models import (
+    LOGGED_PARAMETERS,
     arm_coulomb_frf,
     as_logged,
     coupled_frf,
+    logged_with_derivatives,
     motor_and_arm,
 )
 from robid_link.ident.elastic.results import CoupledElasticity, JointElasticity
@@ -157,22 +159,29 @@ class _Fit:
 
 
 def _lsq(pars: Sequence[_Par], resid: Callable[[dict[str, float]], np.ndarray],
-         max_nfev: int | None = None, diff_step: float | None = None, what: str = ""
-         ) -> _Fit:
+         max_nfev: int | None = None, diff_step: float | None = None, what: str = "",
+         jac: Callable[[dict[str, float]], np.ndarray] | None = None) -> _Fit:
     """Bounded least squares (trust region reflective) in the parametrisation of ``pars``;
-    the covariance from the Jacobian scaled by the residual variance. ``what``: the joint(s)
-    an error names."""
+    the covariance from the Jacobian scaled by the residual variance. ``jac``: the residuals'
+    derivatives by each parameter's value (columns in the order of ``pars``; else finite
+    differences). ``what``: the joint(s) an error names."""
     from scipy.optimize import least_squares
 
     def values(x: np.ndarray) -> dict[str, float]:
         return {p.name: float(p.value(v)) for p, v in zip(pars, x, strict=True)}
+
+    def jac_x(x: np.ndarray) -> np.ndarray:  # by the solver's x: log values, scaled ones
+        v = values(x)
+        assert jac is not None
+        return jac(v) * np.array([v[p.name] if p.log else p.scale for p in pars])
 
     lo, hi = np.array([p.bounds() for p in pars]).T
     x0 = np.array([p.x0() for p in pars])
     # the parametrisation is O(1) already (logarithms, scaled linear ones); the Jacobian's
     # scaling instead kept a parameter that starts on its bound (Ba = 0) from leaving it
     res = least_squares(lambda x: resid(values(x)), x0, bounds=(lo, hi), method="trf",
-                        max_nfev=max_nfev, diff_step=diff_step)
+                        max_nfev=max_nfev, diff_step=diff_step,
+                        jac="2-point" if jac is None else jac_x)
     rss = float(res.fun @ res.fun)
     n = res.fun.size
     try:
@@ -189,14 +198,14 @@ def _lsq(pars: Sequence[_Par], resid: Callable[[dict[str, float]], np.ndarray],
 
 def f_test(small: _Fit, big: _Fit) -> tuple[float, float]:
     """F statistic and p-value of the extended fit ``big`` against the nested ``small``."""
-    from scipy.stats import f as f_dist
+    from scipy.special import betainc  # F's tail by its incomplete beta: no scipy.stats import
 
     extra = big.k - small.k
     dof = max(big.n - big.k, 1)
     if big.rss >= small.rss or extra <= 0:
         return 0.0, 1.0
     stat = (small.rss - big.rss) / extra / (big.rss / dof)
-    return float(stat), float(f_dist.sf(stat, extra, dof))
+    return float(stat), float(betainc(0.5 * dof, 0.5 * extra, dof / (dof + extra * stat)))
 
 
 def _sigma_log(frf: Frf) -> np.ndarray:
@@ -282,12 +291,34 @@ def _fit_siso(frf: Frf, start: dict[str, float], kg: float, hold: float, sig: np
               max_nfev: int = 200) -> _Fit:
     friction = "df" if third else friction  # the stick-slip kernel has two masses
     warm: dict[str, np.ndarray] = {}
+    pars = _siso_pars(start, frf, fc=fc, third=third)
+    if not fc:  # the Jacobian's columns are the parameters'
+        assert tuple(p.name for p in pars) == LOGGED_PARAMETERS[:len(pars)]
+    last: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray]] = {}
+
+    def linear(v: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+        """The linear model and its derivatives, once per point (residual, then Jacobian)."""
+        key = tuple(v.values())
+        if key not in last:
+            last.clear()
+            last[key] = logged_with_derivatives(
+                frf.f_hz, v["jm"], v["ja"], v["k"], v["d"], v["ba"], kg,
+                (v["f3"], v["z3"], v["j3"]) if third else None, delay_s=v["delay_s"],
+                hold_s=hold)
+        return last[key]
+
+    def resid(v: dict[str, float]) -> np.ndarray:
+        model = (linear(v)[0] if not fc else _siso_model(frf, v, kg, hold, warm, friction))
+        return _logres(model, frf.g, sig)
+
+    def jac(v: dict[str, float]) -> np.ndarray:  # the linear model's, analytic
+        cols = linear(v)[1] / sig[:, None]
+        return np.concatenate((cols.real, cols.imag))
+
     # an extension the data do not need is ill-determined: its fit only has to show that
-    fit = _lsq(_siso_pars(start, frf, fc=fc, third=third),
-               lambda v: _logres(_siso_model(frf, v, kg, hold, warm, friction), frf.g, sig),
-               max_nfev=max_nfev if fc or third else None,
+    fit = _lsq(pars, resid, max_nfev=max_nfev if fc or third else None,
                diff_step=1e-4 if fc and friction == "stick-slip" else None,  # integrated
-               what=f"joint {frf.joints[0]}")
+               what=f"joint {frf.joints[0]}", jac=None if fc else jac)
     fit.extra.update(hold_s=hold, friction=friction if fc else None)
     return fit
 

@@ -27,12 +27,7 @@ from robid_link.ident.elastic.experiment import (
     step_axes,
     stepped_sine_schedule,
 )
-from robid_link.ident.elastic.sines import (
-    harmonics,
-    noise_bins,
-    sine_amplitudes,
-    without_transient,
-)
+from robid_link.ident.elastic.sines import sine_amplitudes, step_sines, without_transient
 
 __all__ = [
     "ElasticityOptions",
@@ -45,6 +40,7 @@ __all__ = [
     "frf_from_schedule",
     "detect_steps",
     "frf_from_log",
+    "log_rate",
     "log_schedule",
     "frf_h1",
     "frf_reference",
@@ -105,40 +101,37 @@ class _Point(NamedTuple):
     noise_y: np.ndarray
     noise_u: np.ndarray
     inflate: float
-    harmonics: np.ndarray
+    harmonics: np.ndarray | None  # one joint's (a pair's fit needs none)
 
 
 def _point(t: np.ndarray, qm: np.ndarray, tau: np.ndarray, f: float, periods: float) -> _Point:
     """One step window (blocks of whole periods); drift the first channel's mean velocity."""
     blocks = int(max(2, min(10, periods // 2)))
-    y, yb = sine_amplitudes(t, qm, f, blocks)
-    u, ub = sine_amplitudes(t, tau, f, blocks)
+    m = qm.shape[1]
+    fit = step_sines(t, np.column_stack((qm, tau)), f, blocks,  # both signals, one design
+                     harmonics_of=0 if m == 1 else None)  # a pair's fit needs no harmonics
+    u = fit.amplitude[m:]
     # coherence of the first channel pair from the blocks (Welch-like, 1 = noise-free)
-    sy, su = yb[:, 0], ub[:, 0]
+    sy, su = fit.blocks[:, 0], fit.blocks[:, m]
     coh = float(abs(np.sum(sy * su.conj())) ** 2
                 / max(np.sum(abs(sy) ** 2) * np.sum(abs(su) ** 2), 1e-300))
     spread = float(np.std(su) / math.sqrt(blocks))
     snr = float(abs(u[0]) / max(spread, 1e-300))
     tc = t - t.mean()
     drift = float(tc @ (qm[:, 0] - qm[:, 0].mean()) / max(float(tc @ tc), 1e-300))
-    k, bins_y = noise_bins(t, qm, f)
-    bins_u = noise_bins(t, tau, f)[1]
-    y, noise_y, inflate = without_transient(k, y, bins_y)
-    u, noise_u, _ = without_transient(k, u, bins_u)
-    return _Point(y, u, coh, snr, drift, noise_y, noise_u, inflate,
-                  harmonics(t, qm[:, 0], f))
-
-
-
-
+    yu, noise, inflate = without_transient(fit.k, fit.amplitude, fit.bins)
+    return _Point(yu[:m], yu[m:], coh, snr, drift, noise[:, :m], noise[:, m:], inflate,
+                  fit.harmonics)
 
 
 def frf_from_schedule(t: np.ndarray, q: np.ndarray, tau: np.ndarray,
                       schedule: Sequence[dict[str, Any]], joints: Sequence[int],
-                      tau_model: np.ndarray | None = None) -> Frf:
+                      tau_model: np.ndarray | None = None, rate_hz: float | None = None
+                      ) -> Frf:
     """FRF points of ``joints`` (1-based; one joint → SISO, two → the 2×2 matrix) from the
     steps of a known schedule. ``tau_model``: the identified rigid-body + friction torque to
-    subtract (same shape as ``tau``). Log times are those of the trajectory."""
+    subtract (same shape as ``tau``); ``rate_hz`` the log's (default from t). Log times are
+    those of the trajectory."""
     cols = [j - 1 for j in joints]
     if tau_model is not None:
         tau = tau - tau_model
@@ -158,8 +151,13 @@ def frf_from_schedule(t: np.ndarray, q: np.ndarray, tau: np.ndarray,
         by_f.setdefault(round(float(st.get("f_key", f)), 9), []).append(
             _point(t[a:b], q[a:b][:, cols], tau[a:b][:, cols], f, periods))
     frf = _assemble(tuple(joints), by_f, "schedule")
-    frf.rate_hz = 1.0 / float(np.median(np.diff(t)))
+    frf.rate_hz = rate_hz if rate_hz is not None else log_rate(t)
     return frf
+
+
+def log_rate(t: np.ndarray) -> float:
+    """A log's sampling rate: one over its median time step."""
+    return 1.0 / float(np.median(np.diff(t)))
 
 
 def _siso(pts: Sequence[_Point]) -> tuple[complex, float]:
@@ -221,14 +219,15 @@ def _assemble(joints: tuple[int, ...], by_f: dict[float, list[_Point]], source: 
 
 def frf_from_log(t: np.ndarray, q: np.ndarray, tau: np.ndarray, joints: Sequence[int],
                  tau_model: np.ndarray | None = None,
-                 steps: Sequence[dict[str, Any]] | None = None) -> Frf:
+                 steps: Sequence[dict[str, Any]] | None = None, rate_hz: float | None = None
+                 ) -> Frf:
     """As :func:`frf_from_schedule`, with the steps detected in the log alone (every axis
     looked at, so that a step of another axis is not taken for one of ``joints``), or the
     ``steps`` :func:`log_schedule` found before."""
     if tau_model is not None:
         tau = tau - tau_model
     frf = frf_from_schedule(t, q, tau, steps if steps is not None else log_schedule(t, q, tau),
-                            joints)
+                            joints, rate_hz=rate_hz)
     frf.source = "detected"
     return frf
 

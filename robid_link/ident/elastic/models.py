@@ -9,10 +9,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numba
 import numpy as np
 
 __all__ = ["two_mass_frf", "three_mass_frf", "motor_and_arm", "arm_coulomb_frf",
-           "coupled_frf", "as_logged"]
+           "coupled_frf", "as_logged", "logged_with_derivatives", "LOGGED_PARAMETERS"]
 
 
 def _arm(s: np.ndarray, ja: float, ba: float | np.ndarray, kg: float,
@@ -125,3 +126,65 @@ def as_logged(f_hz: np.ndarray, g: np.ndarray, jm: float | Sequence[float], *,
         tau = np.broadcast_to(np.asarray(delay_s, dtype=float), (2,))
         return g * np.exp(-1j * w[:, None, None] * tau[None, None, :])
     return g * np.exp(-1j * w * float(np.asarray(delay_s)))
+
+
+#: the parameters of ``logged_with_derivatives``, in the order of its Jacobian's columns
+LOGGED_PARAMETERS = ("jm", "ja", "k", "d", "ba", "delay_s", "j3", "f3", "z3")
+
+
+def logged_with_derivatives(f_hz: np.ndarray, jm: float, ja: float, k: float, d: float,
+                            ba: float, kg: float,
+                            f3_z3_j3: tuple[float, float, float] | None = None, *,
+                            delay_s: float = 0.0, hold_s: float = 0.0
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """The two- (three-) mass G as logged (``as_logged(motor_and_arm(…))``) and ∂ log G/∂p,
+    (K, 6) or with a third mass (K, 9), columns p in the order of ``LOGGED_PARAMETERS`` (a third
+    mass j3 on k3 = j3 (2π f3)², d3 = 2 z3 j3 (2π f3), given as ``f3_z3_j3`` = (f3, z3, j3)):
+    the fit's model and Jacobian in one evaluation (numba). With G = N/D, N = A + Z,
+    D = Jm s² N + Z A: ∂G = (∂N − G ∂D)/D; an arm term ∂A adds ∂A to N and ∂A (Jm s² + Z) to
+    D, a spring term ∂Z adds ∂Z and ∂Z (Jm s² + A); Jm adds s² N to D (and −1/Jm² to the
+    hold's 1/Jm term)."""
+    w = 2 * np.pi * np.asarray(f_hz, dtype=float)
+    third = f3_z3_j3 is not None
+    f3, z3, j3 = f3_z3_j3 if f3_z3_j3 is not None else (0.0, 0.0, 0.0)
+    g = np.empty(w.size, dtype=complex)
+    dlog = np.empty((w.size, 9 if third else 6), dtype=complex)
+    _logged_kernel(w, hold_s, jm, ja, k, d, ba, kg, third, f3, z3, j3, delay_s, g, dlog)
+    return g, dlog
+
+
+@numba.njit(cache=True, nogil=True)
+def _logged_kernel(w, hold_s, jm, ja, k, d, ba, kg, third, f3, z3, j3, delay_s, g_out, d_out):
+    om = 2 * np.pi * f3
+    for i in range(w.size):
+        s = 1j * w[i]
+        s2 = s * s
+        z = d * s + k
+        arm = ja * s2 + ba * s + kg
+        q = om * om + 2 * z3 * om * s  # the third mass's spring: Z3 = j3·q
+        if third:  # its share of the arm: T = j3 q s²/(s² + q)
+            arm += j3 * q * s2 / (s2 + q)
+        num = arm + z
+        den = jm * s2 * num + z * arm
+        g = num / den
+        sinc, motor, shift = 1.0, 0.0, 0.0
+        if hold_s > 0:
+            x = 0.5 * w[i] * hold_s
+            sinc = np.sin(x) / x
+            motor = -(x * x * np.cos(x) / np.sin(x) ** 2 - sinc) / (w[i] * w[i])  # × 1/Jm
+            shift = -x  # the hold's half sample
+        held = g * sinc + motor / jm
+        g_out[i] = held * np.exp(1j * (shift - w[i] * delay_s))
+        scale = sinc / (den * held)
+        per_arm, per_spring = scale * (1 - g * (jm * s2 + z)), scale * (1 - g * (jm * s2 + arm))
+        d_out[i, 0] = -(scale * g * s2 * num + motor / (jm * jm * held))
+        d_out[i, 1] = s2 * per_arm
+        d_out[i, 2] = per_spring
+        d_out[i, 3] = s * per_spring
+        d_out[i, 4] = s * per_arm
+        d_out[i, 5] = -1j * w[i]
+        if third:
+            t_q = j3 * s2 * s2 / (s2 + q) ** 2 * per_arm  # ∂T/∂q, in log G
+            d_out[i, 6] = q * s2 / (s2 + q) * per_arm
+            d_out[i, 7] = t_q * 2 * np.pi * (2 * om + 2 * z3 * s)
+            d_out[i, 8] = t_q * 2 * om * s

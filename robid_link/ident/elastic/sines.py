@@ -4,12 +4,141 @@ a steady sine. Convention x(t) = Re(X e^{jωt}), t the log's time."""
 
 from __future__ import annotations
 
+import functools
 import math
+from typing import NamedTuple
 
+import numba
 import numpy as np
 
-__all__ = ["sine_amplitudes", "harmonics", "noise_bins", "without_transient", "period_blocks",
-           "unexplained_share", "refine_frequency"]
+__all__ = ["StepSines", "step_sines", "sine_amplitudes", "without_transient",
+           "period_blocks", "unexplained_share", "refine_frequency"]
+
+
+class StepSines(NamedTuple):
+    """What one stepped-sine window shows at its frequency f, per column: the complex amplitude
+    over the whole window and over each block (a sine on a line, the drift, by least squares),
+    the residual's amplitudes at the neighbouring frequencies f + k/T (``noise_bins``) and one
+    column's harmonics (None when not asked)."""
+
+    amplitude: np.ndarray  # (m,)
+    blocks: np.ndarray  # (blocks, m)
+    k: np.ndarray  # (bins,)
+    bins: np.ndarray  # (bins, m)
+    harmonics: np.ndarray | None  # (most_harmonics,)
+
+
+def step_sines(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int, *,
+               harmonics_of: int | None = None, most_bins: int = 8, most_harmonics: int = 9
+               ) -> StepSines:
+    """The sine at ``f_hz`` in each column of ``x`` over the window t: x ≈ a + b·t +
+    Re(X e^{jωt}) over the whole window and over ``blocks`` equal sub-windows; the residual of
+    the whole window's fit as amplitudes at f ± k/T (k = 1…``most_bins``, above f/4: orthogonal
+    to the sine over whole periods, they carry the noise an amplitude at f carries — its
+    spectrum is smooth there — and the leakage of a decaying transient, smooth in k); the
+    first ``most_harmonics`` harmonics of column ``harmonics_of`` on a line. The normal
+    equations of every fit are summed in one pass over the samples (numba), time centred and
+    scaled to [−1, 1] in each window (the sines' coefficients do not depend on how the line is
+    written; the small systems stay well conditioned)."""
+    t = np.ascontiguousarray(t, dtype=float)
+    x = np.ascontiguousarray(x.reshape(len(t), -1), dtype=float)
+    m = x.shape[1]
+    w = 2 * math.pi * f_hz
+    edges = np.linspace(0, len(t), blocks + 1).astype(np.int64)
+    nh = most_harmonics if harmonics_of is not None else 0
+    gram, rhs = np.zeros((blocks + 1, 4, 4)), np.zeros((blocks + 1, 4, m))
+    hgram, hrhs = np.zeros((2 + 2 * nh, 2 + 2 * nh)), np.zeros(2 + 2 * nh)
+    _window_sums(t, x, w, edges, harmonics_of or 0, nh, gram, rhs, hgram, hrhs)
+    coef = _solve(gram, rhs)  # [0]: the whole window, then the blocks
+    span = float(t[-1] - t[0]) + float(np.median(np.diff(t)))
+    bins = np.zeros((2 * most_bins, m), dtype=complex)
+    _residual_bins(t, x, w, np.ascontiguousarray(coef[0]), span, bins)
+    k = np.r_[-most_bins:0, 1:most_bins + 1]
+    keep = f_hz + k / span > 0.25 * f_hz
+    harm = None
+    if nh:
+        hc = _solve(hgram[None], hrhs[None, :, None])[0, 2:, 0]
+        harm = hc[0::2] - 1j * hc[1::2]
+    amp = coef[:, 2] - 1j * coef[:, 3]
+    return StepSines(amp[0], amp[1:], k[keep], 2.0 / t.size * bins[keep], harm)
+
+
+def _solve(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Each symmetric system (upper triangles summed) solved; by the SVD where singular."""
+    full = np.triu(gram) + np.swapaxes(np.triu(gram, 1), -1, -2)
+    try:
+        return np.linalg.solve(full, rhs)
+    except np.linalg.LinAlgError:
+        return np.array([np.linalg.lstsq(g, r, rcond=None)[0] for g, r in zip(full, rhs,
+                                                                                strict=True)])
+
+
+@numba.njit(cache=True, nogil=True)
+def _window_sums(t, x, w, edges, hcol, nh, gram, rhs, hgram, hrhs):
+    """Upper triangles of the normal equations of [1, u, cos ωt, sin ωt] per column: the whole
+    window into [0], block b into [b + 1] (u each one's time scaled to [−1, 1]); of
+    [1, u, cos hωt, sin hωt …] (h ≤ nh) on column ``hcol`` into hgram, hrhs."""
+    n, m = x.shape
+    mid0, half0 = 0.5 * (t[0] + t[n - 1]), 0.5 * (t[n - 1] - t[0])
+    half0 = half0 if half0 > 0 else 1.0
+    row = np.empty(4)
+    hrow = np.empty(2 + 2 * nh)
+    for b in range(edges.size - 1):
+        i0, i1 = edges[b], edges[b + 1]
+        mid, half = 0.5 * (t[i0] + t[i1 - 1]), max(0.5 * (t[i1 - 1] - t[i0]), 1e-300)
+        for i in range(i0, i1):
+            c, s = math.cos(w * t[i]), math.sin(w * t[i])
+            u0 = (t[i] - mid0) / half0
+            row[0], row[1], row[2], row[3] = 1.0, u0, c, s
+            _add_outer(row, x[i], gram[0], rhs[0])
+            row[1] = (t[i] - mid) / half
+            _add_outer(row, x[i], gram[b + 1], rhs[b + 1])
+            if nh:
+                hrow[0], hrow[1] = 1.0, u0
+                ch, sh = c, s
+                for h in range(nh):  # cos, sin of (h + 1)ωt by the angle sum
+                    hrow[2 + 2 * h], hrow[3 + 2 * h] = ch, sh
+                    ch, sh = ch * c - sh * s, sh * c + ch * s
+                xi = x[i, hcol]
+                for p in range(hrow.size):
+                    hrhs[p] += hrow[p] * xi
+                    for q in range(p, hrow.size):
+                        hgram[p, q] += hrow[p] * hrow[q]
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_outer(row, xi, gram, rhs):
+    for p in range(row.size):
+        for j in range(xi.size):
+            rhs[p, j] += row[p] * xi[j]
+        for q in range(p, row.size):
+            gram[p, q] += row[p] * row[q]
+
+
+@numba.njit(cache=True, nogil=True)
+def _residual_bins(t, x, w, coef, span, bins):
+    """Σ r(t) e^{−2πj(f + k/T)t} per column of the residual r of the whole window's fit
+    ``coef`` (4, m), k = −K…−1, 1…K in the rows of ``bins`` (2K, m); e^{−2πjkt/T} as powers
+    of one exponential per sample."""
+    n, m = x.shape
+    most = bins.shape[0] // 2
+    mid0, half0 = 0.5 * (t[0] + t[n - 1]), 0.5 * (t[n - 1] - t[0])
+    half0 = half0 if half0 > 0 else 1.0
+    turns = np.empty(most, dtype=np.complex128)
+    for i in range(n):
+        c, s = math.cos(w * t[i]), math.sin(w * t[i])
+        u0 = (t[i] - mid0) / half0
+        step = complex(math.cos(2 * math.pi * t[i] / span), -math.sin(2 * math.pi * t[i] / span))
+        power = complex(1.0, 0.0)
+        for k in range(most):
+            power *= step
+            turns[k] = power
+        for j in range(m):
+            r = x[i, j] - (coef[0, j] + coef[1, j] * u0 + coef[2, j] * c + coef[3, j] * s)
+            rz = complex(r * c, -r * s)  # r e^{−jωt}
+            for k in range(most):
+                bins[most + k, j] += turns[k] * rz
+                bins[most - 1 - k, j] += turns[k].conjugate() * rz
 
 
 def sine_amplitudes(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1,
@@ -32,36 +161,6 @@ def sine_amplitudes(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1,
     return whole, per
 
 
-def harmonics(t: np.ndarray, x: np.ndarray, f: float, most: int = 9) -> np.ndarray:
-    """Complex amplitudes of x's first ``most`` harmonics of f (on a line: the drift)."""
-    tc = t - t.mean()
-    w = 2 * math.pi * f * t
-    cols = [np.ones(t.size), tc]
-    for h in range(1, most + 1):
-        cols += [np.cos(h * w), np.sin(h * w)]
-    coef = np.linalg.lstsq(np.column_stack(cols), x, rcond=None)[0][2:]
-    return coef[0::2] - 1j * coef[1::2]
-
-
-def noise_bins(t: np.ndarray, x: np.ndarray, f: float, most: int = 8
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """The residual of x's sine fit at f (on a line: the drift), as amplitudes at the
-    neighbouring frequencies f ± k/T of the window T (k = 1…``most``, above f/4): orthogonal
-    to the sine over whole periods, they carry the noise an amplitude at f carries (its
-    spectrum is smooth there) and the leakage of a decaying transient (smooth in k).
-    Returns (k, (bins, m) complex amplitudes scaled like X)."""
-    x = x.reshape(len(t), -1)
-    tc = t - t.mean()
-    w = 2 * math.pi * f * t
-    a = np.column_stack((np.ones(t.size), tc, np.cos(w), np.sin(w)))
-    res = x - a @ np.linalg.lstsq(a, x, rcond=None)[0]
-    span = float(t[-1] - t[0]) + float(np.median(np.diff(t)))
-    k = np.r_[-most:0, 1:most + 1]
-    k = k[f + k / span > 0.25 * f]
-    basis = np.exp(-2j * math.pi * np.outer(f + k / span, t))
-    return k, 2.0 / t.size * (basis @ res)
-
-
 def without_transient(k: np.ndarray, y: np.ndarray, bins: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray, float]:
     """A decaying transient in the window (the loop's slowest mode, rung by the step's start
@@ -71,15 +170,26 @@ def without_transient(k: np.ndarray, y: np.ndarray, bins: np.ndarray
     left 0.7 % of G, over ±3 0.2 %). The noise is what a quartic through all the bins leaves.
     Returns (X less the transient, the noise per bin, the factor from the noise's mean square
     to the variance of X)."""
-    local = np.abs(k) <= 3
+    at_zero, residual, factor = _bin_projections(tuple(int(v) for v in k))
+    return y - at_zero @ bins, residual @ bins, factor
+
+
+@functools.lru_cache(maxsize=64)
+def _bin_projections(k: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, float]:
+    """For the bins k (one set serves most steps): the row that takes the local quadratic's
+    value at k = 0 from the bins, the projection onto what the quartic leaves, and the factor
+    from the noise's mean square to the variance of X."""
+    ks = np.array(k, dtype=float)
+    local = np.abs(ks) <= 3
     deg = 2 if local.sum() >= 5 else (1 if local.sum() >= 3 else 0)
-    basis = np.vander(k[local].astype(float), deg + 1, increasing=True)
-    coef, *_ = np.linalg.lstsq(basis, bins[local], rcond=None)
+    basis = np.vander(ks[local], deg + 1, increasing=True)
+    at_zero = np.zeros(ks.size)
+    at_zero[local] = np.linalg.pinv(basis)[0]
     lever = float(np.linalg.inv(basis.T @ basis)[0, 0])
-    wide = np.vander(k.astype(float), min(5, max(k.size - 3, 1)), increasing=True)
-    noise = bins - wide @ np.linalg.lstsq(wide, bins, rcond=None)[0]
-    dof = max(k.size - wide.shape[1], 1)
-    return y - coef[0], noise, k.size / dof * (1.0 + lever)
+    wide = np.vander(ks, min(5, max(ks.size - 3, 1)), increasing=True)
+    residual = np.eye(ks.size) - wide @ np.linalg.pinv(wide)
+    dof = max(ks.size - wide.shape[1], 1)
+    return at_zero, residual, ks.size / dof * (1.0 + lever)
 
 
 def period_blocks(t: np.ndarray, x: np.ndarray, f: float) -> tuple[np.ndarray, np.ndarray]:
