@@ -2,8 +2,8 @@
 axis at 2 kHz, the simulated elastic industrial6) against one `robid identify` on a rigid-body
 log of the same length and rate, both through the CLI in this process (median of 3), both logs
 .npz (the ratio compares the analyses, not a CSV parser with an npz reader); and the time the
-campaign's simulation takes (trajectory, its file, the closed-loop plant, the log written), its
-compiled loop's cache loaded by a short run first, as the analyses are warmed.
+campaign's simulation takes (the trajectory, its states, the closed-loop plant, the log
+written), its compiled loop's cache loaded by a short run first, as the analyses are warmed.
 """
 
 from __future__ import annotations
@@ -27,22 +27,28 @@ PAIR = (2, 3)
 
 
 def _stepped_sine_log(robot_path: Path, truth_path: Path, out: Path, samples: int | None = None
-                      ) -> tuple[int, Path]:
-    """The campaign's log (``samples``: only its first ones, to warm the caches)."""
+                      ) -> tuple[int, Path, float, float]:
+    """The campaign's log (``samples``: only its first ones, to warm the caches) and the wall
+    and CPU seconds its simulation took: the stepped-sine trajectory, its states, the
+    closed-loop plant, the log written. The trajectory's file is written after (for its
+    header's schedule): a campaign hands the program over as data."""
     from robid_link.fakes.plant import Plant, load_truth
     from robid_link.ident.elastic.frequency import ElasticityOptions, elasticity_trajectory
     from robid_link.ident.excite.excitation import trajectory_states, write_trajectory
     from robid_link.ident.model.robot import load_robot
 
     robot = load_robot(robot_path)
+    truth = load_truth(truth_path, robot)
     opts = ElasticityOptions(joints=SINGLES, pairs=(PAIR,), pose=tuple(np.radians(POSE_DEG)))
+    t0, c0 = time.perf_counter(), time.process_time()
     traj = elasticity_trajectory(robot, opts)
     if samples is not None:
         traj = replace(traj, t=traj.t[:samples], q=traj.q[:samples])
-    _, header = write_trajectory(out / "traj.csv", traj)
-    log = Plant(robot, load_truth(truth_path, robot)).run(*trajectory_states(traj, 2000.0))
+    log = Plant(robot, truth).run(*trajectory_states(traj, 2000.0))
     np.savez(out / "log.npz", t=log["t"], q=log["q"], tau=log["tau"])
-    return int(log["t"].size), Path(header)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    _, header = write_trajectory(out / "traj.csv", traj)
+    return int(log["t"].size), Path(header), wall, cpu
 
 
 def _timed(argv: list[str]) -> float:
@@ -61,9 +67,7 @@ def bench_elasticity(robot_path: Path, truth_path: Path,
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
         _stepped_sine_log(robot_path, truth_path, out, samples=400)  # numba's cache, imports
-        t0, c0 = time.perf_counter(), time.process_time()
-        samples, header = _stepped_sine_log(robot_path, truth_path, out)
-        sim_s, sim_cpu_s = time.perf_counter() - t0, time.process_time() - c0
+        samples, header, sim_s, sim_cpu_s = _stepped_sine_log(robot_path, truth_path, out)
         make_npz(out / "rigid.npz", samples, 2000.0)
         el = ["elasticity", "--robot", str(robot_path), "--data", str(out / "log.npz"),
               "--schedule", str(header), "--joints", ",".join(map(str, PAIR))]

@@ -17,6 +17,7 @@ from robid_link.ident.excite.excitation import (
     random_fourier,
     read_trajectory,
     stepped_sine,
+    trajectory_states,
     write_trajectory,
 )
 
@@ -81,6 +82,22 @@ def test_trajectory_file_roundtrip_and_errors(arm3, tmp_path):
     header.unlink()
     with pytest.raises(ConfigError, match="header file x.yaml not found"):
         read_trajectory(csv)
+
+
+def test_states_at_the_files_samples_are_the_cubic_splines():
+    """At its own samples a sampled trajectory's q̇ and q̈ are the not-a-knot spline's (taken
+    from its conditions, not its coefficients); elsewhere the spline itself."""
+    from scipy.interpolate import CubicSpline
+
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 3.0, 1 / 500.0)
+    q = np.column_stack((np.sin(2.1 * t), np.cos(7 * t) * t)) + 1e-4 * rng.normal(size=(t.size, 2))
+    spline = CubicSpline(t, q, axis=0)
+    for rate in (500.0, 1000.0):
+        tt, qq, qd, qdd = trajectory_states(Trajectory(t, q, 500.0, "custom", "x"), rate)
+        np.testing.assert_allclose(qq, spline(tt), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(qd, spline(tt, 1), rtol=0, atol=1e-9 * np.abs(qd).max())
+        np.testing.assert_allclose(qdd, spline(tt, 2), rtol=0, atol=1e-9 * np.abs(qdd).max())
 
 
 def test_check_limits_names_joint_and_quantity(arm3):

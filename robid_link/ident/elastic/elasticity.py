@@ -123,9 +123,9 @@ def identify_elasticity(robot: Robot, logs: Sequence[Log], *, joints: Sequence[i
     kg = _gravity_stiffness_of_logs(robot, logs, side, inertials, notes)
     found = None if schedule is not None else [
         _named(log.path, log_schedule, log.t, log.q, log.tau) for log in logs]
-    rates = [log_rate(log.t) for log in logs]
+    log_rates = [log_rate(log.t) for log in logs]
     for target in targets:
-        frf = _merged_frf(logs, target, schedule, tau_model, found, rates)
+        frf = _merged_frf(logs, target, schedule, tau_model, found, log_rates)
         frfs.append(frf)
         cols = [j - 1 for j in target]
         if len(target) == 1:
@@ -180,18 +180,18 @@ def _named(path: str, analysis: Callable[..., _T], *args: Any) -> _T:
 def _merged_frf(logs: Sequence[Log], target: tuple[int, ...],
                 schedule: Sequence[dict[str, Any]] | None,
                 tau_model: Sequence[np.ndarray] | None,
-                found: Sequence[Sequence[dict[str, Any]]] | None, rates: Sequence[float]
-                ) -> Frf:
+                found: Sequence[Sequence[dict[str, Any]]] | None,
+                log_rates: Sequence[float]) -> Frf:
     parts = []
     for i, log in enumerate(logs):
         tm = tau_model[i] if tau_model is not None else None
         try:
             if schedule is not None:
                 parts.append(_named(log.path, frf_from_schedule, log.t, log.q, log.tau,
-                                    schedule, target, tm, rates[i]))
+                                    schedule, target, tm, log_rates[i]))
             else:
                 parts.append(_named(log.path, frf_from_log, log.t, log.q, log.tau, target, tm,
-                                    found[i] if found else None, rates[i]))
+                                    found[i] if found else None, log_rates[i]))
         except RobidError as err:  # one log without this joint's steps is fine if another has
             if len(logs) == 1:
                 raise

@@ -47,8 +47,8 @@ def step_sines(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int, *,
     edges = np.linspace(0, len(t), blocks + 1).astype(np.int64)
     nh = most_harmonics if harmonics_of is not None else 0
     gram, rhs = np.zeros((blocks + 1, 4, 4)), np.zeros((blocks + 1, 4, m))
-    hgram, hrhs = np.zeros((2 + 2 * nh, 2 + 2 * nh)), np.zeros(2 + 2 * nh)
-    _window_sums(t, x, w, edges, harmonics_of or 0, nh, gram, rhs, hgram, hrhs)
+    trig = np.zeros((6, 2 * nh + 1))  # the sums of the harmonics' normal equations
+    _window_sums(t, x, w, edges, harmonics_of or 0, nh, gram, rhs, trig)
     coef = _solve(gram, rhs)  # [0]: the whole window, then the blocks
     span = float(t[-1] - t[0]) + float(np.median(np.diff(t)))
     bins = np.zeros((2 * most_bins, m), dtype=complex)
@@ -57,6 +57,7 @@ def step_sines(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int, *,
     keep = f_hz + k / span > 0.25 * f_hz
     harm = None
     if nh:
+        hgram, hrhs = _harmonic_system(trig, nh)
         hc = _solve(hgram[None], hrhs[None, :, None])[0, 2:, 0]
         harm = hc[0::2] - 1j * hc[1::2]
     amp = coef[:, 2] - 1j * coef[:, 3]
@@ -74,15 +75,16 @@ def _solve(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _window_sums(t, x, w, edges, hcol, nh, gram, rhs, hgram, hrhs):
+def _window_sums(t, x, w, edges, hcol, nh, gram, rhs, trig):
     """Upper triangles of the normal equations of [1, u, cos ωt, sin ωt] per column: the whole
-    window into [0], block b into [b + 1] (u each one's time scaled to [−1, 1]); of
-    [1, u, cos hωt, sin hωt …] (h ≤ nh) on column ``hcol`` into hgram, hrhs."""
+    window into [0], block b into [b + 1] (u each one's time scaled to [−1, 1]); for the
+    harmonics of column ``hcol`` (nh > 0) the sums their normal equations are made of
+    (``_harmonic_system``): Σ cos kωt, Σ sin kωt (k ≤ 2 nh; [0, 0] the count), Σ u cos kωt,
+    Σ u sin kωt, Σ x cos kωt, Σ x sin kωt (k ≤ nh), Σ u, Σ u², Σ x, Σ x u in [2…5, 0]."""
     n, m = x.shape
     mid0, half0 = 0.5 * (t[0] + t[n - 1]), 0.5 * (t[n - 1] - t[0])
     half0 = half0 if half0 > 0 else 1.0
     row = np.empty(4)
-    hrow = np.empty(2 + 2 * nh)
     for b in range(edges.size - 1):
         i0, i1 = edges[b], edges[b + 1]
         mid, half = 0.5 * (t[i0] + t[i1 - 1]), max(0.5 * (t[i1 - 1] - t[i0]), 1e-300)
@@ -94,16 +96,45 @@ def _window_sums(t, x, w, edges, hcol, nh, gram, rhs, hgram, hrhs):
             row[1] = (t[i] - mid) / half
             _add_outer(row, x[i], gram[b + 1], rhs[b + 1])
             if nh:
-                hrow[0], hrow[1] = 1.0, u0
-                ch, sh = c, s
-                for h in range(nh):  # cos, sin of (h + 1)ωt by the angle sum
-                    hrow[2 + 2 * h], hrow[3 + 2 * h] = ch, sh
-                    ch, sh = ch * c - sh * s, sh * c + ch * s
                 xi = x[i, hcol]
-                for p in range(hrow.size):
-                    hrhs[p] += hrow[p] * xi
-                    for q in range(p, hrow.size):
-                        hgram[p, q] += hrow[p] * hrow[q]
+                ck, sk = c, s
+                for k in range(1, 2 * nh + 1):  # cos, sin of kωt by the angle sum
+                    trig[0, k] += ck
+                    trig[1, k] += sk
+                    if k <= nh:
+                        trig[2, k] += u0 * ck
+                        trig[3, k] += u0 * sk
+                        trig[4, k] += xi * ck
+                        trig[5, k] += xi * sk
+                    ck, sk = ck * c - sk * s, sk * c + ck * s
+                trig[0, 0] += 1.0
+                trig[2, 0] += u0
+                trig[3, 0] += u0 * u0
+                trig[4, 0] += xi
+                trig[5, 0] += xi * u0
+
+
+def _harmonic_system(trig: np.ndarray, nh: int) -> tuple[np.ndarray, np.ndarray]:
+    """The normal equations of [1, u, cos ωt, sin ωt, …, cos nh ωt, sin nh ωt] from the sums of
+    ``_window_sums``: products of harmonics are sums of harmonics, cos p cos q =
+    (cos(p−q) + cos(p+q))/2, sin p sin q = (cos(p−q) − cos(p+q))/2, cos p sin q =
+    (sin(p+q) − sin(p−q))/2."""
+    cos_sum, sin_sum = trig[0], trig[1]  # [0]: the count, Σ sin 0 = 0
+    h = np.arange(1, nh + 1)
+    p, q = np.meshgrid(h, h, indexing="ij")
+    gram = np.empty((2 + 2 * nh, 2 + 2 * nh))
+    gram[2::2, 2::2] = 0.5 * (cos_sum[np.abs(p - q)] + cos_sum[p + q])
+    gram[3::2, 3::2] = 0.5 * (cos_sum[np.abs(p - q)] - cos_sum[p + q])
+    gram[2::2, 3::2] = 0.5 * (sin_sum[p + q] - np.sign(p - q) * sin_sum[np.abs(p - q)])
+    gram[3::2, 2::2] = gram[2::2, 3::2].T
+    first = np.empty((2, 2 + 2 * nh))  # the rows of 1 and u
+    first[0, :2] = cos_sum[0], trig[2, 0]
+    first[1, :2] = trig[2, 0], trig[3, 0]
+    first[0, 2::2], first[0, 3::2] = cos_sum[h], sin_sum[h]
+    first[1, 2::2], first[1, 3::2] = trig[2, h], trig[3, h]
+    gram[:2], gram[:, :2] = first, first.T
+    rhs = np.concatenate(([trig[4, 0], trig[5, 0]], np.ravel((trig[4, h], trig[5, h]), "F")))
+    return gram, rhs
 
 
 @numba.njit(cache=True, nogil=True)

@@ -433,7 +433,42 @@ def trajectory_states(traj: Trajectory, rate_hz: float
                                  np.asarray(h["a"], dtype=float), np.asarray(h["b"], dtype=float))
         q, qd, qdd = four.evaluate(t)
         return t, q, qd, qdd
+    if t.size == traj.t.size >= 4 and np.array_equal(t, traj.t):  # at the file's samples
+        qd, qdd = _spline_at_knots(traj.t, traj.q)
+        return t, traj.q.copy(), qd, qdd
     from scipy.interpolate import CubicSpline
 
     spline = CubicSpline(traj.t, traj.q, axis=0)
     return t, spline(t), spline(t, 1), spline(t, 2)
+
+
+def _spline_at_knots(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First and second derivative, at its knots, of the not-a-knot cubic spline through the
+    samples y (N, m) at x (CubicSpline's, without building its N × 4 coefficients): the slopes
+    m from the spline's conditions — second derivative continuous at the inner knots,
+    h_i m_{i−1} + 2 (h_{i−1} + h_i) m_i + h_{i−1} m_{i+1} = 3 (h_i δ_{i−1} + h_{i−1} δ_i), and
+    the third continuous at the second and the last but one, h_1² (m_0 + m_1 − 2δ_0) =
+    h_0² (m_1 + m_2 − 2δ_1) — one banded solve; the curvature at a knot from its interval's
+    cubic, (6δ_i − 4m_i − 2m_{i+1})/h_i (the last knot's from its left)."""
+    from scipy.linalg import solve_banded
+
+    h = np.diff(x)
+    delta = np.diff(y, axis=0) / h[:, None]
+    n = x.size
+    band = np.zeros((5, n))  # band[2 + i − j, j] = A[i, j]
+    rhs = np.empty_like(y)
+    band[2, 1:-1] = 2 * (h[:-1] + h[1:])
+    band[1, 2:] = h[:-1]  # A[i, i + 1] = h_{i−1}
+    band[3, :-2] = h[1:]  # A[i, i − 1] = h_i
+    rhs[1:-1] = 3 * (h[1:, None] * delta[:-1] + h[:-1, None] * delta[1:])
+    band[2, 0], band[1, 1], band[0, 2] = h[1] ** 2, h[1] ** 2 - h[0] ** 2, -h[0] ** 2
+    rhs[0] = 2 * (h[1] ** 2 * delta[0] - h[0] ** 2 * delta[1])
+    a, b = h[-1], h[-2]  # the last row, mirrored
+    band[2, -1], band[3, -2], band[4, -3] = b ** 2, b ** 2 - a ** 2, -a ** 2
+    rhs[-1] = 2 * (b ** 2 * delta[-1] - a ** 2 * delta[-2])
+    slope = solve_banded((2, 2), band, rhs, overwrite_ab=True, overwrite_b=True,
+                         check_finite=False)
+    curv = np.empty_like(y)
+    curv[:-1] = (6 * delta - 4 * slope[:-1] - 2 * slope[1:]) / h[:, None]
+    curv[-1] = (-6 * delta[-1] + 2 * slope[-2] + 4 * slope[-1]) / h[-1]
+    return slope, curv
