@@ -68,7 +68,11 @@ def sanity_checks(pb: Problem, nominal: bool) -> list[str]:
         name = Path(prep.log.path).name
         if pb.transmission is None:
             out += _position_checks(robot, prep.log.q, name)
-        out += _speed_check(robot, prep, name)
+        # thinned rows (no whole array of a long log), read once for both checks
+        step = max(1, len(prep.log) // 4000)
+        q, qd, qdd, meas = prep.rows(slice(prep.filt.settle, len(prep.log) - prep.filt.settle,
+                                           step))
+        out += _speed_check(robot, prep, qd, name)
         peak = np.maximum(tau.max(axis=0), -tau.min(axis=0))  # |τ|'s peak, no copy of τ
         flat = max(5, int(0.05 * prep.filt.fs))  # a clipped signal sits flat at its peak
         held = prep.log.held  # a partial log: no checks of torques it does not hold
@@ -82,10 +86,6 @@ def sanity_checks(pb: Problem, nominal: bool) -> list[str]:
                 out.append(f"{name}: tau{j + 1} reaches {peak[j]:.3g} N·m, at or above its "
                            f"limit {limit:.3g} N·m: saturation or a wrong limit?")
         if nominal:
-            step = max(1, len(prep.log) // 4000)
-            trim = prep.filt.settle
-            sl = slice(trim, len(prep.log) - trim, step)
-            q, qd, qdd, meas = prep.rows(sl)
             pred = rigid_regressor(robot, q, qd, qdd) @ robot.nominal
             for j in np.flatnonzero(held):
                 sp, sm = pred[:, j].std(), meas[:, j].std()
@@ -141,12 +141,11 @@ def _position_checks(robot: Robot, q: np.ndarray, name: str) -> list[str]:
 CRAWL = 1e-3
 
 
-def _speed_check(robot: Robot, prep: Prepared, name: str) -> list[str]:
+def _speed_check(robot: Robot, prep: Prepared, qd: np.ndarray, name: str) -> list[str]:
     """A motion that spans its joints' ranges at a crawl no robot excites dynamics with: the
-    time stamps are likely not in seconds (milliseconds at a rate the rate check allows)."""
+    time stamps are likely not in seconds (milliseconds at a rate the rate check allows).
+    ``qd``: the log's filtered velocities on thinned rows."""
     limit = robot.limits.qd_max
-    step = max(1, len(prep.log) // 4000)  # thinned rows: no whole array of a long log
-    _, qd, _, _ = prep.rows(slice(prep.filt.settle, len(prep.log) - prep.filt.settle, step))
     fast = np.percentile(np.abs(qd), 95, axis=0)
     span = np.ptp(prep.log.q, axis=0)
     ok = np.isfinite(limit) & (limit > 0)

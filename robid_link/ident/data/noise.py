@@ -10,12 +10,11 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2
 
 from robid_link.ident.data.preprocess import Piece
 
-__all__ = ["noise_floor", "Whiteness", "LagSums", "DIFF_ORDER", "LAGS", "Z99", "AT_FLOOR",
-           "COLOURED_MIN"]
+__all__ = ["noise_floor", "Whiteness", "LagSums", "chi2_quantile", "DIFF_ORDER", "LAGS", "Z99",
+           "AT_FLOOR", "COLOURED_MIN"]
 
 #: order of the differences the noise is read from: a torque the motion or any catalog effect
 #: makes (≤ ~20 Hz) is attenuated by (2·sin(πf/fs))³ — under 1/50 of its amplitude at 250 Hz —
@@ -51,30 +50,67 @@ def noise_floor(pieces: Sequence[Piece]) -> np.ndarray | None:
     It estimates white noise; coloured noise (fewer high frequencies) reads lower, and the
     residual's whiteness test says so. A torque smoothed before logging reads its own, small,
     remaining noise."""
-    order = DIFF_ORDER
-    diffs: list[np.ndarray] = []
-    valid: list[np.ndarray] = []
-    for pc in pieces:
-        tau = pc.prep.tau[pc.lo:pc.hi]
-        if tau.shape[0] > order + 1:
-            diffs.append(np.diff(tau, order, axis=0))
-            mask = pc.prep.tau_mask
-            ok = np.ones(diffs[-1].shape, bool) if mask is None else np.all(
-                [mask[pc.lo + k: pc.hi - order + k] for k in range(order + 1)], axis=0)
-            valid.append(ok & pc.prep.log.held)  # a partial log: the torques it holds
-    if not diffs:
+    if not any(pc.hi - pc.lo > DIFF_ORDER + 1 for pc in pieces):
         return None
-    d, ok = np.concatenate(diffs), np.concatenate(valid)
-    if not ok.any(axis=0).all():
-        return None  # a joint without a torque on these rows
-    share = math.comb(2 * order, order)
-    first = np.array([_MAD * np.median(np.abs(d[ok[:, j], j] - np.median(d[ok[:, j], j])))
-                      for j in range(d.shape[1])])
-    # then the standard deviation of the differences within TRIM robust scales (nearly as
-    # efficient as the standard deviation), corrected for the normal tails left out
-    inside = ok & (np.abs(d) <= TRIM * np.maximum(first, 1e-300))
-    var = np.sum(np.where(inside, d * d, 0.0), axis=0) / np.maximum(inside.sum(axis=0), 1)
-    return np.asarray(np.sqrt(var / _TRIMMED_VAR / share))
+    n = pieces[0].prep.log.q.shape[1]
+    out = np.empty(n)
+    for j in range(n):  # one joint's differences at a time: a long log's are (N, n)
+        d, ok = _joint_diffs(pieces, j)
+        if not ok.any():
+            return None  # a joint without a torque on these rows
+        kept = d[ok]
+        first = _MAD * np.median(np.abs(kept - np.median(kept)))
+        del kept
+        # then the standard deviation of the differences within TRIM robust scales (nearly as
+        # efficient as the standard deviation), corrected for the normal tails left out
+        inside = ok & (np.abs(d) <= TRIM * max(first, 1e-300))
+        out[j] = np.sum(np.where(inside, d * d, 0.0)) / max(int(inside.sum()), 1)
+    return np.asarray(np.sqrt(out / _TRIMMED_VAR / math.comb(2 * DIFF_ORDER, DIFF_ORDER)))
+
+
+def _joint_diffs(pieces: Sequence[Piece], j: int) -> tuple[np.ndarray, np.ndarray]:
+    """Joint j's raw torque differences of DIFF_ORDER over the pieces' rows, and where they
+    count: the log holds the torque and every row of the difference enters the equation."""
+    order = DIFF_ORDER
+    diffs, valid = [], []
+    for pc in pieces:
+        if pc.hi - pc.lo <= order + 1:
+            continue
+        diffs.append(np.diff(pc.prep.tau[pc.lo:pc.hi, j], order))
+        ok = np.full(diffs[-1].shape, bool(pc.prep.log.held[j]))
+        mask = pc.prep.tau_mask
+        if mask is not None:
+            for k in range(order + 1):
+                ok &= mask[pc.lo + k: pc.hi - order + k, j]
+        valid.append(ok)
+    return np.concatenate(diffs), np.concatenate(valid)
+
+
+def chi2_quantile(p: float, df: int) -> float:
+    """The p-quantile of the χ² distribution with ``df`` degrees of freedom (scipy's
+    ``chi2.ppf`` to ~1e-14): bisection on the regularized lower incomplete gamma function
+    P(df/2, x/2), summed as its series — the one quantile a result needs, without the import
+    time and memory of scipy.stats."""
+    a = 0.5 * df
+
+    def cdf(x: float) -> float:
+        h = 0.5 * x
+        term = total = 1.0 / a
+        k = 0
+        while term > 1e-17 * total:
+            k += 1
+            term *= h / (a + k)
+            total += term
+        return total * math.exp(a * math.log(h) - h - math.lgamma(a))
+
+    lo, hi = 0.0, float(df) + 1.0
+    while cdf(hi) < p:
+        lo, hi = hi, 2.0 * hi
+    while True:
+        mid = 0.5 * (lo + hi)
+        if mid in (lo, hi):
+            return hi
+        lo, hi = (mid, hi) if cdf(mid) < p else (lo, mid)
 
 
 class LagSums:
@@ -140,7 +176,7 @@ class Whiteness:
     @property
     def q_bound(self) -> float:
         """The Ljung–Box statistic's 99 % point for white noise."""
-        return float(chi2.ppf(0.99, self.acf.shape[0]))
+        return chi2_quantile(0.99, self.acf.shape[0])
 
     @property
     def white(self) -> np.ndarray:

@@ -131,6 +131,24 @@ class Prepared:
     def kinematics(self, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Filtered q, q̇ (the filtered log's q̇, else the derivative of q) and q̈ (the
         derivative of q̇) at rows [lo, hi); zero outside the filtered segments."""
+        return self._kinematics(lo, hi, True)
+
+    def speeds(self) -> tuple[np.ndarray, list[tuple[int, int]]]:
+        """|q̇| on the rows of the filtered segments, one after the other (n_ok, n), read
+        window by window, and those segments [a, b)."""
+        segs = self._filtered_segments()
+        speed = np.empty((sum(b - a for a, b in segs), self.log.q.shape[1]))
+        at = 0
+        for a, b in segs:
+            for lo in range(a, b, CHUNK):
+                hi = min(b, lo + CHUNK)
+                np.abs(self._kinematics(lo, hi, False)[1], out=speed[at: at + hi - lo])
+                at += hi - lo
+        return speed, segs
+
+    def _kinematics(self, lo: int, hi: int, acc: bool
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``kinematics``; q̈ left at zero unless ``acc``."""
         n_j = self.log.q.shape[1]
         q, qd, qdd = (np.zeros((max(hi - lo, 0), n_j)) for _ in range(3))
         dt = 1.0 / self.filt.fs
@@ -148,7 +166,8 @@ class Prepared:
             else:
                 vel = _gradient(qf, p0, v0, v1, a, b, dt)
             qd[r0 - lo: r1 - lo] = vel[r0 - v0: r1 - v0]
-            qdd[r0 - lo: r1 - lo] = _gradient(vel, v0, r0, r1, a, b, dt)
+            if acc:
+                qdd[r0 - lo: r1 - lo] = _gradient(vel, v0, r0, r1, a, b, dt)
         return q, qd, qdd
 
     def tau_f_rows(self, lo: int, hi: int) -> np.ndarray:
@@ -162,7 +181,7 @@ class Prepared:
                       None if self.tau_rigid is None else self.tau_rigid[lo:hi],
                       None if self.tau_rate is None else self.tau_rate[lo:hi])
 
-    def rows(self, sl: slice, chunk: int = 1 << 16
+    def rows(self, sl: slice, chunk: int = CHUNK
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """q, q̇, q̈ and the filtered torque at the rows of ``sl`` (a slice with a positive
         step), computed chunk by chunk."""
@@ -266,29 +285,31 @@ def motion_span(prep: Prepared) -> tuple[int, int]:
     """Rows [first, last) of a prepared log between its first and last moving sample (rest at
     the start or the end of a motion excluded); the whole log when nothing moves."""
     n = len(prep.log)
-    segs = prep._filtered_segments()  # rows of too-short segments were never filtered
+    speed, segs = prep.speeds()  # rows of too-short segments were never filtered
     if not segs:
         return 0, n
-    n_ok = sum(b - a for a, b in segs)
-    speed = np.empty((n_ok, prep.log.q.shape[1]))
-    at = 0
-    for a, b in segs:
-        for lo in range(a, b, CHUNK):
-            hi = min(b, lo + CHUNK)
-            speed[at: at + hi - lo] = np.abs(prep.kinematics(lo, hi)[1])
-            at += hi - lo
     # per joint (one column's copy at a time): np.percentile(speed, 95, axis=0)
     typical = np.array([np.percentile(speed[:, j], 95) for j in range(speed.shape[1])])
     active = typical > 1e-6 * max(float(typical.max()), 1e-300)
     if not active.any():
         return 0, n
-    moving_ok = np.zeros(n_ok, bool)
+    moving_ok = np.zeros(speed.shape[0], bool)
     for j in np.flatnonzero(active):
         moving_ok |= speed[:, j] > MOVING_FRACTION * typical[j]
     del speed
-    ok_rows = np.concatenate([np.arange(a, b) for a, b in segs])
-    idx = ok_rows[moving_ok]
-    return (int(idx[0]), int(idx[-1]) + 1) if idx.size else (0, n)
+    idx = np.flatnonzero(moving_ok)
+    if not idx.size:
+        return 0, n
+    return _row_of(segs, int(idx[0])), _row_of(segs, int(idx[-1])) + 1
+
+
+def _row_of(segs: Sequence[tuple[int, int]], k: int) -> int:
+    """The log's row of entry k of the segments' rows one after the other."""
+    for a, b in segs:
+        if k < b - a:
+            return a + k
+        k -= b - a
+    raise IndexError(k)
 
 
 def split(preps: Sequence[Prepared], validate: Sequence[Prepared] | None,

@@ -37,32 +37,40 @@ class Sticks:
     speed: float
 
 
-def _filtered(prep: Prepared) -> np.ndarray:
-    ok = np.zeros(len(prep.log), bool)
-    for seg in prep.log.segments:
-        if seg.stop - seg.start >= 3 * prep.filt.settle:
-            ok[seg] = True
-    return ok
-
-
-def _diff_scale(x: np.ndarray) -> np.ndarray:
-    """Robust scale of white noise on x from its third differences (as the torque noise)."""
+def _diff_scale(x: np.ndarray) -> float:
+    """Robust scale of white noise on x (one joint) from its third differences (as the
+    torque noise)."""
     if x.shape[0] < 8:
-        return np.zeros(x.shape[1])
-    d = np.diff(x, 3, axis=0)
-    return 1.4826 * np.median(np.abs(d), axis=0) / math.sqrt(20.0)
+        return 0.0
+    d = np.diff(x, 3)
+    return float(1.4826 * np.median(np.abs(d)) / math.sqrt(20.0))
 
 
 def _climb(speed: np.ndarray, level: float) -> float:
-    """Samples until ``speed`` (leaving a still run) first reaches ``level``; inf if never."""
-    above = np.flatnonzero(speed >= level)
-    return float(above[0] + 1) if above.size else math.inf
+    """Samples until ``speed`` (leaving a still run) first reaches ``level``; inf if never.
+    Read in growing blocks: the climb is short, the rest of the log long."""
+    at, size = 0, 64
+    while at < speed.shape[0]:
+        above = np.flatnonzero(speed[at: at + size] >= level)
+        if above.size:
+            return float(at + above[0] + 1)
+        at += size
+        size *= 4
+    return math.inf
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     edges = np.diff(np.concatenate(([0], mask.astype(np.int8), [0])))
     return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist(),
                     strict=True))
+
+
+def _widened(mask: np.ndarray, half: int) -> np.ndarray:
+    """Rows within ``half`` rows of a True row of ``mask`` (a running count: the same rows as
+    convolving with a box of 2·half + 1, without its cost)."""
+    count = np.concatenate(([0], np.cumsum(mask, dtype=np.int64)))
+    idx = np.arange(mask.shape[0])
+    return count[np.minimum(idx + half + 1, mask.shape[0])] > count[np.maximum(idx - half, 0)]
 
 
 def find_sticks(prep: Prepared, typical: np.ndarray) -> tuple[np.ndarray, list[list[float]]]:
@@ -76,27 +84,27 @@ def find_sticks(prep: Prepared, typical: np.ndarray) -> tuple[np.ndarray, list[l
     constant q̈ spends a quarter of the climb's time under v_still; a rest-to-rest motion's
     flat turn about as long as its climb). A run longer than STICK_FACTOR times the faster of
     its two climbs, with motion on both sides, is a stick. The filtered states smear it over
-    one period of the cutoff on each side, so those rows go too."""
+    one period of the cutoff on each side, so those rows go too. Joint by joint: a long log's
+    temporaries are one joint's column."""
     fs = prep.filt.fs
     dt = 1.0 / fs
     w = max(1, int(round(STILL_WINDOW_S * fs)))
     smear = max(1, int(round(fs / prep.filt.cutoff_hz)))
-    n = prep.q.shape[1]
-    out = np.zeros(prep.q.shape, bool)
+    n = prep.log.q.shape[1]
+    out = np.zeros(prep.log.q.shape, bool)
     durations: list[list[float]] = [[] for _ in range(n)]
     for seg in prep.log.segments:
         if seg.stop - seg.start < max(3 * prep.filt.settle, 8 * w):
             continue
-        q = prep.log.q[seg]
-        v = np.zeros_like(q)
-        v[w:-w] = (q[2 * w:] - q[: -2 * w]) / (2 * w * dt)
-        sigma_v = _diff_scale(q) * math.sqrt(2.0) / (2 * w * dt)
         for j in range(n):
-            v_still = max(4.0 * float(sigma_v[j]), 2e-3 * float(typical[j]))
+            q = prep.log.q[seg, j]
+            speed = np.zeros(q.shape[0])
+            speed[w:-w] = np.abs((q[2 * w:] - q[: -2 * w]) / (2 * w * dt))
+            sigma_v = _diff_scale(q) * math.sqrt(2.0) / (2 * w * dt)
+            v_still = max(4.0 * sigma_v, 2e-3 * float(typical[j]))
             if not v_still > 0:
                 continue
             stick = np.zeros(q.shape[0], bool)
-            speed = np.abs(v[:, j])
             for a, b in _runs(speed[w:-w] < v_still):
                 a, b = a + w, b + w  # back to the segment's rows
                 if a <= 2 * w or b >= q.shape[0] - 2 * w:
@@ -107,18 +115,18 @@ def find_sticks(prep: Prepared, typical: np.ndarray) -> tuple[np.ndarray, list[l
                     stick[a:b] = True
                     durations[j].append((b - a) * dt)
             if stick.any():
-                wide = np.convolve(stick, np.ones(2 * smear + 1), "same") > 0
-                out[seg.start:seg.stop, j] = wide
+                out[seg.start:seg.stop, j] = _widened(stick, smear)
     return out, durations
 
 
 def without_sticks(pb: Problem) -> tuple[Problem, list[Sticks]]:
     """The problem with each sticking joint's stick rows left out of its equation (training and
     validation logs alike), a note per joint; the sticks found in the training logs."""
-    speeds = np.concatenate([np.abs(p.qd[_filtered(p)]) for p in pb.preps])
-    if not speeds.size:
+    speeds = [p.speeds() for p in pb.preps]  # |q̇| on the filtered rows, read by window
+    if not sum(sp.shape[0] for sp, _ in speeds):
         return pb, []
-    typical = np.percentile(speeds, 95, axis=0)
+    typical = np.percentile(speeds[0][0] if len(speeds) == 1 else
+                            np.concatenate([sp for sp, _ in speeds]), 95, axis=0)
     found = [(p, *find_sticks(p, typical)) for p in (*pb.preps, *pb.vpreps)]
     train = found[: len(pb.preps)]
     total = sum(len(p.log) for p in pb.preps)
@@ -128,13 +136,17 @@ def without_sticks(pb: Problem) -> tuple[Problem, list[Sticks]]:
         rows = sum(float(m[:, j].sum()) for _, m, _ in train)
         if not durs or rows / total < STICK_SHARE_MIN:
             continue
-        zone = np.concatenate([np.abs(p.qd[m[:, j], j]) for p, m, _ in train])
+        zone = np.concatenate([_at_rows(sp, segs, m[:, j], j)
+                               for (sp, segs), (_, m, _) in zip(speeds, train, strict=True)])
         sticks.append(Sticks(j, rows / total, max(durs), len(durs),
                              float(np.percentile(zone, 95))))
+    del speeds
     if not sticks:
         return pb, []
+
     def masked(prep: Prepared, stuck: np.ndarray) -> Prepared:
-        keep = np.ones(prep.q.shape, bool) if prep.tau_mask is None else prep.tau_mask.copy()
+        keep = (np.ones(prep.log.q.shape, bool) if prep.tau_mask is None
+                else prep.tau_mask.copy())
         for st in sticks:
             keep[:, st.joint] &= ~stuck[:, st.joint]
         return replace(prep, tau_mask=keep)
@@ -142,6 +154,17 @@ def without_sticks(pb: Problem) -> tuple[Problem, list[Sticks]]:
     preps = [masked(p, m) for p, m, _ in found]
     return pb.with_preps(preps[: len(pb.preps)], preps[len(pb.preps):],
                          [sticks_note(sticks, pb.preps[0])]), sticks
+
+
+def _at_rows(speed: np.ndarray, segs: Sequence[tuple[int, int]], rows: np.ndarray, j: int
+             ) -> np.ndarray:
+    """Joint j's speeds (``Prepared.speeds``: the filtered segments' rows one after the other)
+    at the log's rows where ``rows`` is True (sticks lie within filtered segments)."""
+    parts, at = [], 0
+    for a, b in segs:
+        parts.append(speed[at + np.flatnonzero(rows[a:b]), j])
+        at += b - a
+    return np.concatenate(parts) if parts else np.zeros(0)
 
 
 def sticks_note(sticks: Sequence[Sticks], prep: Prepared) -> str:
