@@ -125,7 +125,9 @@ class Prepared:
     def _track(self, name: str, src: np.ndarray) -> Track:
         return self.channels.track(name, src, self.filt, self.log.segments)
 
-    def _filtered_segments(self) -> list[tuple[int, int]]:
+    @property
+    def filtered_segments(self) -> list[tuple[int, int]]:
+        """Segments [a, b) long enough to be filtered (rows elsewhere read zero)."""
         return self._track("q", self.log.q).segments
 
     def kinematics(self, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -133,10 +135,28 @@ class Prepared:
         derivative of q̇) at rows [lo, hi); zero outside the filtered segments."""
         return self._kinematics(lo, hi, True)
 
+    def typical_speed(self, speed: np.ndarray | None = None) -> np.ndarray:
+        """Each joint's typical speed: the 95th percentile of |q̇| over the filtered rows (made
+        once per log; from ``speed``, this log's ``speeds()``, when the caller has it)."""
+        src = self.log.q if self.log.qd is None else self.log.qd
+        return self.channels.whole("typical_speed", src, lambda: _percentile95(
+            self.speeds()[0] if speed is None else speed))
+
+    def speeds_at(self, rows: np.ndarray, j: int) -> np.ndarray:
+        """Joint j's |q̇| at the log's rows where ``rows`` (N,) is True, in row order (rows
+        outside the filtered segments read zero), from the windows that hold such rows."""
+        parts = []
+        for lo in range(0, len(self.log), CHUNK):
+            hit = np.flatnonzero(rows[lo: lo + CHUNK])
+            if hit.size:
+                vel = self._kinematics(lo, lo + int(hit[-1]) + 1, False)[1]
+                parts.append(np.abs(vel[hit, j]))
+        return np.concatenate(parts) if parts else np.zeros(0)
+
     def speeds(self) -> tuple[np.ndarray, list[tuple[int, int]]]:
         """|q̇| on the rows of the filtered segments, one after the other (n_ok, n), read
         window by window, and those segments [a, b)."""
-        segs = self._filtered_segments()
+        segs = self.filtered_segments
         speed = np.empty((sum(b - a for a, b in segs), self.log.q.shape[1]))
         at = 0
         for a, b in segs:
@@ -152,7 +172,7 @@ class Prepared:
         n_j = self.log.q.shape[1]
         q, qd, qdd = (np.zeros((max(hi - lo, 0), n_j)) for _ in range(3))
         dt = 1.0 / self.filt.fs
-        for a, b in self._filtered_segments():
+        for a, b in self.filtered_segments:
             r0, r1 = max(a, lo), min(b, hi)
             if r0 >= r1:
                 continue
@@ -288,8 +308,7 @@ def motion_span(prep: Prepared) -> tuple[int, int]:
     speed, segs = prep.speeds()  # rows of too-short segments were never filtered
     if not segs:
         return 0, n
-    # per joint (one column's copy at a time): np.percentile(speed, 95, axis=0)
-    typical = np.array([np.percentile(speed[:, j], 95) for j in range(speed.shape[1])])
+    typical = prep.typical_speed(speed)
     active = typical > 1e-6 * max(float(typical.max()), 1e-300)
     if not active.any():
         return 0, n
@@ -301,6 +320,11 @@ def motion_span(prep: Prepared) -> tuple[int, int]:
     if not idx.size:
         return 0, n
     return _row_of(segs, int(idx[0])), _row_of(segs, int(idx[-1])) + 1
+
+
+def _percentile95(speed: np.ndarray) -> np.ndarray:
+    """np.percentile(speed, 95, axis=0), one column's copy at a time."""
+    return np.array([np.percentile(speed[:, j], 95) for j in range(speed.shape[1])])
 
 
 def _row_of(segs: Sequence[tuple[int, int]], k: int) -> int:

@@ -122,11 +122,12 @@ def find_sticks(prep: Prepared, typical: np.ndarray) -> tuple[np.ndarray, list[l
 def without_sticks(pb: Problem) -> tuple[Problem, list[Sticks]]:
     """The problem with each sticking joint's stick rows left out of its equation (training and
     validation logs alike), a note per joint; the sticks found in the training logs."""
-    speeds = [p.speeds() for p in pb.preps]  # |q̇| on the filtered rows, read by window
-    if not sum(sp.shape[0] for sp, _ in speeds):
+    if not any(b > a for p in pb.preps for a, b in p.filtered_segments):
         return pb, []
-    typical = np.percentile(speeds[0][0] if len(speeds) == 1 else
-                            np.concatenate([sp for sp, _ in speeds]), 95, axis=0)
+    if len(pb.preps) == 1:  # found when the log's motion span was
+        typical = pb.preps[0].typical_speed()
+    else:  # over every training log's filtered rows: |q̇| read window by window
+        typical = np.percentile(np.concatenate([p.speeds()[0] for p in pb.preps]), 95, axis=0)
     found = [(p, *find_sticks(p, typical)) for p in (*pb.preps, *pb.vpreps)]
     train = found[: len(pb.preps)]
     total = sum(len(p.log) for p in pb.preps)
@@ -136,11 +137,9 @@ def without_sticks(pb: Problem) -> tuple[Problem, list[Sticks]]:
         rows = sum(float(m[:, j].sum()) for _, m, _ in train)
         if not durs or rows / total < STICK_SHARE_MIN:
             continue
-        zone = np.concatenate([_at_rows(sp, segs, m[:, j], j)
-                               for (sp, segs), (_, m, _) in zip(speeds, train, strict=True)])
+        zone = np.concatenate([p.speeds_at(m[:, j], j) for p, m, _ in train])
         sticks.append(Sticks(j, rows / total, max(durs), len(durs),
                              float(np.percentile(zone, 95))))
-    del speeds
     if not sticks:
         return pb, []
 
@@ -154,17 +153,6 @@ def without_sticks(pb: Problem) -> tuple[Problem, list[Sticks]]:
     preps = [masked(p, m) for p, m, _ in found]
     return pb.with_preps(preps[: len(pb.preps)], preps[len(pb.preps):],
                          [sticks_note(sticks, pb.preps[0])]), sticks
-
-
-def _at_rows(speed: np.ndarray, segs: Sequence[tuple[int, int]], rows: np.ndarray, j: int
-             ) -> np.ndarray:
-    """Joint j's speeds (``Prepared.speeds``: the filtered segments' rows one after the other)
-    at the log's rows where ``rows`` is True (sticks lie within filtered segments)."""
-    parts, at = [], 0
-    for a, b in segs:
-        parts.append(speed[at + np.flatnonzero(rows[a:b]), j])
-        at += b - a
-    return np.concatenate(parts) if parts else np.zeros(0)
 
 
 def sticks_note(sticks: Sequence[Sticks], prep: Prepared) -> str:
