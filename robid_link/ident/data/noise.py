@@ -129,17 +129,29 @@ class LagSums:
     def add(self, e: np.ndarray, mask: np.ndarray | None = None) -> None:
         """``mask`` (m, n): which joints' rows count (None: all); a pair counts when both do."""
         m = e.shape[0]
-        w = np.ones(e.shape) if mask is None else np.broadcast_to(mask, e.shape).astype(float)
-        e = np.where(w > 0, e, 0.0)  # a joint a log does not hold: NaN there
-        self.total += e.sum(axis=0)
-        self.count += w.sum(axis=0)
+        # joints × rows: numpy sums a (rows, 6) array along its rows ten times slower
+        e_t = np.array(e.T, order="C")
+        if mask is None:
+            self.total += e_t.sum(axis=1)
+            self.count += m
+            for k in range(min(self.lags, m - 1) + 1):
+                a, b = e_t[:, : m - k], e_t[:, k:]
+                self.prod[k] += np.einsum("ij,ij->i", a, b)
+                self.head[k] += a.sum(axis=1)
+                self.tail[k] += b.sum(axis=1)
+                self.pairs[k] += m - k
+            return
+        w = np.array(np.broadcast_to(mask, e.shape).T, order="C", dtype=float)
+        e_t[w == 0] = 0.0  # a joint a log does not hold: NaN there
+        self.total += e_t.sum(axis=1)
+        self.count += w.sum(axis=1)
         for k in range(min(self.lags, m - 1) + 1):
-            both = w[: m - k] * w[k:]
-            a, b = e[: m - k] * both, e[k:] * both
-            self.prod[k] += np.einsum("ij,ij->j", a, b)
-            self.head[k] += a.sum(axis=0)
-            self.tail[k] += b.sum(axis=0)
-            self.pairs[k] += both.sum(axis=0)
+            both = w[:, : m - k] * w[:, k:]
+            a, b = e_t[:, : m - k] * both, e_t[:, k:] * both
+            self.prod[k] += np.einsum("ij,ij->i", a, b)
+            self.head[k] += a.sum(axis=1)
+            self.tail[k] += b.sum(axis=1)
+            self.pairs[k] += both.sum(axis=1)
 
     def merge(self, other: LagSums) -> None:
         """Add another chunk's sums (pairs across the chunks' edge are left out)."""
