@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from robid_link.ident.data.preprocess import Piece
+from robid_link.ident.model.threads import in_slots
 
 __all__ = ["noise_floor", "Whiteness", "LagSums", "chi2_quantile", "DIFF_ORDER", "LAGS", "Z99",
            "AT_FLOOR", "COLOURED_MIN"]
@@ -53,18 +54,27 @@ def noise_floor(pieces: Sequence[Piece]) -> np.ndarray | None:
     if not any(pc.hi - pc.lo > DIFF_ORDER + 1 for pc in pieces):
         return None
     n = pieces[0].prep.log.q.shape[1]
-    out = np.empty(n)
-    for j in range(n):  # one joint's differences at a time: a long log's are (N, n)
+    out = np.full(n, np.nan)
+
+    def work(j: int, slot: int) -> None:  # one joint's differences: a long log's are (N, n)
         d, ok = _joint_diffs(pieces, j)
         if not ok.any():
-            return None  # a joint without a torque on these rows
-        kept = d[ok]
-        first = _MAD * np.median(np.abs(kept - np.median(kept)))
+            return  # a joint without a torque on these rows
+        kept = d[ok]  # its medians in place: two slots' temporaries stay small
+        kept -= np.median(kept, overwrite_input=True)
+        first = _MAD * np.median(np.abs(kept, out=kept), overwrite_input=True)
         del kept
         # then the standard deviation of the differences within TRIM robust scales (nearly as
         # efficient as the standard deviation), corrected for the normal tails left out
-        inside = ok & (np.abs(d) <= TRIM * max(first, 1e-300))
-        out[j] = np.sum(np.where(inside, d * d, 0.0)) / max(int(inside.sum()), 1)
+        size = np.abs(d, out=d)
+        inside = ok & (size <= TRIM * max(first, 1e-300))
+        size *= size
+        size[~inside] = 0.0
+        out[j] = np.sum(size) / max(int(inside.sum()), 1)
+
+    in_slots(range(n), work)
+    if np.isnan(out).any():
+        return None
     return np.asarray(np.sqrt(out / _TRIMMED_VAR / math.comb(2 * DIFF_ORDER, DIFF_ORDER)))
 
 

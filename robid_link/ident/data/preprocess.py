@@ -27,6 +27,7 @@ from robid_link.ident.data.filtering import (
 from robid_link.ident.data.logs import Log
 from robid_link.ident.model.effects import Block, Model, States
 from robid_link.ident.model.robot import Robot
+from robid_link.ident.model.threads import in_slots
 
 __all__ = [
     "DEFAULT_CUTOFF_HZ",
@@ -72,8 +73,13 @@ class _Channels:
               segments: Sequence[slice]) -> Track:
         with self._lock:
             hit = self._tracks.get(name)
+        if hit is not None and hit.source is src:
+            return hit
+        made = Track(src, filt, segments, 3 * filt.settle)  # outside the lock: channels at once
+        with self._lock:
+            hit = self._tracks.get(name)
             if hit is None or hit.source is not src:
-                hit = self._tracks[name] = Track(src, filt, segments, 3 * filt.settle)
+                hit = self._tracks[name] = made
             return hit
 
     def whole(self, name: str, src: np.ndarray, make: Callable[[], np.ndarray]) -> np.ndarray:
@@ -158,12 +164,17 @@ class Prepared:
         window by window, and those segments [a, b)."""
         segs = self.filtered_segments
         speed = np.empty((sum(b - a for a, b in segs), self.log.q.shape[1]))
-        at = 0
+        tasks, at = [], 0  # (rows [lo, hi), where they go in speed)
         for a, b in segs:
             for lo in range(a, b, CHUNK):
-                hi = min(b, lo + CHUNK)
-                np.abs(self._kinematics(lo, hi, False)[1], out=speed[at: at + hi - lo])
-                at += hi - lo
+                tasks.append((lo, min(b, lo + CHUNK), at))
+                at += tasks[-1][1] - lo
+
+        def work(task: tuple[int, int, int], slot: int) -> None:
+            lo, hi, to = task
+            np.abs(self._kinematics(lo, hi, False)[1], out=speed[to: to + hi - lo])
+
+        in_slots(tasks, work)
         return speed, segs
 
     def _kinematics(self, lo: int, hi: int, acc: bool
@@ -289,10 +300,8 @@ def prepare(log: Log, cutoff_hz: float | None, interval: int = 1,
         log = replace(log, notes=[*log.notes,
                                   f"cutoff lowered to {fc:.3g} Hz for --interval {interval}"])
     prep = Prepared(log, ZeroPhaseFilter(fc, fs), transmission)
-    prep._track("q", log.q)
-    if log.qd is not None:
-        prep._track("qd", log.qd)
-    prep._track("tau", log.tau)
+    channels = [("q", log.q), ("tau", log.tau)] + ([] if log.qd is None else [("qd", log.qd)])
+    in_slots(channels, lambda ch, slot: prep._track(*ch))
     return prep
 
 
@@ -323,8 +332,14 @@ def motion_span(prep: Prepared) -> tuple[int, int]:
 
 
 def _percentile95(speed: np.ndarray) -> np.ndarray:
-    """np.percentile(speed, 95, axis=0), one column's copy at a time."""
-    return np.array([np.percentile(speed[:, j], 95) for j in range(speed.shape[1])])
+    """np.percentile(speed, 95, axis=0), one column's copy at a time (in ``in_slots``)."""
+    out = np.empty(speed.shape[1])
+
+    def work(j: int, slot: int) -> None:
+        out[j] = np.percentile(speed[:, j], 95)
+
+    in_slots(range(speed.shape[1]), work)
+    return out
 
 
 def _row_of(segs: Sequence[tuple[int, int]], k: int) -> int:

@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from robid_link.ident.data.preprocess import Prepared, Problem
+from robid_link.ident.model.threads import in_slots
 
 __all__ = ["Sticks", "find_sticks", "without_sticks", "sticks_note", "STILL_WINDOW_S",
            "STICK_FACTOR", "STICK_SHARE_MIN"]
@@ -65,14 +66,6 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
                     strict=True))
 
 
-def _widened(mask: np.ndarray, half: int) -> np.ndarray:
-    """Rows within ``half`` rows of a True row of ``mask`` (a running count: the same rows as
-    convolving with a box of 2·half + 1, without its cost)."""
-    count = np.concatenate(([0], np.cumsum(mask, dtype=np.int64)))
-    idx = np.arange(mask.shape[0])
-    return count[np.minimum(idx + half + 1, mask.shape[0])] > count[np.maximum(idx - half, 0)]
-
-
 def find_sticks(prep: Prepared, typical: np.ndarray) -> tuple[np.ndarray, list[list[float]]]:
     """(rows × joints that stick, widened by the filter's smear; per joint the durations (s) of
     its sticks). ``typical``: each joint's 95th-percentile speed over the logs.
@@ -84,38 +77,44 @@ def find_sticks(prep: Prepared, typical: np.ndarray) -> tuple[np.ndarray, list[l
     constant q̈ spends a quarter of the climb's time under v_still; a rest-to-rest motion's
     flat turn about as long as its climb). A run longer than STICK_FACTOR times the faster of
     its two climbs, with motion on both sides, is a stick. The filtered states smear it over
-    one period of the cutoff on each side, so those rows go too. Joint by joint: a long log's
-    temporaries are one joint's column."""
+    one period of the cutoff on each side, so those rows go too. Joint by joint (in
+    ``in_slots``): a long log's temporaries are one joint's column."""
     fs = prep.filt.fs
     dt = 1.0 / fs
     w = max(1, int(round(STILL_WINDOW_S * fs)))
     smear = max(1, int(round(fs / prep.filt.cutoff_hz)))
     n = prep.log.q.shape[1]
     out = np.zeros(prep.log.q.shape, bool)
+    segs = [seg for seg in prep.log.segments
+            if seg.stop - seg.start >= max(3 * prep.filt.settle, 8 * w)]
+    found: list[list[float]] = [[] for _ in range(len(segs) * n)]
+
+    def work(task: int, slot: int) -> None:  # one joint of one segment
+        seg, j = segs[task // n], task % n
+        q = prep.log.q[seg, j]
+        speed = np.zeros(q.shape[0])
+        speed[w:-w] = np.abs((q[2 * w:] - q[: -2 * w]) / (2 * w * dt))
+        sigma_v = _diff_scale(q) * math.sqrt(2.0) / (2 * w * dt)
+        v_still = max(4.0 * sigma_v, 2e-3 * float(typical[j]))
+        if not v_still > 0:
+            return
+        sticks = []
+        for a, b in _runs(speed[w:-w] < v_still):
+            a, b = a + w, b + w  # back to the segment's rows
+            if a <= 2 * w or b >= q.shape[0] - 2 * w:
+                continue  # at the segment's edge: a rest, not a stick
+            climb = min(_climb(speed[a - 1:w:-1], 10 * v_still),
+                        _climb(speed[b:q.shape[0] - w], 10 * v_still))
+            if b - a >= 4 * w and b - a > STICK_FACTOR * climb:
+                sticks.append((a, b))
+                found[task].append((b - a) * dt)
+        for a, b in sticks:  # and the rows the filter smears them over
+            out[seg.start + max(0, a - smear): seg.start + min(q.shape[0], b + smear), j] = True
+
+    in_slots(range(len(found)), work)
     durations: list[list[float]] = [[] for _ in range(n)]
-    for seg in prep.log.segments:
-        if seg.stop - seg.start < max(3 * prep.filt.settle, 8 * w):
-            continue
-        for j in range(n):
-            q = prep.log.q[seg, j]
-            speed = np.zeros(q.shape[0])
-            speed[w:-w] = np.abs((q[2 * w:] - q[: -2 * w]) / (2 * w * dt))
-            sigma_v = _diff_scale(q) * math.sqrt(2.0) / (2 * w * dt)
-            v_still = max(4.0 * sigma_v, 2e-3 * float(typical[j]))
-            if not v_still > 0:
-                continue
-            stick = np.zeros(q.shape[0], bool)
-            for a, b in _runs(speed[w:-w] < v_still):
-                a, b = a + w, b + w  # back to the segment's rows
-                if a <= 2 * w or b >= q.shape[0] - 2 * w:
-                    continue  # at the segment's edge: a rest, not a stick
-                climb = min(_climb(speed[a - 1:w:-1], 10 * v_still),
-                            _climb(speed[b:q.shape[0] - w], 10 * v_still))
-                if b - a >= 4 * w and b - a > STICK_FACTOR * climb:
-                    stick[a:b] = True
-                    durations[j].append((b - a) * dt)
-            if stick.any():
-                out[seg.start:seg.stop, j] = _widened(stick, smear)
+    for task, durs in enumerate(found):  # segment after segment, as the log runs
+        durations[task % n] += durs
     return out, durations
 
 
