@@ -82,18 +82,27 @@ def _joint_diffs(pieces: Sequence[Piece], j: int) -> tuple[np.ndarray, np.ndarra
     """Joint j's raw torque differences of DIFF_ORDER over the pieces' rows, and where they
     count: the log holds the torque and every row of the difference enters the equation."""
     order = DIFF_ORDER
-    diffs, valid = [], []
-    for pc in pieces:
-        if pc.hi - pc.lo <= order + 1:
-            continue
-        diffs.append(np.diff(pc.prep.tau[pc.lo:pc.hi, j], order))
-        ok = np.full(diffs[-1].shape, bool(pc.prep.log.held[j]))
+    used = [pc for pc in pieces if pc.hi - pc.lo > order + 1]
+    total = sum(pc.hi - pc.lo - order for pc in used)
+    d, ok = np.empty(total), np.empty(total, bool)
+    at = 0
+    for pc in used:
+        m = pc.hi - pc.lo - order
+        tau = pc.prep.tau[:, j]
+        for a in range(0, m, _DIFF_CHUNK):  # np.diff's numbers, without its (N,) temporaries
+            b = min(m, a + _DIFF_CHUNK)
+            d[at + a: at + b] = np.diff(tau[pc.lo + a: pc.lo + b + order], order)
+        ok[at: at + m] = bool(pc.prep.log.held[j])
         mask = pc.prep.tau_mask
         if mask is not None:
             for k in range(order + 1):
-                ok &= mask[pc.lo + k: pc.hi - order + k, j]
-        valid.append(ok)
-    return np.concatenate(diffs), np.concatenate(valid)
+                ok[at: at + m] &= mask[pc.lo + k: pc.hi - order + k, j]
+        at += m
+    return d, ok
+
+
+#: rows of a piece differenced at once
+_DIFF_CHUNK = 1 << 16
 
 
 def chi2_quantile(p: float, df: int) -> float:

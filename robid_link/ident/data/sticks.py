@@ -40,11 +40,14 @@ class Sticks:
 
 def _diff_scale(x: np.ndarray) -> float:
     """Robust scale of white noise on x (one joint) from its third differences (as the
-    torque noise)."""
+    torque noise), differenced a block at a time (np.diff's numbers, one (N,) array)."""
     if x.shape[0] < 8:
         return 0.0
-    d = np.diff(x, 3)
-    return float(1.4826 * np.median(np.abs(d)) / math.sqrt(20.0))
+    d = np.empty(x.shape[0] - 3)
+    for a in range(0, d.shape[0], 1 << 16):
+        b = min(d.shape[0], a + (1 << 16))
+        np.abs(np.diff(x[a: b + 3], 3), out=d[a:b])
+    return float(1.4826 * np.median(d, overwrite_input=True) / math.sqrt(20.0))
 
 
 def _climb(speed: np.ndarray, level: float) -> float:
@@ -92,8 +95,11 @@ def find_sticks(prep: Prepared, typical: np.ndarray) -> tuple[np.ndarray, list[l
     def work(task: int, slot: int) -> None:  # one joint of one segment
         seg, j = segs[task // n], task % n
         q = prep.log.q[seg, j]
-        speed = np.zeros(q.shape[0])
-        speed[w:-w] = np.abs((q[2 * w:] - q[: -2 * w]) / (2 * w * dt))
+        speed = np.zeros(q.shape[0])  # |(q[k + w] − q[k − w]) / 2w·dt|, in place
+        inner = speed[w:-w]
+        np.subtract(q[2 * w:], q[: -2 * w], out=inner)
+        inner /= 2 * w * dt
+        np.abs(inner, out=inner)
         sigma_v = _diff_scale(q) * math.sqrt(2.0) / (2 * w * dt)
         v_still = max(4.0 * sigma_v, 2e-3 * float(typical[j]))
         if not v_still > 0:
