@@ -141,7 +141,9 @@ def sanity_checks(pb: Problem, nominal: bool, scan: _Scan | None = None) -> list
         flat = max(5, int(0.05 * prep.filt.fs))  # a clipped signal sits flat at its peak
         held = prep.log.held  # a partial log: no checks of torques it does not hold
         for j in np.flatnonzero(held):
-            at_peak = np.abs(tau[:, j]) >= peak[j] - 1e-9 * max(peak[j], 1.0)
+            level = peak[j] - 1e-9 * max(peak[j], 1.0)
+            col = tau[:, j]
+            at_peak = (col >= level) | (col <= -level)  # |τ| ≥ level, without |τ|'s copy
             limit = robot.limits.tau_max[j]
             if peak[j] > 0 and _longest_run(at_peak) >= flat:
                 out.append(f"{name}: tau{j + 1} sits flat at {peak[j]:.3g} N·m "
@@ -260,8 +262,11 @@ def _scale_cause(robot: Robot, rows: tuple[np.ndarray, np.ndarray, np.ndarray],
 
 
 def _longest_run(mask: np.ndarray) -> int:
-    if not mask.any():
+    """The longest run of True in ``mask``, from its True rows (few: a torque's peak)."""
+    idx = np.flatnonzero(mask)
+    if not idx.size:
         return 0
-    edges = np.diff(np.concatenate(([0], mask.astype(np.int8), [0])))
-    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-    return int((stops - starts).max())
+    breaks = np.flatnonzero(np.diff(idx) != 1)
+    ends = np.concatenate((breaks, [idx.size - 1]))
+    starts = np.concatenate(([0], breaks + 1))
+    return int((ends - starts).max()) + 1
