@@ -25,6 +25,7 @@ from robid_link.ident.data.filtering import (
     sos_steady_state,
 )
 from robid_link.ident.data.logs import Log
+from robid_link.ident.data.quantiles import percentile_streamed
 from robid_link.ident.model.effects import Block, Model, States
 from robid_link.ident.model.robot import Robot
 from robid_link.ident.model.threads import in_slots
@@ -38,6 +39,7 @@ __all__ = [
     "prepare",
     "split",
     "motion_span",
+    "typical_speeds",
     "held_out_ranges",
     "Problem",
     "build_problem",
@@ -141,12 +143,11 @@ class Prepared:
         derivative of q̇) at rows [lo, hi); zero outside the filtered segments."""
         return self._kinematics(lo, hi, True)
 
-    def typical_speed(self, speed: np.ndarray | None = None) -> np.ndarray:
+    def typical_speed(self) -> np.ndarray:
         """Each joint's typical speed: the 95th percentile of |q̇| over the filtered rows (made
-        once per log; from ``speed``, this log's ``speeds()``, when the caller has it)."""
+        once per log, ``typical_speeds``)."""
         src = self.log.q if self.log.qd is None else self.log.qd
-        return self.channels.whole("typical_speed", src, lambda: _percentile95(
-            self.speeds()[0] if speed is None else speed))
+        return self.channels.whole("typical_speed", src, lambda: typical_speeds([self]))
 
     def speeds_at(self, rows: np.ndarray, j: int) -> np.ndarray:
         """Joint j's |q̇| at the log's rows where ``rows`` (N,) is True, in row order (rows
@@ -159,23 +160,14 @@ class Prepared:
                 parts.append(np.abs(vel[hit, j]))
         return np.concatenate(parts) if parts else np.zeros(0)
 
-    def speeds(self) -> tuple[np.ndarray, list[tuple[int, int]]]:
-        """|q̇| on the rows of the filtered segments, one after the other (n_ok, n), read
-        window by window, and those segments [a, b)."""
-        segs = self.filtered_segments
-        speed = np.empty((sum(b - a for a, b in segs), self.log.q.shape[1]))
-        tasks, at = [], 0  # (rows [lo, hi), where they go in speed)
-        for a, b in segs:
-            for lo in range(a, b, CHUNK):
-                tasks.append((lo, min(b, lo + CHUNK), at))
-                at += tasks[-1][1] - lo
+    def speed_windows(self) -> list[tuple[int, int]]:
+        """The windows [lo, hi) the filtered segments' rows are read in, in order."""
+        return [(lo, min(b, lo + CHUNK)) for a, b in self.filtered_segments
+                for lo in range(a, b, CHUNK)]
 
-        def work(task: tuple[int, int, int], slot: int) -> None:
-            lo, hi, to = task
-            np.abs(self._kinematics(lo, hi, False)[1], out=speed[to: to + hi - lo])
-
-        in_slots(tasks, work)
-        return speed, segs
+    def speed(self, lo: int, hi: int) -> np.ndarray:
+        """|q̇| at rows [lo, hi)."""
+        return np.abs(self._kinematics(lo, hi, False)[1])
 
     def _kinematics(self, lo: int, hi: int, acc: bool
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -310,45 +302,37 @@ def prepare(log: Log, cutoff_hz: float | None, interval: int = 1,
 MOVING_FRACTION = 0.05
 
 
+def typical_speeds(preps: Sequence[Prepared]) -> np.ndarray:
+    """Each joint's 95th percentile of |q̇| over the filtered rows of the logs
+    (np.percentile's numbers, read window by window: no array of every row)."""
+    tasks = [(prep, w) for prep in preps for w in prep.speed_windows()]
+    return percentile_streamed(tasks, lambda t: t[0].speed(*t[1]), 95.0,
+                               preps[0].log.q.shape[1])
+
+
 def motion_span(prep: Prepared) -> tuple[int, int]:
     """Rows [first, last) of a prepared log between its first and last moving sample (rest at
-    the start or the end of a motion excluded); the whole log when nothing moves."""
+    the start or the end of a motion excluded); the whole log when nothing moves. The
+    windows are read from each end until a moving row."""
     n = len(prep.log)
-    speed, segs = prep.speeds()  # rows of too-short segments were never filtered
-    if not segs:
+    windows = prep.speed_windows()  # rows of too-short segments were never filtered
+    if not windows:
         return 0, n
-    typical = prep.typical_speed(speed)
-    active = typical > 1e-6 * max(float(typical.max()), 1e-300)
-    if not active.any():
+    typical = prep.typical_speed()
+    active = np.flatnonzero(typical > 1e-6 * max(float(typical.max()), 1e-300))
+    if not active.size:
         return 0, n
-    moving_ok = np.zeros(speed.shape[0], bool)
-    for j in np.flatnonzero(active):
-        moving_ok |= speed[:, j] > MOVING_FRACTION * typical[j]
-    del speed
-    idx = np.flatnonzero(moving_ok)
-    if not idx.size:
+    level = MOVING_FRACTION * typical[active]
+
+    def moving(window: tuple[int, int]) -> np.ndarray:
+        lo, hi = window
+        return lo + np.flatnonzero((prep.speed(lo, hi)[:, active] > level).any(axis=1))
+
+    first = next((int(m[0]) for m in map(moving, windows) if m.size), None)
+    if first is None:
         return 0, n
-    return _row_of(segs, int(idx[0])), _row_of(segs, int(idx[-1])) + 1
-
-
-def _percentile95(speed: np.ndarray) -> np.ndarray:
-    """np.percentile(speed, 95, axis=0), one column's copy at a time (in ``in_slots``)."""
-    out = np.empty(speed.shape[1])
-
-    def work(j: int, slot: int) -> None:
-        out[j] = np.percentile(speed[:, j], 95)
-
-    in_slots(range(speed.shape[1]), work)
-    return out
-
-
-def _row_of(segs: Sequence[tuple[int, int]], k: int) -> int:
-    """The log's row of entry k of the segments' rows one after the other."""
-    for a, b in segs:
-        if k < b - a:
-            return a + k
-        k -= b - a
-    raise IndexError(k)
+    last = next(int(m[-1]) for m in map(moving, reversed(windows)) if m.size)
+    return first, last + 1
 
 
 def split(preps: Sequence[Prepared], validate: Sequence[Prepared] | None,

@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from robid_link.ident.data.preprocess import Prepared, Problem
+from robid_link.ident.data.preprocess import Prepared, Problem, typical_speeds
 from robid_link.ident.model.threads import in_slots
 
 __all__ = ["Sticks", "find_sticks", "without_sticks", "sticks_note", "STILL_WINDOW_S",
@@ -129,10 +129,8 @@ def without_sticks(pb: Problem) -> tuple[Problem, list[Sticks]]:
     validation logs alike), a note per joint; the sticks found in the training logs."""
     if not any(b > a for p in pb.preps for a, b in p.filtered_segments):
         return pb, []
-    if len(pb.preps) == 1:  # found when the log's motion span was
-        typical = pb.preps[0].typical_speed()
-    else:  # over every training log's filtered rows: |q̇| read window by window
-        typical = np.percentile(np.concatenate([p.speeds()[0] for p in pb.preps]), 95, axis=0)
+    # over every training log's filtered rows (one log's: found with its motion span)
+    typical = pb.preps[0].typical_speed() if len(pb.preps) == 1 else typical_speeds(pb.preps)
     found = [(p, *find_sticks(p, typical)) for p in (*pb.preps, *pb.vpreps)]
     train = found[: len(pb.preps)]
     total = sum(len(p.log) for p in pb.preps)
