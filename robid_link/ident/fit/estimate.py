@@ -114,7 +114,8 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
         sw = np.sqrt(row_weight(c, y, idx)) if row_weight is not None else no_weight
         if pc.prep.tau_mask is not None:  # rows without a joint's torque: not its equation
             mw = pc.prep.tau_mask[idx].astype(float)
-            left_out[slot] += (c.shape[0] - mw.sum(axis=0)) * held[id(pc)]
+            kept = np.array(mw.T, order="C").sum(axis=1)  # (numpy sums along rows slowly)
+            left_out[slot] += (c.shape[0] - kept) * held[id(pc)]
             sw = mw if row_weight is None else sw * mw
         _gram_serial(c, np.ascontiguousarray(y), np.ascontiguousarray(sw), bid, offsets,
                      held[id(pc)], slots[slot], _TILE)
