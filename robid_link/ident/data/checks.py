@@ -8,47 +8,110 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from robid_link.exceptions import DataWarning, ExcitationWarning
-from robid_link.ident.data.preprocess import CHUNK, Piece, Prepared, Problem
+from robid_link.ident.data.preprocess import CHUNK, Prepared, Problem
 from robid_link.ident.model.regressor import rigid_regressor
 from robid_link.ident.model.robot import Robot
+from robid_link.ident.model.threads import in_slots
 
 __all__ = ["data_checks", "sanity_checks", "extrapolation"]
 
 
 def data_checks(pb: Problem, stacklevel: int = 3) -> list[str]:
     """The checks' notes, each also warned (``DataWarning``, then ``ExcitationWarning``) at
-    ``stacklevel`` (default: the caller of the function that calls this step)."""
-    out = sanity_checks(pb, nominal=pb.robot.nominal is not None)
+    ``stacklevel`` (default: the caller of the function that calls this step). The filtered
+    states are read in one pass for both kinds of checks."""
+    scan = _scan(pb, ranges=bool(pb.valid))
+    out = sanity_checks(pb, nominal=pb.robot.nominal is not None, scan=scan)
     for msg in out:
         warnings.warn(msg, DataWarning, stacklevel=stacklevel)
     if not pb.valid:
         return out
-    outside = extrapolation(pb)
+    outside = extrapolation(pb, scan)
     for msg in outside:
         warnings.warn(msg, ExcitationWarning, stacklevel=stacklevel)
     return out + outside
 
 
-def _ranges(pieces: Sequence[Piece]) -> np.ndarray:
-    lo = np.full((3, pieces[0].prep.log.q.shape[1]), np.inf)
-    hi = -lo
-    for pc in pieces:
-        for a in range(pc.lo, pc.hi, CHUNK):
-            for k, arr in enumerate(pc.prep.kinematics(a, min(pc.hi, a + CHUNK))):
-                lo[k] = np.minimum(lo[k], arr.min(axis=0))
-                hi[k] = np.maximum(hi[k], arr.max(axis=0))
-    return np.stack((lo, hi))
+@dataclass
+class _Scan:
+    """What the checks read of a problem's filtered states: per data log (by position) its
+    thinned rows (q, q̇, q̈, filtered τ: ``_thinned``), and the ranges (2, 3, n: min and
+    max of q, q̇, q̈) over the training and the validation rows."""
+
+    rows: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+    ranges: dict[str, np.ndarray]
 
 
-def extrapolation(pb: Problem) -> list[str]:
+def _thinned(prep: Prepared) -> slice:
+    """The rows the sanity checks read: about 4000, the filter's edges left out."""
+    return slice(prep.filt.settle, len(prep.log) - prep.filt.settle,
+                 max(1, len(prep.log) // 4000))
+
+
+def _scan(pb: Problem, ranges: bool = True) -> _Scan:
+    """One pass over the logs' filtered states, window by window in ``in_slots`` (each
+    window's figures kept and combined in order): the data logs' thinned rows and, with
+    ``ranges``, the state ranges of the training and validation rows."""
+    roles = {"train": pb.train, "valid": pb.valid} if ranges else {}
+    preps = [*pb.preps, *pb.vpreps]
+    tasks = [(k, lo) for k, prep in enumerate(preps) for lo in range(0, len(prep.log), CHUNK)]
+    out: list[tuple[tuple[np.ndarray, ...] | None, dict[str, np.ndarray]] | None]
+    out = [None] * len(tasks)
+
+    def work(t: int, slot: int) -> None:
+        k, lo = tasks[t]
+        prep = preps[k]
+        hi = min(lo + CHUNK, len(prep.log))
+        sl = _thinned(prep) if k < len(pb.preps) else None
+        sel = None if sl is None else np.arange(*sl.indices(len(prep.log)))
+        sel = None if sel is None else sel[(sel >= lo) & (sel < hi)] - lo
+        spans = {role: [(max(pc.lo, lo) - lo, min(pc.hi, hi) - lo) for pc in pieces
+                        if pc.prep is prep and max(pc.lo, lo) < min(pc.hi, hi)]
+                 for role, pieces in roles.items()}
+        if (sel is None or not sel.size) and not any(spans.values()):
+            out[t] = (None, {})
+            return
+        kin = prep.kinematics(lo, hi)
+        rows = None
+        if sel is not None and sel.size:
+            rows = (*(arr[sel] for arr in kin), prep.tau_f_rows(lo, hi)[sel])
+        found = {}
+        for role, where in spans.items():
+            if where:  # extrema over the role's rows of this window, joints × rows
+                cols = [np.array(arr[a:b].T, order="C") for a, b in where for arr in kin]
+                found[role] = np.stack([
+                    np.stack([np.min([c.min(axis=1) for c in cols[i::3]], axis=0)
+                              for i in range(3)]),
+                    np.stack([np.max([c.max(axis=1) for c in cols[i::3]], axis=0)
+                              for i in range(3)])])
+        out[t] = (rows, found)
+
+    in_slots(range(len(tasks)), work)
+    n = pb.robot.n
+    thinned = []
+    for k in range(len(pb.preps)):
+        parts = [done[0] for (kk, _), done in zip(tasks, out, strict=True)
+                 if kk == k and done is not None and done[0] is not None]
+        thinned.append(tuple(np.concatenate([p[i] for p in parts]) if parts
+                             else np.zeros((0, n)) for i in range(4)))
+    found = {}
+    for role in roles:
+        lo_hi = [done[1][role] for done in out if done is not None and role in done[1]]
+        found[role] = np.stack((np.min([f[0] for f in lo_hi], axis=0),
+                                np.max([f[1] for f in lo_hi], axis=0)))
+    return _Scan(thinned, found)  # type: ignore[arg-type]
+
+
+def extrapolation(pb: Problem, scan: _Scan | None = None) -> list[str]:
     """Where the validation rows leave the training ranges of q, q̇, q̈ (> 5 % of the span)."""
-    tr, va = _ranges(pb.train), _ranges(pb.valid)
+    scan = _scan(pb) if scan is None else scan
+    tr, va = scan.ranges["train"], scan.ranges["valid"]
     span = np.maximum(tr[1] - tr[0], 1e-9)
     out = []
     for k, qty in enumerate(("q", "qd", "qdd")):
@@ -59,21 +122,28 @@ def extrapolation(pb: Problem) -> list[str]:
     return out
 
 
-def sanity_checks(pb: Problem, nominal: bool) -> list[str]:
-    """Torque saturation, and sign/scale of each joint against the a-priori model."""
+def sanity_checks(pb: Problem, nominal: bool, scan: _Scan | None = None) -> list[str]:
+    """Torque saturation, and sign/scale of each joint against the a-priori model (``scan``:
+    the problem's thinned rows, read here when not given)."""
     robot = pb.robot
+    scan = _scan(pb, ranges=False) if scan is None else scan
     out = []
-    for prep in pb.preps:
+    for prep, thinned in zip(pb.preps, scan.rows, strict=True):
         tau = prep.log.tau
         name = Path(prep.log.path).name
         if pb.transmission is None:
             out += _position_checks(robot, prep.log.q, name)
-        out += _speed_check(robot, prep, name)
-        peak = np.maximum(tau.max(axis=0), -tau.min(axis=0))  # |τ|'s peak, no copy of τ
+        q, qd, qdd, meas = thinned  # no whole array of a long log
+        out += _speed_check(robot, prep, qd, name)
+        # |τ|'s peak, column by column (no copy of τ; numpy reduces along rows slowly)
+        peak = np.array([np.maximum(tau[:, j].max(), -tau[:, j].min())
+                         for j in range(tau.shape[1])])
         flat = max(5, int(0.05 * prep.filt.fs))  # a clipped signal sits flat at its peak
         held = prep.log.held  # a partial log: no checks of torques it does not hold
         for j in np.flatnonzero(held):
-            at_peak = np.abs(tau[:, j]) >= peak[j] - 1e-9 * max(peak[j], 1.0)
+            level = peak[j] - 1e-9 * max(peak[j], 1.0)
+            col = tau[:, j]
+            at_peak = (col >= level) | (col <= -level)  # |τ| ≥ level, without |τ|'s copy
             limit = robot.limits.tau_max[j]
             if peak[j] > 0 and _longest_run(at_peak) >= flat:
                 out.append(f"{name}: tau{j + 1} sits flat at {peak[j]:.3g} N·m "
@@ -82,10 +152,6 @@ def sanity_checks(pb: Problem, nominal: bool) -> list[str]:
                 out.append(f"{name}: tau{j + 1} reaches {peak[j]:.3g} N·m, at or above its "
                            f"limit {limit:.3g} N·m: saturation or a wrong limit?")
         if nominal:
-            step = max(1, len(prep.log) // 4000)
-            trim = prep.filt.settle
-            sl = slice(trim, len(prep.log) - trim, step)
-            q, qd, qdd, meas = prep.rows(sl)
             pred = rigid_regressor(robot, q, qd, qdd) @ robot.nominal
             for j in np.flatnonzero(held):
                 sp, sm = pred[:, j].std(), meas[:, j].std()
@@ -141,14 +207,13 @@ def _position_checks(robot: Robot, q: np.ndarray, name: str) -> list[str]:
 CRAWL = 1e-3
 
 
-def _speed_check(robot: Robot, prep: Prepared, name: str) -> list[str]:
+def _speed_check(robot: Robot, prep: Prepared, qd: np.ndarray, name: str) -> list[str]:
     """A motion that spans its joints' ranges at a crawl no robot excites dynamics with: the
-    time stamps are likely not in seconds (milliseconds at a rate the rate check allows)."""
+    time stamps are likely not in seconds (milliseconds at a rate the rate check allows).
+    ``qd``: the log's filtered velocities on thinned rows."""
     limit = robot.limits.qd_max
-    step = max(1, len(prep.log) // 4000)  # thinned rows: no whole array of a long log
-    _, qd, _, _ = prep.rows(slice(prep.filt.settle, len(prep.log) - prep.filt.settle, step))
     fast = np.percentile(np.abs(qd), 95, axis=0)
-    span = np.ptp(prep.log.q, axis=0)
+    span = np.array([np.ptp(prep.log.q[:, j]) for j in range(prep.log.q.shape[1])])
     ok = np.isfinite(limit) & (limit > 0)
     if not ok.any() or np.any(fast[ok] >= CRAWL * limit[ok]) or span.max() < 0.05:
         return []
@@ -197,8 +262,11 @@ def _scale_cause(robot: Robot, rows: tuple[np.ndarray, np.ndarray, np.ndarray],
 
 
 def _longest_run(mask: np.ndarray) -> int:
-    if not mask.any():
+    """The longest run of True in ``mask``, from its True rows (few: a torque's peak)."""
+    idx = np.flatnonzero(mask)
+    if not idx.size:
         return 0
-    edges = np.diff(np.concatenate(([0], mask.astype(np.int8), [0])))
-    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-    return int((stops - starts).max())
+    breaks = np.flatnonzero(np.diff(idx) != 1)
+    ends = np.concatenate((breaks, [idx.size - 1]))
+    starts = np.concatenate(([0], breaks + 1))
+    return int((ends - starts).max()) + 1

@@ -451,6 +451,8 @@ def _check_and_grid(p: Path, cols: dict[str, np.ndarray], n: int, fs: float | No
     for key, a in cols.items():
         if a.shape[0] != nsamp:
             raise DataError(f"{p}: '{key}' has {a.shape[0]} samples, t has {nsamp}")
+        if np.isfinite(a).all():
+            continue
         bad = ~np.isfinite(a)
         if bad.any():
             row = int(np.argwhere(bad)[0][0])

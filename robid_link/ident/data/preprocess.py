@@ -25,8 +25,10 @@ from robid_link.ident.data.filtering import (
     sos_steady_state,
 )
 from robid_link.ident.data.logs import Log
+from robid_link.ident.data.quantiles import percentile_streamed
 from robid_link.ident.model.effects import Block, Model, States
 from robid_link.ident.model.robot import Robot
+from robid_link.ident.model.threads import in_slots
 
 __all__ = [
     "DEFAULT_CUTOFF_HZ",
@@ -37,6 +39,7 @@ __all__ = [
     "prepare",
     "split",
     "motion_span",
+    "typical_speeds",
     "held_out_ranges",
     "Problem",
     "build_problem",
@@ -72,8 +75,13 @@ class _Channels:
               segments: Sequence[slice]) -> Track:
         with self._lock:
             hit = self._tracks.get(name)
+        if hit is not None and hit.source is src:
+            return hit
+        made = Track(src, filt, segments, 3 * filt.settle)  # outside the lock: channels at once
+        with self._lock:
+            hit = self._tracks.get(name)
             if hit is None or hit.source is not src:
-                hit = self._tracks[name] = Track(src, filt, segments, 3 * filt.settle)
+                hit = self._tracks[name] = made
             return hit
 
     def whole(self, name: str, src: np.ndarray, make: Callable[[], np.ndarray]) -> np.ndarray:
@@ -125,16 +133,49 @@ class Prepared:
     def _track(self, name: str, src: np.ndarray) -> Track:
         return self.channels.track(name, src, self.filt, self.log.segments)
 
-    def _filtered_segments(self) -> list[tuple[int, int]]:
+    @property
+    def filtered_segments(self) -> list[tuple[int, int]]:
+        """Segments [a, b) long enough to be filtered (rows elsewhere read zero)."""
         return self._track("q", self.log.q).segments
 
     def kinematics(self, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Filtered q, q̇ (the filtered log's q̇, else the derivative of q) and q̈ (the
         derivative of q̇) at rows [lo, hi); zero outside the filtered segments."""
+        return self._kinematics(lo, hi, True)
+
+    def typical_speed(self) -> np.ndarray:
+        """Each joint's typical speed: the 95th percentile of |q̇| over the filtered rows (made
+        once per log, ``typical_speeds``)."""
+        src = self.log.q if self.log.qd is None else self.log.qd
+        return self.channels.whole("typical_speed", src, lambda: typical_speeds([self]))
+
+    def speeds_at(self, rows: np.ndarray, j: int) -> np.ndarray:
+        """Joint j's |q̇| at the log's rows where ``rows`` (N,) is True, in row order (rows
+        outside the filtered segments read zero), from the windows that hold such rows."""
+        parts = []
+        for lo in range(0, len(self.log), CHUNK):
+            hit = np.flatnonzero(rows[lo: lo + CHUNK])
+            if hit.size:
+                vel = self._kinematics(lo, lo + int(hit[-1]) + 1, False)[1]
+                parts.append(np.abs(vel[hit, j]))
+        return np.concatenate(parts) if parts else np.zeros(0)
+
+    def speed_windows(self) -> list[tuple[int, int]]:
+        """The windows [lo, hi) the filtered segments' rows are read in, in order."""
+        return [(lo, min(b, lo + CHUNK)) for a, b in self.filtered_segments
+                for lo in range(a, b, CHUNK)]
+
+    def speed(self, lo: int, hi: int) -> np.ndarray:
+        """|q̇| at rows [lo, hi)."""
+        return np.abs(self._kinematics(lo, hi, False)[1])
+
+    def _kinematics(self, lo: int, hi: int, acc: bool
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``kinematics``; q̈ left at zero unless ``acc``."""
         n_j = self.log.q.shape[1]
         q, qd, qdd = (np.zeros((max(hi - lo, 0), n_j)) for _ in range(3))
         dt = 1.0 / self.filt.fs
-        for a, b in self._filtered_segments():
+        for a, b in self.filtered_segments:
             r0, r1 = max(a, lo), min(b, hi)
             if r0 >= r1:
                 continue
@@ -148,7 +189,8 @@ class Prepared:
             else:
                 vel = _gradient(qf, p0, v0, v1, a, b, dt)
             qd[r0 - lo: r1 - lo] = vel[r0 - v0: r1 - v0]
-            qdd[r0 - lo: r1 - lo] = _gradient(vel, v0, r0, r1, a, b, dt)
+            if acc:
+                qdd[r0 - lo: r1 - lo] = _gradient(vel, v0, r0, r1, a, b, dt)
         return q, qd, qdd
 
     def tau_f_rows(self, lo: int, hi: int) -> np.ndarray:
@@ -162,7 +204,7 @@ class Prepared:
                       None if self.tau_rigid is None else self.tau_rigid[lo:hi],
                       None if self.tau_rate is None else self.tau_rate[lo:hi])
 
-    def rows(self, sl: slice, chunk: int = 1 << 16
+    def rows(self, sl: slice, chunk: int = CHUNK
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """q, q̇, q̈ and the filtered torque at the rows of ``sl`` (a slice with a positive
         step), computed chunk by chunk."""
@@ -250,10 +292,8 @@ def prepare(log: Log, cutoff_hz: float | None, interval: int = 1,
         log = replace(log, notes=[*log.notes,
                                   f"cutoff lowered to {fc:.3g} Hz for --interval {interval}"])
     prep = Prepared(log, ZeroPhaseFilter(fc, fs), transmission)
-    prep._track("q", log.q)
-    if log.qd is not None:
-        prep._track("qd", log.qd)
-    prep._track("tau", log.tau)
+    channels = [("q", log.q), ("tau", log.tau)] + ([] if log.qd is None else [("qd", log.qd)])
+    in_slots(channels, lambda ch, slot: prep._track(*ch))
     return prep
 
 
@@ -262,33 +302,37 @@ def prepare(log: Log, cutoff_hz: float | None, interval: int = 1,
 MOVING_FRACTION = 0.05
 
 
+def typical_speeds(preps: Sequence[Prepared]) -> np.ndarray:
+    """Each joint's 95th percentile of |q̇| over the filtered rows of the logs
+    (np.percentile's numbers, read window by window: no array of every row)."""
+    tasks = [(prep, w) for prep in preps for w in prep.speed_windows()]
+    return percentile_streamed(tasks, lambda t: t[0].speed(*t[1]), 95.0,
+                               preps[0].log.q.shape[1])
+
+
 def motion_span(prep: Prepared) -> tuple[int, int]:
     """Rows [first, last) of a prepared log between its first and last moving sample (rest at
-    the start or the end of a motion excluded); the whole log when nothing moves."""
+    the start or the end of a motion excluded); the whole log when nothing moves. The
+    windows are read from each end until a moving row."""
     n = len(prep.log)
-    segs = prep._filtered_segments()  # rows of too-short segments were never filtered
-    if not segs:
+    windows = prep.speed_windows()  # rows of too-short segments were never filtered
+    if not windows:
         return 0, n
-    n_ok = sum(b - a for a, b in segs)
-    speed = np.empty((n_ok, prep.log.q.shape[1]))
-    at = 0
-    for a, b in segs:
-        for lo in range(a, b, CHUNK):
-            hi = min(b, lo + CHUNK)
-            speed[at: at + hi - lo] = np.abs(prep.kinematics(lo, hi)[1])
-            at += hi - lo
-    # per joint (one column's copy at a time): np.percentile(speed, 95, axis=0)
-    typical = np.array([np.percentile(speed[:, j], 95) for j in range(speed.shape[1])])
-    active = typical > 1e-6 * max(float(typical.max()), 1e-300)
-    if not active.any():
+    typical = prep.typical_speed()
+    active = np.flatnonzero(typical > 1e-6 * max(float(typical.max()), 1e-300))
+    if not active.size:
         return 0, n
-    moving_ok = np.zeros(n_ok, bool)
-    for j in np.flatnonzero(active):
-        moving_ok |= speed[:, j] > MOVING_FRACTION * typical[j]
-    del speed
-    ok_rows = np.concatenate([np.arange(a, b) for a, b in segs])
-    idx = ok_rows[moving_ok]
-    return (int(idx[0]), int(idx[-1]) + 1) if idx.size else (0, n)
+    level = MOVING_FRACTION * typical[active]
+
+    def moving(window: tuple[int, int]) -> np.ndarray:
+        lo, hi = window
+        return lo + np.flatnonzero((prep.speed(lo, hi)[:, active] > level).any(axis=1))
+
+    first = next((int(m[0]) for m in map(moving, windows) if m.size), None)
+    if first is None:
+        return 0, n
+    last = next(int(m[-1]) for m in map(moving, reversed(windows)) if m.size)
+    return first, last + 1
 
 
 def split(preps: Sequence[Prepared], validate: Sequence[Prepared] | None,

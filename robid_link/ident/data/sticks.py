@@ -12,7 +12,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from robid_link.ident.data.preprocess import Prepared, Problem
+from robid_link.ident.data.preprocess import Prepared, Problem, typical_speeds
+from robid_link.ident.model.threads import in_slots
 
 __all__ = ["Sticks", "find_sticks", "without_sticks", "sticks_note", "STILL_WINDOW_S",
            "STICK_FACTOR", "STICK_SHARE_MIN"]
@@ -37,26 +38,29 @@ class Sticks:
     speed: float
 
 
-def _filtered(prep: Prepared) -> np.ndarray:
-    ok = np.zeros(len(prep.log), bool)
-    for seg in prep.log.segments:
-        if seg.stop - seg.start >= 3 * prep.filt.settle:
-            ok[seg] = True
-    return ok
-
-
-def _diff_scale(x: np.ndarray) -> np.ndarray:
-    """Robust scale of white noise on x from its third differences (as the torque noise)."""
+def _diff_scale(x: np.ndarray) -> float:
+    """Robust scale of white noise on x (one joint) from its third differences (as the
+    torque noise), differenced a block at a time (np.diff's numbers, one (N,) array)."""
     if x.shape[0] < 8:
-        return np.zeros(x.shape[1])
-    d = np.diff(x, 3, axis=0)
-    return 1.4826 * np.median(np.abs(d), axis=0) / math.sqrt(20.0)
+        return 0.0
+    d = np.empty(x.shape[0] - 3)
+    for a in range(0, d.shape[0], 1 << 16):
+        b = min(d.shape[0], a + (1 << 16))
+        np.abs(np.diff(x[a: b + 3], 3), out=d[a:b])
+    return float(1.4826 * np.median(d, overwrite_input=True) / math.sqrt(20.0))
 
 
 def _climb(speed: np.ndarray, level: float) -> float:
-    """Samples until ``speed`` (leaving a still run) first reaches ``level``; inf if never."""
-    above = np.flatnonzero(speed >= level)
-    return float(above[0] + 1) if above.size else math.inf
+    """Samples until ``speed`` (leaving a still run) first reaches ``level``; inf if never.
+    Read in growing blocks: the climb is short, the rest of the log long."""
+    at, size = 0, 64
+    while at < speed.shape[0]:
+        above = np.flatnonzero(speed[at: at + size] >= level)
+        if above.size:
+            return float(at + above[0] + 1)
+        at += size
+        size *= 4
+    return math.inf
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -76,49 +80,57 @@ def find_sticks(prep: Prepared, typical: np.ndarray) -> tuple[np.ndarray, list[l
     constant q̈ spends a quarter of the climb's time under v_still; a rest-to-rest motion's
     flat turn about as long as its climb). A run longer than STICK_FACTOR times the faster of
     its two climbs, with motion on both sides, is a stick. The filtered states smear it over
-    one period of the cutoff on each side, so those rows go too."""
+    one period of the cutoff on each side, so those rows go too. Joint by joint (in
+    ``in_slots``): a long log's temporaries are one joint's column."""
     fs = prep.filt.fs
     dt = 1.0 / fs
     w = max(1, int(round(STILL_WINDOW_S * fs)))
     smear = max(1, int(round(fs / prep.filt.cutoff_hz)))
-    n = prep.q.shape[1]
-    out = np.zeros(prep.q.shape, bool)
-    durations: list[list[float]] = [[] for _ in range(n)]
-    for seg in prep.log.segments:
-        if seg.stop - seg.start < max(3 * prep.filt.settle, 8 * w):
-            continue
-        q = prep.log.q[seg]
-        v = np.zeros_like(q)
-        v[w:-w] = (q[2 * w:] - q[: -2 * w]) / (2 * w * dt)
+    n = prep.log.q.shape[1]
+    out = np.zeros(prep.log.q.shape, bool)
+    segs = [seg for seg in prep.log.segments
+            if seg.stop - seg.start >= max(3 * prep.filt.settle, 8 * w)]
+    found: list[list[float]] = [[] for _ in range(len(segs) * n)]
+
+    def work(task: int, slot: int) -> None:  # one joint of one segment
+        seg, j = segs[task // n], task % n
+        q = prep.log.q[seg, j]
+        speed = np.zeros(q.shape[0])  # |(q[k + w] − q[k − w]) / 2w·dt|, in place
+        inner = speed[w:-w]
+        np.subtract(q[2 * w:], q[: -2 * w], out=inner)
+        inner /= 2 * w * dt
+        np.abs(inner, out=inner)
         sigma_v = _diff_scale(q) * math.sqrt(2.0) / (2 * w * dt)
-        for j in range(n):
-            v_still = max(4.0 * float(sigma_v[j]), 2e-3 * float(typical[j]))
-            if not v_still > 0:
-                continue
-            stick = np.zeros(q.shape[0], bool)
-            speed = np.abs(v[:, j])
-            for a, b in _runs(speed[w:-w] < v_still):
-                a, b = a + w, b + w  # back to the segment's rows
-                if a <= 2 * w or b >= q.shape[0] - 2 * w:
-                    continue  # at the segment's edge: a rest, not a stick
-                climb = min(_climb(speed[a - 1:w:-1], 10 * v_still),
-                            _climb(speed[b:q.shape[0] - w], 10 * v_still))
-                if b - a >= 4 * w and b - a > STICK_FACTOR * climb:
-                    stick[a:b] = True
-                    durations[j].append((b - a) * dt)
-            if stick.any():
-                wide = np.convolve(stick, np.ones(2 * smear + 1), "same") > 0
-                out[seg.start:seg.stop, j] = wide
+        v_still = max(4.0 * sigma_v, 2e-3 * float(typical[j]))
+        if not v_still > 0:
+            return
+        sticks = []
+        for a, b in _runs(speed[w:-w] < v_still):
+            a, b = a + w, b + w  # back to the segment's rows
+            if a <= 2 * w or b >= q.shape[0] - 2 * w:
+                continue  # at the segment's edge: a rest, not a stick
+            climb = min(_climb(speed[a - 1:w:-1], 10 * v_still),
+                        _climb(speed[b:q.shape[0] - w], 10 * v_still))
+            if b - a >= 4 * w and b - a > STICK_FACTOR * climb:
+                sticks.append((a, b))
+                found[task].append((b - a) * dt)
+        for a, b in sticks:  # and the rows the filter smears them over
+            out[seg.start + max(0, a - smear): seg.start + min(q.shape[0], b + smear), j] = True
+
+    in_slots(range(len(found)), work)
+    durations: list[list[float]] = [[] for _ in range(n)]
+    for task, durs in enumerate(found):  # segment after segment, as the log runs
+        durations[task % n] += durs
     return out, durations
 
 
 def without_sticks(pb: Problem) -> tuple[Problem, list[Sticks]]:
     """The problem with each sticking joint's stick rows left out of its equation (training and
     validation logs alike), a note per joint; the sticks found in the training logs."""
-    speeds = np.concatenate([np.abs(p.qd[_filtered(p)]) for p in pb.preps])
-    if not speeds.size:
+    if not any(b > a for p in pb.preps for a, b in p.filtered_segments):
         return pb, []
-    typical = np.percentile(speeds, 95, axis=0)
+    # over every training log's filtered rows (one log's: found with its motion span)
+    typical = pb.preps[0].typical_speed() if len(pb.preps) == 1 else typical_speeds(pb.preps)
     found = [(p, *find_sticks(p, typical)) for p in (*pb.preps, *pb.vpreps)]
     train = found[: len(pb.preps)]
     total = sum(len(p.log) for p in pb.preps)
@@ -128,13 +140,15 @@ def without_sticks(pb: Problem) -> tuple[Problem, list[Sticks]]:
         rows = sum(float(m[:, j].sum()) for _, m, _ in train)
         if not durs or rows / total < STICK_SHARE_MIN:
             continue
-        zone = np.concatenate([np.abs(p.qd[m[:, j], j]) for p, m, _ in train])
+        zone = np.concatenate([p.speeds_at(m[:, j], j) for p, m, _ in train])
         sticks.append(Sticks(j, rows / total, max(durs), len(durs),
                              float(np.percentile(zone, 95))))
     if not sticks:
         return pb, []
+
     def masked(prep: Prepared, stuck: np.ndarray) -> Prepared:
-        keep = np.ones(prep.q.shape, bool) if prep.tau_mask is None else prep.tau_mask.copy()
+        keep = (np.ones(prep.log.q.shape, bool) if prep.tau_mask is None
+                else prep.tau_mask.copy())
         for st in sticks:
             keep[:, st.joint] &= ~stuck[:, st.joint]
         return replace(prep, tau_mask=keep)

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -73,22 +74,26 @@ def identify(robot: Robot, data: Sequence[Log], model: Model, *,
     With ``motor_side`` the logs were converted to the joint side through the robot's
     transmission, and friction-type effects act on the motors' velocities.
     """
-    pb = build_problem(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
-                       interval=interval, motor_side=motor_side)
-    pb, _ = without_sticks(pb)
-    pb = without_known_torques(pb, model.known)
-    pb = with_current_gains(pb, model.known)
-    pb = with_model_torque(pb)
-    pb, hypers = with_profiled_hypers(pb)
-    if method == "consistent":
-        asm, full = assemble_consistent(pb, Path(data[0].path).name)
-        est = estimate_consistent(pb, asm, estimate(pb, asm, "ols"), full)
-    else:
-        asm = assemble(pb, Path(data[0].path).name)
-        est = estimate(pb, asm, method, weight)
-    notes = [*est.notes, *data_checks(pb, stacklevel=_CALLER)]
-    return result_of(pb, asm, est, method=method, hypers=hypers, notes=notes,
-                     files=(data, validate or ()))
+    # the files' SHA-256 on a thread of their own (hashlib lets go of the GIL), beside the rest
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="robid-sha256") as pool:
+        digests = pool.submit(lambda: {lg.path: file_sha256(lg.path)
+                                       for lg in (*data, *(validate or ()))})
+        pb = build_problem(robot, data, model, validate=validate, cutoff_hz=cutoff_hz,
+                           interval=interval, motor_side=motor_side)
+        pb, _ = without_sticks(pb)
+        pb = without_known_torques(pb, model.known)
+        pb = with_current_gains(pb, model.known)
+        pb = with_model_torque(pb)
+        pb, hypers = with_profiled_hypers(pb)
+        if method == "consistent":
+            asm, full = assemble_consistent(pb, Path(data[0].path).name)
+            est = estimate_consistent(pb, asm, estimate(pb, asm, "ols"), full)
+        else:
+            asm = assemble(pb, Path(data[0].path).name)
+            est = estimate(pb, asm, method, weight)
+        notes = [*est.notes, *data_checks(pb, stacklevel=_CALLER)]
+        return result_of(pb, asm, est, method=method, hypers=hypers, notes=notes,
+                         files=(data, validate or ()), digests=digests.result())
 
 
 def load_logs(robot: Robot, paths: Sequence[str | Path], fs: float | None = None,
@@ -340,9 +345,11 @@ def _consistent_note(cons: ConsistentFit) -> str:
 
 def result_of(pb: Problem, asm: Assembly, est: Estimate, *, method: str,
               hypers: dict[str, dict[str, float]], notes: list[str],
-              files: tuple[Sequence[Log], Sequence[Log]]) -> IdentResult:
+              files: tuple[Sequence[Log], Sequence[Log]],
+              digests: Mapping[str, str] | None = None) -> IdentResult:
     """The result, keeping the problem and design it was fitted on (held-out figures are
-    computed from them on first use); ``files``: the data and the validation logs."""
+    computed from them on first use); ``files``: the data and the validation logs, with
+    their SHA-256 by path in ``digests`` (else read here)."""
     robot = pb.robot
     return IdentResult(
         robot=robot.name,
@@ -360,7 +367,9 @@ def result_of(pb: Problem, asm: Assembly, est: Estimate, *, method: str,
         n_standard=len(asm.names),
         least_excited=est.least_excited,
         hypers=hypers,
-        data_files=[{"path": lg.path, "sha256": file_sha256(lg.path), "role": role,
+        data_files=[{"path": lg.path,
+                     "sha256": (digests or {}).get(lg.path) or file_sha256(lg.path),
+                     "role": role,
                      **({"source": lg.source} if lg.source else {})}
                     for role, logs in zip(("data", "validate"), files, strict=True)
                     for lg in logs],

@@ -84,15 +84,19 @@ class StatsAccumulator:
     def add(self, e: np.ndarray, tau: np.ndarray, mask: np.ndarray | None = None) -> None:
         """``mask`` (m, n) or (n,): which joints' torques count on each row (None: all);
         a joint a log does not hold has NaN there, never summed."""
+        # joints × rows: numpy sums a (rows, 6) array along its rows ten times slower
+        e_t, tau_t = np.array(e.T, order="C"), np.array(tau.T, order="C")
         if mask is not None:
-            mask = np.broadcast_to(mask, e.shape)
-            e, tau = np.where(mask, e, 0.0), np.where(mask, tau, 0.0)
-        self.s1 += e.sum(axis=0)
-        self.s2 += (e * e).sum(axis=0)
-        self.counts += e.shape[0] if mask is None else mask.sum(axis=0)
+            mask_t = np.array(np.broadcast_to(mask, e.shape).T, order="C")
+            e_t[~mask_t] = 0.0
+            tau_t[~mask_t] = 0.0
+        sq = e_t * e_t
+        self.s1 += e_t.sum(axis=1)
+        self.s2 += sq.sum(axis=1)
+        self.counts += e.shape[0] if mask is None else mask_t.sum(axis=1)
         self.count += e.shape[0]
-        self.norm_e += float(np.linalg.norm(e, axis=1).sum())
-        self.norm_tau += float(np.linalg.norm(tau, axis=1).sum())
+        self.norm_e += float(np.sqrt(sq.sum(axis=0)).sum())
+        self.norm_tau += float(np.sqrt((tau_t * tau_t).sum(axis=0)).sum())
 
     def stats(self) -> ErrorStats | None:
         if self.count == 0:

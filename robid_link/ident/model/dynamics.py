@@ -3,7 +3,9 @@ inverse dynamics (RNEA) batched over samples, the joint-space mass matrix, and a
 solve — for the a-priori model's torque on long logs and the simulated plant's loop.
 
 Pinocchio's ``rnea``/``crba`` are the reference they are tested against; these exist
-because a per-sample Python call costs more than the dynamics themselves.
+because a per-sample Python call costs more than the dynamics themselves. The per-sample
+steps are inlined into their callers (a call per sample cost more than half of a batch);
+the joint frames are ``spatial``'s, as the regressor's.
 """
 
 from __future__ import annotations
@@ -13,39 +15,23 @@ import numpy as np
 
 from robid_link.ident.model.regressor import robot_arrays
 from robid_link.ident.model.robot import Robot
+from robid_link.ident.model.spatial import joint_frame, joint_motion, to_child
 
 __all__ = ["rigid_torque", "rnea_one", "rnea_at", "placements", "mass_matrix", "cholesky",
            "cholesky_solve", "cholesky_inverse"]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, inline="always")
 def placements(q, r0s, p0s, axes, revolute, rot, pos):
     """Each joint's rotation (parent → joint frame) and origin in its parent's frame at q."""
-    n = q.shape[0]
-    for j in range(n):
-        u0, u1, u2 = axes[j, 0], axes[j, 1], axes[j, 2]
-        if revolute[j]:
-            c, s = np.cos(q[j]), np.sin(q[j])
-        else:
-            c, s = 1.0, 0.0
-        t = 1.0 - c
-        x00, x01, x02 = t * u0 * u0 + c, t * u0 * u1 - s * u2, t * u0 * u2 + s * u1
-        x10, x11, x12 = t * u0 * u1 + s * u2, t * u1 * u1 + c, t * u1 * u2 - s * u0
-        x20, x21, x22 = t * u0 * u2 - s * u1, t * u1 * u2 + s * u0, t * u2 * u2 + c
+    for j in range(q.shape[0]):
+        r, p = joint_frame(r0s, p0s, axes, revolute, j, q[j])
         for a in range(3):
-            ra0, ra1, ra2 = r0s[j, a, 0], r0s[j, a, 1], r0s[j, a, 2]
-            rot[j, a, 0] = ra0 * x00 + ra1 * x10 + ra2 * x20
-            rot[j, a, 1] = ra0 * x01 + ra1 * x11 + ra2 * x21
-            rot[j, a, 2] = ra0 * x02 + ra1 * x12 + ra2 * x22
-        px, py, pz = p0s[j, 0], p0s[j, 1], p0s[j, 2]
-        if not revolute[j]:
-            px += (r0s[j, 0, 0] * u0 + r0s[j, 0, 1] * u1 + r0s[j, 0, 2] * u2) * q[j]
-            py += (r0s[j, 1, 0] * u0 + r0s[j, 1, 1] * u1 + r0s[j, 1, 2] * u2) * q[j]
-            pz += (r0s[j, 2, 0] * u0 + r0s[j, 2, 1] * u1 + r0s[j, 2, 2] * u2) * q[j]
-        pos[j, 0], pos[j, 1], pos[j, 2] = px, py, pz
+            rot[j, a, 0], rot[j, a, 1], rot[j, a, 2] = r[3 * a], r[3 * a + 1], r[3 * a + 2]
+            pos[j, a] = p[a]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, inline="always")
 def rnea_one(q, qd, qdd, r0s, p0s, axes, revolute, parents, gravity, params, use_gravity,
              vel, acc, frc, rot, pos, tau):
     """τ = M(q) q̈ + c(q, q̇) (+ g(q) when ``use_gravity``) of one sample, for standard
@@ -57,79 +43,61 @@ def rnea_one(q, qd, qdd, r0s, p0s, axes, revolute, parents, gravity, params, use
             rot, pos, tau)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, inline="always")
 def rnea_at(qd, qdd, axes, revolute, parents, gravity, params, use_gravity, vel, acc, frc,
             rot, pos, tau):
     """``rnea_one`` with the placements (rot, pos) of q already computed."""
     n = qd.shape[0]
     for j in range(n):
-        u0, u1, u2 = axes[j, 0], axes[j, 1], axes[j, 2]
-        px, py, pz = pos[j, 0], pos[j, 1], pos[j, 2]
+        r = (rot[j, 0, 0], rot[j, 0, 1], rot[j, 0, 2], rot[j, 1, 0], rot[j, 1, 1],
+             rot[j, 1, 2], rot[j, 2, 0], rot[j, 2, 1], rot[j, 2, 2])
+        p = (pos[j, 0], pos[j, 1], pos[j, 2])
         par = parents[j]
-        for m in range(2):  # the parent's velocity, then its acceleration, in this frame
-            if par < 0:
-                g = use_gravity and m == 1
-                s0 = -gravity[0] if g else 0.0
-                s1 = -gravity[1] if g else 0.0
-                s2 = -gravity[2] if g else 0.0
-                s3 = s4 = s5 = 0.0
-            else:
-                src = vel[par] if m == 0 else acc[par]
-                s0, s1, s2, s3, s4, s5 = src[0], src[1], src[2], src[3], src[4], src[5]
-            l0 = s0 - (py * s5 - pz * s4)
-            l1 = s1 - (pz * s3 - px * s5)
-            l2 = s2 - (px * s4 - py * s3)
-            dst = vel[j] if m == 0 else acc[j]
-            for a in range(3):
-                dst[a] = rot[j, 0, a] * l0 + rot[j, 1, a] * l1 + rot[j, 2, a] * l2
-                dst[3 + a] = rot[j, 0, a] * s3 + rot[j, 1, a] * s4 + rot[j, 2, a] * s5
-        vd, ad = qd[j], qdd[j]
-        e0, e1, e2 = u0 * vd, u1 * vd, u2 * vd
-        vl0, vl1, vl2 = vel[j, 0], vel[j, 1], vel[j, 2]
-        w0, w1, w2 = vel[j, 3], vel[j, 4], vel[j, 5]
-        if revolute[j]:
-            acc[j, 0] += vl1 * e2 - vl2 * e1
-            acc[j, 1] += vl2 * e0 - vl0 * e2
-            acc[j, 2] += vl0 * e1 - vl1 * e0
-            acc[j, 3] += w1 * e2 - w2 * e1 + u0 * ad
-            acc[j, 4] += w2 * e0 - w0 * e2 + u1 * ad
-            acc[j, 5] += w0 * e1 - w1 * e0 + u2 * ad
-            vel[j, 3] += e0
-            vel[j, 4] += e1
-            vel[j, 5] += e2
+        # the parent's velocity, then its acceleration, in this frame (the base: at rest,
+        # −g when ``use_gravity``)
+        if par < 0:
+            v = to_child(r, p, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+            g0 = -gravity[0] if use_gravity else 0.0
+            g1 = -gravity[1] if use_gravity else 0.0
+            g2 = -gravity[2] if use_gravity else 0.0
+            a = to_child(r, p, g0, g1, g2, 0.0, 0.0, 0.0)
         else:
-            acc[j, 0] += w1 * e2 - w2 * e1 + u0 * ad
-            acc[j, 1] += w2 * e0 - w0 * e2 + u1 * ad
-            acc[j, 2] += w0 * e1 - w1 * e0 + u2 * ad
-            vel[j, 0] += e0
-            vel[j, 1] += e1
-            vel[j, 2] += e2
+            v = to_child(r, p, vel[par, 0], vel[par, 1], vel[par, 2], vel[par, 3],
+                         vel[par, 4], vel[par, 5])
+            a = to_child(r, p, acc[par, 0], acc[par, 1], acc[par, 2], acc[par, 3],
+                         acc[par, 4], acc[par, 5])
+        v, a = joint_motion(revolute[j], axes[j, 0], axes[j, 1], axes[j, 2], qd[j], qdd[j],
+                            v, a)
+        for e in range(6):
+            vel[j, e] = v[e]
+            acc[j, e] = a[e]
         # f = I a + v ×* (I v), I from (m, h, I_O)
-        p = params[10 * j: 10 * j + 10]
-        mass, h0, h1, h2 = p[0], p[1], p[2], p[3]
-        ixx, ixy, iyy, ixz, iyz, izz = p[4], p[5], p[6], p[7], p[8], p[9]
-        v = vel[j]
-        a_ = acc[j]
+        k = 10 * j
+        mass, h0, h1, h2 = params[k], params[k + 1], params[k + 2], params[k + 3]
+        ixx, ixy, iyy = params[k + 4], params[k + 5], params[k + 6]
+        ixz, iyz, izz = params[k + 7], params[k + 8], params[k + 9]
+        v0, v1, v2, v3, v4, v5 = v
+        a0, a1, a2, a3, a4, a5 = a
         # momentum of v: linear m·v_l − h × ω, angular I_O ω + h × v_l
-        pl0 = mass * v[0] - (h1 * v[5] - h2 * v[4])
-        pl1 = mass * v[1] - (h2 * v[3] - h0 * v[5])
-        pl2 = mass * v[2] - (h0 * v[4] - h1 * v[3])
-        pa0 = ixx * v[3] + ixy * v[4] + ixz * v[5] + (h1 * v[2] - h2 * v[1])
-        pa1 = ixy * v[3] + iyy * v[4] + iyz * v[5] + (h2 * v[0] - h0 * v[2])
-        pa2 = ixz * v[3] + iyz * v[4] + izz * v[5] + (h0 * v[1] - h1 * v[0])
-        fl0 = mass * a_[0] - (h1 * a_[5] - h2 * a_[4])
-        fl1 = mass * a_[1] - (h2 * a_[3] - h0 * a_[5])
-        fl2 = mass * a_[2] - (h0 * a_[4] - h1 * a_[3])
-        fa0 = ixx * a_[3] + ixy * a_[4] + ixz * a_[5] + (h1 * a_[2] - h2 * a_[1])
-        fa1 = ixy * a_[3] + iyy * a_[4] + iyz * a_[5] + (h2 * a_[0] - h0 * a_[2])
-        fa2 = ixz * a_[3] + iyz * a_[4] + izz * a_[5] + (h0 * a_[1] - h1 * a_[0])
+        pl0 = mass * v0 - (h1 * v5 - h2 * v4)
+        pl1 = mass * v1 - (h2 * v3 - h0 * v5)
+        pl2 = mass * v2 - (h0 * v4 - h1 * v3)
+        pa0 = ixx * v3 + ixy * v4 + ixz * v5 + (h1 * v2 - h2 * v1)
+        pa1 = ixy * v3 + iyy * v4 + iyz * v5 + (h2 * v0 - h0 * v2)
+        pa2 = ixz * v3 + iyz * v4 + izz * v5 + (h0 * v1 - h1 * v0)
+        fl0 = mass * a0 - (h1 * a5 - h2 * a4)
+        fl1 = mass * a1 - (h2 * a3 - h0 * a5)
+        fl2 = mass * a2 - (h0 * a4 - h1 * a3)
+        fa0 = ixx * a3 + ixy * a4 + ixz * a5 + (h1 * a2 - h2 * a1)
+        fa1 = ixy * a3 + iyy * a4 + iyz * a5 + (h2 * a0 - h0 * a2)
+        fa2 = ixz * a3 + iyz * a4 + izz * a5 + (h0 * a1 - h1 * a0)
         # v ×* p: (ω × p_l, ω × p_a + v_l × p_l)
-        frc[j, 0] = fl0 + (v[4] * pl2 - v[5] * pl1)
-        frc[j, 1] = fl1 + (v[5] * pl0 - v[3] * pl2)
-        frc[j, 2] = fl2 + (v[3] * pl1 - v[4] * pl0)
-        frc[j, 3] = fa0 + (v[4] * pa2 - v[5] * pa1) + (v[1] * pl2 - v[2] * pl1)
-        frc[j, 4] = fa1 + (v[5] * pa0 - v[3] * pa2) + (v[2] * pl0 - v[0] * pl2)
-        frc[j, 5] = fa2 + (v[3] * pa1 - v[4] * pa0) + (v[0] * pl1 - v[1] * pl0)
+        frc[j, 0] = fl0 + (v4 * pl2 - v5 * pl1)
+        frc[j, 1] = fl1 + (v5 * pl0 - v3 * pl2)
+        frc[j, 2] = fl2 + (v3 * pl1 - v4 * pl0)
+        frc[j, 3] = fa0 + (v4 * pa2 - v5 * pa1) + (v1 * pl2 - v2 * pl1)
+        frc[j, 4] = fa1 + (v5 * pa0 - v3 * pa2) + (v2 * pl0 - v0 * pl2)
+        frc[j, 5] = fa2 + (v3 * pa1 - v4 * pa0) + (v0 * pl1 - v1 * pl0)
     for j in range(n - 1, -1, -1):
         f = frc[j]
         if revolute[j]:

@@ -14,6 +14,7 @@ import numpy as np
 import pinocchio as pin
 
 from robid_link.ident.model.robot import Robot
+from robid_link.ident.model.spatial import joint_frame, joint_motion, to_child
 from robid_link.ident.model.threads import kernel_threads
 
 __all__ = ["rigid_regressor", "reference_regressor", "BaseSet", "structural_base_set",
@@ -22,182 +23,133 @@ __all__ = ["rigid_regressor", "reference_regressor", "BaseSet", "structural_base
 
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _regressor_kernel(q, qd, qdd, r0s, p0s, axes, revolute, parents, anc, gravity, dest, out,
-                      n_threads, zero):
+                      n_threads, zero_cols):
     """Split the samples over threads; each part has its own scratch space."""
     nsamp = q.shape[1]
     n_par = max(1, min(n_threads, nsamp // 256))
     for part in numba.prange(n_par):
         _regressor_part(q, qd, qdd, r0s, p0s, axes, revolute, parents, anc, gravity, dest, out,
-                        part * nsamp // n_par, (part + 1) * nsamp // n_par, zero)
+                        part * nsamp // n_par, (part + 1) * nsamp // n_par, zero_cols)
 
 
 @numba.njit(cache=True, nogil=True)
 def _regressor_part(q, qd, qdd, r0s, p0s, axes, revolute, parents, anc, gravity, dest,  # noqa: C901
-                    out, k0, k1, zero):
+                    out, k0, k1, zero_cols):
     """Newton–Euler regressor for samples [k0, k1): entry (row i, column c) of a sample goes
-    to out[k, dest[i, c]] (skipped where dest is −1).
+    to out[k, dest[i, c]] (skipped where dest is −1); out[k, zero_cols] is set to zero.
 
     Each body carries, with its velocity and acceleration, the axes of its ancestor joints
-    expressed in its own frame; row i of body j's block is s_iᵀ·A_j(v_j, a_j).
+    expressed in its own frame; row i of body j's block is s_iᵀ·A_j(v_j, a_j). A sample's
+    frames and body regressor live in registers (``spatial``'s tuples).
     """
     n = q.shape[0]
     vel = np.zeros((n, 6))
     acc = np.zeros((n, 6))
     s_ax = np.zeros((n, n, 6))
-    rot = np.zeros((3, 3))
-    body = np.zeros((6, 10))
-    src = np.zeros(6)
     for k in range(k0, k1):
-        if zero:  # the dense layout: entries no joint row reaches stay zero
-            for c in range(out.shape[1]):
-                out[k, c] = 0.0
+        for c in zero_cols:  # the dense layout: entries no joint row reaches
+            out[k, c] = 0.0
         for j in range(n):
-            u0, u1, u2 = axes[j, 0], axes[j, 1], axes[j, 2]
+            rot, pos = joint_frame(r0s, p0s, axes, revolute, j, q[j, k])
             par = parents[j]
-            # R = R0 · Rot(u, q) (revolute) or R0 (prismatic); p likewise
-            if revolute[j]:
-                c, s = np.cos(q[j, k]), np.sin(q[j, k])
+            # the parent's velocity, acceleration (the base: at rest, −g) and ancestor axes
+            if par < 0:
+                v = to_child(rot, pos, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+                a = to_child(rot, pos, -gravity[0], -gravity[1], -gravity[2], 0.0, 0.0, 0.0)
             else:
-                c, s = 1.0, 0.0
-            t = 1.0 - c
-            rx00, rx01, rx02 = t * u0 * u0 + c, t * u0 * u1 - s * u2, t * u0 * u2 + s * u1
-            rx10, rx11, rx12 = t * u0 * u1 + s * u2, t * u1 * u1 + c, t * u1 * u2 - s * u0
-            rx20, rx21, rx22 = t * u0 * u2 - s * u1, t * u1 * u2 + s * u0, t * u2 * u2 + c
-            for a in range(3):
-                rot[a, 0] = r0s[j, a, 0] * rx00 + r0s[j, a, 1] * rx10 + r0s[j, a, 2] * rx20
-                rot[a, 1] = r0s[j, a, 0] * rx01 + r0s[j, a, 1] * rx11 + r0s[j, a, 2] * rx21
-                rot[a, 2] = r0s[j, a, 0] * rx02 + r0s[j, a, 1] * rx12 + r0s[j, a, 2] * rx22
-            px, py, pz = p0s[j, 0], p0s[j, 1], p0s[j, 2]
-            if not revolute[j]:
-                dq = q[j, k]
-                px += (r0s[j, 0, 0] * u0 + r0s[j, 0, 1] * u1 + r0s[j, 0, 2] * u2) * dq
-                py += (r0s[j, 1, 0] * u0 + r0s[j, 1, 1] * u1 + r0s[j, 1, 2] * u2) * dq
-                pz += (r0s[j, 2, 0] * u0 + r0s[j, 2, 1] * u1 + r0s[j, 2, 2] * u2) * dq
-            # transform the parent's v, a and ancestor axes: ang' = Rᵀ ang, lin' = Rᵀ(lin − p×ang)
-            n_vec = 2 + j
-            for m in range(n_vec):
-                if m >= 2 and (par < 0 or not anc[par, m - 2]):
-                    continue
-                if par < 0:
-                    for a in range(6):
-                        src[a] = 0.0
-                    if m == 1:
-                        src[0], src[1], src[2] = -gravity[0], -gravity[1], -gravity[2]
-                elif m == 0:
-                    for a in range(6):
-                        src[a] = vel[par, a]
-                elif m == 1:
-                    for a in range(6):
-                        src[a] = acc[par, a]
-                else:
-                    for a in range(6):
-                        src[a] = s_ax[par, m - 2, a]
-                l0 = src[0] - (py * src[5] - pz * src[4])
-                l1 = src[1] - (pz * src[3] - px * src[5])
-                l2 = src[2] - (px * src[4] - py * src[3])
-                dst0 = rot[0, 0] * l0 + rot[1, 0] * l1 + rot[2, 0] * l2
-                dst1 = rot[0, 1] * l0 + rot[1, 1] * l1 + rot[2, 1] * l2
-                dst2 = rot[0, 2] * l0 + rot[1, 2] * l1 + rot[2, 2] * l2
-                dst3 = rot[0, 0] * src[3] + rot[1, 0] * src[4] + rot[2, 0] * src[5]
-                dst4 = rot[0, 1] * src[3] + rot[1, 1] * src[4] + rot[2, 1] * src[5]
-                dst5 = rot[0, 2] * src[3] + rot[1, 2] * src[4] + rot[2, 2] * src[5]
-                if m == 0:
-                    vel[j, 0], vel[j, 1], vel[j, 2] = dst0, dst1, dst2
-                    vel[j, 3], vel[j, 4], vel[j, 5] = dst3, dst4, dst5
-                elif m == 1:
-                    acc[j, 0], acc[j, 1], acc[j, 2] = dst0, dst1, dst2
-                    acc[j, 3], acc[j, 4], acc[j, 5] = dst3, dst4, dst5
-                else:
-                    s_ax[j, m - 2, 0], s_ax[j, m - 2, 1], s_ax[j, m - 2, 2] = dst0, dst1, dst2
-                    s_ax[j, m - 2, 3], s_ax[j, m - 2, 4], s_ax[j, m - 2, 5] = dst3, dst4, dst5
-            # joint motion: v += S qd; a += S qdd + v × (S qd) (with v before the update)
-            vd, ad = qd[j, k], qdd[j, k]
-            vl0, vl1, vl2 = vel[j, 0], vel[j, 1], vel[j, 2]
-            w0, w1, w2 = vel[j, 3], vel[j, 4], vel[j, 5]
-            for a in range(6):
-                s_ax[j, j, a] = 0.0
+                v = to_child(rot, pos, vel[par, 0], vel[par, 1], vel[par, 2], vel[par, 3],
+                             vel[par, 4], vel[par, 5])
+                a = to_child(rot, pos, acc[par, 0], acc[par, 1], acc[par, 2], acc[par, 3],
+                             acc[par, 4], acc[par, 5])
+                for i in range(j):
+                    if anc[par, i]:
+                        x = to_child(rot, pos, s_ax[par, i, 0], s_ax[par, i, 1],
+                                     s_ax[par, i, 2], s_ax[par, i, 3], s_ax[par, i, 4],
+                                     s_ax[par, i, 5])
+                        for e in range(6):
+                            s_ax[j, i, e] = x[e]
+            u0, u1, u2 = axes[j, 0], axes[j, 1], axes[j, 2]
+            v, a = joint_motion(revolute[j], u0, u1, u2, qd[j, k], qdd[j, k], v, a)
+            for e in range(6):
+                vel[j, e] = v[e]
+                acc[j, e] = a[e]
             if revolute[j]:
-                e0, e1, e2 = u0 * vd, u1 * vd, u2 * vd
-                acc[j, 0] += vl1 * e2 - vl2 * e1
-                acc[j, 1] += vl2 * e0 - vl0 * e2
-                acc[j, 2] += vl0 * e1 - vl1 * e0
-                acc[j, 3] += w1 * e2 - w2 * e1 + u0 * ad
-                acc[j, 4] += w2 * e0 - w0 * e2 + u1 * ad
-                acc[j, 5] += w0 * e1 - w1 * e0 + u2 * ad
-                vel[j, 3] += e0
-                vel[j, 4] += e1
-                vel[j, 5] += e2
+                s_ax[j, j, 0], s_ax[j, j, 1], s_ax[j, j, 2] = 0.0, 0.0, 0.0
                 s_ax[j, j, 3], s_ax[j, j, 4], s_ax[j, j, 5] = u0, u1, u2
             else:
-                e0, e1, e2 = u0 * vd, u1 * vd, u2 * vd
-                acc[j, 0] += w1 * e2 - w2 * e1 + u0 * ad
-                acc[j, 1] += w2 * e0 - w0 * e2 + u1 * ad
-                acc[j, 2] += w0 * e1 - w1 * e0 + u2 * ad
-                vel[j, 0] += e0
-                vel[j, 1] += e1
-                vel[j, 2] += e2
                 s_ax[j, j, 0], s_ax[j, j, 1], s_ax[j, j, 2] = u0, u1, u2
-            # body regressor A (6, 10): I·a + v×*(I·v) linear in [m, h, I_O]
-            vl0, vl1, vl2 = vel[j, 0], vel[j, 1], vel[j, 2]
-            w0, w1, w2 = vel[j, 3], vel[j, 4], vel[j, 5]
-            a0, a1, a2 = acc[j, 3], acc[j, 4], acc[j, 5]
-            c0 = acc[j, 0] + w1 * vl2 - w2 * vl1
-            c1 = acc[j, 1] + w2 * vl0 - w0 * vl2
-            c2 = acc[j, 2] + w0 * vl1 - w1 * vl0
-            body[0, 0], body[1, 0], body[2, 0] = c0, c1, c2
-            body[0, 1], body[0, 2], body[0, 3] = -(w1 * w1 + w2 * w2), w0 * w1 - a2, w0 * w2 + a1
-            body[1, 1], body[1, 2], body[1, 3] = w0 * w1 + a2, -(w0 * w0 + w2 * w2), w1 * w2 - a0
-            body[2, 1], body[2, 2], body[2, 3] = w0 * w2 - a1, w1 * w2 + a0, -(w0 * w0 + w1 * w1)
-            body[3, 1], body[3, 2], body[3, 3] = 0.0, c2, -c1
-            body[4, 1], body[4, 2], body[4, 3] = -c2, 0.0, c0
-            body[5, 1], body[5, 2], body[5, 3] = c1, -c0, 0.0
+                s_ax[j, j, 3], s_ax[j, j, 4], s_ax[j, j, 5] = 0.0, 0.0, 0.0
+            # body regressor A (6, 10): I·a + v×*(I·v) linear in [m, h, I_O]; bRC is A[R, C]
+            vl0, vl1, vl2, w0, w1, w2 = v
+            a0, a1, a2 = a[3], a[4], a[5]
+            c0 = a[0] + w1 * vl2 - w2 * vl1
+            c1 = a[1] + w2 * vl0 - w0 * vl2
+            c2 = a[2] + w0 * vl1 - w1 * vl0
+            b01, b02, b03 = -(w1 * w1 + w2 * w2), w0 * w1 - a2, w0 * w2 + a1
+            b11, b12, b13 = w0 * w1 + a2, -(w0 * w0 + w2 * w2), w1 * w2 - a0
+            b21, b22, b23 = w0 * w2 - a1, w1 * w2 + a0, -(w0 * w0 + w1 * w1)
+            b32, b33 = c2, -c1  # b31 = b42 = b53 = 0
+            b41, b43 = -c2, c0
+            b51, b52 = c1, -c0
             # L(a_w) + [w]× L(w); L(w) rows: (w0, w1, 0, w2, 0, 0), (0, w0, w1, 0, w2, 0),
             # (0, 0, 0, w0, w1, w2) over columns xx, xy, yy, xz, yz, zz
-            body[3, 4] = a0
-            body[3, 5] = a1 + (w1 * 0.0 - w2 * w0)
-            body[3, 6] = -w2 * w1
-            body[3, 7] = a2 + w1 * w0
-            body[3, 8] = w1 * w1 - w2 * w2
-            body[3, 9] = w1 * w2
-            body[4, 4] = w2 * w0
-            body[4, 5] = a0 + w2 * w1
-            body[4, 6] = a1
-            body[4, 7] = w2 * w2 - w0 * w0
-            body[4, 8] = a2 - w0 * w1
-            body[4, 9] = -w0 * w2
-            body[5, 4] = -w1 * w0
-            body[5, 5] = w0 * w0 - w1 * w1
-            body[5, 6] = w0 * w1
-            body[5, 7] = a0 - w1 * w2
-            body[5, 8] = a1 + w0 * w2
-            body[5, 9] = a2
+            b34 = a0
+            b35 = a1 + (w1 * 0.0 - w2 * w0)
+            b36 = -w2 * w1
+            b37 = a2 + w1 * w0
+            b38 = w1 * w1 - w2 * w2
+            b39 = w1 * w2
+            b44 = w2 * w0
+            b45 = a0 + w2 * w1
+            b46 = a1
+            b47 = w2 * w2 - w0 * w0
+            b48 = a2 - w0 * w1
+            b49 = -w0 * w2
+            b54 = -w1 * w0
+            b55 = w0 * w0 - w1 * w1
+            b56 = w0 * w1
+            b57 = a0 - w1 * w2
+            b58 = a1 + w0 * w2
+            b59 = a2
             # row i of the block: s_iᵀ·A, over A's structural non-zeros only (the mass
             # column has no moment rows, the inertia columns no force rows): the same sums
+            base = 10 * j
             for i in range(j + 1):
                 if not anc[j, i]:
                     continue
                 s0, s1, s2 = s_ax[j, i, 0], s_ax[j, i, 1], s_ax[j, i, 2]
                 s3, s4, s5 = s_ax[j, i, 3], s_ax[j, i, 4], s_ax[j, i, 5]
-                base = 10 * j
-                d = dest[i, base]
+                to = dest[i]
+                d = to[base]
                 if d >= 0:
-                    out[k, d] = s0 * body[0, 0] + s1 * body[1, 0] + s2 * body[2, 0]
-                d = dest[i, base + 1]
+                    out[k, d] = s0 * c0 + s1 * c1 + s2 * c2
+                d = to[base + 1]
                 if d >= 0:
-                    out[k, d] = s0 * body[0, 1] + s1 * body[1, 1] + s2 * body[2, 1] \
-                        + s4 * body[4, 1] + s5 * body[5, 1]
-                d = dest[i, base + 2]
+                    out[k, d] = s0 * b01 + s1 * b11 + s2 * b21 + s4 * b41 + s5 * b51
+                d = to[base + 2]
                 if d >= 0:
-                    out[k, d] = s0 * body[0, 2] + s1 * body[1, 2] + s2 * body[2, 2] \
-                        + s3 * body[3, 2] + s5 * body[5, 2]
-                d = dest[i, base + 3]
+                    out[k, d] = s0 * b02 + s1 * b12 + s2 * b22 + s3 * b32 + s5 * b52
+                d = to[base + 3]
                 if d >= 0:
-                    out[k, d] = s0 * body[0, 3] + s1 * body[1, 3] + s2 * body[2, 3] \
-                        + s3 * body[3, 3] + s4 * body[4, 3]
-                for col in range(4, 10):
-                    d = dest[i, base + col]
-                    if d >= 0:
-                        out[k, d] = s3 * body[3, col] + s4 * body[4, col] + s5 * body[5, col]
+                    out[k, d] = s0 * b03 + s1 * b13 + s2 * b23 + s3 * b33 + s4 * b43
+                d = to[base + 4]
+                if d >= 0:
+                    out[k, d] = s3 * b34 + s4 * b44 + s5 * b54
+                d = to[base + 5]
+                if d >= 0:
+                    out[k, d] = s3 * b35 + s4 * b45 + s5 * b55
+                d = to[base + 6]
+                if d >= 0:
+                    out[k, d] = s3 * b36 + s4 * b46 + s5 * b56
+                d = to[base + 7]
+                if d >= 0:
+                    out[k, d] = s3 * b37 + s4 * b47 + s5 * b57
+                d = to[base + 8]
+                if d >= 0:
+                    out[k, d] = s3 * b38 + s4 * b48 + s5 * b58
+                d = to[base + 9]
+                if d >= 0:
+                    out[k, d] = s3 * b39 + s4 * b49 + s5 * b59
 
 
 def robot_arrays(robot: Robot) -> tuple[np.ndarray, ...]:
@@ -228,22 +180,26 @@ def rigid_regressor(
     """
     q, qd, qdd = (np.ascontiguousarray(np.atleast_2d(x), dtype=float).T for x in (q, qd, qdd))
     n, nsamp = q.shape
-    dense = dest is None
+    arrays = robot_arrays(robot)
     if dest is None:
         dest = np.arange(n * 10 * n, dtype=np.int64).reshape(n, 10 * n)
         if out is None:
             out = np.empty((nsamp, n, 10 * n))
         flat = out.reshape(nsamp, n * 10 * n)
+        # blocks (row i, body j) the kernel writes: i an ancestor of j (or j); zero elsewhere
+        block = np.tril(arrays[5]).T  # [i, j]
+        zero_cols = dest[~np.repeat(block, 10, axis=1)]
     else:
         if out is None:
             raise ValueError("rigid_regressor: a compact dest needs an out array")
         flat = out
-    args = (q, qd, qdd, *robot_arrays(robot), np.ascontiguousarray(dest, np.int64), flat)
+        zero_cols = np.zeros(0, dtype=np.int64)
+    args = (q, qd, qdd, *arrays, np.ascontiguousarray(dest, np.int64), flat)
     threads = kernel_threads()
     if threads == 1:
-        _regressor_part(*args, 0, nsamp, dense)
+        _regressor_part(*args, 0, nsamp, zero_cols)
     else:
-        _regressor_kernel(*args, threads, dense)
+        _regressor_kernel(*args, threads, zero_cols)
     return out
 
 

@@ -31,9 +31,11 @@ def kernel_threads() -> int:
 
 def in_slots(tasks: Sequence[T], work: Callable[[T, int], None], slots: int = SLOTS) -> None:
     """``work(task, slot)`` for every task, slot k taking tasks k, k + slots, … in order on
-    a thread of its own (one thread, the caller's, when there is one task or one core).
+    a thread of its own (one thread, the caller's, when there is one task or one core, or
+    when the caller is a slot itself: passes do not nest threads).
     The first error raised in a slot is raised here, after every slot stopped."""
-    if len(tasks) <= 1 or slots <= 1 or numba.get_num_threads() <= 1:
+    if len(tasks) <= 1 or slots <= 1 or numba.get_num_threads() <= 1 or \
+            getattr(_local, "serial", False):
         for i, task in enumerate(tasks):
             _serial(work, task, i % slots)
         return

@@ -1,0 +1,82 @@
+"""Exact percentiles of values read a window at a time, without an array of every value:
+np.percentile's numbers (its linear method) from two passes over the windows — a histogram of
+the values' leading bits, then the values of the buckets that hold the two ranks it reads.
+
+A long log's statistics (its joints' typical speeds) then cost two reads of its windows and a
+few megabytes, not an array of every row.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import TypeVar
+
+import numpy as np
+
+from robid_link.ident.model.threads import SLOTS, in_slots
+
+__all__ = ["percentile_streamed"]
+
+T = TypeVar("T")
+
+#: a float64's leading bits kept as its bucket (sign, exponent and 4 bits of mantissa): the
+#: bits of a value ≥ 0 read as an integer grow with it, so buckets are ordered as the values
+_SHIFT = 48
+_BUCKETS = 1 << (64 - _SHIFT - 1)
+
+
+def percentile_streamed(tasks: Sequence[T], values: Callable[[T], np.ndarray], q: float,
+                        width: int) -> np.ndarray:
+    """Per column, ``np.percentile(all_rows, q, axis=0)`` of the rows of ``values(task)`` over
+    every task ((m, width) arrays of finite values ≥ 0, e.g. speeds), each task read twice,
+    in ``in_slots``. NaN for a column when there are no rows."""
+    counts = [np.zeros((width, _BUCKETS), dtype=np.int64) for _ in range(SLOTS)]
+
+    def count(task: T, slot: int) -> None:
+        ids = _bucket_ids(values(task))
+        for j in range(width):
+            counts[slot][j] += np.bincount(ids[j], minlength=_BUCKETS)
+
+    in_slots(tasks, count)
+    hist = np.sum(counts, axis=0)
+    total = int(hist[0].sum())
+    if total == 0:
+        return np.full(width, np.nan)
+    # the ranks np.percentile reads (its _get_indexes and _get_gamma, linear method)
+    virtual = (total - 1) * np.true_divide(q, 100)
+    prev = int(np.floor(virtual))
+    nxt = prev + 1
+    if virtual >= total - 1:
+        prev = nxt = total - 1
+    gamma = virtual - (np.floor(virtual) if virtual < total - 1 else -1.0)
+    cum = np.cumsum(hist, axis=1)
+    lo = np.array([np.searchsorted(cum[j], prev, side="right") for j in range(width)])
+    hi = np.array([np.searchsorted(cum[j], nxt, side="right") for j in range(width)])
+    found: list[list[np.ndarray]] = [[] for _ in tasks]
+
+    def collect(k: int, slot: int) -> None:
+        v = values(tasks[k])
+        ids = _bucket_ids(v)
+        found[k] = [v[(ids[j] >= lo[j]) & (ids[j] <= hi[j]), j] for j in range(width)]
+
+    in_slots(range(len(tasks)), collect)
+    out = np.empty(width)
+    for j in range(width):
+        kept = np.sort(np.concatenate([f[j] for f in found if f]))
+        below = int(cum[j, lo[j] - 1]) if lo[j] > 0 else 0
+        a, b = kept[prev - below], kept[nxt - below]
+        out[j] = _lerp(a, b, gamma)
+    return out
+
+
+def _bucket_ids(v: np.ndarray) -> np.ndarray:
+    """(width, m) bucket of every value of v (m, width), ≥ 0."""
+    return np.ascontiguousarray(v.T).view(np.int64) >> _SHIFT
+
+
+def _lerp(a: float, b: float, t: float) -> float:
+    """np.percentile's interpolation between the ranks' values (numpy's _lerp)."""
+    diff = np.float64(b) - np.float64(a)
+    if t >= 0.5:
+        return float(np.float64(b) - diff * (1 - t))
+    return float(np.float64(a) + diff * t)

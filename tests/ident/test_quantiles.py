@@ -1,0 +1,32 @@
+"""Percentiles of values read a window at a time: np.percentile's numbers without an array of
+every value (a long log's typical speeds)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robid_link.ident.data.quantiles import percentile_streamed
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 1000, 20_001])
+@pytest.mark.parametrize("kind", ["spread", "ties", "zeros", "constant"])
+def test_streamed_percentile_is_numpys_to_the_bit(n, kind):
+    rng = np.random.default_rng(n)
+    x = np.abs(rng.normal(size=(n, 3))) * 10.0 ** rng.uniform(-6, 3, size=3)
+    if kind == "ties":
+        x = np.round(x, 1)
+    elif kind == "zeros":
+        x[rng.random(x.shape) < 0.4] = 0.0
+    elif kind == "constant":
+        x[:] = 2.5
+    cuts = np.sort(rng.choice(np.arange(1, n), size=min(n - 1, 4), replace=False)) if n > 1 else []
+    windows = np.split(x, cuts)
+    for q in (0.0, 33.3, 50.0, 95.0, 100.0):
+        got = percentile_streamed(range(len(windows)), lambda k: windows[k], q, 3)
+        np.testing.assert_array_equal(got, np.percentile(x, q, axis=0))
+
+
+def test_streamed_percentile_of_no_rows_is_nan():
+    got = percentile_streamed([], lambda k: np.zeros((0, 2)), 95.0, 2)
+    assert np.isnan(got).all()
