@@ -240,7 +240,7 @@ def rigid_regressor(
         flat = out
     args = (q, qd, qdd, *robot_arrays(robot), np.ascontiguousarray(dest, np.int64), flat)
     threads = kernel_threads()
-    if threads == 1:
+    if threads == 1 or nsamp < 512:  # one part either way: no thread launch
         _regressor_part(*args, 0, nsamp, dense)
     else:
         _regressor_kernel(*args, threads, dense)
