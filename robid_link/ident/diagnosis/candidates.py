@@ -6,6 +6,7 @@ which parameters), and the in-sample screen (can it remove SCREEN_MIN of the res
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -76,18 +77,28 @@ def coupled_sides(robot: Robot, default: np.ndarray | None) -> list[tuple[str, i
     return [("joint", i) for i in joints]
 
 
-def profile_candidates(rows: ProfileRows, candidates: list[Block]
-                       ) -> tuple[list[Block], set[str]]:
+def profile_candidates(rows: ProfileRows, candidates: list[Block],
+                       aside: Executor | None = None) -> tuple[list[Block], set[str]]:
     """Each effect's free hyper-parameter chosen on its grid, for all its joints at once
     (refined later, for the candidates that survive the screens); and the keys of the
-    candidates that had one."""
+    candidates that had one. Effects are profiled independently: with ``aside`` those with
+    several hyper-parameters (two rounds each) are profiled on that executor meanwhile."""
     profiled = {b.key for b in candidates if b.free_hypers()}
-    for name in sorted({b.effect.name for b in candidates if b.free_hypers()}):
-        group = [b for b in candidates if b.effect.name == name]
-        chosen = dict(zip(map(id, group), profile_effect(rows, group, refine=False),
-                          strict=True))
-        candidates = [chosen.get(id(b), b) for b in candidates]
-    return candidates, profiled
+    groups = {name: [b for b in candidates if b.effect.name == name]
+              for name in sorted({b.effect.name for b in candidates if b.free_hypers()})}
+    beside = {}
+    if aside is not None:
+        for b in candidates:  # the joints' bases first: both threads read them
+            if b.free_hypers() and b.joint is not None and b.effect.name != "ripple":
+                rows.beyond(b)
+        beside = {name: aside.submit(profile_effect, rows, group, False)
+                  for name, group in groups.items() if len(group[0].free_hypers()) > 1}
+    chosen: dict[int, Block] = {}
+    for name, group in groups.items():
+        done = beside[name].result() if name in beside else profile_effect(rows, group,
+                                                                            refine=False)
+        chosen.update(zip(map(id, group), done, strict=True))
+    return [chosen.get(id(b), b) for b in candidates], profiled
 
 
 def drop_slow_ripples(candidates: list[Block], states: States) -> list[Block]:

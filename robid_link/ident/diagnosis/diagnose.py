@@ -108,7 +108,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         # the candidates: profiled, then screened (structure, then in-sample) on a few rows
         rows = profile_rows(robot, pool)
         candidates, profiled = profile_candidates(
-            rows, catalog_candidates(robot, model, pool.problem.transmission))
+            rows, catalog_candidates(robot, model, pool.problem.transmission), aside)
         candidates = drop_slow_ripples(candidates, pool.states)
         # a ripple's refinement projects off the model's basis on all the profiling rows:
         # that SVD is made beside the screens when a ripple will pass them

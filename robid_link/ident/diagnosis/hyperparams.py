@@ -37,6 +37,9 @@ class ProfileRows:
     resid: np.ndarray  # raw torque minus the current model (profiling: no column filtered)
     resid_filtered: np.ndarray  # the parallel-filtered residual (screen, ripple spectrum)
     model_cols: np.ndarray  # the model's dense regressor on these rows (N, n, p)
+    #: the grids' shares by candidate and hyper-parameters (Stribeck's two rounds repeat some)
+    tried: dict[tuple[str, tuple[tuple[str, float], ...]], float] = field(
+        default_factory=dict, repr=False)
     _helpers: dict[tuple[int, ...], np.ndarray] = field(default_factory=dict, repr=False)
     _beyonds: dict[tuple[int, ...], Beyond] = field(default_factory=dict, repr=False)
     _beyond_model: Beyond | None = field(default=None, repr=False)
@@ -246,12 +249,18 @@ def _profile_effect_grid(rows: ProfileRows, blocks: list[Block], hyper: str,
     beyond = {bi: rows.beyond(b) for bi, b in enumerate(blocks) if b.joint is not None}
     for gi, row in enumerate(values):
         for bi, (b, v) in enumerate(zip(blocks, row, strict=True)):
-            cols = b.with_opts(**{hyper: float(v)}).columns(rows.robot, rows.states)
+            trial = b.with_opts(**{hyper: float(v)})
+            key = (trial.key, tuple(sorted(trial.opts.items())))
+            if key in rows.tried:  # a second round meets the first's trials again
+                score[gi, bi] = rows.tried[key]
+                continue
+            cols = trial.columns(rows.robot, rows.states)
             if b.joint is not None:
                 score[gi, bi] = beyond[bi].share(rows.stacked(b, cols))
             else:  # a global effect: all joints' residual together
                 score[gi, bi] = Beyond(no_helpers, rows.resid.reshape(-1)).share(
                     cols.reshape(-1, cols.shape[2]))
+            rows.tried[key] = score[gi, bi]
     best = np.argmax(score, axis=0)
     return [b.with_opts(**{hyper: float(values[best[bi], bi])}) for bi, b in enumerate(blocks)]
 
