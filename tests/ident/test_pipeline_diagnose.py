@@ -17,6 +17,7 @@ from robid_link.ident.diagnosis import diagnose as diagnose_module
 from robid_link.ident.diagnosis.candidates import (
     SCREEN_MIN,
     Candidate,
+    ColumnSpace,
     InSample,
     Structural,
     catalog_candidates,
@@ -29,7 +30,7 @@ from robid_link.ident.diagnosis.candidates import (
     structural_screen,
 )
 from robid_link.ident.diagnosis.evidence import Signatures, evidence_sentence
-from robid_link.ident.diagnosis.hyperparams import screen
+from robid_link.ident.diagnosis.hyperparams import screen, screens
 from robid_link.ident.diagnosis.residuals import profile_rows, residual_dict, residual_pool
 from robid_link.ident.diagnosis.scoring import (
     FOLDS,
@@ -200,6 +201,8 @@ def test_structural_screen_reports_what_absorbs_a_candidate(arm3):
     assert [(c.block.key, c.new) for c in out.new] == [("armature@3", [0]), ("offset@3", [0]),
                                                        ("ripple@1", [0, 1])]
     assert out.silent == []
+    one_by_one = [ColumnSpace(arm3, blocks, base, None).check(b) for b in cands]
+    assert ColumnSpace(arm3, blocks, base, None).check_all(cands) == one_by_one
 
 
 def test_insample_screen_drops_a_candidate_that_cannot_remove_five_percent(arm3, ripple):
@@ -208,6 +211,36 @@ def test_insample_screen_drops_a_candidate_that_cannot_remove_five_percent(arm3,
     out = insample_screen(ripple.rows, [Candidate(offset, [0]), Candidate(rip, [0, 1])])
     assert [c.block for c in out.kept] == [rip] and out.dropped == 1
     assert SCREEN_MIN == pytest.approx(1 - (1 - GAIN_MIN / 2) ** 2)
+
+
+def test_screens_of_many_candidates_equal_each_screen(arm3, ripple):
+    """The batched screen (the model's span joint by joint, no SVD of all the rows) gives
+    what one candidate's projection off the model's basis gives."""
+    blocks = [_block("offset", 2), _block("ripple", 1, period=0.1), _block("spring", 3),
+              _block("coulomb_asymmetric", 3), _block("delay", None),
+              _block("friction_power", 1, alpha=0.5), _block("stribeck", 3, vs=0.05)]
+    np.testing.assert_allclose(screens(ripple.rows, blocks),
+                               [screen(ripple.rows, b) for b in blocks], rtol=1e-6, atol=1e-9)
+    # joint 2's rotor inertia is in the model's span on these rows: both shares are rounding
+    # noise, far under the screen's threshold
+    armature = _block("armature", 2)
+    assert max(screens(ripple.rows, [armature])[0], screen(ripple.rows, armature)) < 1e-2
+
+
+def test_model_span_projects_like_the_models_basis(ripple):
+    rows = ripple.rows
+    span, u = rows.model_span, rows.beyond_model.u
+    n_rows, n, _ = rows.model_cols.shape
+    cols = np.random.default_rng(0).normal(size=(n_rows, 2, 3))
+    own, z = span.project_off([0, 2], cols)
+    full = np.zeros((n_rows, n, 3))
+    full[:, [0, 2], :] = cols
+    flat = full.reshape(-1, 3)
+    beyond = (flat - u @ (u.T @ flat)).reshape(n_rows, n, 3)
+    np.testing.assert_allclose(own, beyond[:, [0, 2], :], atol=1e-9)
+    m = rows.model_cols[:, 1, :]
+    np.testing.assert_allclose(-m @ z, beyond[:, 1, :], atol=1e-9)
+    np.testing.assert_allclose(span.y_perp.reshape(-1), rows.beyond_model.y, atol=1e-9)
 
 
 def test_refine_survivors_moves_only_the_profiled(ripple):

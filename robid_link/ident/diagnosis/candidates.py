@@ -6,6 +6,7 @@ which parameters), and the in-sample screen (can it remove SCREEN_MIN of the res
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -15,7 +16,7 @@ from robid_link.ident.diagnosis.hyperparams import (
     ProfileRows,
     profile_effect,
     refine_effect,
-    screen,
+    screens,
 )
 from robid_link.ident.diagnosis.verdict import GAIN_MIN
 from robid_link.ident.fit.design import block_columns, random_states
@@ -76,18 +77,28 @@ def coupled_sides(robot: Robot, default: np.ndarray | None) -> list[tuple[str, i
     return [("joint", i) for i in joints]
 
 
-def profile_candidates(rows: ProfileRows, candidates: list[Block]
-                       ) -> tuple[list[Block], set[str]]:
+def profile_candidates(rows: ProfileRows, candidates: list[Block],
+                       aside: Executor | None = None) -> tuple[list[Block], set[str]]:
     """Each effect's free hyper-parameter chosen on its grid, for all its joints at once
     (refined later, for the candidates that survive the screens); and the keys of the
-    candidates that had one."""
+    candidates that had one. Effects are profiled independently: with ``aside`` those with
+    several hyper-parameters (two rounds each) are profiled on that executor meanwhile."""
     profiled = {b.key for b in candidates if b.free_hypers()}
-    for name in sorted({b.effect.name for b in candidates if b.free_hypers()}):
-        group = [b for b in candidates if b.effect.name == name]
-        chosen = dict(zip(map(id, group), profile_effect(rows, group, refine=False),
-                          strict=True))
-        candidates = [chosen.get(id(b), b) for b in candidates]
-    return candidates, profiled
+    groups = {name: [b for b in candidates if b.effect.name == name]
+              for name in sorted({b.effect.name for b in candidates if b.free_hypers()})}
+    beside = {}
+    if aside is not None:
+        for b in candidates:  # the joints' bases first: both threads read them
+            if b.free_hypers() and b.joint is not None and b.effect.name != "ripple":
+                rows.beyond(b)
+        beside = {name: aside.submit(profile_effect, rows, group, False)
+                  for name, group in groups.items() if len(group[0].free_hypers()) > 1}
+    chosen: dict[int, Block] = {}
+    for name, group in groups.items():
+        done = beside[name].result() if name in beside else profile_effect(rows, group,
+                                                                            refine=False)
+        chosen.update(zip(map(id, group), done, strict=True))
+    return [chosen.get(id(b), b) for b in candidates], profiled
 
 
 def drop_slow_ripples(candidates: list[Block], states: States) -> list[Block]:
@@ -116,21 +127,36 @@ class ColumnSpace:
         self.q, _ = np.linalg.qr(self.w)
 
     def check(self, blk: Block) -> tuple[list[int], list[str]]:
-        wc = blk.columns(self.robot, self.states)
-        wc = wc.reshape(-1, wc.shape[-1])
-        norms = np.linalg.norm(wc, axis=0)
+        return self.check_all([blk])[0]
+
+    def check_all(self, blocks: Sequence[Block]) -> list[tuple[list[int], list[str]]]:
+        """``check`` of many candidates: their normalized columns projected off the model's
+        basis in one product, then each candidate's columns against its own new ones."""
+        flat = [c.reshape(-1, c.shape[-1]) for c in
+                (blk.columns(self.robot, self.states) for blk in blocks)]
+        norms = np.linalg.norm(np.concatenate(flat, axis=1), axis=0)
+        v = np.concatenate(flat, axis=1) / np.maximum(norms, 1e-300)
+        beyond = v - self.q @ (self.q.T @ v)
+        out, at = [], 0
+        for wc in flat:
+            sl = slice(at, at + wc.shape[1])
+            at = sl.stop
+            out.append(self._new_columns(wc, norms[sl], v[:, sl], beyond[:, sl]))
+        return out
+
+    def _new_columns(self, wc: np.ndarray, norms: np.ndarray, v: np.ndarray,
+                     beyond: np.ndarray) -> tuple[list[int], list[str]]:
         if not np.any(norms > 1e-12):
             return [], []  # no column on these states at all: nothing absorbs it
         new: list[int] = []
-        basis = self.q
+        extra = np.zeros((wc.shape[0], 0))  # directions of the candidate's new columns
         for i in range(wc.shape[1]):
             if norms[i] <= 1e-12:
                 continue
-            v = wc[:, i] / norms[i]
-            r = v - basis @ (basis.T @ v)
+            r = beyond[:, i] - extra @ (extra.T @ v[:, i])
             if np.linalg.norm(r) > 1e-7:
                 new.append(i)
-                basis = np.column_stack((basis, r / np.linalg.norm(r)))
+                extra = np.column_stack((extra, r / np.linalg.norm(r)))
         by: list[str] = []
         if not new:
             coef, *_ = np.linalg.lstsq(self.w, wc / np.maximum(norms, 1e-300), rcond=None)
@@ -166,8 +192,7 @@ def structural_screen(robot: Robot, blocks: Sequence[Block], base: BaseSet,
     new: list[Candidate] = []
     absorbed: list[dict[str, Any]] = []
     silent: list[str] = []
-    for blk in candidates:
-        cols, by = space.check(blk)
+    for blk, (cols, by) in zip(candidates, space.check_all(candidates), strict=True):
         if cols:
             new.append(Candidate(blk, cols))
         elif by:
@@ -188,7 +213,8 @@ class InSample:
 def insample_screen(rows: ProfileRows, candidates: list[Candidate]) -> InSample:
     """A candidate that cannot explain SCREEN_MIN of its joint's filtered residual even
     in-sample cannot reach GAIN_MIN held out: not worth a union column."""
-    kept = [c for c in candidates if not screen(rows, c.block) < SCREEN_MIN]
+    shares = screens(rows, [c.block for c in candidates])
+    kept = [c for c, share in zip(candidates, shares, strict=True) if not share < SCREEN_MIN]
     return InSample(kept, len(candidates) - len(kept))
 
 

@@ -13,6 +13,7 @@ ranking (verdict.py); the sentence of evidence under each suggestion (evidence.p
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +23,7 @@ from robid_link.exceptions import DataError
 from robid_link.ident.data.logs import Log
 from robid_link.ident.data.preprocess import Prepared
 from robid_link.ident.diagnosis.candidates import (
+    SCREEN_MIN,
     catalog_candidates,
     drop_slow_ripples,
     insample_screen,
@@ -30,7 +32,8 @@ from robid_link.ident.diagnosis.candidates import (
     screen_notes,
     structural_screen,
 )
-from robid_link.ident.diagnosis.evidence import Counterbalance, Signatures, counterbalances
+from robid_link.ident.diagnosis.evidence import Signatures, counterbalances
+from robid_link.ident.diagnosis.hyperparams import ProfileRows, screens
 from robid_link.ident.diagnosis.limits import (
     limited_candidates,
     limits_note,
@@ -64,7 +67,7 @@ from robid_link.ident.diagnosis.verdict import (
 from robid_link.ident.fit.design import Design
 from robid_link.ident.fit.identify import identify
 from robid_link.ident.fit.results import IdentResult
-from robid_link.ident.model.effects import Model
+from robid_link.ident.model.effects import Block, Model
 from robid_link.ident.model.robot import Robot
 from robid_link.jobs import ResonanceHint
 
@@ -94,23 +97,35 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                         "identify joins such logs, diagnose does not")
     result = fit_or_reuse(robot, data, model, result, validate=validate, cutoff_hz=cutoff_hz,
                           interval=interval, method=method, motor_side=motor_side)
-    pool = residual_pool(robot, result)
-    odd = _unexplained(pool.preps[0], pool.design, pool.theta, resonance_hints)
-    notes = one_motion_note([*data, *(validate or ())])
-    doubts = result_doubts(result) + floor_doubts(result)
-    # the candidates: profiled, then screened (structure, then in-sample) on a few rows
-    rows = profile_rows(robot, pool)
-    candidates, profiled = profile_candidates(
-        rows, catalog_candidates(robot, model, pool.problem.transmission))
-    candidates = drop_slow_ripples(candidates, pool.states)
-    structural = structural_screen(robot, pool.problem.blocks, pool.base,
-                                   pool.problem.transmission, candidates)
-    insample = insample_screen(rows, structural.new)
-    kept = refine_survivors(rows, insample.kept, profiled)
-    limits = log_limits(pool.preps[: len(pool.problem.preps)])
-    limited = limited_candidates(kept, limits)
-    laws = {c.joint: c for c in counterbalances(rows, [k.block for k in kept]) if c.fits}
-    del rows  # the profiling rows' dense regressor: not needed by the union pass
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="robid-diagnose") as aside:
+        # what reads only the fit and the logs runs on a second core beside the candidates
+        doubts_f = aside.submit(lambda: result_doubts(result) + floor_doubts(result))
+        pool = residual_pool(robot, result)
+        odd_f = aside.submit(_unexplained, pool.preps[0], pool.design, pool.theta,
+                             resonance_hints)
+        limits_f = aside.submit(log_limits, pool.preps[: len(pool.problem.preps)])
+        notes = one_motion_note([*data, *(validate or ())])
+        # the candidates: profiled, then screened (structure, then in-sample) on a few rows
+        rows = profile_rows(robot, pool)
+        candidates, profiled = profile_candidates(
+            rows, catalog_candidates(robot, model, pool.problem.transmission), aside)
+        candidates = drop_slow_ripples(candidates, pool.states)
+        # a ripple's refinement projects off the model's basis on all the profiling rows:
+        # that SVD is made beside the screens when a ripple will pass them
+        ripples = [b for b in candidates if b.effect.name == "ripple"]
+        basis_f = (aside.submit(getattr, rows, "beyond_model")
+                   if ripples and max(screens(rows, ripples)) >= SCREEN_MIN else None)
+        structural = structural_screen(robot, pool.problem.blocks, pool.base,
+                                       pool.problem.transmission, candidates)
+        insample = insample_screen(rows, structural.new)
+        if basis_f is not None:
+            basis_f.result()
+        kept = refine_survivors(rows, insample.kept, profiled)
+        odd, doubts, limits = odd_f.result(), doubts_f.result(), limits_f.result()
+    # the profiling rows' dense regressor is not needed by the union pass: kept only for a
+    # spring's counterbalance law, fitted once the spring is suggested
+    law_rows = rows if any(k.block.effect.name == "spring" for k in kept) else None
+    del rows
     notes += screen_notes(structural, insample)
     absorbed, residuals = structural.absorbed, residual_dict(pool)
     if not kept and not pool.vpieces:  # nothing can show a gain: no union pass
@@ -133,9 +148,10 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         sug = suggestion(blk, score, signatures)
         scored.append(sug if transfer is None else
                       with_transfer(sug, score, transfer, union.positions[k]))
-    verdicts, held_back = within_limits(judge(scored), limited, limits.fs)
+    verdicts, held_back = within_limits(judge(scored), limited_candidates(kept, limits),
+                                        limits.fs)
     ranked = rank(verdicts)
-    notes += _known_torque_pointers(ranked.suggested, laws)
+    notes += _known_torque_pointers(ranked.suggested, law_rows, [k.block for k in kept])
     notes += not_transferring_note(ranked.not_transferring)
     notes += limits_note(limits, held_back)
     if held_back:
@@ -147,10 +163,16 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                      limited=[sug for sug, _ in held_back.values()])
 
 
-def _known_torque_pointers(suggested: Sequence[Suggestion], laws: Mapping[int, Counterbalance]
-                           ) -> list[str]:
+def _known_torque_pointers(suggested: Sequence[Suggestion], rows: ProfileRows | None,
+                           kept: Sequence[Block]) -> list[str]:
     """A spring suggestion whose joint a counterbalance law fits points to ``known_torque``:
-    the entry on the suggestion, the filled-in example in a note."""
+    the entry on the suggestion, the filled-in example in a note. The law is fitted on the
+    profiling rows for the suggested springs' joints only (a ripple there is its rival)."""
+    joints = {sug.joint - 1 for sug in suggested if sug.effect == "spring" and sug.joint}
+    if rows is None or not joints:
+        return []
+    laws = {c.joint: c for c in counterbalances(
+        rows, [b for b in kept if b.effect.name != "spring" or b.joint in joints]) if c.fits}
     out = []
     for sug in suggested:
         law = laws.get(sug.joint or 0) if sug.effect == "spring" else None

@@ -17,7 +17,8 @@ from robid_link.ident.model.robot import Robot
 #: friction_drift's time constants from here on mean a linear drift (see effects.py)
 LINEAR_DRIFT = 1e5
 
-__all__ = ["ProfileRows", "profile_effect", "refine_effect", "screen", "basis", "bounds", "Beyond"]
+__all__ = ["ProfileRows", "profile_effect", "refine_effect", "screen", "screens", "basis",
+           "bounds", "Beyond", "ModelSpan"]
 
 
 def basis(x: np.ndarray) -> np.ndarray:
@@ -36,8 +37,13 @@ class ProfileRows:
     resid: np.ndarray  # raw torque minus the current model (profiling: no column filtered)
     resid_filtered: np.ndarray  # the parallel-filtered residual (screen, ripple spectrum)
     model_cols: np.ndarray  # the model's dense regressor on these rows (N, n, p)
+    #: the grids' shares by candidate and hyper-parameters (Stribeck's two rounds repeat some)
+    tried: dict[tuple[str, tuple[tuple[str, float], ...]], float] = field(
+        default_factory=dict, repr=False)
     _helpers: dict[tuple[int, ...], np.ndarray] = field(default_factory=dict, repr=False)
+    _beyonds: dict[tuple[int, ...], Beyond] = field(default_factory=dict, repr=False)
     _beyond_model: Beyond | None = field(default=None, repr=False)
+    _model_span: ModelSpan | None = field(default=None, repr=False)
 
     def rows_of(self, blk: Block) -> list[int]:
         """The joints whose torque ``blk`` loads (a coupled motor's friction: several)."""
@@ -55,6 +61,9 @@ class ProfileRows:
                 own = self.model_cols[:, j, :]
                 parts.append(own[:, np.abs(own).max(axis=0) > 0])
                 per.append(basis(np.concatenate(parts, axis=1)))
+            if len(per) == 1:  # the layout below, without the copy
+                self._helpers[key] = np.ascontiguousarray(per[0])
+                return self._helpers[key]
             out = np.zeros((per[0].shape[0], len(key), sum(b.shape[1] for b in per)))
             at = 0
             for r, b in enumerate(per):
@@ -65,7 +74,10 @@ class ProfileRows:
 
     def beyond(self, blk: Block) -> Beyond:
         rows = self.rows_of(blk)
-        return Beyond(self.helper_basis(rows), self.resid[:, rows].reshape(-1))
+        key = tuple(rows)
+        if key not in self._beyonds:
+            self._beyonds[key] = Beyond(self.helper_basis(rows), self.resid[:, rows].reshape(-1))
+        return self._beyonds[key]
 
     def stacked(self, blk: Block, cols: np.ndarray) -> np.ndarray:
         """A block's (N, n, k) columns on its rows, stacked like ``beyond``'s residual."""
@@ -78,6 +90,13 @@ class ProfileRows:
             model = basis(self.model_cols.reshape(-1, self.model_cols.shape[2]))
             self._beyond_model = Beyond(model, self.resid_filtered.reshape(-1))
         return self._beyond_model
+
+    @property
+    def model_span(self) -> ModelSpan:
+        """The model's column space joint by joint, with the filtered residual off it."""
+        if self._model_span is None:
+            self._model_span = ModelSpan(self.model_cols, self.resid_filtered)
+        return self._model_span
 
 
 def bounds(rows: ProfileRows, blk: Block, hyper: str) -> tuple[float, float]:
@@ -230,12 +249,18 @@ def _profile_effect_grid(rows: ProfileRows, blocks: list[Block], hyper: str,
     beyond = {bi: rows.beyond(b) for bi, b in enumerate(blocks) if b.joint is not None}
     for gi, row in enumerate(values):
         for bi, (b, v) in enumerate(zip(blocks, row, strict=True)):
-            cols = b.with_opts(**{hyper: float(v)}).columns(rows.robot, rows.states)
+            trial = b.with_opts(**{hyper: float(v)})
+            key = (trial.key, tuple(sorted(trial.opts.items())))
+            if key in rows.tried:  # a second round meets the first's trials again
+                score[gi, bi] = rows.tried[key]
+                continue
+            cols = trial.columns(rows.robot, rows.states)
             if b.joint is not None:
                 score[gi, bi] = beyond[bi].share(rows.stacked(b, cols))
             else:  # a global effect: all joints' residual together
                 score[gi, bi] = Beyond(no_helpers, rows.resid.reshape(-1)).share(
                     cols.reshape(-1, cols.shape[2]))
+            rows.tried[key] = score[gi, bi]
     best = np.argmax(score, axis=0)
     return [b.with_opts(**{hyper: float(values[best[bi], bi])}) for bi, b in enumerate(blocks)]
 
@@ -250,3 +275,82 @@ def screen(rows: ProfileRows, blk: Block) -> float:
     own = resid if blk.joint is None else resid[:, rows.rows_of(blk)]
     share = rows.beyond_model.share(cols.reshape(-1, cols.shape[2]))
     return share * rows.beyond_model.yy / max(float(np.sum(own * own)), 1e-300)
+
+
+def screens(rows: ProfileRows, blocks: Sequence[Block]) -> np.ndarray:
+    """``screen`` of many candidates at once, on the model's span joint by joint
+    (``ModelSpan``): a candidate's columns are non-zero on its own joints' rows only, so it
+    is projected there, and what the projection puts on the other joints' rows comes from
+    their Grams. Candidates on the same joints share one product."""
+    span = rows.model_span
+    n = rows.resid_filtered.shape[1]
+    groups: dict[tuple[int, ...], list[tuple[int, np.ndarray]]] = {}
+    for i, blk in enumerate(blocks):
+        cols = blk.columns(rows.robot, rows.states)
+        joints = rows.rows_of(blk)
+        if len(joints) < n and np.any(np.delete(cols, joints, axis=1)):
+            joints = list(range(n))  # not confined to its rows: all of them
+        groups.setdefault(tuple(joints), []).append((i, cols[:, joints, :]))
+    out = np.empty(len(blocks))
+    for joints, members in groups.items():
+        cols = np.concatenate([c for _, c in members], axis=2)  # (N, len(joints), K)
+        own, z = span.project_off(list(joints), cols)
+        others = [j for j in range(n) if j not in joints]
+        g_o, h_o = span.grams[others].sum(axis=0), span.h[others].sum(axis=0)
+        y = span.y_perp[:, list(joints)].reshape(-1)
+        ss = max(float(np.sum(rows.resid_filtered[:, list(joints)] ** 2)), 1e-300)
+        at = 0
+        for i, c in members:
+            sl = slice(at, at + c.shape[2])
+            at = sl.stop
+            o, zc = own[:, :, sl].reshape(-1, c.shape[2]), z[:, sl]
+            gram, cty = o.T @ o + zc.T @ g_o @ zc, o.T @ y - zc.T @ h_o
+            out[i] = float(cty @ np.linalg.lstsq(gram, cty, rcond=None)[0]) / ss
+    return out
+
+
+class ModelSpan:
+    """The model's column space on the profiling rows (joints stacked), joint by joint: a
+    joint's rows are non-zero in its own columns only, so the stacked model is factored by a
+    QR per joint, stacked and factored again, with the SVD floor of ``basis``; the filtered
+    residual projected off it, per joint."""
+
+    def __init__(self, model_cols: np.ndarray, resid: np.ndarray) -> None:
+        n_rows, n, p = model_cols.shape
+        self.support: list[np.ndarray] = []
+        self.cols: list[np.ndarray] = []
+        self.grams = np.zeros((n, p, p))
+        factors = []
+        for j in range(n):
+            sup = np.flatnonzero(np.abs(model_cols[:, j, :]).max(axis=0) > 0)
+            mj = np.ascontiguousarray(model_cols[:, j, sup])
+            r = np.linalg.qr(mj, mode="r")
+            full = np.zeros((r.shape[0], p))
+            full[:, sup] = r
+            factors.append(full)
+            self.grams[j] = full.T @ full
+            self.support.append(sup)
+            self.cols.append(mj)
+        r = np.linalg.qr(np.concatenate(factors), mode="r")
+        _, sv, vt = np.linalg.svd(r)
+        keep = sv > sv[0] * 1e-10 if sv.size and sv[0] > 0 else np.zeros(sv.size, dtype=bool)
+        v = vt[keep].T / sv[keep]
+        self.pinv = v @ v.T  # (MᵀM)⁺ on the kept directions
+        _, z = self.project_off(list(range(n)), resid[:, :, None])
+        self.y_perp = resid - np.stack([m @ z[sup, 0] for sup, m in
+                                        zip(self.support, self.cols, strict=True)], axis=1)
+        self.h = np.zeros((n, p))
+        for j, (sup, m) in enumerate(zip(self.support, self.cols, strict=True)):
+            self.h[j, sup] = m.T @ self.y_perp[:, j]
+
+    def project_off(self, joints: list[int], cols: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """Columns (N, len(joints), K) confined to ``joints``' rows: what is left of them on
+        those rows beyond the model's span, and their coefficients on the model (p, K)."""
+        mtc = np.zeros((self.pinv.shape[0], cols.shape[2]))
+        for r, j in enumerate(joints):
+            mtc[self.support[j]] += self.cols[j].T @ cols[:, r, :]
+        z = self.pinv @ mtc
+        own = np.stack([cols[:, r, :] - self.cols[j] @ z[self.support[j]]
+                        for r, j in enumerate(joints)], axis=1)
+        return own, z

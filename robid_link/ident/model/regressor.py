@@ -196,7 +196,7 @@ def rigid_regressor(
         zero_cols = np.zeros(0, dtype=np.int64)
     args = (q, qd, qdd, *arrays, np.ascontiguousarray(dest, np.int64), flat)
     threads = kernel_threads()
-    if threads == 1:
+    if threads == 1 or nsamp < 512:  # one part either way: no thread launch
         _regressor_part(*args, 0, nsamp, zero_cols)
     else:
         _regressor_kernel(*args, threads, zero_cols)
