@@ -206,7 +206,7 @@ class SerialLineDriver(Driver):
         log.warning("serial port %s lost (%s); reopening", self.port, reason)
         self._up.clear()
         self._lost_reason = reason
-        if self.zlog:
+        if self.config.compress:
             self.zlog = None  # ask again: another controller may answer behind the port
         if self._pending is not None:  # its answer is lost: ask again once the port is back
             self._pending.why = "line dropped"
