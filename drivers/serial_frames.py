@@ -9,8 +9,8 @@ from collections.abc import Callable
 
 from robid_link.exceptions import DriverError
 
-__all__ = ["ERROR_CODES", "MAX_LINE", "Pending", "block_at", "block_header", "chunk_at",
-           "decode_frame", "encode_frame", "number", "starts"]
+__all__ = ["ERROR_CODES", "MAX_LINE", "Pending", "Splitter", "block_at", "block_header",
+           "chunk_at", "decode_frame", "encode_frame", "number", "starts"]
 
 #: what a controller's ERR code means (docs/serial_line_protocol.md)
 ERROR_CODES = {1: "program missing or incomplete", 2: "motion supervision triggered",
@@ -49,6 +49,49 @@ class Pending:
         self.damaged = False
         self.payload = b""
         self.why = "no answer"
+
+
+class Splitter:
+    """Bytes read from the line into whole frames, each with the payload that follows it when
+    it is an intact ZBLK header (at most ``max_payload`` bytes); noise without a line end is
+    dropped past ``MAX_LINE``."""
+
+    def __init__(self, max_payload: int) -> None:
+        self.max_payload = max_payload
+        self.buf = bytearray()
+        self.block: tuple[bytes, int] | None = None  # a header waiting for its payload
+
+    @property
+    def waiting(self) -> bool:
+        return self.block is not None
+
+    def feed(self, data: bytes) -> list[tuple[bytes, bytes | None]]:
+        self.buf += data
+        out: list[tuple[bytes, bytes | None]] = []
+        while True:
+            if self.block is not None:
+                line, n = self.block
+                if len(self.buf) < n:
+                    break
+                out.append((line, bytes(self.buf[:n])))
+                del self.buf[:n]
+                self.block = None
+            elif (k := self.buf.find(b"\n")) >= 0:
+                line = bytes(self.buf[: k + 1])
+                del self.buf[: k + 1]
+                self.block = block_header(line, self.max_payload)
+                if self.block is None:
+                    out.append((line, None))
+            else:
+                break
+        if self.block is None and len(self.buf) > MAX_LINE:
+            self.buf.clear()
+        return out
+
+    def cut(self) -> None:
+        """Forget a payload that stopped coming (and what came of it)."""
+        self.block = None
+        self.buf.clear()
 
 
 def block_header(line: bytes, max_payload: int) -> tuple[bytes, int] | None:

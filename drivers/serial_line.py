@@ -33,8 +33,8 @@ from robid_link.drivers.serial_frames import (
     ERROR_CODES,
     MAX_LINE,
     Pending,
+    Splitter,
     block_at,
-    block_header,
     chunk_at,
     decode_frame,
     encode_frame,
@@ -135,6 +135,7 @@ class SerialLineDriver(Driver):
         await self._open_port()
         self._tasks.append(asyncio.create_task(self._link_loop(), name="serial_line-link"))
         await self._request(["PING", "0"], lambda f: f[:2] == ["PONG", "0"], what="PING")
+        self.zlog = None if self.config.compress else False  # this controller's, asked now
         await self._negotiate()
 
     async def _negotiate(self) -> None:
@@ -171,34 +172,21 @@ class SerialLineDriver(Driver):
         self._up.set()
 
     def _read_thread(self, port: Any) -> None:
-        """Blocking reads, split into lines (and a ZBLK header's payload), each handed to the
+        """Blocking reads, split into frames (and a ZBLK header's payload), each handed to the
         loop through the bridge (it waits for room when the loop is behind); a dead port is
         reported."""
-        buf = bytearray()
-        block: tuple[bytes, int] | None = None  # a ZBLK header waiting for its payload
+        split = Splitter(self.block_bytes + MAX_PAYLOAD_OVER)
         try:
             while not self._stop_reader.is_set():
                 data = port.read(max(1, min(port.in_waiting, 65536)))
                 if not data:
+                    if split.waiting and time.monotonic() - self._rx_at > self.io_timeout_s:
+                        split.cut()  # a payload cut short: a damaged frame
+                        self.bridge.call(self._on_line, b"")
                     continue
                 self._rx_at = time.monotonic()
-                buf += data
-                while True:
-                    if block is not None:
-                        if len(buf) < block[1]:
-                            break
-                        payload, buf = bytes(buf[: block[1]]), buf[block[1]:]
-                        self.bridge.call(self._on_line, block[0], payload)
-                        block = None
-                    elif (k := buf.find(b"\n")) >= 0:
-                        line, buf = bytes(buf[: k + 1]), buf[k + 1:]
-                        block = block_header(line, self.block_bytes + MAX_PAYLOAD_OVER)
-                        if block is None:
-                            self.bridge.call(self._on_line, line)
-                    else:
-                        break
-                if block is None and len(buf) > MAX_LINE:  # noise without a newline
-                    buf.clear()
+                for line, payload in split.feed(data):
+                    self.bridge.call(self._on_line, line, payload)
         except (serial.SerialException, OSError, TypeError) as err:
             if not self._stop_reader.is_set():
                 self.bridge.call(self._on_lost, _reason(err))
@@ -218,7 +206,7 @@ class SerialLineDriver(Driver):
         log.warning("serial port %s lost (%s); reopening", self.port, reason)
         self._up.clear()
         self._lost_reason = reason
-        if self.zlog:
+        if self.config.compress:
             self.zlog = None  # ask again: another controller may answer behind the port
         if self._pending is not None:  # its answer is lost: ask again once the port is back
             self._pending.why = "line dropped"

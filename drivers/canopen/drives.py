@@ -45,7 +45,14 @@ from robid_link.drivers.canopen.cia402 import (
     tpdo_maps,
 )
 from robid_link.drivers.canopen.feedforward import KeptParameterSet, torque_offsets
-from robid_link.drivers.canopen.master import Axis, Job, SyncMaster, quintic, ramp_to_rest
+from robid_link.drivers.canopen.master import (
+    Axis,
+    Job,
+    RealtimeListener,
+    SyncMaster,
+    quintic,
+    ramp_to_rest,
+)
 from robid_link.drivers.canopen.record import BlfTap, log_bytes
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.jobs import MotionProgram, RobotInfo
@@ -110,7 +117,9 @@ class CanopenDrivesDriver(Driver):
     1000 per mille; default from 0x6076), ``eds``, ``record_dir`` (logs and BLF files),
     ``following_error_rad``, ``heartbeat_ms``, ``heartbeat_timeout_s``, ``boot_timeout_s``,
     ``state_timeout_s``, ``settle_timeout_s``, ``standstill_rad_s``, ``max_missed``,
-    ``overrun_streak``, ``max_approach_rad``, ``bus_options`` (extra python-can arguments),
+    ``overrun_streak``, ``max_approach_rad``, ``sync_priority`` (0: normal scheduling; 1-99:
+    SCHED_FIFO for the SYNC thread and the CAN receive thread, as a real-time master runs),
+    ``bus_options`` (extra python-can arguments),
     ``robot_file`` (refused: no longer used, the feedforward's inverse dynamics runs in the
     worker on the daemon's robot),
     ``sync_echo`` (the drive's UNSIGNED8 object, mappable, that holds the counter of the SYNC
@@ -152,6 +161,7 @@ class CanopenDrivesDriver(Driver):
         # answers are put at their SYNC by its counter, unambiguous within SYNC_OVERFLOW
         max_missed=Integer(3, low=1, high=SYNC_OVERFLOW - 40),
         overrun_streak=Integer(5, low=1, high=1_000_000), max_approach_rad=Number(1.0, low=0),
+        sync_priority=Integer(0, low=0, high=99),
         bus_options=Table(None), sync_echo=_ObjectEntry(SYNC_ECHO),
         torque_object=_ObjectEntry(TORQUE_ACTUAL, also=(TORQUE_ACTUAL,)),
         torque_unit_nm=Vector(Number(above=0), None, per_joint=True))
@@ -189,6 +199,7 @@ class CanopenDrivesDriver(Driver):
         self.tpdo_maps = tpdo_maps(o.sync_echo, self.torque_object, 32 if fine else 16)
         self.tpdo2 = tpdo2_struct(32 if fine else 16)
         self.overrun_streak, self.max_approach = o.overrun_streak, o.max_approach_rad
+        self.sync_priority = o.sync_priority
         self.bus_options = dict(o.bus_options or {})
         self.parameters: KeptParameterSet | None = None
         self.network: canopen.Network | None = None
@@ -369,8 +380,11 @@ class CanopenDrivesDriver(Driver):
             max_missed=self.max_missed, overrun_streak=self.overrun_streak,
             standstill_rad_s=self.standstill, decel_rad_s2=0.5 * qdd, on_end=self._job_ended,
             tap=self._tap.on_message_received, send_lock=self.network.send_lock,
-            tpdo2=self.tpdo2)
+            tpdo2=self.tpdo2, priority=self.sync_priority)
         net = self.network
+        if self.sync_priority:  # the answers' way in is the motion path too
+            assert net.notifier is not None
+            net.notifier.add_listener(RealtimeListener(self.sync_priority))
         for i, a in enumerate(self.axes):
             net.subscribe(0x180 + a.node, lambda _c, d, _t, i=i: master.on_tpdo1(i, d))
             net.subscribe(0x280 + a.node, lambda _c, d, _t, i=i: master.on_tpdo2(i, d))

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -33,7 +34,8 @@ from robid_link.drivers.canopen.cia402 import (
     sync_counter,
 )
 
-__all__ = ["Axis", "Job", "SyncMaster", "quintic", "ramp_to_rest"]
+__all__ = ["Axis", "Job", "RealtimeListener", "SyncMaster", "quintic", "ramp_to_rest",
+           "realtime"]
 
 log = logging.getLogger("robid.driver.canopen")
 
@@ -123,6 +125,34 @@ def ramp_to_rest(pos: np.ndarray, vel: np.ndarray, decel: np.ndarray, period: fl
     return np.array(out).reshape(-1, pos.size)
 
 
+def realtime(priority: int) -> str | None:
+    """Put the calling thread under SCHED_FIFO at ``priority`` (Linux); None when it took,
+    else why not (the thread keeps its normal scheduling)."""
+    if not hasattr(os, "sched_setscheduler"):
+        return "no SCHED_FIFO on this system"
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as err:  # EPERM: no CAP_SYS_NICE and no RLIMIT_RTPRIO
+        return err.strerror or str(err)
+    return None
+
+
+class RealtimeListener(can.Listener):
+    """Puts the thread that delivers the bus's frames (python-can's notifier) under SCHED_FIFO
+    at the first frame; the SYNC thread's ``priority`` (one warning line if refused)."""
+
+    def __init__(self, priority: int) -> None:
+        self.priority, self.threads = priority, set[int]()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if threading.get_ident() not in self.threads:
+            self.threads.add(threading.get_ident())
+            why = realtime(self.priority)
+            if why is not None:
+                log.warning("driver.sync_priority: SCHED_FIFO %d refused for the CAN receive "
+                            "thread (%s)", self.priority, why)
+
+
 def _lost(axis: Axis, part: list[Any] | None, index: int) -> bool:
     """Whether what ``axis`` has not answered of SYNC ``index`` is lost: each missing TPDO
     answered a later SYNC already."""
@@ -147,8 +177,10 @@ class SyncMaster:
                  heartbeat_timeout_s: float, max_missed: int, overrun_streak: int,
                  standstill_rad_s: float, decel_rad_s2: np.ndarray,
                  on_end: Callable[[Job], None], tap: Callable[[can.Message], None],
-                 send_lock: threading.Lock | None = None, tpdo2: Any = TPDO2) -> None:
+                 send_lock: threading.Lock | None = None, tpdo2: Any = TPDO2,
+                 priority: int = 0) -> None:
         self.bus, self.axes, self.period = bus, list(axes), period
+        self.priority = priority  # SCHED_FIFO for the SYNC thread (0: normal scheduling)
         self.tpdo2 = tpdo2  # the torque object's width decides it (cia402.tpdo2_struct)
         # one frame at a time on the bus: SDO and NMT go out from other threads (a socketcand
         # client writes each frame to one TCP stream)
@@ -180,11 +212,13 @@ class SyncMaster:
         # one a drive left unanswered, oldest first; the running job takes what is its own
         self.answered: list[tuple[int, list[tuple[int, int, int, int]] | None]] = []
         self.overruns = 0
+        self.worst_late_s = 0.0  # the longest interval between two SYNCs beyond a period
         self.late_streak = 0
         self.sync_times: list[float] = []
         self.keep_times = False
         self.tick_hook: Callable[[], None] | None = None  # tests: a slow host
         self.spin_s = 0.0003
+        self.scheduling = "normal"  # the SYNC thread's, once it runs
         self._quit = threading.Event()
         self._thread: threading.Thread | None = None
         self.idle = threading.Event()
@@ -284,6 +318,14 @@ class SyncMaster:
 
     # -- the loop
     def _run(self) -> None:
+        if self.priority:
+            why = realtime(self.priority)
+            if why is not None:
+                log.warning("driver.sync_priority: SCHED_FIFO %d refused for the SYNC thread "
+                            "(%s); it runs at normal priority", self.priority, why)
+            else:  # a real-time thread wakes within tens of µs: a shorter spin will do
+                self.scheduling = f"SCHED_FIFO {self.priority}"
+                self.spin_s = min(self.spin_s, 1e-4)
         deadline, last = time.perf_counter(), 0.0
         while not self._quit.is_set():
             now = time.perf_counter()
@@ -308,10 +350,16 @@ class SyncMaster:
                 deadline = time.perf_counter() + self.period
 
     def _overrun(self, interval: float) -> None:
-        """A SYNC more than half a period after its nominal time (counted between sends)."""
+        """A SYNC more than half a period after its nominal time (counted between sends, and
+        logged: the first, the tenth, then every thousandth)."""
         if interval > 1.5 * self.period:
             self.overruns += 1
             self.late_streak += 1
+            self.worst_late_s = max(self.worst_late_s, interval - self.period)
+            if self.overruns in (1, 10) or self.overruns % 1000 == 0:
+                log.warning("SYNC overrun: %.3g ms between two SYNCs of %g ms (%d overruns so "
+                            "far, the worst %.3g ms late)", 1e3 * interval, 1e3 * self.period,
+                            self.overruns, 1e3 * self.worst_late_s)
         else:
             self.late_streak = 0
         if (self.late_streak >= self.overrun_streak and self.mode in ("job", "ramp")

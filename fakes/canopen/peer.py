@@ -13,6 +13,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import os
 import struct
 import threading
 import time
@@ -208,7 +209,7 @@ class Cia402Peer(Peer):
                  sync_timeout_s: float | None = None, fault_node: int | None = None,
                  fault_after_s: float = 0.2, answer_lag_periods: int = 0,
                  counts_per_rad: float = 2**27 / (2 * math.pi),
-                 fine_torque: bool = True) -> None:
+                 fine_torque: bool = True, rt_priority: int = 0) -> None:
         super().__init__(core, workdir)
         robot = core.robot
         self.n = robot.n
@@ -234,6 +235,12 @@ class Cia402Peer(Peer):
         # made the plant's accelerations from rounded setpoints noisy by N·m on heavy axes)
         self.cpr = [float(counts_per_rad)] * self.n
         self.fine_torque = fine_torque  # 2101h (INTEGER32, mN·m) mapped, not 6077h
+        # drives are hardware on their own clocks; in the daemon's process they share its GIL,
+        # so a bench of a real-time master runs their SYNC handling under SCHED_FIFO too
+        self.rt_priority, self._rt_threads = int(rt_priority), set[int]()
+        #: time.perf_counter() of every SYNC as the drives' handler took it, while keep_times
+        self.sync_seen: list[float] = []
+        self.keep_times = False
         tau = [float(x) if math.isfinite(x) else 100.0 for x in robot.limits.tau_max]
         self.rated = [t / 3.0 for t in tau]  # peak ≈ 3 × rated, as servo drives are sized
         self.fault_joint = int(fault_node or min(2, self.n))
@@ -335,6 +342,14 @@ class Cia402Peer(Peer):
 
     # -- one SYNC: setpoints take effect, the robot moves, the drives report
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if self.keep_times:
+            self.sync_seen.append(time.perf_counter())
+        if self.rt_priority and threading.get_ident() not in self._rt_threads:
+            self._rt_threads.add(threading.get_ident())
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.rt_priority))
+            except (OSError, AttributeError) as err:
+                log.warning("fake drives: SCHED_FIFO %d refused (%s)", self.rt_priority, err)
         try:
             with self.lock:
                 self.last_sync = time.monotonic()

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -143,15 +145,62 @@ def test_a_node_that_never_boots_is_named_at_open(tmp_path: Path, robot: Robot) 
 
 
 def test_sync_overrun_streak_quick_stops(tmp_path: Path, robot: Robot,
-                                         program: MotionProgram) -> None:
+                                         program: MotionProgram,
+                                         caplog: pytest.LogCaptureFixture) -> None:
+    """Every overrun is counted and the first ones logged; a streak stops every drive."""
+    masters = []
     with drives(tmp_path, robot, overrun_streak=3) as (driver, peer):
         def slow_host(d: Driver) -> None:
             assert isinstance(d, CanopenDrivesDriver) and d.master is not None
+            masters.append(d.master)
             d.master.tick_hook = lambda: time.sleep(0.02)
 
         with pytest.raises(DriverError, match=r"experiment exp1: bus: SYNC overrun: 3 periods "
                                               r"in a row late.*kept as"):
             _run(driver, program, slow_host)
+    assert masters[0].overruns >= 3 and masters[0].worst_late_s > 0.01
+    assert any(r.getMessage().startswith("SYNC overrun: ") and "(1 overruns so far"
+               in r.getMessage() for r in caplog.records)
+
+
+def test_sync_priority_puts_the_motion_path_under_sched_fifo(
+        tmp_path: Path, robot: Robot, caplog: pytest.LogCaptureFixture) -> None:
+    """``sync_priority``: the SYNC thread and the CAN receive thread run under SCHED_FIFO, or,
+    where the process may not, each says so in one warning line and runs as before."""
+    allowed: list[bool] = []
+
+    def probe() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+            allowed.append(True)
+        except OSError:
+            allowed.append(False)
+
+    t = threading.Thread(target=probe)
+    t.start()
+    t.join()
+    with drives(tmp_path, robot, sync_priority=1) as (driver, _):
+        async def go() -> tuple[str, int]:
+            async with driver:
+                await asyncio.sleep(0.3)
+                assert isinstance(driver, CanopenDrivesDriver) and driver.master is not None
+                fifo = sum(_policy(tid) == os.SCHED_FIFO for tid in os.listdir("/proc/self/task"))
+                return driver.master.scheduling, fifo
+
+        scheduling, fifo = asyncio.run(go())
+    if allowed[0]:
+        assert scheduling == "SCHED_FIFO 1" and fifo >= 2  # the SYNC and the receive thread
+    else:
+        assert scheduling == "normal" and fifo == 0
+        assert any("driver.sync_priority: SCHED_FIFO 1 refused" in r.getMessage()
+                   for r in caplog.records)
+
+
+def _policy(tid: str) -> int:
+    try:
+        return os.sched_getscheduler(int(tid))
+    except OSError:  # the thread ended meanwhile
+        return -1
 
 
 def test_bus_error_quick_stops(tmp_path: Path, robot: Robot, program: MotionProgram,
@@ -239,6 +288,7 @@ def _options(**over: Any) -> dict[str, Any]:
     ({"sync_echo": "0x6041:0"}, r"driver\.sync_echo: expected a manufacturer-specific object"),
     ({"sync_echo": "echo"}, r"driver\.sync_echo: expected .*'echo'"),
     ({"max_missed": 500}, r"driver\.max_missed: expected an integer in \[1, 200\]"),
+    ({"sync_priority": 100}, r"driver\.sync_priority: expected an integer in \[0, 99\]"),
 ])
 def test_bad_config_names_the_key(over: dict[str, Any], key: str) -> None:
     with pytest.raises(ConfigError, match=key):

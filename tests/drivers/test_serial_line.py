@@ -15,6 +15,7 @@ from typing import Any
 
 import pytest
 
+from robid_link.drivers.serial_frames import Splitter
 from robid_link.drivers.serial_line import SerialLineDriver, decode_frame, encode_frame
 from robid_link.exceptions import ConfigError, DriverError, DriverTimeoutError
 from robid_link.fakes.controller import default_truth, make_peer
@@ -183,3 +184,27 @@ def test_a_zip_bomb_is_refused_without_inflating_it(tmp_path: Path, robot: Robot
                                               r"\(inflates beyond \d+ bytes\)") as err:
             asyncio.run(_cycle(driver, program))
     assert "\n" not in str(err.value)
+
+
+def test_the_splitter_hands_each_block_its_payload_whatever_the_reads() -> None:
+    """A ZBLK header's payload (newlines and all) is taken by its length, in any slicing of
+    the reads; a damaged header leaves its payload to be line noise; a payload that stops
+    coming is dropped whole."""
+    payload = b"\x00\n\xffZBLK \n" * 5
+    header = encode_frame("ZBLK", "exp1", "n1", 0, 9, "0" * 8, "z", len(payload), "0" * 8)
+    stream = encode_frame("PONG", 0) + header + payload + encode_frame("EOF", "exp1", "n1", 9)
+    for step in (1, 3, 7, len(stream)):
+        split = Splitter(1024)
+        got = [item for k in range(0, len(stream), step) for item in split.feed(
+            stream[k: k + step])]
+        assert got == [(encode_frame("PONG", 0), None), (header, payload),
+                       (encode_frame("EOF", "exp1", "n1", 9), None)], step
+    damaged = header.replace(b"exp1", b"exq1")
+    got = Splitter(1024).feed(damaged + payload)
+    assert got[0] == (damaged, None) and all(p is None for _, p in got)
+    assert Splitter(16).feed(header + payload)[0] == (header, None)  # over the payload cap
+    split = Splitter(1024)
+    assert split.feed(header + payload[:10]) == [] and split.waiting
+    split.cut()
+    assert not split.waiting and split.feed(encode_frame("PONG", 1)) == [
+        (encode_frame("PONG", 1), None)]
