@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 import threading
 import time
@@ -163,6 +164,24 @@ def no_leaks() -> Iterator[None]:
             return
         time.sleep(0.05)
     raise AssertionError(f"test leaked threads: {[t.name for t in left]}")
+
+
+@pytest.fixture(autouse=True)
+def robid_logging() -> Iterator[None]:
+    """The ``robid`` logger as it was before the test: a test that runs ``setup_logging`` (the
+    daemon's or the demo's, in-process) leaves a handler on that test's captured stdout and
+    stops propagation, and a later test's log lines would go to a closed file and miss
+    ``caplog`` — which test comes later depends on the order (``-n 2`` changes it)."""
+    logger = logging.getLogger("robid")
+    saved = (list(logger.handlers), logger.level, logger.propagate)
+    try:
+        yield
+    finally:
+        for h in set(logger.handlers) - set(saved[0]):
+            logger.removeHandler(h)
+        logger.handlers[:] = saved[0]
+        logger.setLevel(saved[1])
+        logger.propagate = saved[2]
 
 
 def mdh_to_urdf(robot: Robot) -> str:

@@ -88,7 +88,13 @@ def test_a_store_error_after_the_give_withdraws_before_the_run_fails(
         await until(lambda: state_is(d, run_id, "failed"), 30)
         await until(lambda: not _ready(tmp_path), 10)
         assert d.store is not None
+        # the runner's sweep journals the withdraw once the failed run has ended
+        await until(lambda: _withdrawn(d, run_id), 10)
         return await d.store.run(run_id), await d.store.journal(run_id)
+
+    async def _withdrawn(d: Daemon, run_id: str) -> bool:
+        assert d.store is not None
+        return any(j["step"] == "withdrawn" for j in await d.store.journal(run_id))
 
     run, journal = with_daemon(cfg, body)  # no controller: a 'ready' left would stay
     assert _ready(tmp_path) == []
