@@ -26,8 +26,10 @@ demo: $(STAMP)
 system-deps:
 	.ci/system-deps
 
+# two pytest workers, a test file each at a time (tests/conftest.py); TEST_WORKERS=0: one process
+TEST_WORKERS ?= 2
 test: $(DEVSTAMP) system-deps
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 validate: $(DEVSTAMP) system-deps
 	ROBID_VALIDATE=1 $(BIN)/python -m pytest -q -m slow --timeout=3600

@@ -1,13 +1,16 @@
 """Crash-safe file writes shared by the store, the drivers, the fakes and the worker's reports:
-a whole file replaced atomically, or a line appended durably (the error-ladder history)."""
+a whole file replaced atomically (a JSON document too), or a line appended durably (the
+error-ladder history)."""
 
 from __future__ import annotations
 
+import json
 import os
 import secrets
 from pathlib import Path
+from typing import Any
 
-__all__ = ["atomic_write", "append_durable", "fsync_dir"]
+__all__ = ["atomic_write", "write_json", "append_durable", "fsync_dir"]
 
 
 def atomic_write(path: Path, data: bytes, mode: int = 0o644) -> None:
@@ -25,6 +28,15 @@ def atomic_write(path: Path, data: bytes, mode: int = 0o644) -> None:
         tmp.unlink(missing_ok=True)
         raise
     fsync_dir(path.parent)
+
+
+def write_json(path: str | Path, doc: dict[str, Any]) -> None:
+    """``doc`` as indented JSON (no NaN), written atomically; the folder is made if missing.
+    Here, not beside the figures, so that the link's commands (``status --json``) need none of
+    the worker's imports."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(p, json.dumps(doc, indent=2, allow_nan=False).encode())
 
 
 def append_durable(path: Path, data: bytes, mode: int = 0o644) -> None:

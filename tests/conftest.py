@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 import threading
 import time
@@ -52,6 +53,45 @@ def kind_of(path: Path) -> str:
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         item.add_marker(getattr(pytest.mark, kind_of(item.path)))
+
+
+# ----------------------------------------------------------------------------- -n 2 (xdist)
+
+#: files whose tests share module-level state, so one worker runs them all (the fuzz tally of
+#: test_fuzz_cli.py counts the inputs of test_fuzz.py too)
+SAME_WORKER = {"tests/test_fuzz.py": "tests/test_fuzz_cli.py"}
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """``make test`` runs ``-n 2 --dist loadfile``: each file on one worker (its module-scoped
+    fixtures, a browser, a report made once, stay once), and the files of ``SAME_WORKER``
+    together. Other ``--dist`` modes are xdist's own."""
+    if config.getoption("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class Scheduling(LoadFileScheduling):  # type: ignore[misc]
+        def _split_scope(self, nodeid: str) -> str:
+            scope = str(super()._split_scope(nodeid))
+            return SAME_WORKER.get(scope, scope)
+
+    return Scheduling(config, log)
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    """Lines a test leaves for the end of the run (``record_property("summary", line)``):
+    collected where the terminal is (the controller under ``-n 2``)."""
+    if report.when == "call":
+        _SUMMARY.extend(str(v) for k, v in report.user_properties if k == "summary")
+
+
+def pytest_terminal_summary(terminalreporter: Any) -> None:
+    for text in _SUMMARY:
+        terminalreporter.write_line(text)
+
+
+_SUMMARY: list[str] = []
 
 
 @pytest.fixture(scope="session")
@@ -163,6 +203,24 @@ def no_leaks() -> Iterator[None]:
             return
         time.sleep(0.05)
     raise AssertionError(f"test leaked threads: {[t.name for t in left]}")
+
+
+@pytest.fixture(autouse=True)
+def robid_logging() -> Iterator[None]:
+    """The ``robid`` logger as it was before the test: a test that runs ``setup_logging`` (the
+    daemon's or the demo's, in-process) leaves a handler on that test's captured stdout and
+    stops propagation, and a later test's log lines would go to a closed file and miss
+    ``caplog`` — which test comes later depends on the order (``-n 2`` changes it)."""
+    logger = logging.getLogger("robid")
+    saved = (list(logger.handlers), logger.level, logger.propagate)
+    try:
+        yield
+    finally:
+        for h in set(logger.handlers) - set(saved[0]):
+            logger.removeHandler(h)
+        logger.handlers[:] = saved[0]
+        logger.setLevel(saved[1])
+        logger.propagate = saved[2]
 
 
 def mdh_to_urdf(robot: Robot) -> str:

@@ -631,8 +631,9 @@ def test_fuzz_cli_bags(cell, capsys, kind, mutation, command, k):
 
 # ----------------------------------------------------------------------------- the tally
 
-def test_zz_fuzz_counts(capsys):
-    """The tally of the fuzz modules' run: printed for the closing note, checked in validate."""
+def test_zz_fuzz_counts(record_property):
+    """The tally of the fuzz modules' run: printed at the end of the run for the closing note
+    (tests/conftest.py), checked in validate."""
     if not COUNTS:
         pytest.skip("no fuzz test ran")
     total = sum(COUNTS.values())
@@ -641,10 +642,9 @@ def test_zz_fuzz_counts(capsys):
               "wrong success": "wrong successes"}
     verdicts = ", ".join(f"{plural[v]} {sum(f[0] == v for f in FAILURES)}" for v in VERDICTS)
     first = {text.split(":")[0]: (verdict, text) for verdict, text in reversed(FAILURES)}
-    with capsys.disabled():
-        print(f"\nfuzz: {total} malformed inputs ({kinds}); {verdicts}")
-        for verdict, text in first.values():  # the first of each kind (shrinking repeats it)
-            print(f"  {verdict}: {text}")
+    record_property("summary", f"fuzz: {total} malformed inputs ({kinds}); {verdicts}")
+    for verdict, text in first.values():  # the first of each kind (shrinking repeats it)
+        record_property("summary", f"  {verdict}: {text}")
     assert not FAILURES, list(first.values())[:5]
     if SLOW and "log CSV" in COUNTS:  # the whole fuzz ran (both modules)
         assert total >= 2000, total

@@ -278,11 +278,23 @@ class UrRtdePeer(RtdeServer, Peer):
         run, seq = self._programs, self._received
         assert self._loop is not None
         loop = self._loop
-        accepted = threading.Event()
+        verdict: list[bool] = []  # the controller's answer to the compiled program
+        decided = threading.Event()
 
-        def post(*call: Any) -> None:
-            with contextlib.suppress(RuntimeError):  # the controller was shut down
+        def post(*call: Any) -> bool:
+            try:
                 loop.call_soon_threadsafe(*call)
+            except RuntimeError:  # the controller was shut down
+                return False
+            return True
+
+        def accepted() -> bool:
+            """Whether the program replaced the running one: the controller always decides,
+            unless it was shut down before it could."""
+            while not decided.wait(0.1):
+                if loop.is_closed():
+                    return False
+            return verdict[0]
 
         def work() -> None:
             time.sleep(self.compile_s)
@@ -292,8 +304,7 @@ class UrRtdePeer(RtdeServer, Peer):
                 log.warning("script port: program refused: %s", err)
                 return
             m = Motion(program.name, start=None)
-            post(self._accept, m, seq, accepted)
-            if not accepted.wait(30):
+            if not post(self._accept, m, seq, verdict, decided) or not accepted():
                 return
             try:
                 simulate(self.core, program, m, q_start=m.rows[0, :6], steptime=self.series
@@ -309,17 +320,21 @@ class UrRtdePeer(RtdeServer, Peer):
         self._workers.append(worker)
         worker.start()
 
-    def _accept(self, m: Motion, seq: int, accepted: threading.Event) -> None:
+    def _accept(self, m: Motion, seq: int, verdict: list[bool],
+                decided: threading.Event) -> None:
         """The compiled program replaces the running one and plays from where the arm is,
-        unless a stop or another program came in after it (it was replaced before it ran)."""
-        if seq != self._received:
+        unless a stop or another program came in after it (it was replaced before it ran):
+        either way the compiling thread hears it (``verdict``, then ``decided``)."""
+        verdict.append(seq == self._received)
+        if not verdict[0]:
+            decided.set()
             log.info("program %s replaced before it started", m.name)
             return
         self._stop_program("script")
         self.programs.append(m.name)
         m.rows = np.concatenate([self.q, np.zeros(6), self.tau])[None]
         self.motion, self.runtime = m, 2
-        accepted.set()
+        decided.set()
 
     def _failed(self, m: Motion, reason: str) -> None:
         log.warning("program %s: runtime error: %s", m.name, reason)

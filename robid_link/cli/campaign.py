@@ -62,14 +62,14 @@ def _start(args: argparse.Namespace) -> int:
     print(run_id)
     if not args.wait:
         if args.json:
-            from robid_link.ident.report.figures import write_json
+            from robid_link.atomic import write_json
 
             write_json(args.json, {"run_id": run_id, "state": "queued"})
         return 0
     run = wait_for_run(cfg.control_socket, run_id)
     results = request(cfg.control_socket, {"cmd": "results", "run_id": run_id})
     if args.json:
-        from robid_link.ident.report.figures import write_json
+        from robid_link.atomic import write_json
 
         write_json(args.json, {"run": run, "results": results["results"]})
     print(format_results(results["results"]))

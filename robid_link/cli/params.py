@@ -93,7 +93,7 @@ def _show(args: argparse.Namespace, cfg: DaemonConfig) -> int:
                 print(f"  {p['name']:<12}{p['value']:>14.6g} ± {p['std']:<10.3g} "
                       f"{p['expression']}")
     if args.json:
-        from robid_link.ident.report.figures import write_json
+        from robid_link.atomic import write_json
 
         write_json(args.json, {"robot": args.robot, "sets": [
             json.loads(s["body"]) for s in (picked or sets)]})

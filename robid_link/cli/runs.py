@@ -260,7 +260,7 @@ def _status(args: argparse.Namespace) -> int:
                 ans = {"runs": store.runs(args.limit or 50), "status": _unreachable(err),
                        "drift": [f.message for f in drift_flags(store, _robot_name(cfg))]}
     if args.json:
-        from robid_link.ident.report.figures import write_json
+        from robid_link.atomic import write_json
 
         write_json(args.json, {"runs": ans["runs"], "status": ans["status"],
                                "drift": ans.get("drift", [])})
@@ -341,7 +341,7 @@ def _drift(args: argparse.Namespace, res: list[dict[str, Any]]) -> int:
         n for n in tr.values if drift.parameter_kind(n, tr.expressions[n])]
     print(tr.table(shown))
     if args.json:
-        from robid_link.ident.report.figures import write_json
+        from robid_link.atomic import write_json
 
         write_json(args.json, tr.as_dict())
     if args.out:

@@ -23,6 +23,7 @@ import socket
 import sys
 import tempfile
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -111,14 +112,17 @@ class _Elsewhere:
         self.sock.close()
 
 
-async def _ask(path: Path, req: dict[str, Any], timeout_s: float = 10.0, tries: int = 40
-               ) -> dict[str, Any] | None:
+async def _ask(path: Path, req: dict[str, Any], timeout_s: float = 10.0,
+               within_s: float = 120.0) -> dict[str, Any] | None:
     """One request over the control socket, retried while every slot is busy answering
-    clients that do not read (None if it never got through)."""
+    clients that do not read (None if it never got through within ``within_s``: the mute
+    clients' slots free up after the daemon's write timeout and their queued requests, which
+    take longer on a loaded machine)."""
     from robid_link.exceptions import RobidError
     from robid_link.link.control import request
 
-    for _ in range(tries):
+    end = time.monotonic() + within_s
+    while time.monotonic() < end:
         try:
             return await asyncio.to_thread(request, path, req, timeout_s)
         except RobidError as err:

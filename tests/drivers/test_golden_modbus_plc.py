@@ -133,6 +133,9 @@ def test_peer_answers_the_transcript(tmp_path: Path, robot: Robot) -> None:
                 assert not (await client.write_registers(w["address"], w["values"],
                                                          device_id=1)).isError()
             await _poll(client, steps["run"]["read"])
+            end = time.monotonic() + 10.0  # BUSY shows before the core's thread is handed it
+            while not core.runs and time.monotonic() < end:
+                await asyncio.sleep(0.01)
             assert core.runs == [("1", doc["nonce"], names["traj_csv"], names["traj_yaml"])]
             gate.set()
             await _poll(client, steps["done"]["read"])

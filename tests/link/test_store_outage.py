@@ -11,6 +11,7 @@ import contextlib
 import os
 import socket
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -88,7 +89,13 @@ def test_a_store_error_after_the_give_withdraws_before_the_run_fails(
         await until(lambda: state_is(d, run_id, "failed"), 30)
         await until(lambda: not _ready(tmp_path), 10)
         assert d.store is not None
+        # the runner's sweep journals the withdraw once the failed run has ended
+        await until(lambda: _withdrawn(d, run_id), 10)
         return await d.store.run(run_id), await d.store.journal(run_id)
+
+    async def _withdrawn(d: Daemon, run_id: str) -> bool:
+        assert d.store is not None
+        return any(j["step"] == "withdrawn" for j in await d.store.journal(run_id))
 
     run, journal = with_daemon(cfg, body)  # no controller: a 'ready' left would stay
     assert _ready(tmp_path) == []
@@ -330,6 +337,22 @@ def proxy(postgres: Any) -> Iterator[_Proxy]:
     p.close()
 
 
+def _sessions_ended(postgres: Any, db: str, timeout_s: float = 20.0) -> None:
+    """Wait for the server to end the sessions of ``db`` whose connections were cut (each held
+    its robot's lock until then; under load the server takes a moment to notice)."""
+    import psycopg
+
+    from tests.servers import PG_PASSWORD, PG_USER
+
+    end = time.monotonic() + timeout_s
+    with psycopg.connect(host="127.0.0.1", port=postgres.port, user=PG_USER,
+                         password=PG_PASSWORD, dbname="postgres", autocommit=True) as c:
+        while c.execute("SELECT count(*) FROM pg_stat_activity WHERE datname = %s",
+                        (db,)).fetchone() != (0,):
+            assert time.monotonic() < end, f"the server kept the cut sessions of {db}"
+            time.sleep(0.05)
+
+
 def test_a_postgres_outage_is_one_line_and_the_store_comes_back(
         tmp_path: Path, postgres: Any, proxy: _Proxy, monkeypatch: pytest.MonkeyPatch) -> None:
     """Review: the server going away raised SQLAlchemy's OperationalError out of the store
@@ -349,6 +372,7 @@ def test_a_postgres_outage_is_one_line_and_the_store_comes_back(
             with pytest.raises(StoreUnavailableError) as err:
                 call()
             lines.append(str(err.value))
+        _sessions_ended(postgres, url.rsplit("/", 1)[1])
         proxy.restore()
         a.step(run, "e", "giving", attempt=1, nonce="n1")
         assert a.experiment(run, "e")["state"] == "giving"

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
 
-from robid_link.atomic import atomic_write
+from robid_link.atomic import atomic_write, write_json
 from robid_link.ident.fit.results import IdentResult
 from robid_link.ident.model.robot import Robot
 
@@ -26,12 +25,6 @@ def _pyplot() -> Any:
     import matplotlib.pyplot as plt
 
     return plt
-
-
-def write_json(path: str | Path, doc: dict[str, Any]) -> None:
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(p, json.dumps(doc, indent=2, allow_nan=False).encode())
 
 
 def _write_text(path: Path, text: str) -> None:
