@@ -497,8 +497,9 @@ class SerialLineDriver(Driver):
                         with contextlib.suppress(BlockError):
                             data += await ahead[2]
                         ahead = None
+                    why = str(lost).removeprefix(f"serial port {self.port}: ")  # said once
                     raise DriverError(f"{self._block_name(done, off)} not received intact "
-                                      f"({lost}); fetch stopped, {len(data)} bytes kept for "
+                                      f"({why}); fetch stopped, {len(data)} bytes kept for "
                                       "a resume") from None
                 if ahead is not None:
                     decoding, ahead = ahead[2], None
