@@ -619,11 +619,14 @@ def _stick_slip(v_free: np.ndarray, bound: np.ndarray, minv: np.ndarray, h: floa
             rhs = -(v_free + h * minv @ force)[s_idx] / h
             force[s_idx] = np.linalg.solve(minv[np.ix_(s_idx, s_idx)], rhs)
         v_new = v_free + h * minv @ force
-        crossed = ~stick & (bound > 0) & (np.sign(v_new) != np.sign(v_free)) & (v_free != 0)
-        crossed |= ~stick & (bound > 0) & (v_free == 0)
+        # a slipping joint must move against its friction (-direction); one that does not
+        # (it would cross zero, or starts at rest) sticks
+        crossed = ~stick & (bound > 0) & (np.sign(v_new) != -direction)
         released = stick & (np.abs(force) > bound * (1 + 1e-9))
         if not crossed.any() and not released.any():
             return np.where(stick, 0.0, v_new)
         stick = (stick | crossed) & ~released
-        direction = np.where(released, -np.sign(force), direction)
+        # a released joint slides away from its holding force: friction keeps that force's
+        # sign at its bound
+        direction = np.where(released, np.sign(force), direction)
     return np.where(stick, 0.0, v_new)

@@ -134,13 +134,12 @@ def _stick_slip(v_free, bound, minv, h):
             for a in range(s_idx.size):
                 force[s_idx[a]] = sol[a]
         v_new = v_free + h * _matvec(minv, force)
-        crossed = ~stick & (bound > 0) & (np.sign(v_new) != np.sign(v_free)) & (v_free != 0)
-        crossed |= ~stick & (bound > 0) & (v_free == 0)
+        crossed = ~stick & (bound > 0) & (np.sign(v_new) != -direction)
         released = stick & (np.abs(force) > bound * (1 + 1e-9))
         if not crossed.any() and not released.any():
             return np.where(stick, 0.0, v_new)
         stick = (stick | crossed) & ~released
-        direction = np.where(released, -np.sign(force), direction)
+        direction = np.where(released, np.sign(force), direction)
     return np.where(stick, 0.0, v_new)
 
 

@@ -309,3 +309,26 @@ def test_truth_file_perturb_and_motor_side(industrial6, tmp_path):
     qd = np.full_like(q, 0.1)
     log = Plant(industrial6, truth).run(t, q, qd, np.zeros_like(q))
     np.testing.assert_allclose(log["q"], q @ industrial6.transmission.T)
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_a_joint_pushed_off_its_stick_slides_against_its_friction(compiled):
+    """A joint about to stick whose coupled neighbour pushes it harder than its friction can
+    hold slides the way it is pushed, with its friction at the bound against that motion
+    (the released joint's friction once pushed it along and it stuck again, held by a force
+    beyond its bound)."""
+    from robid_link.fakes import plant as python_loop
+    from robid_link.fakes import plant_loop as compiled_loop
+
+    step = (compiled_loop if compiled else python_loop)._stick_slip
+    minv, h = np.array([[1.0, 0.9], [0.9, 1.0]]), 1e-3
+    bound, v_free = np.array([5.0, 2.0]), np.array([-1.0, -3.8e-4])
+    v = step(v_free, bound, minv, h)
+    force = np.linalg.solve(minv, (v - v_free) / h)
+    np.testing.assert_allclose(force, [5.0, -2.0], atol=1e-9)  # both at their bounds …
+    assert v[0] < 0 < v[1]  # … each against its motion: joint 2 slides the way it is pushed
+    assert v[1] == pytest.approx(-3.8e-4 + h * (0.9 * 5.0 - 2.0))
+    # one that can be held sticks, with a holding force within its bound
+    v = step(np.array([-1.0, -3.8e-4]), np.array([1.0, 2.0]), minv, h)
+    force = np.linalg.solve(minv, (v - np.array([-1.0, -3.8e-4])) / h)
+    assert v[1] == 0.0 and abs(force[1]) <= 2.0 + 1e-9
