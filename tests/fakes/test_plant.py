@@ -318,7 +318,7 @@ def test_a_joint_pushed_off_its_stick_slides_against_its_friction(compiled):
     (the released joint's friction once pushed it along and it stuck again, held by a force
     beyond its bound)."""
     from robid_link.fakes import plant as python_loop
-    from robid_link.fakes import plant_loop as compiled_loop
+    from robid_link.fakes import plant_kernel as compiled_loop
 
     step = (compiled_loop if compiled else python_loop)._stick_slip
     minv, h = np.array([[1.0, 0.9], [0.9, 1.0]]), 1e-3
