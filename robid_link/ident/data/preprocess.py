@@ -293,7 +293,11 @@ def prepare(log: Log, cutoff_hz: float | None, interval: int = 1,
                                   f"cutoff lowered to {fc:.3g} Hz for --interval {interval}"])
     prep = Prepared(log, ZeroPhaseFilter(fc, fs), transmission)
     channels = [("q", log.q), ("tau", log.tau)] + ([] if log.qd is None else [("qd", log.qd)])
-    in_slots(channels, lambda ch, slot: prep._track(*ch))
+
+    def track(channel: tuple[str, np.ndarray], slot: int) -> None:
+        prep._track(*channel)
+
+    in_slots(channels, track)
     return prep
 
 

@@ -152,7 +152,15 @@ def _regressor_part(q, qd, qdd, r0s, p0s, axes, revolute, parents, anc, gravity,
                     out[k, d] = s3 * b39 + s4 * b49 + s5 * b59
 
 
+_ARRAYS: dict[int, tuple[Robot, tuple[np.ndarray, ...]]] = {}
+
+
 def robot_arrays(robot: Robot) -> tuple[np.ndarray, ...]:
+    """The kernels' view of a robot (r0s, p0s, axes, revolute, parents, ancestors, gravity),
+    made once per robot object: a call on a chunk of samples should not rebuild them."""
+    hit = _ARRAYS.get(id(robot))
+    if hit is not None and hit[0] is robot:
+        return hit[1]
     n = robot.n
     r0s = np.array([np.array(pl.rotation) for pl in robot.placements]).reshape(n, 3, 3)
     p0s = np.array([np.array(pl.translation) for pl in robot.placements]).reshape(n, 3)
@@ -165,7 +173,33 @@ def robot_arrays(robot: Robot) -> tuple[np.ndarray, ...]:
             anc[j, i] = True
             i = robot.parents[i]
     axes = np.ascontiguousarray(robot.axes, dtype=float)
-    return r0s, p0s, axes, revolute, parents, anc, np.ascontiguousarray(robot.gravity)
+    out = (r0s, p0s, axes, revolute, parents, anc, np.ascontiguousarray(robot.gravity))
+    if len(_ARRAYS) >= 64:
+        _ARRAYS.pop(next(iter(_ARRAYS)))
+    _ARRAYS[id(robot)] = (robot, out)  # the reference keeps id(robot) from being reused
+    return out
+
+
+_DENSE: dict[int, tuple[Robot, np.ndarray, np.ndarray]] = {}
+
+
+def _dense_layout(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
+    """The dense layout's destinations (n, 10 n) and the columns no row reaches (blocks of row
+    i, body j with i no ancestor of j), made once per robot object."""
+    hit = _DENSE.get(id(robot))
+    if hit is not None and hit[0] is robot:
+        return hit[1], hit[2]
+    n = robot.n
+    dest = np.arange(n * 10 * n, dtype=np.int64).reshape(n, 10 * n)
+    block = np.tril(robot_arrays(robot)[5]).T  # [i, j]: the kernel writes row i of body j
+    zero_cols = dest[~np.repeat(block, 10, axis=1)]
+    if len(_DENSE) >= 64:
+        _DENSE.pop(next(iter(_DENSE)))
+    _DENSE[id(robot)] = (robot, dest, zero_cols)
+    return dest, zero_cols
+
+
+_NO_COLUMNS = np.zeros(0, dtype=np.int64)
 
 
 def rigid_regressor(
@@ -180,21 +214,16 @@ def rigid_regressor(
     """
     q, qd, qdd = (np.ascontiguousarray(np.atleast_2d(x), dtype=float).T for x in (q, qd, qdd))
     n, nsamp = q.shape
-    arrays = robot_arrays(robot)
     if dest is None:
-        dest = np.arange(n * 10 * n, dtype=np.int64).reshape(n, 10 * n)
+        dest, zero_cols = _dense_layout(robot)
         if out is None:
             out = np.empty((nsamp, n, 10 * n))
         flat = out.reshape(nsamp, n * 10 * n)
-        # blocks (row i, body j) the kernel writes: i an ancestor of j (or j); zero elsewhere
-        block = np.tril(arrays[5]).T  # [i, j]
-        zero_cols = dest[~np.repeat(block, 10, axis=1)]
     else:
         if out is None:
             raise ValueError("rigid_regressor: a compact dest needs an out array")
-        flat = out
-        zero_cols = np.zeros(0, dtype=np.int64)
-    args = (q, qd, qdd, *arrays, np.ascontiguousarray(dest, np.int64), flat)
+        flat, zero_cols = out, _NO_COLUMNS
+    args = (q, qd, qdd, *robot_arrays(robot), np.ascontiguousarray(dest, np.int64), flat)
     threads = kernel_threads()
     if threads == 1 or nsamp < 512:  # one part either way: no thread launch
         _regressor_part(*args, 0, nsamp, zero_cols)
