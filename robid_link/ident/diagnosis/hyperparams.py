@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 from scipy.optimize import minimize_scalar
@@ -292,13 +293,14 @@ def screens(rows: ProfileRows, blocks: Sequence[Block]) -> np.ndarray:
             joints = list(range(n))  # not confined to its rows: all of them
         groups.setdefault(tuple(joints), []).append((i, cols[:, joints, :]))
     out = np.empty(len(blocks))
-    for joints, members in groups.items():
-        cols = np.concatenate([c for _, c in members], axis=2)  # (N, len(joints), K)
-        own, z = span.project_off(list(joints), cols)
-        others = [j for j in range(n) if j not in joints]
+    for key, members in groups.items():
+        on = list(key)
+        cols = np.concatenate([c for _, c in members], axis=2)  # (N, len(on), K)
+        own, z = span.project_off(on, cols)
+        others = [j for j in range(n) if j not in on]
         g_o, h_o = span.grams[others].sum(axis=0), span.h[others].sum(axis=0)
-        y = span.y_perp[:, list(joints)].reshape(-1)
-        ss = max(float(np.sum(rows.resid_filtered[:, list(joints)] ** 2)), 1e-300)
+        y = span.y_perp[:, on].reshape(-1)
+        ss = max(float(np.sum(rows.resid_filtered[:, on] ** 2)), 1e-300)
         at = 0
         for i, c in members:
             sl = slice(at, at + c.shape[2])
@@ -324,14 +326,14 @@ class ModelSpan:
         for j in range(n):
             sup = np.flatnonzero(np.abs(model_cols[:, j, :]).max(axis=0) > 0)
             mj = np.ascontiguousarray(model_cols[:, j, sup])
-            r = np.linalg.qr(mj, mode="r")
+            r = _r_factor(mj)
             full = np.zeros((r.shape[0], p))
             full[:, sup] = r
             factors.append(full)
             self.grams[j] = full.T @ full
             self.support.append(sup)
             self.cols.append(mj)
-        r = np.linalg.qr(np.concatenate(factors), mode="r")
+        r = _r_factor(np.concatenate(factors))
         _, sv, vt = np.linalg.svd(r)
         keep = sv > sv[0] * 1e-10 if sv.size and sv[0] > 0 else np.zeros(sv.size, dtype=bool)
         v = vt[keep].T / sv[keep]
@@ -354,3 +356,8 @@ class ModelSpan:
         own = np.stack([cols[:, r, :] - self.cols[j] @ z[self.support[j]]
                         for r, j in enumerate(joints)], axis=1)
         return own, z
+
+
+def _r_factor(x: np.ndarray) -> np.ndarray:
+    """R of x's QR (numpy's mode "r" returns it alone)."""
+    return cast(np.ndarray, np.linalg.qr(x, mode="r"))
