@@ -2,6 +2,15 @@
 
 from __future__ import annotations
 
+import os
+
+# BLAS on one thread, as the CLI runs it (robid_link/cli/__init__.py) and the benches: set before
+# numpy loads. Two OpenBLAS threads spinning on small matrices cost the excitation test six
+# times its CPU, more with the two workers of `make test` on two cores.
+if not any(k in os.environ for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
+                                     "MKL_NUM_THREADS")):
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"
+
 import asyncio
 import logging
 import math
