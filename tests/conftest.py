@@ -2,6 +2,15 @@
 
 from __future__ import annotations
 
+import os
+
+# BLAS on one thread, as the CLI runs it (robid_link/cli/__init__.py) and the benches: set before
+# numpy loads. Two OpenBLAS threads spinning on small matrices cost the excitation test six
+# times its CPU, more with the two workers of `make test` on two cores.
+if not any(k in os.environ for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
+                                     "MKL_NUM_THREADS")):
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"
+
 import asyncio
 import logging
 import math
@@ -50,9 +59,11 @@ def kind_of(path: Path) -> str:
     return kinds[0] if kinds else "unit"
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         item.add_marker(getattr(pytest.mark, kind_of(item.path)))
+    if hasattr(config, "workerinput"):  # an xdist worker: the controller takes this order
+        items[:] = longest_first(items)
 
 
 # ----------------------------------------------------------------------------- -n 2 (xdist)
@@ -62,14 +73,43 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 SAME_WORKER = {"tests/test_fuzz.py": "tests/test_fuzz_cli.py"}
 
 
+#: files that run several processes each (a daemon per cell): sent out first with the
+#: end-to-end files
+SLOW_FILES = ("drivers/test_hostile.py",)
+
+
+def longest_first(items: list[pytest.Item]) -> list[pytest.Item]:
+    """The files in the order two workers take them: the end-to-end ones (and
+    ``SLOW_FILES``) first, then by number of tests, so the last file either worker takes is
+    short and both finish close together. Within a file the order stays."""
+    def scope(item: pytest.Item) -> str:
+        rel = item.path.resolve().relative_to(ROOT).as_posix()
+        return SAME_WORKER.get(rel, rel)
+
+    count: dict[str, int] = {}
+    first: dict[str, int] = {}
+    for i, item in enumerate(items):
+        count[scope(item)] = count.get(scope(item), 0) + 1
+        first.setdefault(scope(item), i)
+
+    def key(item: pytest.Item) -> tuple[bool, int, int]:
+        rel = item.path.resolve().relative_to(ROOT / "tests")
+        slow = kind_of(item.path) == "e2e" or any(rel.match(g) for g in SLOW_FILES)
+        return not slow, -count[scope(item)], first[scope(item)]
+
+    return sorted(items, key=key)
+
+
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     """``make test`` runs ``-n 2 --dist loadfile``: each file on one worker (its module-scoped
-    fixtures, a browser, a report made once, stay once), and the files of ``SAME_WORKER``
-    together. Other ``--dist`` modes are xdist's own."""
+    fixtures, a browser, a report made once, stay once), the files of ``SAME_WORKER``
+    together, in the order of ``longest_first``. Other ``--dist`` modes are xdist's own."""
     if config.getoption("dist") != "loadfile":
         return None
     from xdist.scheduler import LoadFileScheduling
+
+    config.option.loadscopereorder = False  # the workers' collection is in order already
 
     class Scheduling(LoadFileScheduling):  # type: ignore[misc]
         def _split_scope(self, nodeid: str) -> str:
