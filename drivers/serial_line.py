@@ -316,7 +316,10 @@ class SerialLineDriver(Driver):
         port = self._serial
         try:
             await asyncio.to_thread(port.write, line)
-        except (serial.SerialException, OSError, AttributeError) as err:
+        except (serial.SerialException, OSError, AttributeError, TypeError) as err:
+            # a port closed under the write (a pulled cable's reopen): pyserial's abort pipe is
+            # gone mid-call and its select() raises TypeError — the line dropped, as the reader
+            # takes it
             self._on_lost(_reason(err))
 
     async def _request(self, fields: list[object], match: Callable[[list[str]], bool],
