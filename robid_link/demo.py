@@ -21,7 +21,7 @@ import yaml
 from robid_link.config import load_daemon_config
 from robid_link.exceptions import RobidError
 
-__all__ = ["run_demo", "DEMO_ROBOT", "HIDDEN"]
+__all__ = ["run_demo", "demo_truth", "DEMO_ROBOT", "HIDDEN", "RIGID", "QUICK_RIGID"]
 
 DEMO_ROBOT = Path(str(resources.files("robid_link.examples.robots") / "industrial6.yaml"))
 #: what the default model does not know: cogging on axis 1 (0.6 N·m, every 0.1 rad)
@@ -64,21 +64,30 @@ def _setup(work: Path, out: Path, driver: dict[str, Any], calibrate: bool = True
     return path, model
 
 
+def demo_truth(robot: Any) -> Any:
+    """The demo cell's plant (``fakes.plant.Truth``): the robot 20 % off its CAD inertials,
+    viscous and Coulomb friction, the hidden effect, torque noise, a 20-bit encoder, a closed
+    loop at 1 kHz."""
+    from robid_link.link.registry import fake_module
+
+    plant = fake_module("plant")
+    return plant.Truth(inertials=plant.perturbed_inertials(robot, seed=11, spread=0.2),
+                       effects=({"name": "viscous", "fv": 3.0},
+                                {"name": "coulomb", "fc": 2.0}, HIDDEN),
+                       noise_tau=0.3, q_resolution=2 * 3.141592653589793 / 2**20,
+                       rate_hz=1000.0, mode="closed_loop",
+                       controller={"rate_hz": 1000.0, "bandwidth_hz": 8.0})
+
+
 def _controller(driver: str, workdir: Path) -> Any:
     """The fake controller of ``driver``'s protocol over the demo robot (not started)."""
     from robid_link.ident.model.robot import load_robot
     from robid_link.link.registry import fake_module
 
-    plant, ctrl = fake_module("plant"), fake_module("controller")
     robot = load_robot(DEMO_ROBOT)
-    truth = plant.Truth(inertials=plant.perturbed_inertials(robot, seed=11, spread=0.2),
-                        effects=({"name": "viscous", "fv": 3.0},
-                                 {"name": "coulomb", "fc": 2.0}, HIDDEN),
-                        noise_tau=0.3, q_resolution=2 * 3.141592653589793 / 2**20,
-                        rate_hz=1000.0, mode="closed_loop",
-                        controller={"rate_hz": 1000.0, "bandwidth_hz": 8.0})
     workdir.mkdir(parents=True)
-    return ctrl.make_peer(driver, robot, truth, workdir, seed=3)
+    return fake_module("controller").make_peer(driver, robot, demo_truth(robot), workdir,
+                                               seed=3)
 
 
 async def _campaign(cfg_path: Path, log_file: Path, name: str = "demo") -> dict[str, Any]:

@@ -51,8 +51,11 @@ from robid_link.ident.diagnosis.verdict import (
     P_MAX,
     Diagnosis,
     Suggestion,
+    Verdicts,
     judge,
+    not_repeating_note,
     not_transferring_note,
+    one_by_one,
     rank,
     result_doubts,
 )
@@ -415,8 +418,44 @@ def test_rank_prefers_transfer_then_physics_then_fewer_parameters():
     cogging = _sug("ripple", 1, gain=0.39, after=0.31, repeat=0.9)
     assert rank(judge([spring, cogging])).suggested == [cogging, spring]  # it repeats
     smooth = _sug("ripple", 1, gain=0.41, after=0.30, repeat=0.1)
-    assert rank(judge([smooth, spring])).suggested == [spring, smooth]
+    # a ripple whose residual does not repeat one period on is no cogging: not suggested
+    assert rank(judge([smooth, spring])).suggested == [spring]
+    assert not_repeating_note([smooth]) == [
+        "ripple@1 (gain 41 %, correlation one period on 0.1) cut the error, but the residual "
+        "does not repeat along the angle one period on (correlation under 0.5): not cogging or "
+        "meshing, not suggested"]
     assert rank(judge([_sug(gain=0.01), _sug(gain=0.03)])).rejected[0].gain == 0.03
+
+
+def test_one_by_one_keeps_what_still_helps_names_twins_and_drops_the_rest():
+    """Each suggestion after the first is judged with the better ones in the model (``given``)
+    and without the other joints' turns (``apart``)."""
+    top = _sug("ripple", 1, gain=0.8, after=0.05, repeat=0.97)
+    leak = _sug("spring", 2, gain=0.09, after=0.045)  # lives on what ripple@1 leaves
+    real = _sug("offset", 3, gain=0.3, after=0.03)
+    twin = _sug("friction_power", 1, gain=0.79, after=0.0502)  # explains what ripple@1 does
+    turns = _sug("stribeck", 3, gain=0.07, after=0.029)  # lives on the other joints' turns
+    given = {"spring@2": (0.01, 1e-6), "offset@3": (0.29, 1e-9),
+             "friction_power@1": (0.0, 0.5), "stribeck@3": (0.06, 1e-6)}
+    apart = {"ripple@1": (0.8, 0.0), "offset@3": (0.28, 1e-9), "stribeck@3": (0.01, 0.2)}
+    v, notes = one_by_one(Verdicts([top, twin, real, leak, turns], [], []),
+                          lambda s, better: given[s.label()], lambda s, better: apart[s.label()])
+    assert v.suggested == [top, real]
+    assert top.alternatives == ["friction_power@1"] and "the log cannot tell them apart" in \
+        top.evidence and top.as_dict()["alternatives"] == ["friction_power@1"]
+    assert [s.label() for s in v.rejected] == ["spring@2", "stribeck@3"]
+    assert notes[0] == ("spring@2 (gain 9 % alone, 1 % with ripple@1, offset@3 in the model) "
+                        "explains only what those leave: not suggested")
+    assert notes[1].startswith("stribeck@3 (gain 7 %) keeps 1 % when the rows near the "
+                               "velocity reversals are left out")
+    # the log's own sample-and-hold, when the callables hold it in the model, judges the first
+    first = _sug("spring", 2, gain=0.13, after=0.0166)
+    v, notes = one_by_one(Verdicts([first], [], []), lambda s, better: (0.012, 1e-4),
+                          lambda s, better: (0.1, 1e-9), "the log's own sample-and-hold")
+    assert v.suggested == [] and notes == [
+        "spring@2 (gain 13 % alone, 1.2 % with the log's own sample-and-hold in the model) "
+        "explains only what that leaves: not suggested"]
+    assert real.fields["gain_given"] == 0.29 and real.fields["gain_apart"] == 0.28
 
 
 def test_verdict_is_doubtful_when_the_validation_error_is_above_cads(arm3, ripple):

@@ -12,7 +12,7 @@ ranking (verdict.py); the sentence of evidence under each suggestion (evidence.p
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -24,6 +24,7 @@ from robid_link.ident.data.logs import Log
 from robid_link.ident.data.preprocess import Prepared
 from robid_link.ident.diagnosis.candidates import (
     SCREEN_MIN,
+    Candidate,
     catalog_candidates,
     drop_slow_ripples,
     insample_screen,
@@ -38,15 +39,27 @@ from robid_link.ident.diagnosis.limits import (
     limited_candidates,
     limits_note,
     log_limits,
+    within_a_sample,
     within_limits,
 )
-from robid_link.ident.diagnosis.residuals import profile_rows, residual_dict, residual_pool
+from robid_link.ident.diagnosis.residuals import (
+    ResidualPool,
+    profile_rows,
+    residual_dict,
+    residual_pool,
+    where_excess,
+)
 from robid_link.ident.diagnosis.scoring import (
+    FoldCV,
+    Union,
     cross_validation,
+    given_others,
     one_motion_note,
+    reversal_grams,
     score_candidate,
     suggestion,
     union_design,
+    without_turns,
 )
 from robid_link.ident.diagnosis.transfer import (
     model_transfer_doubts,
@@ -60,11 +73,14 @@ from robid_link.ident.diagnosis.verdict import (
     Suggestion,
     floor_doubts,
     judge,
+    not_repeating_note,
     not_transferring_note,
+    one_by_one,
     rank,
     result_doubts,
 )
 from robid_link.ident.fit.design import Design
+from robid_link.ident.fit.estimate import Grams
 from robid_link.ident.fit.identify import identify
 from robid_link.ident.fit.results import IdentResult
 from robid_link.ident.model.effects import Block, Model
@@ -99,12 +115,13 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                           interval=interval, method=method, motor_side=motor_side)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="robid-diagnose") as aside:
         # what reads only the fit and the logs runs on a second core beside the candidates
-        doubts_f = aside.submit(lambda: result_doubts(result) + floor_doubts(result))
+        doubts_f = aside.submit(result_doubts, result)
         pool = residual_pool(robot, result)
         odd_f = aside.submit(_unexplained, pool.preps[0], pool.design, pool.theta,
                              resonance_hints)
         limits_f = aside.submit(log_limits, pool.preps[: len(pool.problem.preps)])
         notes = one_motion_note([*data, *(validate or ())])
+        turns = where_excess(pool, result.noise_floor)
         # the candidates: profiled, then screened (structure, then in-sample) on a few rows
         rows = profile_rows(robot, pool)
         candidates, profiled = profile_candidates(
@@ -121,7 +138,18 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         if basis_f is not None:
             basis_f.result()
         kept = refine_survivors(rows, insample.kept, profiled)
+        kept += _shift_candidate(structural.new, kept)
         odd, doubts, limits = odd_f.result(), doubts_f.result(), limits_f.result()
+    base = len(doubts)
+
+    def with_floor(suggested: Sequence[Suggestion]) -> list[str]:
+        """The doubts with each joint's floor doubt, saying where its excess sits when no
+        suggestion is on that joint."""
+        on = {s.joint for s in suggested}
+        return doubts[:base] + floor_doubts(result, {
+            j: t for j, t in turns.items() if j + 1 not in on}) + doubts[base:]
+
+    limited = limited_candidates(kept, limits)
     # the profiling rows' dense regressor is not needed by the union pass: kept only for a
     # spring's counterbalance law, fitted once the spring is suggested
     law_rows = rows if any(k.block.effect.name == "spring" for k in kept) else None
@@ -131,7 +159,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     if not kept and not pool.vpieces:  # nothing can show a gain: no union pass
         notes += limits_note(limits, {})
         return Diagnosis(result, model.labels(), None, [], [], absorbed, odd, notes,
-                         residuals, doubts=doubts)
+                         residuals, doubts=with_floor([]))
     union = union_design(robot, pool, kept)
     transfer = transfer_scorer(union, pool) if pool.vpieces else None
     if transfer is not None:
@@ -139,7 +167,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     if not kept:  # nothing can show a gain: no candidate pass
         notes += limits_note(limits, {})
         return Diagnosis(result, model.labels(), None, [], [], absorbed, odd, notes,
-                         residuals, doubts=doubts)
+                         residuals, doubts=with_floor([]))
     cv = cross_validation(union, pool)
     signatures = Signatures(robot, pool.states, pool.resid)
     scored = []
@@ -148,10 +176,22 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         sug = suggestion(blk, score, signatures)
         scored.append(sug if transfer is None else
                       with_transfer(sug, score, transfer, union.positions[k]))
-    verdicts, held_back = within_limits(judge(scored), limited_candidates(kept, limits),
-                                        limits.fs)
-    ranked = rank(verdicts)
+    verdicts, held_back = within_limits(judge(scored), limited, limits.fs)
+    at = {sug.label(): k for k, sug in enumerate(scored)}
+    # a shift within a sample is the log's own timing: in the model while the others are
+    # judged, so that none is suggested for what it explains
+    skew = next((sug for sug in scored if sug.effect == "delay"
+                 and within_a_sample(sug.fields.get("seconds", 1.0), limits.fs)), None)
+    extra = [at["delay"]] if skew is not None else []
+    nuisance = "" if skew is None else (f"the log's own sample-and-hold (a shift of "
+                                        f"{1e3 * skew.fields['seconds']:.2g} ms)")
+    ranked, explained = one_by_one(
+        rank(verdicts),
+        lambda sug, better: given_others(robot, cv, union, at[sug.label()],
+                                         [at[b.label()] for b in better] + extra),
+        _apart(robot, cv, union, pool, at, extra), nuisance)
     notes += _known_torque_pointers(ranked.suggested, law_rows, [k.block for k in kept])
+    notes += explained + not_repeating_note(ranked.rejected)
     notes += not_transferring_note(ranked.not_transferring)
     notes += limits_note(limits, held_back)
     if held_back:
@@ -159,8 +199,33 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                       "but the log cannot separate them (see the notes)")
     return Diagnosis(result, model.labels(), [float(x) for x in cv.base], ranked.suggested,
                      ranked.rejected[:10], absorbed, odd, notes, residuals,
-                     not_transferring=ranked.not_transferring, doubts=doubts,
+                     not_transferring=ranked.not_transferring,
+                     doubts=with_floor(ranked.suggested),
                      limited=[sug for sug, _ in held_back.values()])
+
+
+def _apart(robot: Robot, cv: FoldCV, union: Union, pool: ResidualPool, at: dict[str, int],
+           extra: list[int]) -> Callable[[Suggestion, list[Suggestion]], tuple[float, float]]:
+    """``without_turns`` for a suggestion with the better ones before it (and the union
+    candidates ``extra``) in the model, the reversal Grams made on first use."""
+    made: list[Grams] = []
+
+    def test(sug: Suggestion, better: list[Suggestion]) -> tuple[float, float]:
+        if not made:
+            made.append(reversal_grams(union, pool))
+        return without_turns(robot, cv, union, made[0], at[sug.label()],
+                             [at[b.label()] for b in better] + extra)
+
+    return test
+
+
+def _shift_candidate(new: Sequence[Candidate], kept: Sequence[Candidate]) -> list[Candidate]:
+    """The delay candidate, scored whenever others are (though its in-sample share be small):
+    a sub-sample shift of the torque log against the positions (a controller that logs the
+    torque it holds over its tick) is what the others are judged beyond."""
+    if not kept or any(c.block.effect.name == "delay" for c in kept):
+        return []
+    return [c for c in new if c.block.effect.name == "delay"][:1]
 
 
 def _known_torque_pointers(suggested: Sequence[Suggestion], rows: ProfileRows | None,

@@ -151,8 +151,9 @@ _PHASES = np.linspace(-math.pi, math.pi, 48, endpoint=False)
 @dataclass(frozen=True)
 class Counterbalance:
     """The spring law fitted to one joint's residual (from 1): shape constants, and the
-    in-sample shares of the residual (beyond the joint's own model row and friction) that the
-    law, the angle series and a ripple explain."""
+    in-sample shares of the joint's filtered residual (its own model row and friction
+    refitted alongside) that the law, the angle series and a ripple explain — each a share of
+    the whole residual, so at most 1."""
 
     joint: int
     ratio: float  # a / b
@@ -174,12 +175,14 @@ class Counterbalance:
         flow = (f"{{name: {e['name']}, joint: {e['joint']}, expression: \"{e['expression']}\", "
                 f"constants: {{a: {e['constants']['a']}, b: 1.0, phi: {e['constants']['phi']}}}"
                 ", identify: [f0, f1, f2]}")
-        series = max(self.series_share, 1e-300)
+        # each share is of the joint's whole filtered residual: at most 100 %; the law and the
+        # angle series span different columns, so either may explain more than the other
         return (f"spring@{self.joint}: joint {self.joint}'s residual follows its angle like a "
-                f"counterbalance (in-sample, a strut law with a/b {self.ratio:.3g} and φ "
-                f"{self.phi:.3g} rad explains {100 * self.law_share / series:.3g} % of what "
-                "the angle series does, a ripple "
-                f"{100 * self.ripple_share / series:.3g} %): "
+                f"counterbalance (in-sample, of its filtered residual with its friction and its "
+                f"model row refitted, a strut law with a/b {self.ratio:.3g} and φ "
+                f"{self.phi:.3g} rad explains {100 * self.law_share:.3g} %, the angle series "
+                f"(a Fourier series of order 4) {100 * self.series_share:.3g} %, a ripple "
+                f"{100 * self.ripple_share:.3g} %): "
                 "if the arm has a spring or gas strut there, give its law in the model file — "
                 f"known_torque: [{flow}] — with its measured a, b (only their ratio is fitted "
                 "here) and the force's f0, f1, f2 identified")

@@ -1,8 +1,9 @@
 """The log's limits: what its rate, the filter's cutoff and the torque log's timing let a
 diagnosis separate. Rows where a joint sticks at its reversals were left out of its equation
 (``data/sticks.py``): friction acting only at lower speeds cannot be seen. A ripple that turns
-faster than the Nyquist frequency at the joint's speeds is aliased; a time shift under half a
-sample is the log's own sample-and-hold. Such candidates are not suggested, and the diagnosis
+faster than the Nyquist frequency at the joint's speeds is aliased; a time shift within one
+sample is the log's own timing (a torque held over the controller's tick acts half a sample
+late: its sample-and-hold). Such candidates are not suggested, and the diagnosis
 says that the rate limits it."""
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ from robid_link.ident.data.preprocess import Prepared
 from robid_link.ident.diagnosis.candidates import Candidate
 from robid_link.ident.diagnosis.verdict import Suggestion, Verdicts
 
-__all__ = ["LogLimits", "log_limits", "limited_candidates", "within_limits", "limits_note"]
+__all__ = ["LogLimits", "log_limits", "limited_candidates", "within_limits", "within_a_sample",
+           "limits_note"]
 
 #: why a candidate or a suggestion is held back, and its figure
 Reason = tuple[str, str]
@@ -67,21 +69,27 @@ def limited_candidates(kept: Sequence[Candidate], limits: LogLimits) -> dict[str
 def within_limits(v: Verdicts, limited: dict[str, Reason], fs: float
                   ) -> tuple[Verdicts, dict[str, tuple[Suggestion, Reason]]]:
     """The suggestions the log cannot separate taken out (``limited`` from
-    ``limited_candidates``, and a delay under half a sample: the log's own sample-and-hold),
+    ``limited_candidates``, and a delay within one sample: the log's own sample-and-hold),
     each with its reason; the others as they were."""
     keep, out = [], {}
     for sug in v.suggested:
         key = sug.label()
         secs = sug.fields.get("seconds")
         reason = limited.get(key)
-        if sug.effect == "delay" and secs is not None and abs(secs) < 0.5 / fs:
-            reason = (f"a shift under half the log's sample period ({1e3 / fs:.3g} ms) is the "
-                      "log's own sample-and-hold", f"{1e3 * secs:.3g} ms")
+        if sug.effect == "delay" and secs is not None and within_a_sample(secs, fs):
+            reason = (f"a shift within the log's sample period ({1e3 / fs:.3g} ms) is the log's "
+                      "own timing (a torque held over the controller's tick acts half a sample "
+                      "late: its sample-and-hold)", f"{1e3 * secs:.3g} ms")
         if reason is not None:
             out[key] = (sug, reason)
         else:
             keep.append(sug)
     return Verdicts(keep, v.rejected, v.not_transferring), out
+
+
+def within_a_sample(seconds: float, fs: float) -> bool:
+    """Whether a shift of the torque log is within the log's own timing (one sample period)."""
+    return abs(seconds) < 1.0 / fs
 
 
 def limits_note(limits: LogLimits, held: dict[str, tuple[Suggestion, Reason]]) -> list[str]:
@@ -91,7 +99,8 @@ def limits_note(limits: LogLimits, held: dict[str, tuple[Suggestion, Reason]]) -
     if limits.unseen_below:
         joints = sorted(limits.unseen_below)
         parts.append(
-            f"joint(s) {', '.join(str(j + 1) for j in joints)} stick at their reversals and at "
+            f"joint(s) {', '.join(str(j + 1) for j in joints)} stick or touch zero speed at "
+            "their reversals and at "
             f"{limits.fs:.4g} Hz with a {limits.cutoff_hz:.3g} Hz cutoff their rows under "
             + ", ".join(f"{limits.unseen_below[j]:.3g}" for j in joints)
             + " rad/s (m/s) are left out: friction acting only at lower speeds (a Stribeck or "

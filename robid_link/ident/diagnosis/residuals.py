@@ -18,12 +18,21 @@ from robid_link.ident.model.regressor import BaseSet
 from robid_link.ident.model.robot import Robot
 
 __all__ = ["ResidualPool", "residual_pool", "residual_rows", "profile_rows", "residual_dict",
-           "PROFILE_ROWS", "RESIDUAL_ROWS"]
+           "where_excess", "Where", "PROFILE_ROWS", "RESIDUAL_ROWS", "TURN_SHARE_MIN",
+           "TURN_CONCENTRATION", "FAST_MARGIN"]
 
 #: rows (spread over the log) on which hyper-parameters are profiled
 PROFILE_ROWS = 3000
 #: about this many decimated rows carry the residual (evidence and profiling)
 RESIDUAL_ROWS = 12000
+#: a joint's residual sits at its turns when at least this share of its filtered excess over
+#: the noise lies within one period of the cutoff of its velocity reversals …
+TURN_SHARE_MIN = 0.5
+#: … and that share is this many times the share of rows there
+TURN_CONCENTRATION = 3.0
+#: a filtered residual within this factor of the noise through the filter: the excess of the
+#: raw one is faster than the cutoff
+FAST_MARGIN = 1.1
 
 
 @dataclass(frozen=True)
@@ -117,3 +126,70 @@ def residual_dict(pool: ResidualPool) -> dict[str, np.ndarray]:
     st = pool.states
     return {"r": pool.resid, "q": st.q, "qd": st.qd, "qdd": st.qdd, "t": st.t,
             "fs": np.array(pool.problem.preps[0].filt.fs / pool.step)}
+
+
+@dataclass(frozen=True)
+class Where:
+    """Where a joint's excess over the noise sits, said in its floor doubt: at its velocity
+    reversals (``energy``: the share of the filtered residual's excess over the noise within
+    ``window_s`` of them; ``rows``: the share of the rows there), or above the cutoff (the
+    filtered residual ``filtered`` at ``floor``, what the noise leaves through the filter)."""
+
+    kind: str  # "turns" | "fast"
+    energy: float
+    rows: float
+    window_s: float
+    cutoff_hz: float
+    filtered: float = 0.0
+    floor: float = 0.0
+
+    def sentence(self) -> str:
+        if self.kind == "fast":
+            return (f"its filtered residual ({self.filtered:.2g} N·m) is what the noise leaves "
+                    f"through the {self.cutoff_hz:.3g} Hz filter ({self.floor:.2g} N·m): the "
+                    "excess is faster than the cutoff (the loop's own torque, a resonance), "
+                    "where no catalog effect at the motion's pace reaches")
+        return (f"{100 * self.energy:.0f} % of its filtered residual's excess over the noise "
+                f"lies within {self.window_s:.2g} s of its velocity reversals "
+                f"({100 * self.rows:.2g} % of the rows): structure at the turns that no catalog "
+                f"effect explains — friction that changes there faster than the "
+                f"{self.cutoff_hz:.3g} Hz cutoff resolves (a stick, a closed loop's Coulomb "
+                "switch)")
+
+
+def where_excess(pool: ResidualPool, noise: np.ndarray | None) -> dict[int, Where]:
+    """Per joint (from 0), where its excess sits, when the residual says: at its velocity
+    reversals (at least TURN_SHARE_MIN of the filtered residual's excess over the noise within
+    one period of the cutoff of them, TURN_CONCENTRATION times the share of rows there; rows
+    left out of the joint's equation count for neither), or above the cutoff (the filtered
+    residual within FAST_MARGIN of the noise ``noise`` through the filter)."""
+    filt = pool.problem.preps[0].filt
+    window = 1.0 / filt.cutoff_hz
+    impulse = np.zeros(8 * int(filt.fs / filt.cutoff_hz) + 1)
+    impulse[impulse.size // 2] = 1.0
+    gain = float(np.sqrt(np.sum(filt.apply(impulse) ** 2)))  # white noise's rms through it
+    st, out = pool.states, {}
+    assert st.t is not None
+    for j in range(pool.resid.shape[1]):
+        r2 = pool.resid[:, j] ** 2
+        live = r2 > 0
+        turns = st.t[np.flatnonzero(np.sign(st.qd[1:, j]) != np.sign(st.qd[:-1, j]))]
+        if not live.any():
+            continue
+        floor2 = 0.0 if noise is None else (gain * noise[j]) ** 2
+        if turns.size:
+            pos = np.searchsorted(turns, st.t)
+            gap = np.minimum(np.abs(st.t - turns[np.clip(pos - 1, 0, turns.size - 1)]),
+                             np.abs(turns[np.clip(pos, 0, turns.size - 1)] - st.t))
+            near = (gap <= window) & live
+            # the excess over what the noise leaves through the filter, near the turns
+            excess = float(r2[live].sum() - floor2 * live.sum())
+            at = float(r2[near].sum() - floor2 * near.sum())
+            energy, rows = at / max(excess, 1e-300), float(near.sum() / live.sum())
+            if excess > 0 and energy >= TURN_SHARE_MIN and energy >= TURN_CONCENTRATION * rows:
+                out[j] = Where("turns", min(energy, 1.0), rows, window, filt.cutoff_hz)
+                continue
+        rms_f = float(np.sqrt(r2[live].mean()))
+        if noise is not None and rms_f <= FAST_MARGIN * gain * noise[j]:
+            out[j] = Where("fast", 0.0, 0.0, window, filt.cutoff_hz, rms_f, gain * noise[j])
+    return out

@@ -6,12 +6,14 @@ the practical gain on the candidate's joints, and the suggestion with its eviden
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.stats import chi2
 
 from robid_link.ident.data.logs import Log
+from robid_link.ident.data.preprocess import Prepared
+from robid_link.ident.data.sticks import smear_rows
 from robid_link.ident.diagnosis.candidates import Candidate
 from robid_link.ident.diagnosis.evidence import Signatures, evidence_sentence, repeats
 from robid_link.ident.diagnosis.residuals import ResidualPool
@@ -22,8 +24,8 @@ from robid_link.ident.model.effects import Block
 from robid_link.ident.model.robot import Robot
 
 __all__ = ["FOLDS", "BLOCKS", "Union", "union_design", "fold_masks", "FoldCV",
-           "cross_validation", "wald", "Score", "score_candidate", "suggestion",
-           "one_motion_note", "rms"]
+           "cross_validation", "wald", "Score", "score_candidate", "given_others",
+           "reversal_grams", "without_turns", "AT_TURNS", "suggestion", "one_motion_note", "rms"]
 
 FOLDS = 5
 #: time blocks of the union Grams (folds are made of them)
@@ -182,6 +184,79 @@ def score_candidate(robot: Robot, cv: FoldCV, union: Union, k: int) -> Score:
     before, after = rms(cv.base[rws]), rms(rmse1[rws])
     return Score(rmse1, p_value, theta[union.n_model:], rws, before, after,
                  1.0 - after / max(before, 1e-300))
+
+
+def given_others(robot: Robot, cv: FoldCV, union: Union, k: int, others: Sequence[int]
+                 ) -> tuple[float, float]:
+    """Candidate ``k``'s gain on its joints and its Wald p-value with the candidates ``others``
+    already in the model (each one's columns added on the same folds)."""
+    blk, cand = union.blocks[k], union.positions[k]
+    held = np.concatenate([union.positions[o] for o in others]) if others else \
+        np.zeros(0, dtype=int)
+    rws = blk.rows(robot, union.transmission)
+    before = rms(cv.rmse(held)[rws])
+    after = rms(cv.rmse(np.concatenate((held, cand)))[rws])
+    sub = np.sort(np.concatenate((np.arange(union.n_model), held, cand)))
+    p_value, _ = wald(cv.grams, sub, cand)
+    return 1.0 - after / max(before, 1e-300), p_value
+
+
+def _reversal_rows(prep: Prepared) -> np.ndarray:
+    """Rows × joints near the joint's velocity reversals (sign changes of its filtered
+    velocity; as far as a stick's rows are left out: ``sticks.smear_rows``), where its torque
+    still counts."""
+    smear = smear_rows(prep)
+    qd = prep.qd
+    out = np.zeros(qd.shape, bool)
+    for j in range(qd.shape[1]):
+        for k in np.flatnonzero(np.sign(qd[1:, j]) != np.sign(qd[:-1, j])):
+            out[max(0, k - smear): k + smear + 2, j] = True
+    return out if prep.tau_mask is None else out & prep.tau_mask
+
+
+def reversal_grams(union: Union, pool: ResidualPool) -> Grams:
+    """The union Grams of each joint's equation on the rows near its own velocity reversals
+    only, on cross_validation's time blocks (the same pieces in the same order)."""
+    pieces = [replace(pc, prep=replace(pc.prep, tau_mask=_reversal_rows(pc.prep)))
+              for pc in pool.pieces]
+    return accumulate(union.design, pieces, union.keep, union.block_len, max_blocks=BLOCKS)
+
+
+#: effects whose evidence lies at the turns too — friction laws of the velocity, and a delay
+#: (a late torque log shows the Coulomb switch late): their own joints' rows near the velocity
+#: reversals stay when their gain is checked away from the turns
+AT_TURNS = frozenset({"viscous", "coulomb", "friction", "friction_power", "coulomb_asymmetric",
+                      "stribeck", "presliding", "friction_drift", "load_friction", "delay"})
+
+
+def without_turns(robot: Robot, cv: FoldCV, union: Union, turns: Grams, k: int,
+                  others: Sequence[int] = ()) -> tuple[float, float]:
+    """Candidate ``k``'s gain on its joints and its Wald p-value (with the candidates
+    ``others`` in the model) when the rows near the joints' velocity reversals are left out of
+    their equations — the other joints' for an effect whose evidence lies at the turns too
+    (AT_TURNS; none for a delay, which loads every joint), every joint's for anything else. A
+    closed loop's friction at a turn (a stick, the kink of a Coulomb switch) is finer than the
+    filter resolves; what the model misses there recurs wherever the motion turns again (at
+    the same angles in a repeated motion) and biases the parameters the joints share, so a
+    candidate that lives on it loses its gain here."""
+    blk, cand = union.blocks[k], union.positions[k]
+    held = np.concatenate([union.positions[o] for o in others]) if others else \
+        np.zeros(0, dtype=int)
+    own = blk.rows(robot, union.transmission)
+    out = np.arange(robot.n)
+    if blk.effect.name in AT_TURNS:
+        out = np.setdiff1d(out, own)
+    g = cv.grams.g.copy()
+    g[out] -= turns.g[out]
+    n_rows = cv.grams.n_rows.copy()
+    n_rows[out] -= turns.n_rows[out]
+    grams = Grams(g, n_rows)
+    fold = FoldCV(grams, union.n_model, fold_masks(g.shape[1], FOLDS))
+    before = rms(fold.rmse(held)[own])
+    after = rms(fold.rmse(np.concatenate((held, cand)))[own])
+    sub = np.sort(np.concatenate((np.arange(union.n_model), held, cand)))
+    p_value, _ = wald(grams, sub, cand)
+    return 1.0 - after / max(before, 1e-300), p_value
 
 
 def suggestion(blk: Block, score: Score, signatures: Signatures) -> Suggestion:

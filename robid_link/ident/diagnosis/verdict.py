@@ -4,6 +4,7 @@ and the ranking of the suggestions (physics first, then fewer parameters)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -13,8 +14,8 @@ from robid_link.ident.fit.results import IdentResult
 from robid_link.ident.model.effects import effect_label
 
 __all__ = ["Suggestion", "Diagnosis", "Verdicts", "GAIN_MIN", "P_MAX", "TRANSFER_MIN",
-           "judge", "rank", "result_doubts", "floor_doubts", "not_transferring_note",
-           "physics_order", "prefer_simpler"]
+           "EQUIVALENT", "judge", "rank", "one_by_one", "result_doubts", "floor_doubts",
+           "not_transferring_note", "not_repeating_note", "physics_order", "prefer_simpler"]
 
 #: a suggestion must cut its joint's held-out RMSE by at least this fraction …
 GAIN_MIN = 0.05
@@ -27,8 +28,12 @@ TRANSFER_MIN = 0.01
 EXTRAPOLATION_MAX = 3
 #: spring and ripple within this fraction of each other: physics decides (does it repeat?)
 NEAR_EQUAL = 0.05
-#: correlation of the residual with itself one period on, above which it repeats (ripple)
+#: correlation of the residual with itself one period on, above which it repeats (ripple);
+#: a ripple whose residual does not repeat is no cogging or meshing, whatever it cuts
 REPEAT_MIN = 0.5
+#: two explanations of one joint leave the same held-out error within this fraction: the log
+#: cannot tell them apart
+EQUIVALENT = 0.01
 #: suggestions spelled out in the terminal summary (all of them go to the JSON)
 SUMMARY_MAX = 5
 
@@ -48,6 +53,8 @@ class Suggestion:
     transfer: float | None = None
     #: a spring whose law a counterbalance fits: the model file's ``known_torque`` entry
     known_torque: dict[str, Any] | None = None
+    #: effects that explain the same as this one on this log (``one_by_one``), by label
+    alternatives: list[str] = field(default_factory=list)
 
     def label(self) -> str:
         return effect_label(self.effect, self.joint, self.side)
@@ -57,7 +64,8 @@ class Suggestion:
                 "label": self.label(), "rmse": self.rmse, "gain": self.gain,
                 "transfer_gain": self.transfer, "p_value": self.p_value,
                 "evidence": self.evidence, **self.fields, "hyper_parameters": self.hypers,
-                **({"known_torque": self.known_torque} if self.known_torque else {})}
+                **({"known_torque": self.known_torque} if self.known_torque else {}),
+                **({"alternatives": self.alternatives} if self.alternatives else {})}
 
 
 @dataclass
@@ -142,12 +150,12 @@ class Verdicts:
 
 
 def judge(scored: list[Suggestion]) -> Verdicts:
-    """Suggested when the gain is at least GAIN_MIN at p ≤ P_MAX — unless, on validation
-    logs, it raises the error or cuts its own rows' by under TRANSFER_MIN; in candidate
-    order."""
+    """Suggested when the gain is at least GAIN_MIN at p ≤ P_MAX and, for a ripple, the
+    residual repeats one period on — unless, on validation logs, it raises the error or cuts
+    its own rows' by under TRANSFER_MIN; in candidate order."""
     good, bad, lost = [], [], []
     for sug in scored:
-        if sug.gain >= GAIN_MIN and sug.p_value <= P_MAX:
+        if sug.gain >= GAIN_MIN and sug.p_value <= P_MAX and not _not_repeating(sug):
             if sug.transfer is not None and (sug.transfer <= 0.0 or
                                              sug.fields["transfer_own"] < TRANSFER_MIN):
                 lost.append(sug)
@@ -169,6 +177,91 @@ def rank(v: Verdicts) -> Verdicts:
                     sorted(v.not_transferring, key=lambda s: -s.gain))
 
 
+def _not_repeating(sug: Suggestion) -> bool:
+    return sug.effect == "ripple" and sug.fields.get("repeat", 0.0) < REPEAT_MIN
+
+
+def not_repeating_note(rejected: list[Suggestion]) -> list[str]:
+    """The ripples that cut the error but whose residual does not repeat along the angle."""
+    odd = [s for s in rejected if _not_repeating(s) and s.gain >= GAIN_MIN and
+           s.p_value <= P_MAX]
+    if not odd:
+        return []
+    return [", ".join(f"{s.label()} (gain {100 * s.gain:.3g} %, correlation one period on "
+                      f"{s.fields.get('repeat', 0.0):.2g})" for s in odd[:6])
+            + f" cut the error, but the residual does not repeat along the angle one period on "
+            f"(correlation under {REPEAT_MIN:g}): not cogging or meshing, not suggested"]
+
+
+Given = Callable[["Suggestion", list["Suggestion"]], tuple[float, float]]
+
+
+def one_by_one(v: Verdicts, given: Given, apart: Given, nuisance: str = ""
+               ) -> tuple[Verdicts, list[str]]:
+    """Each suggestion judged with the better ones before it in the model (and ``nuisance``,
+    named so, when the callables add one: the log's own sample-and-hold): ``given(s,
+    better)`` is its gain and p-value then, ``apart(s, better)`` the same with the rows near the
+    velocity reversals left out (``scoring.without_turns``). It stays when both pass GAIN_MIN
+    at P_MAX. One that fails ``given`` and leaves the error a better one on its joint leaves
+    (within EQUIVALENT) is named as that one's alternative — the log cannot tell them apart;
+    the other failures explained only what the better ones leave, or what the model misses at
+    the turns. Returns the verdicts and a note per failure."""
+    kept: list[Suggestion] = []
+    notes: list[str] = []
+    gone: list[Suggestion] = []
+    for sug in v.suggested:
+        why = _after_the_better(sug, kept, given, nuisance) if kept or nuisance else None
+        if why == "":  # named as a better one's alternative
+            continue
+        why = why or _away_from_turns(sug, kept, apart)
+        if why:
+            gone.append(sug)
+            notes.append(why)
+        else:
+            kept.append(sug)
+    rejected = sorted([*v.rejected, *gone], key=lambda s: -s.gain)
+    return Verdicts(kept, rejected, v.not_transferring), notes[:6]
+
+
+def _after_the_better(sug: Suggestion, kept: list[Suggestion], given: Given, nuisance: str
+                      ) -> str | None:
+    """None when ``sug`` still helps with ``kept`` (and the nuisance) in the model; "" when
+    it is a kept one's alternative (named there); else why it is not suggested."""
+    gain, p_value = given(sug, kept)
+    sug.fields["gain_given"] = round(gain, 4)
+    if gain >= GAIN_MIN and p_value <= P_MAX:
+        return None
+    twin = next((k for k in kept if k.joint == sug.joint and _equivalent(k, sug)), None)
+    if twin is not None:
+        twin.alternatives.append(sug.label())
+        twin.evidence += (f"; {sug.label()} explains it as well (the same held-out error "
+                          "within a percent): the log cannot tell them apart")
+        return ""
+    names = [k.label() for k in kept] + ([nuisance] if nuisance else [])
+    better = ", ".join(names)
+    return (f"{sug.label()} (gain {100 * sug.gain:.3g} % alone, {100 * gain:.2g} % with "
+            f"{better} in the model) explains only what "
+            f"{'those leave' if len(names) > 1 else 'that leaves'}: not suggested")
+
+
+def _away_from_turns(sug: Suggestion, kept: list[Suggestion], apart: Given) -> str | None:
+    """None when ``sug`` keeps its gain with the rows near the turns left out, else why not."""
+    gain, p_value = apart(sug, kept)
+    sug.fields["gain_apart"] = round(gain, 4)
+    if gain >= GAIN_MIN and p_value <= P_MAX:
+        return None
+    return (f"{sug.label()} (gain {100 * sug.gain:.3g} %) keeps {100 * gain:.2g} % when the rows "
+            "near the velocity reversals are left out: what the model misses at a turn finer "
+            "than the filter resolves (a stick, a closed loop's Coulomb switch) recurs where the "
+            "motion turns again and biases the parameters the joints share, and that is what "
+            "it explained — not suggested")
+
+
+def _equivalent(a: Suggestion, b: Suggestion) -> bool:
+    ra, rb = a.fields["rmse_after"], b.fields["rmse_after"]
+    return abs(ra - rb) <= EQUIVALENT * max(ra, rb, 1e-12)
+
+
 def not_transferring_note(lost: list[Suggestion]) -> list[str]:
     if not lost:
         return []
@@ -187,10 +280,11 @@ def result_doubts(result: IdentResult) -> list[str]:
     return out + result.doubts
 
 
-def floor_doubts(result: IdentResult) -> list[str]:
+def floor_doubts(result: IdentResult, turns: Mapping[int, Any] | None = None) -> list[str]:
     """A joint whose held-out residual is not measurement noise — above the noise estimate
     (AT_FLOOR×), or near it in size but not white — is not modelled adequately, whether or
-    not a catalog effect is suggested for it."""
+    not a catalog effect is suggested for it. ``turns``: joint (from 0) → where its residual
+    sits (``residuals.Turns``), said in its doubt."""
     try:
         at, val = result.at_noise_floor, result.validation
     except (AttributeError, ValueError):  # no held-out rows
@@ -206,8 +300,9 @@ def floor_doubts(result: IdentResult) -> list[str]:
         size = (f"held-out error {val.rmse[j]:.3g} N·m is {ratio:.2g}× the noise estimate "
                 f"{floor[j]:.3g} N·m")
         why = white.sentence(j) if not white.white[j] else "its residual is white"
+        where = f"; {turns[j].sentence()}" if turns and j in turns else ""
         out.append(f"joint {result.joints[j]['joint']}: {size} and {why}: the model leaves "
-                   "more than measurement noise")
+                   f"more than measurement noise{where}")
     return out
 
 
