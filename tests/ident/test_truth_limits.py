@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -115,8 +116,8 @@ def test_sticks_are_found_and_smooth_turns_are_not():
 
 def test_touches_of_zero_speed_are_found_and_smooth_turns_are_not():
     """A velocity that dips under zero and back within one period of the cutoff touches zero
-    (the filter cannot tell what the joint did there); a turn, a long dip and the log's start
-    at rest do not."""
+    (the filter cannot resolve a speed that small): the joint keeps the sign it has on both
+    sides; a turn, a long dip and the log's start at rest are no touches."""
     fs, w = 500.0, 2 * np.pi * 0.2
     t = np.arange(0, 20, 1 / fs)
 
@@ -125,10 +126,14 @@ def test_touches_of_zero_speed_are_found_and_smooth_turns_are_not():
 
     for q, touches in ((path(2e-4), 4), (path(1e-2), 0), (0.5 * np.sin(w * t), 0)):
         prep = _prep(q, fs)
-        mask, counts = find_touches(prep)
+        sign, counts = find_touches(prep)
         assert counts == [touches], (touches, counts)
-        if touches:  # each touch and its smear by one period of the cutoff
-            assert 0.02 < mask[:, 0].mean() < 0.08
+        assert set(np.unique(sign)) <= {0, 1}  # q̇ > 0 on both sides of each dip
+        if touches:  # the dips' rows, a few tens of ms each
+            assert 0.003 < (sign != 0).mean() < 0.03
+            fixed = replace(prep, qd_sign=sign).qd[:, 0]
+            assert (fixed[sign[:, 0] != 0] > 0).all() and (fixed[sign[:, 0] == 0] ==
+                                                           prep.qd[sign[:, 0] == 0, 0]).all()
     start = np.where(t < 1.0, 0.0, 0.3 * (1 - np.cos(w * (t - 1.0))))  # at rest, then moving
     assert find_touches(_prep(start, fs))[1] == [0]
 

@@ -52,11 +52,11 @@ def test_tracking_after_upload_is_better_and_friction_is_the_plants(tmp_path: Pa
     before, after = by["verify_before"]["tracking"], by["verify_after"]["tracking"]
     ratio = before["tool_rms_mm"] / after["tool_rms_mm"]
     print(f"tool RMS {before['tool_rms_mm']:.3f} → {after['tool_rms_mm']:.3f} mm ({ratio:.1f}×)")
-    # the fake controller's floor on this path: with the plant's exact parameters loaded the
-    # tool RMS falls 2.1× (0.214 → 0.103 mm; stick-slip at the path's stops, not the model,
-    # sets it), so the identified set is asked to reach most of that, and its friction to be
-    # the plant's (the controller compensates it along the reference)
-    assert ratio >= 1.8
+    # measured 0.219 → 0.003 mm (69×); the plant's stick-slip at the path's stops once set a
+    # floor of about 2× (a joint released from a stick got its friction pushing it along).
+    # The friction is asked to be the plant's (the controller compensates it along the
+    # reference)
+    assert ratio >= 10.0
     pset = by["identify"]["parameters"]
     fric = {p["name"]: p["value"] for p in pset if p["name"][:2] in ("fv", "fc")}
     assert all(abs(v - 3.0) < 0.06 for k, v in fric.items() if k.startswith("fv")), fric

@@ -26,7 +26,7 @@ from robid_link.ident.data.filtering import (
 )
 from robid_link.ident.data.logs import Log
 from robid_link.ident.data.quantiles import percentile_streamed
-from robid_link.ident.model.effects import Block, Model, States
+from robid_link.ident.model.effects import V_REST, Block, Model, States
 from robid_link.ident.model.robot import Robot
 from robid_link.ident.model.threads import in_slots
 
@@ -119,6 +119,10 @@ class Prepared:
     #: (N, n) rows × joints whose torque enters the joint's equation (None: all): False for a
     #: partial log's missing torques and where a joint sticks (friction at rest is static)
     tau_mask: np.ndarray | None = None
+    #: (N, n) int8: where the filtered velocity touches zero (changes sign and back faster than
+    #: the filter resolves), the sign the joint's motion has on both sides (0 elsewhere): the
+    #: states' velocity keeps it there (``data/sticks.py``)
+    qd_sign: np.ndarray | None = None
     channels: _Channels = field(default_factory=_Channels, compare=False, repr=False)
 
     @property
@@ -165,6 +169,10 @@ class Prepared:
         return [(lo, min(b, lo + CHUNK)) for a, b in self.filtered_segments
                 for lo in range(a, b, CHUNK)]
 
+    def velocity(self, lo: int, hi: int) -> np.ndarray:
+        """q̇ at rows [lo, hi) (``kinematics``' without the q̈)."""
+        return self._kinematics(lo, hi, False)[1]
+
     def speed(self, lo: int, hi: int) -> np.ndarray:
         """|q̇| at rows [lo, hi)."""
         return np.abs(self._kinematics(lo, hi, False)[1])
@@ -191,6 +199,10 @@ class Prepared:
             qd[r0 - lo: r1 - lo] = vel[r0 - v0: r1 - v0]
             if acc:
                 qdd[r0 - lo: r1 - lo] = _gradient(vel, v0, r0, r1, a, b, dt)
+        if self.qd_sign is not None:  # a touch of zero speed keeps the motion's sign
+            keep = self.qd_sign[lo:hi]
+            at = keep != 0
+            qd[at] = keep[at] * np.maximum(np.abs(qd[at]), 2.0 * V_REST)
         return q, qd, qdd
 
     def tau_f_rows(self, lo: int, hi: int) -> np.ndarray:
@@ -224,7 +236,8 @@ class Prepared:
     def _whole(self, k: int) -> np.ndarray:
         names = ("q", "qd", "qdd")
         src = self.log.q if self.log.qd is None or k == 0 else self.log.qd
-        return self.channels.whole(names[k], src, lambda: self.kinematics(0, len(self.log))[k])
+        name = names[k] if k != 1 or self.qd_sign is None else f"qd~{id(self.qd_sign)}"
+        return self.channels.whole(name, src, lambda: self.kinematics(0, len(self.log))[k])
 
     @property
     def q(self) -> np.ndarray:

@@ -2,10 +2,11 @@
 acts — so no velocity law of friction describes the rows where a joint rests at its reversals
 (a closed loop without friction compensation waits there until its error has built up the
 breakaway torque). Those rows are found in the raw positions and left out of that joint's
-equation (``Prepared.tau_mask``); what they hold, the log cannot tell. So are the rows where the
-filtered velocity touches zero — changes sign and back within one period of the cutoff, as a
-joint that slows to a halt and goes on (a motion's rest point, a closed loop's brief stick):
-the log cannot tell whether it turned, rested or went on, so its friction's sign is unknown."""
+equation (``Prepared.tau_mask``); what they hold, the log cannot tell. Where the filtered
+velocity touches zero — changes sign and back within one period of the cutoff, as a joint that
+slows to a halt and goes on (a motion's rest point, a closed loop's brief stick) — the filter
+cannot resolve the sign of a speed that small, and the model's Coulomb friction would switch
+there and back; the joint keeps the sign of its motion on both sides (``Prepared.qd_sign``)."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from robid_link.ident.data.preprocess import CHUNK, Prepared, Problem, typical_s
 from robid_link.ident.model.threads import in_slots
 
 __all__ = ["Sticks", "find_sticks", "find_touches", "without_sticks", "sticks_note",
-           "smear_rows", "STILL_WINDOW_S", "STICK_FACTOR", "STICK_SHARE_MIN", "SMEAR_PERIODS",
+           "touches_note", "smear_rows", "STILL_WINDOW_S", "STICK_FACTOR", "STICK_SHARE_MIN",
            "DWELL_FACTOR"]
 
 #: half-width of the window a joint's raw speed is read over (s)
@@ -30,30 +31,25 @@ STICK_FACTOR = 1.5
 STICK_SHARE_MIN = 0.002
 #: a reading held this many times longer than a smooth turn could hold it is a rest
 DWELL_FACTOR = 2.0
-#: rows left out on each side of a stick or a touch, in periods of the cutoff: the filtered
-#: states smear it over about one, the parallel-filtered torque's ringing reaches further (the
-#: zero-phase filter's response is still 4 % of its peak 1.25 periods on, under 1 % from 1.5)
-SMEAR_PERIODS = 1.5
 
 
 
 @dataclass(frozen=True)
 class Sticks:
     """Where one joint sticks in the training logs: the share of samples in sticks, the longest
-    stick (s), how many, the speed under which the filtered velocity smears them, and how many
-    times the filtered velocity touches zero (left out alike)."""
+    stick (s), how many, and the speed under which the filtered velocity smears them."""
 
     joint: int  # from 0
     share: float
     longest_s: float
     count: int
     speed: float
-    touches: int = 0
 
 
 def smear_rows(prep: Prepared) -> int:
-    """Rows left out on each side of a stick or a touch (SMEAR_PERIODS of the cutoff)."""
-    return max(1, int(round(SMEAR_PERIODS * prep.filt.fs / prep.filt.cutoff_hz)))
+    """Rows left out on each side of a stick: one period of the cutoff, over which the filtered
+    states smear it."""
+    return max(1, int(round(prep.filt.fs / prep.filt.cutoff_hz)))
 
 
 def _diff_scale(x: np.ndarray) -> float:
@@ -121,8 +117,8 @@ def find_sticks(prep: Prepared, typical: np.ndarray) -> tuple[np.ndarray, list[l
     flat turn about as long as its climb). A run longer than STICK_FACTOR times the faster of
     its two climbs, with motion on both sides, is a stick. So is a shorter rest that a fine
     encoder shows (``_dwells``: the same reading for longer than a smooth turn at the filtered
-    acceleration could keep it). The filtered states and torque smear it over SMEAR_PERIODS of
-    the cutoff on each side, so those rows go too. Joint by joint (in ``in_slots``): a long
+    acceleration could keep it). The filtered states smear it over one period of the cutoff on
+    each side, so those rows go too. Joint by joint (in ``in_slots``): a long
     log's temporaries are one joint's column."""
     fs = prep.filt.fs
     dt = 1.0 / fs
@@ -176,15 +172,15 @@ def find_sticks(prep: Prepared, typical: np.ndarray) -> tuple[np.ndarray, list[l
 
 
 def find_touches(prep: Prepared) -> tuple[np.ndarray, list[int]]:
-    """(rows × joints where the filtered velocity touches zero, widened by the filters' smear;
-    per joint how many touches). A touch is a run of sign changes of the filtered velocity
-    each within one period of the cutoff of the next: the filter cannot resolve what the joint
-    did there. Runs that reach a segment's edge are the motion's start or end, not touches.
-    The velocity's signs are read window by window (one byte a row and joint)."""
+    """(rows × joints: where the filtered velocity touches zero, the sign of the joint's motion
+    on both sides, 0 elsewhere (int8); per joint how many touches). A touch is a run of sign
+    changes of the filtered velocity, each within one period of the cutoff of the next, that
+    ends on the sign it started from; runs that reach a segment's edge (the motion's start or
+    end) are not touches. The velocity's signs are read window by window (one byte a row and
+    joint)."""
     period = max(1, int(round(prep.filt.fs / prep.filt.cutoff_hz)))
-    smear = smear_rows(prep)
     n = prep.log.q.shape[1]
-    out = np.zeros(prep.log.q.shape, bool)
+    out = np.zeros(prep.log.q.shape, np.int8)
     counts = [0] * n
     for seg in prep.log.segments:
         if seg.stop - seg.start < 3 * prep.filt.settle:
@@ -192,78 +188,74 @@ def find_touches(prep: Prepared) -> tuple[np.ndarray, list[int]]:
         sign = np.empty((seg.stop - seg.start, n), np.int8)
         for lo in range(seg.start, seg.stop, CHUNK):
             hi = min(seg.stop, lo + CHUNK)
-            sign[lo - seg.start: hi - seg.start] = np.sign(prep.kinematics(lo, hi)[1])
+            sign[lo - seg.start: hi - seg.start] = np.sign(prep.velocity(lo, hi))
         for j in range(n):
             sj = sign[:, j]
             changes = np.flatnonzero(sj[1:] != sj[:-1])
             if changes.size < 2:
                 continue
-            runs = np.split(changes, np.flatnonzero(np.diff(changes) >= period) + 1)
-            for run in runs:
+            for run in np.split(changes, np.flatnonzero(np.diff(changes) >= period) + 1):
                 a, b = int(run[0]), int(run[-1]) + 1
-                if run.size < 2 or a < period or b > sign.shape[0] - period:
+                if a < period or b > sj.shape[0] - period or sj[a] == 0 or sj[b] != sj[a]:
                     continue
-                out[seg.start + a - smear: seg.start + b + smear + 1, j] = True
+                out[seg.start + a: seg.start + b + 1, j] = sj[a]
                 counts[j] += 1
     return out, counts
 
 
-def _rests(prep: Prepared, typical: np.ndarray
-           ) -> tuple[np.ndarray, list[list[float]], list[int]]:
-    """Sticks and touches of one prepared log: the rows of either, the sticks' durations and
-    the touches' counts per joint."""
-    stuck, durations = find_sticks(prep, typical)
-    touched, counts = find_touches(prep)
-    return stuck | touched, durations, counts
-
-
 def without_sticks(pb: Problem) -> tuple[Problem, list[Sticks]]:
-    """The problem with each sticking joint's stick rows left out of its equation (training and
-    validation logs alike), a note per joint; the sticks found in the training logs."""
+    """The problem with each sticking joint's stick rows left out of its equation and each
+    touch of zero speed given the sign of the motion around it (training and validation logs
+    alike), a note for each; the sticks found in the training logs."""
     if not any(b > a for p in pb.preps for a, b in p.filtered_segments):
         return pb, []
     # over every training log's filtered rows (one log's: found with its motion span)
     typical = pb.preps[0].typical_speed() if len(pb.preps) == 1 else typical_speeds(pb.preps)
-    found = [(p, *_rests(p, typical)) for p in (*pb.preps, *pb.vpreps)]
+    found = [(p, *find_sticks(p, typical), *find_touches(p)) for p in (*pb.preps, *pb.vpreps)]
     train = found[: len(pb.preps)]
     total = sum(len(p.log) for p in pb.preps)
     sticks = []
     for j in range(pb.robot.n):
-        durs = [d for _, _, ds, _ in train for d in ds[j]]
-        touches = sum(tc[j] for _, _, _, tc in train)
-        rows = sum(float(m[:, j].sum()) for _, m, _, _ in train)
-        if not (durs or touches) or rows / total < STICK_SHARE_MIN:
+        durs = [d for _, _, ds, _, _ in train for d in ds[j]]
+        rows = sum(float(m[:, j].sum()) for _, m, _, _, _ in train)
+        if not durs or rows / total < STICK_SHARE_MIN:
             continue
-        zone = np.concatenate([p.speeds_at(m[:, j], j) for p, m, _, _ in train])
-        sticks.append(Sticks(j, rows / total, max(durs, default=0.0), len(durs),
-                             float(np.percentile(zone, 95)), touches))
-    if not sticks:
+        zone = np.concatenate([p.speeds_at(m[:, j], j) for p, m, _, _, _ in train])
+        sticks.append(Sticks(j, rows / total, max(durs), len(durs),
+                             float(np.percentile(zone, 95))))
+    touches = [sum(tc[j] for *_, tc in train) for j in range(pb.robot.n)]
+    if not sticks and not any(touches):
         return pb, []
 
-    def masked(prep: Prepared, stuck: np.ndarray) -> Prepared:
+    def fixed(prep: Prepared, stuck: np.ndarray, sign: np.ndarray) -> Prepared:
         keep = (np.ones(prep.log.q.shape, bool) if prep.tau_mask is None
                 else prep.tau_mask.copy())
         for st in sticks:
             keep[:, st.joint] &= ~stuck[:, st.joint]
-        return replace(prep, tau_mask=keep)
+        return replace(prep, tau_mask=keep if sticks else prep.tau_mask,
+                       qd_sign=sign if sign.any() else prep.qd_sign)
 
-    preps = [masked(p, m) for p, m, _, _ in found]
-    return pb.with_preps(preps[: len(pb.preps)], preps[len(pb.preps):],
-                         [sticks_note(sticks, pb.preps[0])]), sticks
+    preps = [fixed(p, m, sg) for p, m, _, sg, _ in found]
+    notes = ([sticks_note(sticks, pb.preps[0])] if sticks else []) + touches_note(touches,
+                                                                                  pb.preps[0])
+    return pb.with_preps(preps[: len(pb.preps)], preps[len(pb.preps):], notes), sticks
 
 
 def sticks_note(sticks: Sequence[Sticks], prep: Prepared) -> str:
-    parts = []
-    for s in sticks:
-        what = [f"{s.count} rests up to {s.longest_s:.3g} s"] if s.count else []
-        what += [f"{s.touches} touches of zero speed"] if s.touches else []
-        parts.append(f"joint {s.joint + 1} ({', '.join(what)}; {100 * s.share:.3g} % of the "
-                     f"samples left out, speeds under {s.speed:.3g})")
-    touch = any(s.touches for s in sticks)
-    return ("rests within the motion (sticks at reversals, pauses"
-            + (", touches of zero speed" if touch else "") + "): " + ", ".join(parts)
-            + ": friction at rest is static"
-            + (" and where the filtered velocity touches zero (changes sign and back within one "
-               "period of the cutoff) its sign is unknown" if touch else "")
-            + f", so those rows and their smear by {SMEAR_PERIODS:g} periods of the "
+    parts = [f"joint {s.joint + 1} ({s.count} rests up to {s.longest_s:.3g} s; "
+             f"{100 * s.share:.3g} % of the samples left out, speeds under {s.speed:.3g})"
+             for s in sticks]
+    return ("rests within the motion (sticks at reversals, pauses): " + ", ".join(parts)
+            + ": friction at rest is static, so the rests and their smear by one period of the "
             f"{prep.filt.cutoff_hz:.3g} Hz cutoff are left out of the joint's equation")
+
+
+def touches_note(touches: Sequence[int], prep: Prepared) -> list[str]:
+    """The touches of zero speed per joint (training logs), if any."""
+    parts = [f"joint {j + 1} ({k})" for j, k in enumerate(touches) if k]
+    if not parts:
+        return []
+    return ["touches of zero speed: " + ", ".join(parts) + ": the filtered velocity changes sign "
+            f"and back within one period of the {prep.filt.cutoff_hz:.3g} Hz cutoff, faster "
+            "than the filter resolves; the joint keeps the sign of its motion on both sides "
+            "there (its friction does not switch)"]

@@ -178,9 +178,11 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                       with_transfer(sug, score, transfer, union.positions[k]))
     verdicts, held_back = within_limits(judge(scored), limited, limits.fs)
     at = {sug.label(): k for k, sug in enumerate(scored)}
-    # a shift within a sample is the log's own timing: in the model while the others are
-    # judged, so that none is suggested for what it explains
-    skew = next((sug for sug in scored if sug.effect == "delay"
+    # a shift within a sample, when the log shows one (it passes the bar a suggestion must), is
+    # the log's own timing: in the model while the others are judged, so that none is
+    # suggested for what it explains
+    skew = next((sug for sug in scored if sug.effect == "delay" and sug.gain >= GAIN_MIN
+                 and sug.p_value <= P_MAX
                  and within_a_sample(sug.fields.get("seconds", 1.0), limits.fs)), None)
     extra = [at["delay"]] if skew is not None else []
     nuisance = "" if skew is None else (f"the log's own sample-and-hold (a shift of "

@@ -99,8 +99,7 @@ def limits_note(limits: LogLimits, held: dict[str, tuple[Suggestion, Reason]]) -
     if limits.unseen_below:
         joints = sorted(limits.unseen_below)
         parts.append(
-            f"joint(s) {', '.join(str(j + 1) for j in joints)} stick or touch zero speed at "
-            "their reversals and at "
+            f"joint(s) {', '.join(str(j + 1) for j in joints)} stick at their reversals and at "
             f"{limits.fs:.4g} Hz with a {limits.cutoff_hz:.3g} Hz cutoff their rows under "
             + ", ".join(f"{limits.unseen_below[j]:.3g}" for j in joints)
             + " rad/s (m/s) are left out: friction acting only at lower speeds (a Stribeck or "
