@@ -94,6 +94,10 @@ async def run_cycle(store: AsyncStore, driver: Driver, run_id: str, exp_id: str,
                 log.warning("run=%s exp=%s acknowledge failed: %s", run_id, exp_id, err)
         return str(row["log_sha"])
     attempt, nonce, state = int(row["attempt"]), row["nonce"], row["state"]
+    if state == "failed":  # the verdict was journaled before the stop: it stands
+        err = row.get("error") or "it failed"
+        raise CycleError(f"experiment {exp_id}: {err} (failed before the restart; a restart "
+                         "adds no attempt)")
     if state == "attempt_failed" and nonce:  # killed before the old 'ready' was taken back
         await driver.withdraw(exp_id, nonce)
     if state == "attempt_failed" and attempt > policy.retries:
@@ -169,18 +173,22 @@ async def run_cycle(store: AsyncStore, driver: Driver, run_id: str, exp_id: str,
             # the stop/abort goes out before the failure is stored: nothing the controller
             # could still run waits on a journal write
             await _withdraw(driver, run_id, exp_id, nonce)
+            # the verdict is decided before it is journaled, in one step: a stop between an
+            # 'attempt_failed' and a 'failed' would let a restart give an attempt that the
+            # verdict had refused (after a ProtocolError the motion may already have run)
+            protocol = isinstance(err, ProtocolError)
+            final = protocol or attempt > policy.retries
             try:
-                await store.step(run_id, exp_id, "attempt_failed", error=str(err))
+                await store.step(run_id, exp_id, "failed" if final else "attempt_failed",
+                                 error=str(err))
             except (StoreFullError, StoreUnavailableError):
                 on_withdrawn(exp_id, nonce)
                 raise
             log.warning("run=%s exp=%s attempt=%d failed: %s", run_id, exp_id, attempt, err)
-            if isinstance(err, ProtocolError):  # the robot may have moved: an operator decides
-                await store.step(run_id, exp_id, "failed", error=str(err))
+            if protocol:  # the robot may have moved: an operator decides
                 raise CycleError(f"experiment {exp_id}: {err} (not retried: the controller "
                                  "answered, the motion may have run)") from err
-            if attempt > policy.retries:
-                await store.step(run_id, exp_id, "failed", error=str(err))
+            if final:
                 raise CycleError(f"experiment {exp_id}: {err} (after {attempt} attempt"
                                  f"{'s' if attempt > 1 else ''})") from err
             if not may_give:

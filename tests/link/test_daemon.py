@@ -112,7 +112,7 @@ def test_faults_are_retried_and_lose_nothing(tmp_path: Path, controller: Any, fa
     with controller(fault=fault) as ctrl:
         run, journal, n_logs = with_daemon(cfg, body)
     assert run["state"] == "completed", run["error"]
-    failed = [j for j in journal if j["step"] == "attempt_failed"]
+    failed = [j for j in journal if j["step"] == "attempt_failed"]  # retried: not final
     assert len(failed) == 1 and journal_error in failed[0]["detail"]["error"]
     assert "\n" not in failed[0]["detail"]["error"]
     assert [j["step"] for j in journal].count("retry") == 1

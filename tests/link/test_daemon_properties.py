@@ -257,3 +257,91 @@ def test_a_restart_after_the_last_attempt_failed_gives_no_further_attempt() -> N
                               CyclePolicy(timeout_s=1.5, retries=0), check))
     assert calls == [("withdraw", "friction", "n1"),
                      ("step", "friction", "failed", "file_share: no answer within 1.5 s")]
+
+
+class _RecordingDriver:
+    """Every driver call recorded; ``take_done`` raises what the test gives it."""
+
+    def __init__(self, calls: list[tuple[Any, ...]], take_error: Exception | None = None):
+        self.calls, self.take_error = calls, take_error
+
+    def __getattr__(self, name: str) -> Any:
+        async def record(*a: Any, **k: Any) -> None:
+            self.calls.append((name, *a))
+            if name == "take_done" and self.take_error is not None:
+                raise self.take_error
+        return record
+
+
+class _RowStore:
+    """One experiment row; every journal step recorded (and applied to the row)."""
+
+    def __init__(self, calls: list[tuple[Any, ...]], **row: Any):
+        self.calls = calls
+        self.row = {"log_sha": None, "attempt": 0, "nonce": None, "state": "pending",
+                    "error": None, **row}
+
+    async def experiment(self, run_id: str, exp_id: str) -> dict[str, Any]:
+        return dict(self.row)
+
+    async def require_space(self, *a: Any) -> None:
+        pass
+
+    async def step(self, run_id: str, exp_id: str, state: str, **fields: Any) -> None:
+        self.calls.append(("step", exp_id, state, fields.get("error")))
+        self.row.update(state=state, **fields)
+
+    async def note(self, *a: Any, **k: Any) -> None:
+        self.calls.append(("note", *a))
+
+
+def test_a_protocol_error_is_journaled_failed_in_one_step() -> None:
+    """The verdict on an answer that was malformed (the motion may have run: no retry) is
+    journaled in one step: a stop between an 'attempt_failed' and a 'failed' once let the
+    restart give a second, unplanned attempt."""
+    from types import SimpleNamespace
+
+    from robid_link.exceptions import CycleError, ProtocolError
+    from robid_link.link.cycle import CyclePolicy, run_cycle
+
+    calls: list[tuple[Any, ...]] = []
+    store = _RowStore(calls)
+    driver = _RecordingDriver(calls, ProtocolError("rws: 'done' names experiment other"))
+    program = SimpleNamespace(exp_id="friction", files={}, sha256="0" * 64)
+
+    async def check(path: str) -> None:
+        raise AssertionError("nothing to check")
+
+    with pytest.raises(CycleError, match="not retried"):
+        asyncio.run(run_cycle(store, driver, "r", "friction", program,  # type: ignore
+                              CyclePolicy(timeout_s=1.5, retries=2), check))
+    steps = [c[2] for c in calls if c[0] == "step"]
+    assert steps == ["giving", "given", "failed"]  # never an 'attempt_failed' in between
+    assert calls[-2][0] == "withdraw"  # the stop went out before the verdict was written
+    assert store.row["attempt"] == 1
+
+
+def test_a_failed_experiment_stays_failed_after_a_restart() -> None:
+    """A stop between an experiment's 'failed' and its run's: the restart fails the run at
+    that experiment and touches neither the controller nor the journal."""
+    from types import SimpleNamespace
+
+    from robid_link.exceptions import CycleError
+    from robid_link.link.cycle import CyclePolicy, run_cycle
+
+    calls: list[tuple[Any, ...]] = []
+    store = _RowStore(calls, attempt=1, nonce="n1", state="failed",
+                      error="rws: 'done' names experiment other")
+    program = SimpleNamespace(exp_id="friction", files={}, sha256="0" * 64)
+
+    async def check(path: str) -> None:
+        raise AssertionError("nothing to check")
+
+    for may_give in (False, True):
+        with pytest.raises(CycleError, match=r"experiment friction: rws: 'done' names "
+                           r"experiment other \(failed before the restart; a restart adds no "
+                           r"attempt\)"):
+            asyncio.run(run_cycle(store, _RecordingDriver(calls), "r", "friction",  # type: ignore
+                                  program, CyclePolicy(timeout_s=1.5, retries=2), check,
+                                  may_give=may_give))
+    assert calls == []
