@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,10 @@ __all__ = ["write_report", "draw_robot", "write_json", "residual_figures", "hist
 
 def _pyplot() -> Any:
     import matplotlib
+
+    # a fresh install builds matplotlib's font cache at the first figure and tells of every
+    # mathtext font it lacks (a screenful of "findfont: ... not found"): nothing a user acts on
+    logging.getLogger("matplotlib.font_manager").setLevel(logging.ERROR)
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
