@@ -280,6 +280,7 @@ class _Proxy:
         self.port = self.listener.getsockname()[1]
         self.up, self.closed = True, False
         self.socks: list[socket.socket] = []
+        self.stranded: list[socket.socket] = []
         self.lock = threading.Lock()
         self.thread = threading.Thread(target=self._accept, daemon=True)
         self.thread.start()
@@ -303,13 +304,27 @@ class _Proxy:
             for a, b in ((client, server), (server, client)):
                 threading.Thread(target=self._pipe, args=(a, b), daemon=True).start()
 
-    @staticmethod
-    def _pipe(a: socket.socket, b: socket.socket) -> None:
+    def _pipe(self, a: socket.socket, b: socket.socket) -> None:
         with contextlib.suppress(OSError):
             while data := a.recv(65536):
                 b.sendall(data)
+        if b in self.stranded:
+            return  # the server is never told: its session lives on
         with contextlib.suppress(OSError):
             b.shutdown(socket.SHUT_RDWR)
+
+    def strand(self) -> None:
+        """The network drops between the client and the server: the client's side is closed,
+        the server's is left open and silent, so the server keeps the session (and its locks)
+        until its keepalive gives up."""
+        self.up = False
+        with self.lock:
+            for client, server in zip(self.socks[::2], self.socks[1::2], strict=True):
+                self.stranded.append(server)
+                with contextlib.suppress(OSError):
+                    client.shutdown(socket.SHUT_RDWR)
+                client.close()
+            self.socks.clear()
 
     def cut(self) -> None:
         self.up = False
@@ -327,6 +342,8 @@ class _Proxy:
         self.closed = True
         self.thread.join(5)
         self.cut()
+        for s in self.stranded:
+            s.close()
         self.listener.close()
 
 
@@ -383,6 +400,39 @@ def test_a_postgres_outage_is_one_line_and_the_store_comes_back(
         assert line.startswith(where) and "\n" not in line, line
         assert "connection lost" in line or "cannot reconnect" in line, line
         assert PG_PASSWORD not in line
+
+
+def test_a_re_lock_ends_the_daemons_own_stale_session(
+        tmp_path: Path, postgres: Any, proxy: _Proxy, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Review: the network between a cell and its database drops and comes back before the
+    server's keepalive has ended the cut session. The re-lock found the robot held — by the
+    daemon's own stale session — latched 'lock lost' and asked for the daemon to be stopped.
+    Now the store ends its own previous session and takes the robot again (another daemon's
+    session is never ended: the test below)."""
+    import psycopg
+
+    from tests.servers import PG_PASSWORD, PG_USER
+
+    monkeypatch.setenv("PGPASSWORD", PG_PASSWORD)
+    url = postgres.create_database().replace(f":{postgres.port}/", f":{proxy.port}/")
+    with Store(tmp_path / "a", url=url, robot="r1") as a:
+        run = a.create_run("c", "operator", {}, [("e", "rigid_body")])
+        old = a.backend.session_pid  # type: ignore[attr-defined]
+        assert old is not None
+        proxy.strand()
+        with pytest.raises(StoreUnavailableError, match="connection lost"):
+            a.step(run, "e", "giving", attempt=1, nonce="n1")
+        with psycopg.connect(host="127.0.0.1", port=postgres.port, user=PG_USER,
+                             password=PG_PASSWORD, dbname="postgres", autocommit=True) as c:
+            alive = "SELECT count(*) FROM pg_stat_activity WHERE pid = %s"
+            assert c.execute(alive, (old,)).fetchone() == (1,)  # the server kept it
+            proxy.restore()
+            a.step(run, "e", "giving", attempt=1, nonce="n1")
+            assert a.experiment(run, "e")["state"] == "giving"
+            assert a.backend.session_pid not in (None, old)  # type: ignore[attr-defined]
+            assert c.execute(alive, (old,)).fetchone() == (0,)
+        with pytest.raises(StoreLockedError):  # and the robot is held by the new session
+            Store(tmp_path / "b", url=url, robot="r1")
 
 
 def test_a_lock_lost_with_the_connection_is_latched(tmp_path: Path, pg_url: str) -> None:

@@ -15,7 +15,12 @@ from sqlalchemy.engine import URL, make_url
 from sqlalchemy.exc import ArgumentError, DBAPIError, InterfaceError, OperationalError
 
 from robid_link.config import check_store_url as config_store_url
-from robid_link.exceptions import ConfigError, StoreFullError, StoreLockedError
+from robid_link.exceptions import (
+    ConfigError,
+    StoreFullError,
+    StoreLockedError,
+    StoreUnavailableError,
+)
 from robid_link.link.store import schema as sc
 
 __all__ = ["PostgresBackend", "check_store_url", "is_store_url"]
@@ -26,6 +31,8 @@ LOCK_CLASS = 0x726F6264  # 'robd'
 #: a dead cell host releases its robot in about idle + interval × count seconds
 KEEPALIVE = {"tcp_keepalives_idle": 10, "tcp_keepalives_interval": 5,
              "tcp_keepalives_count": 3}
+#: how long a re-lock waits for this daemon's own stale session to end once told to
+STALE_WAIT_S = 5.0
 
 
 def is_store_url(text: str) -> bool:
@@ -49,6 +56,10 @@ def shown(url: URL) -> str:
     return url.set(drivername="postgresql").render_as_string(hide_password=True)
 
 
+def _try_lock(conn: Connection, key: int) -> bool:
+    return bool(conn.execute(text("SELECT pg_try_advisory_lock(:k)"), {"k": key}).scalar_one())
+
+
 class PostgresBackend:
     """A plant's database; ``robot`` is what the advisory lock is keyed by."""
 
@@ -58,6 +69,8 @@ class PostgresBackend:
         self.url = check_store_url(url if isinstance(url, str) else url.render_as_string(
             hide_password=False))
         self.where = f"store {shown(self.url)}"
+        #: the server's pid of the session that holds this store's robot (None before)
+        self.session_pid: int | None = None
 
     def engine(self, readonly: bool) -> Engine:
         try:
@@ -83,18 +96,52 @@ class PostgresBackend:
 
     def lock(self, conn: Connection, robot: str | None) -> None:
         """The robot's advisory lock on this session (held until it ends: a killed daemon's
-        connection closes and frees it); StoreLockedError names the holder."""
+        connection closes and frees it); StoreLockedError names the holder. Taken again after
+        a lost connection, the holder may be this daemon's own previous session, which the
+        server keeps until its keepalive gives up (~25 s): that session is ended and the lock
+        taken, or StoreUnavailableError says the server has not let it go yet."""
         if robot is None:
             raise ValueError("a daemon's PostgreSQL store needs the robot's name")
         with conn.begin():
-            got = conn.execute(text("SELECT pg_try_advisory_lock(hashtextextended(:r, :c))"),
+            key = conn.execute(text("SELECT hashtextextended(:r, :c)"),
                                {"c": LOCK_CLASS, "r": robot}).scalar_one()
+            got = _try_lock(conn, key)
+            stale = None if got or self.session_pid is None else self._own_stale(conn, key,
+                                                                                robot)
+            if stale is not None:
+                conn.execute(text("SELECT pg_terminate_backend(:p)"), {"p": stale})
+                end = time.monotonic() + STALE_WAIT_S
+                while not (got := _try_lock(conn, key)) and time.monotonic() < end:
+                    time.sleep(0.05)
+                if not got:
+                    raise StoreUnavailableError(
+                        f"{self.where}: robot {robot} is still held by this daemon's previous "
+                        f"session (server pid {stale}), which the server has not ended yet: "
+                        "waiting for it")
             holder = conn.execute(select(sc.robots.c.host, sc.robots.c.pid).where(
                 sc.robots.c.robot == robot)).first() if not got else None
+            if got:
+                self.session_pid = conn.execute(text("SELECT pg_backend_pid()")).scalar_one()
         if not got:
             who = f"pid {holder.pid} on {holder.host}" if holder else "another host"
             raise StoreLockedError(f"{self.where}: robot {robot} is in use by another daemon "
                                    f"({who}); give each cell its own robot_name")
+
+    def _own_stale(self, conn: Connection, key: int, robot: str) -> int | None:
+        """The server pid of the session holding the robot's lock when it is this store's
+        previous one (the pid it held the lock from, and the robot's row still names this
+        process on this host as its daemon); None when anyone else holds it."""
+        holder = conn.execute(text(
+            "SELECT pid FROM pg_locks WHERE locktype = 'advisory' AND granted "
+            "AND classid::bigint = :hi AND objid::bigint = :lo AND objsubid = 1"),
+            {"hi": (key >> 32) & 0xFFFFFFFF, "lo": key & 0xFFFFFFFF}).scalar()
+        if holder is None or holder != self.session_pid:
+            return None
+        row = conn.execute(select(sc.robots.c.host, sc.robots.c.pid).where(
+            sc.robots.c.robot == robot)).first()
+        if row is None or (row.host, row.pid) != (socket.gethostname(), os.getpid()):
+            return None
+        return int(holder)
 
     def migration_lock(self, conn: Connection) -> None:
         """Two daemons starting at once on an empty or older database: one migrates, the

@@ -170,7 +170,12 @@ class Store:
                                   f"motion from this daemon; stop it")
                 self.conn.invalidate()  # this session holds nothing: never write through it
                 raise StoreLockLostError(self.lock_lost) from err
+            except StoreUnavailableError:
+                self.conn.invalidate()  # holds no lock: the next call takes it again
+                raise
             except DBAPIError as err:
+                if not self.conn.invalidated:
+                    self.conn.invalidate()
                 raise StoreUnavailableError(f"{self.where}: cannot reconnect "
                                             f"({_first_line(err)})") from err
         return self.conn
