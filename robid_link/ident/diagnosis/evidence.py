@@ -9,7 +9,11 @@ f2·l², a linear spring f2 = 0, a gas strut's polytropic force close to it over
 suggestion points to ``known_torque`` with that law filled in for the joint: a/b and φ fitted
 to the residual's shape, f0, f1, f2 left for identification (they enter linearly). The law is
 offered only when it explains nearly what the spring's angle series does, and more than a
-ripple on that joint."""
+ripple on that joint. Whether the log fixes that shape is a likelihood-ratio test over the
+(a/b, φ) grid: when shapes far from the fitted one explain the residual as well, the note says
+so and asks for the strut's measured a, b and φ (the part of a strut's torque that is a sine of
+the angle is taken by the joint's gravity parameters, so what is left to fit the shape to can
+be small)."""
 
 from __future__ import annotations
 
@@ -144,6 +148,11 @@ def repeats(q: np.ndarray, r: np.ndarray, period: float) -> float:
 
 #: the law must explain this fraction of what the spring's angle series explains
 LAW_SHARE_MIN = 0.8
+#: χ² quantile (2 degrees of freedom, 95 %) of the (a/b, φ) profile's likelihood-ratio region
+_CHI2_2_95 = 5.991
+#: the shape counts as fixed by the log when its 95 % region holds at most this share of the
+#: grid's (a/b, φ) cells
+SHAPE_REGION_MAX = 0.1
 _RATIOS = np.geomspace(0.05, 0.95, 14)
 _PHASES = np.linspace(-math.pi, math.pi, 48, endpoint=False)
 
@@ -161,6 +170,16 @@ class Counterbalance:
     law_share: float
     series_share: float
     ripple_share: float
+    #: the 95 % profile region of the shape: its share of the grid's cells, the a/b range and
+    #: the share of the turn its φ cover
+    region_share: float = 0.0
+    ratio_range: tuple[float, float] = (0.0, 0.0)
+    phi_cover: float = 0.0
+
+    @property
+    def shape_fixed(self) -> bool:
+        """Whether the log fixes a/b and φ (its 95 % region is a small part of the grid)."""
+        return self.region_share <= SHAPE_REGION_MAX
 
     @property
     def fits(self) -> bool:
@@ -177,12 +196,19 @@ class Counterbalance:
                 ", identify: [f0, f1, f2]}")
         # each share is of the joint's whole filtered residual: at most 100 %; the law and the
         # angle series span different columns, so either may explain more than the other
+        shape = ("" if self.shape_fixed else
+                 f"; the log does not fix the strut's shape: every a/b from "
+                 f"{self.ratio_range[0]:.2g} to {self.ratio_range[1]:.2g} with φ over "
+                 f"{100 * self.phi_cover:.0f} % of the turn explains it as well (95 % "
+                 f"likelihood-ratio region over the (a/b, φ) grid: {100 * self.region_share:.0f} "
+                 "% of it), so the a/b and φ below are placeholders — measure a, b and φ on the "
+                 "arm (the strut's mounting points and the angle between them at q = 0)")
         return (f"spring@{self.joint}: joint {self.joint}'s residual follows its angle like a "
                 f"counterbalance (in-sample, of its filtered residual with its friction and its "
                 f"model row refitted, a strut law with a/b {self.ratio:.3g} and φ "
                 f"{self.phi:.3g} rad explains {100 * self.law_share:.3g} %, the angle series "
                 f"(a Fourier series of order 4) {100 * self.series_share:.3g} %, a ripple "
-                f"{100 * self.ripple_share:.3g} %): "
+                f"{100 * self.ripple_share:.3g} %{shape}): "
                 "if the arm has a spring or gas strut there, give its law in the model file — "
                 f"known_torque: [{flow}] — with its measured a, b (only their ratio is fitted "
                 "here) and the force's f0, f1, f2 identified")
@@ -205,9 +231,55 @@ def _law_columns(q: np.ndarray, ratio: float, phi: float) -> np.ndarray:
     return np.column_stack([ratio * s / length, ratio * s, ratio * s * length])
 
 
-def _fit(beyond: Beyond, q: np.ndarray) -> tuple[float, float, float]:
-    """(a/b, φ, share): the grid's best, refined by Nelder–Mead in (log a/b, φ)."""
-    best = max((beyond.share(_law_columns(q, r, p)), r, p) for r in _RATIOS for p in _PHASES)
+@dataclass(frozen=True)
+class _Region:
+    """The (a/b, φ) grid cells whose law the likelihood-ratio test cannot tell from the best:
+    their share of the grid, their a/b range, the share of the turn their φ cover."""
+
+    share: float
+    ratios: tuple[float, float]
+    phi_cover: float
+
+
+def _region(beyond: Beyond, grid: np.ndarray, best: float, ratio: float) -> _Region:
+    """The 95 % profile region of the shape on ``grid`` (shares, ratios × phases): Gaussian
+    residuals of N rows give 2·Δlog L = N·ln(RSS/RSS_best), with RSS what is left beyond the
+    helpers and the law, N the rows' independent count (the residual is filtered: its rows
+    are correlated, ``_independent_rows``)."""
+    left = float(beyond.y @ beyond.y) / beyond.yy  # share left beyond the helpers
+    n = _independent_rows(beyond.y)
+    rss = np.maximum(left - grid, 1e-300)
+    inside = n * np.log(rss / max(left - best, 1e-300)) <= _CHI2_2_95
+    if not inside.any():  # the refined best stands alone: no cell of the grid is as good
+        return _Region(0.0, (ratio, ratio), 0.0)
+    ratios = _RATIOS[inside.any(axis=1)]
+    return _Region(float(inside.mean()), (float(ratios.min()), float(ratios.max())),
+                   float(inside.any(axis=0).mean()))
+
+
+def _independent_rows(y: np.ndarray) -> float:
+    """How many independent rows a correlated series holds: N / (1 + 2 Σ ρ_k), the sum over
+    the lags up to its autocorrelation's first crossing of zero (Bartlett's effective size)."""
+    y = y - y.mean()
+    var = float(y @ y)
+    if var <= 0 or y.size < 4:
+        return float(y.size)
+    total = 0.0
+    for k in range(1, min(y.size // 4, 500)):
+        rho = float(y[:-k] @ y[k:]) / var
+        if rho <= 0:
+            break
+        total += rho
+    return y.size / (1.0 + 2.0 * total)
+
+
+def _fit(beyond: Beyond, q: np.ndarray) -> tuple[float, float, float, _Region]:
+    """(a/b, φ, share, the shape's 95 % region): the grid's best, refined by Nelder–Mead in
+    (log a/b, φ)."""
+    grid = np.array([[beyond.share(_law_columns(q, r, p)) for p in _PHASES] for r in _RATIOS])
+    k = int(np.argmax(grid))  # the first of equal bests, as max() over the grid's order
+    best = (float(grid.flat[k]), float(_RATIOS[k // _PHASES.size]),
+            float(_PHASES[k % _PHASES.size]))
 
     def cost(x: np.ndarray) -> float:
         r = float(np.clip(math.exp(x[0]), 1e-3, 0.999))
@@ -218,8 +290,8 @@ def _fit(beyond: Beyond, q: np.ndarray) -> tuple[float, float, float]:
     if -res.fun > best[0]:
         r = float(np.clip(math.exp(res.x[0]), 1e-3, 0.999))
         phi = float((res.x[1] + math.pi) % (2 * math.pi) - math.pi)
-        return r, phi, float(-res.fun)
-    return float(best[1]), float(best[2]), float(best[0])
+        return r, phi, float(-res.fun), _region(beyond, grid, float(-res.fun), r)
+    return best[1], best[2], best[0], _region(beyond, grid, best[0], best[1])
 
 
 def counterbalances(rows: ProfileRows, candidates: Sequence[Block]) -> list[Counterbalance]:
@@ -236,6 +308,7 @@ def counterbalances(rows: ProfileRows, candidates: Sequence[Block]) -> list[Coun
                       None)
         rshare = 0.0 if ripple is None else beyond.share(
             ripple.columns(rows.robot, rows.states)[:, j, :])
-        ratio, phi, share = _fit(beyond, rows.states.q[:, j])
-        out.append(Counterbalance(j + 1, ratio, phi, share, beyond.share(series), rshare))
+        ratio, phi, share, region = _fit(beyond, rows.states.q[:, j])
+        out.append(Counterbalance(j + 1, ratio, phi, share, beyond.share(series), rshare,
+                                  region.share, region.ratios, region.phi_cover))
     return out
