@@ -93,9 +93,19 @@ def _with_drives(period: float, body: Any, priority: int = 0) -> Any:
 
             async def go() -> Any:
                 async with driver:
-                    return await asyncio.to_thread(body, driver.master, peer)  # type: ignore[attr-defined]
+                    return await asyncio.to_thread(_observe, body, driver.master,  # type: ignore[attr-defined]
+                                                   peer, priority)
 
             return asyncio.run(go())
+
+
+def _observe(body: Any, master: Any, peer: Any, priority: int) -> Any:
+    """``body`` on a thread of the bench (the test rig's observer, polling the master and the
+    drives), under SCHED_FIFO 1 when the master runs real-time: under normal scheduling, other
+    processes can keep it off the CPU while it holds the GIL, and the SYNC thread waits."""
+    if priority:
+        _realtime(1)
+    return body(master, peer)
 
 
 def _jitter(period: float, seconds: float, priority: int) -> dict[str, float]:

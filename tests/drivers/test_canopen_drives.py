@@ -6,7 +6,9 @@ closing while streaming ramps to rest."""
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
+import gc
 import os
 import threading
 import time
@@ -19,6 +21,7 @@ import numpy as np
 import pytest
 
 from robid_link.drivers.canopen.drives import CanopenDrivesDriver
+from robid_link.drivers.canopen.realtime import HeapHold
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.fakes.canopen.peer import EDS
 from robid_link.fakes.controller import default_truth, make_peer
@@ -165,8 +168,10 @@ def test_sync_overrun_streak_quick_stops(tmp_path: Path, robot: Robot,
 
 def test_sync_priority_puts_the_motion_path_under_sched_fifo(
         tmp_path: Path, robot: Robot, caplog: pytest.LogCaptureFixture) -> None:
-    """``sync_priority``: the SYNC thread and the CAN receive thread run under SCHED_FIFO, or,
-    where the process may not, each says so in one warning line and runs as before."""
+    """``sync_priority``: the SYNC thread and the CAN receive thread run under SCHED_FIFO at
+    it, the BLF recorder one below; the fake drives' threads (SYNC handling, heartbeat
+    producers, SYNC supervision) at their ``rt_priority``. Where the process may not, each
+    motion path thread says so in one warning line and runs as before."""
     allowed: list[bool] = []
 
     def probe() -> None:
@@ -179,21 +184,69 @@ def test_sync_priority_puts_the_motion_path_under_sched_fifo(
     t = threading.Thread(target=probe)
     t.start()
     t.join()
-    with drives(tmp_path, robot, sync_priority=1) as (driver, _):
-        async def go() -> tuple[str, int]:
+    with drives(tmp_path, robot, peer_opts={"rt_priority": 3}, sync_priority=2) as (driver, _):
+        async def go() -> tuple[str, collections.Counter[tuple[str, int]]]:
             async with driver:
                 await asyncio.sleep(0.3)
                 assert isinstance(driver, CanopenDrivesDriver) and driver.master is not None
-                fifo = sum(_policy(tid) == os.SCHED_FIFO for tid in os.listdir("/proc/self/task"))
-                return driver.master.scheduling, fifo
+                return driver.master.scheduling, _fifo_threads()
 
         scheduling, fifo = asyncio.run(go())
     if allowed[0]:
-        assert scheduling == "SCHED_FIFO 1" and fifo >= 2  # the SYNC and the receive thread
+        assert scheduling == "SCHED_FIFO 2"
+        assert fifo["canopen-sync-master", 2] == fifo["canopen-blf", 1] == 1
+        assert fifo["Notifier", 2] == fifo["Notifier", 3] == 1  # ours, the drives'
+        assert fifo["Cyclic send task", 3] >= robot.n  # each drive's heartbeat producer
+        assert fifo["cia402-sync-watch", 3] == 1
     else:
-        assert scheduling == "normal" and fifo == 0
-        assert any("driver.sync_priority: SCHED_FIFO 1 refused" in r.getMessage()
+        assert scheduling == "normal" and not fifo
+        assert any("driver.sync_priority: SCHED_FIFO 2 refused" in r.getMessage()
                    for r in caplog.records)
+
+
+def test_heap_hold_nests_and_each_step_is_safe_twice() -> None:
+    """The first HeapHold freezes the heap (gc.freeze), the last release gives it back to the
+    collector; a second hold or release of the same HeapHold changes nothing."""
+    assert gc.get_freeze_count() == 0
+    first, second = HeapHold(), HeapHold()
+    first.hold()
+    first.hold()
+    frozen = gc.get_freeze_count()
+    assert frozen > 1000
+    second.hold()
+    first.release()
+    first.release()
+    assert gc.get_freeze_count() >= frozen  # the second still holds
+    second.release()
+    assert gc.get_freeze_count() == 0
+    second.release()
+    assert gc.get_freeze_count() == 0
+
+
+def test_heap_frozen_while_the_master_runs(tmp_path: Path, robot: Robot) -> None:
+    """What is alive when the SYNC starts is out of the collector's reach while the driver is
+    open (a full collection would walk it all, holding the GIL for 40–100 ms), and back once it
+    closed, closing twice included."""
+    with drives(tmp_path, robot) as (driver, _):
+        async def go() -> int:
+            async with driver:
+                frozen = gc.get_freeze_count()
+            await driver.close()
+            return frozen
+
+        frozen = asyncio.run(go())
+    assert frozen > 1000 and gc.get_freeze_count() == 0
+
+
+def _fifo_threads() -> collections.Counter[tuple[str, int]]:
+    """How many SCHED_FIFO threads per (name up to ' for', priority)."""
+    out: collections.Counter[tuple[str, int]] = collections.Counter()
+    for th in threading.enumerate():
+        if th.native_id is not None and _policy(str(th.native_id)) == os.SCHED_FIFO:
+            with contextlib.suppress(OSError):  # the thread ended meanwhile
+                out[th.name.split(" for ")[0],
+                    os.sched_getparam(th.native_id).sched_priority] += 1
+    return out
 
 
 def _policy(tid: str) -> int:
