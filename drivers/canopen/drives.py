@@ -46,7 +46,7 @@ from robid_link.drivers.canopen.cia402 import (
 )
 from robid_link.drivers.canopen.feedforward import KeptParameterSet, torque_offsets
 from robid_link.drivers.canopen.master import Axis, Job, SyncMaster, quintic, ramp_to_rest
-from robid_link.drivers.canopen.realtime import HeapHold, RealtimeListener
+from robid_link.drivers.canopen.realtime import ProcessHold, RealtimeListener, realtime
 from robid_link.drivers.canopen.record import BlfTap, log_bytes
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.jobs import MotionProgram, RobotInfo
@@ -200,7 +200,8 @@ class CanopenDrivesDriver(Driver):
         self.axes: list[Axis] = []
         self.master: SyncMaster | None = None
         self._tap: BlfTap | None = None
-        self._heap = HeapHold()  # frozen while the master runs (see realtime.HeapHold)
+        # the heap frozen, the GIL switch interval a quarter period while the master runs
+        self._hold = ProcessHold(self.period / 4)
         self._writer: ThreadPoolExecutor | None = None
         self._programs: dict[str, tuple[np.ndarray, float]] = {}
         self._jobs: dict[tuple[str, str], Job] = {}
@@ -248,12 +249,16 @@ class CanopenDrivesDriver(Driver):
                               f"{self.interface} ({err})") from err
         self.network = net = canopen.Network(bus)
         net.connect()
-        # the recorder takes the GIL for every frame of a job: below the motion path, above
-        # every other process (under normal scheduling it may hold the GIL off the CPU)
-        self._tap = BlfTap(max(1, self.sync_priority - 1) if self.sync_priority else 0)
+        # the recorder (every frame of a job) and the log writer (a job's CSV) take the GIL:
+        # under SCHED_FIFO below the motion path, no other process keeps them off the CPU
+        # while they hold it (the SYNC thread would wait that long)
+        below = max(1, self.sync_priority - 1) if self.sync_priority else 0
+        self._tap = BlfTap(below)
         assert net.notifier is not None
         net.notifier.add_listener(self._tap)
-        self._writer = ThreadPoolExecutor(1, thread_name_prefix="ThreadPoolExecutor-canopen")
+        self._writer = ThreadPoolExecutor(1, thread_name_prefix="ThreadPoolExecutor-canopen",
+                                          initializer=realtime if below else None,
+                                          initargs=(below,) if below else ())
         for j, node_id in enumerate(self.nodes):
             self.axes.append(Axis(node_id, j + 1, self.robot.joint_names[j],
                                   self.counts_per_rad[j], 0.0,
@@ -387,7 +392,7 @@ class CanopenDrivesDriver(Driver):
             net.subscribe(0x280 + a.node, lambda _c, d, _t, i=i: master.on_tpdo2(i, d))
             net.subscribe(0x80 + a.node, lambda _c, d, _t, i=i: master.on_emcy(i, d))
         net.nmt.send_command(NMT_START)
-        self._heap.hold()
+        self._hold.hold()
         master.start(hold)
         log.info("drives %s in Operation enabled (CSP), SYNC every %g ms",
                  list(self.nodes), 1000 * self.period)
@@ -404,7 +409,7 @@ class CanopenDrivesDriver(Driver):
                 master.idle.wait(5.0)
                 time.sleep(5 * self.period)  # the shutdown controlword reaches every drive
             master.stop()
-        self._heap.release()
+        self._hold.release()
         if self._tap is not None:
             self._tap.stop()
             self._tap = None

@@ -1,13 +1,15 @@
 """What the CANopen motion path asks of the process it runs in: SCHED_FIFO for its threads
-(``realtime``, ``RealtimeListener``) and the heap out of the cyclic collector's way (``HeapHold``).
+(``realtime``, ``RealtimeListener``), the heap out of the cyclic collector's way and a short GIL
+switch interval while it runs (``ProcessHold``).
 
 Every Python thread of the process shares one GIL, so the SYNC thread waits for whichever
 thread holds it. Two stalls of tens of milliseconds come from the process, not the host: a
 full (generation 2) collection, which holds the GIL while it walks every tracked object (some
 90,000 after start-up: 40–100 ms), and a thread under normal scheduling that holds or asks for
 the GIL while other processes keep it off the CPU (CPython's forced switching makes even the
-thread that releases the GIL wait until the asking thread runs). ``HeapHold`` answers the
-first; the driver's own threads run under SCHED_FIFO for the second.
+thread that releases the GIL wait until the asking thread runs). ``ProcessHold`` answers the
+first (and a shorter switch interval bounds how long a running thread keeps the GIL); the
+driver's own threads run under SCHED_FIFO for the second.
 """
 
 from __future__ import annotations
@@ -15,11 +17,12 @@ from __future__ import annotations
 import gc
 import logging
 import os
+import sys
 import threading
 
 import can
 
-__all__ = ["HeapHold", "RealtimeListener", "realtime"]
+__all__ = ["ProcessHold", "RealtimeListener", "realtime"]
 
 log = logging.getLogger("robid.driver.canopen")
 
@@ -52,37 +55,59 @@ class RealtimeListener(can.Listener):
                             "thread (%s)", self.priority, why)
 
 
-_held = 0  # HeapHolds holding: the heap is frozen while one does
-_held_lock = threading.Lock()
+_holds: list[ProcessHold] = []  # the holds in force, oldest first
+_saved: list[float] = []  # the switch interval before the first of them
+_set: list[float] = []  # the switch interval they set (another one set since is left alone)
+_holds_lock = threading.Lock()
 
 
-class HeapHold:
-    """While held, the objects alive when the hold began sit in CPython's permanent generation
-    (``gc.freeze``): a full collection walks only what was made since, so it takes a few
-    milliseconds instead of the 40–100 ms that stalled the SYNC thread every ~15 s at 1 ms.
-    ``release`` gives them back to the collector (garbage among them is collected later, none
-    leaks for good). Holds nest across drivers of one process (the last release unfreezes);
-    ``hold`` and ``release`` are each safe to call twice. Frozen garbage lives until then: what
-    was garbage at the hold, not what the driver makes while it runs."""
+class ProcessHold:
+    """What the motion master needs of the whole process while it runs, taken by ``hold`` and
+    given back by ``release`` (each safe to call twice; holds of several drivers nest, the last
+    release restores):
 
-    def __init__(self) -> None:
-        self.holding = False
+    - the heap frozen (``gc.freeze``): the objects alive at the hold sit in CPython's permanent
+      generation, so a full collection walks only what was made since (a few ms instead of the
+      40–100 ms that held the GIL every ~15 s at 1 ms). ``release`` gives them back to the
+      collector: garbage among them (what was garbage at the hold) is collected then.
+    - the GIL switch interval at most ``switch_s`` (CPython's default is 5 ms): a thread that
+      waits for the GIL asks its holder to let go after that long, so a running thread that
+      computes (the log writer formatting a job's CSV, the daemon's loop) delays the SYNC
+      thread by about that much, not by 5 ms or more each period. Released, the interval goes
+      back to what it was unless someone else changed it meanwhile.
+    """
+
+    def __init__(self, switch_s: float) -> None:
+        self.switch_s = switch_s
 
     def hold(self) -> None:
-        global _held
-        with _held_lock:
-            if self.holding:
+        with _holds_lock:
+            if self in _holds:
                 return
-            self.holding = True
-            _held += 1
+            if not _holds:
+                _saved[:] = [sys.getswitchinterval()]
+            _holds.append(self)
             gc.freeze()  # again with a second hold: objects made since join the frozen ones
+            _apply()
 
     def release(self) -> None:
-        global _held
-        with _held_lock:
-            if not self.holding:
+        with _holds_lock:
+            if self not in _holds:
                 return
-            self.holding = False
-            _held -= 1
-            if _held == 0:
-                gc.unfreeze()
+            _holds.remove(self)
+            if _holds:
+                _apply()
+                return
+            gc.unfreeze()
+            if _set and sys.getswitchinterval() == _set[0]:
+                sys.setswitchinterval(_saved[0])
+            _set.clear()
+
+
+def _apply() -> None:
+    """The shortest interval any hold asks for (never longer than the one before the holds)."""
+    want = min([_saved[0], *(h.switch_s for h in _holds)])
+    if _set and sys.getswitchinterval() != _set[0]:
+        return  # someone else set one since: theirs stands
+    sys.setswitchinterval(want)
+    _set[:] = [sys.getswitchinterval()]
