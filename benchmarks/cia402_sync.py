@@ -2,8 +2,10 @@
 drives on python-can's virtual bus (same process), measured where the drives take each SYNC
 (their handler's clock, not the master's), at normal scheduling and with ``sync_priority``
 (SCHED_FIFO for the SYNC thread and the CAN receive threads, as a real-time master runs); the
-shortest SYNC period held for ``ROBID_BENCH_SUSTAIN_S`` (default 60 s) without an overrun; and,
-as what the machine allows at all, a bare SCHED_FIFO loop of 1 ms over the same time."""
+shortest SYNC period held for ``ROBID_BENCH_SUSTAIN_S`` (default 60 s) without an overrun, each
+overrun shown with what a watcher per CPU (its own process, above the master's priority) saw of
+the host meanwhile; and, as what the machine allows at all, a bare SCHED_FIFO loop of 1 ms over
+the same time."""
 
 from __future__ import annotations
 
@@ -268,7 +270,8 @@ def report(r: dict[str, Any]) -> None:
     bare = r["bare loop 1 ms"]
     print(f"a bare 1 ms loop ({'SCHED_FIFO' if bare['rt'] else 'normal scheduling'}, absolute "
           f"deadlines, nothing else running) over {r['sustain_s']:g} s: {bare['late']:.0f} "
-          f"periods > 1.5 ms, the longest {bare['max_ms'] + 1:.1f} ms: what this machine allows")
+          f"periods > 1.5 ms, the longest {bare['max_ms'] + 1:.1f} ms: what this machine allows "
+          f"(a stall that long overruns any period under {2 * bare['max_ms']:.1f} ms)")
     tries = ", ".join(_try_text(t) for t in r["tries"])
     held = r["sustained_period_s"]
     print(f"CANopen shortest SYNC period held {r['sustain_s']:g} s without an overrun "
