@@ -112,7 +112,8 @@ class CanopenDrivesDriver(Driver):
     ``following_error_rad``, ``heartbeat_ms``, ``heartbeat_timeout_s``, ``boot_timeout_s``,
     ``state_timeout_s``, ``settle_timeout_s``, ``standstill_rad_s``, ``max_missed``,
     ``overrun_streak``, ``max_approach_rad``, ``sync_priority`` (0: normal scheduling; 1-99:
-    SCHED_FIFO for the SYNC thread and the CAN receive thread, as a real-time master runs),
+    SCHED_FIFO for the SYNC thread and the CAN receive thread, as a real-time master runs, and
+    one below for the BLF recorder and the log writer),
     ``bus_options`` (extra python-can arguments),
     ``robot_file`` (refused: no longer used, the feedforward's inverse dynamics runs in the
     worker on the daemon's robot),
