@@ -45,14 +45,8 @@ from robid_link.drivers.canopen.cia402 import (
     tpdo_maps,
 )
 from robid_link.drivers.canopen.feedforward import KeptParameterSet, torque_offsets
-from robid_link.drivers.canopen.master import (
-    Axis,
-    Job,
-    RealtimeListener,
-    SyncMaster,
-    quintic,
-    ramp_to_rest,
-)
+from robid_link.drivers.canopen.master import Axis, Job, SyncMaster, quintic, ramp_to_rest
+from robid_link.drivers.canopen.realtime import ProcessHold, RealtimeListener, realtime
 from robid_link.drivers.canopen.record import BlfTap, log_bytes
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.jobs import MotionProgram, RobotInfo
@@ -118,7 +112,8 @@ class CanopenDrivesDriver(Driver):
     ``following_error_rad``, ``heartbeat_ms``, ``heartbeat_timeout_s``, ``boot_timeout_s``,
     ``state_timeout_s``, ``settle_timeout_s``, ``standstill_rad_s``, ``max_missed``,
     ``overrun_streak``, ``max_approach_rad``, ``sync_priority`` (0: normal scheduling; 1-99:
-    SCHED_FIFO for the SYNC thread and the CAN receive thread, as a real-time master runs),
+    SCHED_FIFO for the SYNC thread and the CAN receive thread, as a real-time master runs, and
+    one below for the BLF recorder and the log writer),
     ``bus_options`` (extra python-can arguments),
     ``robot_file`` (refused: no longer used, the feedforward's inverse dynamics runs in the
     worker on the daemon's robot),
@@ -206,6 +201,8 @@ class CanopenDrivesDriver(Driver):
         self.axes: list[Axis] = []
         self.master: SyncMaster | None = None
         self._tap: BlfTap | None = None
+        # the heap frozen, the GIL switch interval a quarter period while the master runs
+        self._hold = ProcessHold(self.period / 4)
         self._writer: ThreadPoolExecutor | None = None
         self._programs: dict[str, tuple[np.ndarray, float]] = {}
         self._jobs: dict[tuple[str, str], Job] = {}
@@ -253,10 +250,16 @@ class CanopenDrivesDriver(Driver):
                               f"{self.interface} ({err})") from err
         self.network = net = canopen.Network(bus)
         net.connect()
-        self._tap = BlfTap()
+        # the recorder (every frame of a job) and the log writer (a job's CSV) take the GIL:
+        # under SCHED_FIFO below the motion path, no other process keeps them off the CPU
+        # while they hold it (the SYNC thread would wait that long)
+        below = max(1, self.sync_priority - 1) if self.sync_priority else 0
+        self._tap = BlfTap(below)
         assert net.notifier is not None
         net.notifier.add_listener(self._tap)
-        self._writer = ThreadPoolExecutor(1, thread_name_prefix="ThreadPoolExecutor-canopen")
+        self._writer = ThreadPoolExecutor(1, thread_name_prefix="ThreadPoolExecutor-canopen",
+                                          initializer=realtime if below else None,
+                                          initargs=(below,) if below else ())
         for j, node_id in enumerate(self.nodes):
             self.axes.append(Axis(node_id, j + 1, self.robot.joint_names[j],
                                   self.counts_per_rad[j], 0.0,
@@ -390,6 +393,7 @@ class CanopenDrivesDriver(Driver):
             net.subscribe(0x280 + a.node, lambda _c, d, _t, i=i: master.on_tpdo2(i, d))
             net.subscribe(0x80 + a.node, lambda _c, d, _t, i=i: master.on_emcy(i, d))
         net.nmt.send_command(NMT_START)
+        self._hold.hold()
         master.start(hold)
         log.info("drives %s in Operation enabled (CSP), SYNC every %g ms",
                  list(self.nodes), 1000 * self.period)
@@ -406,6 +410,7 @@ class CanopenDrivesDriver(Driver):
                 master.idle.wait(5.0)
                 time.sleep(5 * self.period)  # the shutdown controlword reaches every drive
             master.stop()
+        self._hold.release()
         if self._tap is not None:
             self._tap.stop()
             self._tap = None

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -33,9 +32,9 @@ from robid_link.drivers.canopen.cia402 import (
     error_words,
     sync_counter,
 )
+from robid_link.drivers.canopen.realtime import realtime
 
-__all__ = ["Axis", "Job", "RealtimeListener", "SyncMaster", "quintic", "ramp_to_rest",
-           "realtime"]
+__all__ = ["Axis", "Job", "SyncMaster", "quintic", "ramp_to_rest"]
 
 log = logging.getLogger("robid.driver.canopen")
 
@@ -123,34 +122,6 @@ def ramp_to_rest(pos: np.ndarray, vel: np.ndarray, decel: np.ndarray, period: fl
         p = p + v * period
         out.append(p.copy())
     return np.array(out).reshape(-1, pos.size)
-
-
-def realtime(priority: int) -> str | None:
-    """Put the calling thread under SCHED_FIFO at ``priority`` (Linux); None when it took,
-    else why not (the thread keeps its normal scheduling)."""
-    if not hasattr(os, "sched_setscheduler"):
-        return "no SCHED_FIFO on this system"
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except OSError as err:  # EPERM: no CAP_SYS_NICE and no RLIMIT_RTPRIO
-        return err.strerror or str(err)
-    return None
-
-
-class RealtimeListener(can.Listener):
-    """Puts the thread that delivers the bus's frames (python-can's notifier) under SCHED_FIFO
-    at the first frame; the SYNC thread's ``priority`` (one warning line if refused)."""
-
-    def __init__(self, priority: int) -> None:
-        self.priority, self.threads = priority, set[int]()
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if threading.get_ident() not in self.threads:
-            self.threads.add(threading.get_ident())
-            why = realtime(self.priority)
-            if why is not None:
-                log.warning("driver.sync_priority: SCHED_FIFO %d refused for the CAN receive "
-                            "thread (%s)", self.priority, why)
 
 
 def _lost(axis: Axis, part: list[Any] | None, index: int) -> bool:

@@ -17,6 +17,7 @@ from typing import Any
 import can
 
 from robid_link.drivers.canopen.master import Axis, Job
+from robid_link.drivers.canopen.realtime import realtime
 
 __all__ = ["BlfTap", "log_bytes"]
 
@@ -46,9 +47,12 @@ MAX_BACKLOG = 200_000
 class BlfTap(can.Listener):
     """Every frame of an experiment, both directions, into its BLF file, written off the
     motion master's thread (python-can's BLFWriter compresses in chunks). At most
-    ``MAX_BACKLOG`` frames wait; more are dropped and counted in ``dropped``."""
+    ``MAX_BACKLOG`` frames wait; more are dropped and counted in ``dropped``. ``priority``:
+    SCHED_FIFO for the writer thread (0: normal scheduling; if refused it keeps that, the
+    motion path's own threads say why)."""
 
-    def __init__(self) -> None:
+    def __init__(self, priority: int = 0) -> None:
+        self.priority = priority
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._writer: can.BLFWriter | None = None
         self._backlog = 0  # frames in the queue (the control items are few)
@@ -80,6 +84,8 @@ class BlfTap(can.Listener):
         self._thread.join(5.0)
 
     def _run(self) -> None:
+        if self.priority:
+            realtime(self.priority)
         writer: can.BLFWriter | None = None
         while True:
             item = self._queue.get()

@@ -6,8 +6,11 @@ closing while streaming ramps to rest."""
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
+import gc
 import os
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -19,6 +22,7 @@ import numpy as np
 import pytest
 
 from robid_link.drivers.canopen.drives import CanopenDrivesDriver
+from robid_link.drivers.canopen.realtime import ProcessHold
 from robid_link.exceptions import ConfigError, DriverError
 from robid_link.fakes.canopen.peer import EDS
 from robid_link.fakes.controller import default_truth, make_peer
@@ -164,9 +168,12 @@ def test_sync_overrun_streak_quick_stops(tmp_path: Path, robot: Robot,
 
 
 def test_sync_priority_puts_the_motion_path_under_sched_fifo(
-        tmp_path: Path, robot: Robot, caplog: pytest.LogCaptureFixture) -> None:
-    """``sync_priority``: the SYNC thread and the CAN receive thread run under SCHED_FIFO, or,
-    where the process may not, each says so in one warning line and runs as before."""
+        tmp_path: Path, robot: Robot, program: MotionProgram,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """``sync_priority``: the SYNC thread and the CAN receive thread run under SCHED_FIFO at
+    it, the BLF recorder and the log writer one below; the fake drives' threads (SYNC
+    handling, heartbeat producers, SYNC supervision) at their ``rt_priority``. Where the
+    process may not, each motion path thread says so in one warning line and runs as before."""
     allowed: list[bool] = []
 
     def probe() -> None:
@@ -179,21 +186,91 @@ def test_sync_priority_puts_the_motion_path_under_sched_fifo(
     t = threading.Thread(target=probe)
     t.start()
     t.join()
-    with drives(tmp_path, robot, sync_priority=1) as (driver, _):
-        async def go() -> tuple[str, int]:
+    with drives(tmp_path, robot, peer_opts={"rt_priority": 3}, sync_priority=2) as (driver, _):
+        async def go() -> tuple[str, collections.Counter[tuple[str, int]]]:
             async with driver:
-                await asyncio.sleep(0.3)
+                await driver.put_program(program)
+                await driver.give_ready("exp1", "n1")
+                await driver.take_done("exp1", "n1", timeout_s=30)  # the writer wrote its log
                 assert isinstance(driver, CanopenDrivesDriver) and driver.master is not None
-                fifo = sum(_policy(tid) == os.SCHED_FIFO for tid in os.listdir("/proc/self/task"))
-                return driver.master.scheduling, fifo
+                return driver.master.scheduling, _fifo_threads()
 
         scheduling, fifo = asyncio.run(go())
     if allowed[0]:
-        assert scheduling == "SCHED_FIFO 1" and fifo >= 2  # the SYNC and the receive thread
+        assert scheduling == "SCHED_FIFO 2"
+        assert fifo["canopen-sync-master", 2] == fifo["canopen-blf", 1] == 1
+        assert fifo["ThreadPoolExecutor-canopen_0", 1] == 1  # the log writer
+        assert fifo["Notifier", 2] == fifo["Notifier", 3] == 1  # ours, the drives'
+        assert fifo["Cyclic send task", 3] >= robot.n  # each drive's heartbeat producer
+        assert fifo["cia402-sync-watch", 3] == 1
     else:
-        assert scheduling == "normal" and fifo == 0
-        assert any("driver.sync_priority: SCHED_FIFO 1 refused" in r.getMessage()
+        assert scheduling == "normal" and not fifo
+        assert any("driver.sync_priority: SCHED_FIFO 2 refused" in r.getMessage()
                    for r in caplog.records)
+
+
+def test_process_hold_freezes_the_heap_shortens_the_switch_interval_and_restores() -> None:
+    """A ProcessHold freezes the heap (gc.freeze) and lowers the GIL switch interval to its
+    own; holds nest (the shortest interval wins, the last release unfreezes and restores the
+    interval from before); a second hold or release of the same one changes nothing."""
+    assert gc.get_freeze_count() == 0
+    before = sys.getswitchinterval()
+    first, second = ProcessHold(0.001), ProcessHold(0.00025)
+    first.hold()
+    first.hold()
+    frozen = gc.get_freeze_count()
+    assert frozen > 1000 and sys.getswitchinterval() == pytest.approx(0.001)
+    second.hold()
+    assert sys.getswitchinterval() == pytest.approx(0.00025)
+    first.release()
+    first.release()
+    assert gc.get_freeze_count() >= frozen  # the second still holds
+    assert sys.getswitchinterval() == pytest.approx(0.00025)
+    second.release()
+    assert gc.get_freeze_count() == 0 and sys.getswitchinterval() == before
+    second.release()
+    assert gc.get_freeze_count() == 0 and sys.getswitchinterval() == before
+
+
+def test_process_hold_leaves_an_interval_set_by_someone_else() -> None:
+    """An interval another part of the process set while the hold was in force stands."""
+    before = sys.getswitchinterval()
+    hold = ProcessHold(0.001)
+    hold.hold()
+    sys.setswitchinterval(0.002)
+    try:
+        hold.release()
+        assert sys.getswitchinterval() == pytest.approx(0.002)
+    finally:
+        sys.setswitchinterval(before)
+
+
+def test_process_held_while_the_master_runs(tmp_path: Path, robot: Robot) -> None:
+    """While the driver is open what was alive when the SYNC started is out of the collector's
+    reach (a full collection would walk it all, holding the GIL for 40–100 ms) and the switch
+    interval is a quarter SYNC period; once closed, closing twice included, both are back."""
+    before = sys.getswitchinterval()
+    with drives(tmp_path, robot) as (driver, peer):
+        async def go() -> tuple[int, float]:
+            async with driver:
+                held = gc.get_freeze_count(), sys.getswitchinterval()
+            await driver.close()
+            return held
+
+        frozen, interval = asyncio.run(go())
+    assert frozen > 1000 and interval == pytest.approx(peer.period / 4)
+    assert gc.get_freeze_count() == 0 and sys.getswitchinterval() == before
+
+
+def _fifo_threads() -> collections.Counter[tuple[str, int]]:
+    """How many SCHED_FIFO threads per (name up to ' for', priority)."""
+    out: collections.Counter[tuple[str, int]] = collections.Counter()
+    for th in threading.enumerate():
+        if th.native_id is not None and _policy(str(th.native_id)) == os.SCHED_FIFO:
+            with contextlib.suppress(OSError):  # the thread ended meanwhile
+                out[th.name.split(" for ")[0],
+                    os.sched_getparam(th.native_id).sched_priority] += 1
+    return out
 
 
 def _policy(tid: str) -> int:
