@@ -27,13 +27,13 @@ __all__ = ["ProcessHold", "RealtimeListener", "realtime"]
 log = logging.getLogger("robid.driver.canopen")
 
 
-def realtime(priority: int, tid: int = 0) -> str | None:
-    """Put the calling thread (or the thread ``tid``, a native id) under SCHED_FIFO at
-    ``priority`` (Linux); None when it took, else why not (the thread keeps its scheduling)."""
+def realtime(priority: int) -> str | None:
+    """Put the calling thread under SCHED_FIFO at ``priority`` (Linux); None when it took, else
+    why not (the thread keeps its normal scheduling)."""
     if not hasattr(os, "sched_setscheduler"):
         return "no SCHED_FIFO on this system"
     try:
-        os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     except OSError as err:  # EPERM: no CAP_SYS_NICE and no RLIMIT_RTPRIO
         return err.strerror or str(err)
     return None

@@ -222,7 +222,9 @@ class Cia402Peer(Peer):
     ``foreign_tpdo`` (the fault node's TPDO1 goes out under the next node's COB-ID too) and
     ``bad_length`` (its TPDO2 one byte short). ``counts_per_rad``: the encoders (2^27 per joint
     turn); ``fine_torque``: the daemon maps the drives' 2101h, the torque in mN·m, instead of
-    6077h (per mille of the rated torque).
+    6077h (per mille of the rated torque); ``rt_priority``: SCHED_FIFO for the drives' threads
+    (SYNC handling, heartbeat producers, SYNC supervision; 0: normal scheduling), for a bench of
+    a real-time master in the same process (they share its GIL).
     """
 
     driver = "canopen_drives"
