@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -40,6 +41,7 @@ from robid_link.ident.elastic.models import (
     two_mass_frf,
 )
 from robid_link.ident.model.robot import Robot
+from robid_link.ident.model.threads import in_slots
 
 __all__ = ["two_mass_frf", "three_mass_frf", "coupled_frf", "arm_coulomb_frf", "as_logged",
            "arm_swing", "gravity_stiffness", "JointElasticity", "CoupledElasticity",
@@ -120,12 +122,14 @@ def identify_elasticity(robot: Robot, logs: Sequence[Log], *, joints: Sequence[i
     fitted: list[JointElasticity] = []
     coupled = None
     targets: list[tuple[int, ...]] = [(j,) for j in joints] + ([tuple(pair)] if pair else [])
-    kg = _gravity_stiffness_of_logs(robot, logs, side, inertials, notes)
     found = None if schedule is not None else [
         _named(log.path, log_schedule, log.t, log.q, log.tau) for log in logs]
     log_rates = [log_rate(log.t) for log in logs]
-    for target in targets:
-        frf = _merged_frf(logs, target, schedule, tau_model, found, log_rates)
+    kg, *measured = _in_slots_ordered(
+        [partial(_gravity_stiffness_of_logs, robot, logs, side, inertials, notes)]
+        + [partial(_merged_frf, logs, target, schedule, tau_model, found, log_rates)
+           for target in targets])
+    for target, frf in zip(targets, measured, strict=True):
         frfs.append(frf)
         cols = [j - 1 for j in target]
         if len(target) == 1:
@@ -175,6 +179,25 @@ def _named(path: str, analysis: Callable[..., _T], *args: Any) -> _T:
         return analysis(*args)
     except DataError as err:
         raise DataError(f"{path}: {err}") from err
+
+
+def _in_slots_ordered(jobs: Sequence[Callable[[], Any]]) -> list[Any]:
+    """Each job's result, the jobs shared by the two slots (the gravity stiffness and each
+    target's FRF: their kernels release the GIL, and each is computed whole in one slot, so
+    no result depends on the threads); an error is the first job's in order."""
+    out: list[Any] = [None] * len(jobs)
+    failed: dict[int, BaseException] = {}
+
+    def one(k: int, slot: int) -> None:
+        try:
+            out[k] = jobs[k]()
+        except RobidError as err:
+            failed[k] = err
+
+    in_slots(range(len(jobs)), one)
+    if failed:
+        raise failed[min(failed)]
+    return out
 
 
 def _merged_frf(logs: Sequence[Log], target: tuple[int, ...],
