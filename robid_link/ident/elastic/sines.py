@@ -67,12 +67,19 @@ def step_sines(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int, *,
 
 def _solve(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """Each symmetric system (upper triangles summed) solved; by the SVD where singular."""
-    full = np.triu(gram) + np.swapaxes(np.triu(gram, 1), -1, -2)
+    below, on_or_below = _lower_masks(gram.shape[-1])  # np.triu's, made once
+    full = np.where(below, 0.0, gram) + np.swapaxes(np.where(on_or_below, 0.0, gram), -1, -2)
     try:
         return np.linalg.solve(full, rhs)
     except np.linalg.LinAlgError:
         return np.array([np.linalg.lstsq(g, r, rcond=None)[0] for g, r in zip(full, rhs,
                                                                                 strict=True)])
+
+
+@functools.lru_cache(maxsize=8)
+def _lower_masks(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The masks np.triu(·) and np.triu(·, 1) clear: below and on-or-below the diagonal."""
+    return np.tri(size, size, -1, dtype=bool), np.tri(size, size, 0, dtype=bool)
 
 
 @numba.njit(cache=True, nogil=True)
