@@ -9,6 +9,7 @@ friction on the arm side; Kg gravity's stiffness at the pose, from the rigid mod
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
@@ -41,7 +42,7 @@ from robid_link.ident.elastic.models import (
     two_mass_frf,
 )
 from robid_link.ident.model.robot import Robot
-from robid_link.ident.model.threads import in_slots
+from robid_link.ident.model.threads import in_free_slots
 
 __all__ = ["two_mass_frf", "three_mass_frf", "coupled_frf", "arm_coulomb_frf", "as_logged",
            "arm_swing", "gravity_stiffness", "JointElasticity", "CoupledElasticity",
@@ -125,18 +126,41 @@ def identify_elasticity(robot: Robot, logs: Sequence[Log], *, joints: Sequence[i
     found = None if schedule is not None else [
         _named(log.path, log_schedule, log.t, log.q, log.tau) for log in logs]
     log_rates = [log_rate(log.t) for log in logs]
-    kg, *measured = _in_slots_ordered(
-        [partial(_gravity_stiffness_of_logs, robot, logs, side, inertials, notes)]
-        + [partial(_merged_frf, logs, target, schedule, tau_model, found, log_rates)
-           for target in targets])
-    for target, frf in zip(targets, measured, strict=True):
-        frfs.append(frf)
+    gravity_known = threading.Event()
+    kg: list[np.ndarray] = []
+
+    def gravity() -> None:
+        try:
+            kg.append(_gravity_stiffness_of_logs(robot, logs, side, inertials, notes))
+        finally:
+            gravity_known.set()
+
+    def analyse(target: tuple[int, ...]) -> tuple[Frf, list[JointElasticity],
+                                                  CoupledElasticity | None, list[str]] | None:
+        """The target's FRF, then its fit once the gravity stiffness is known."""
+        frf = _merged_frf(logs, target, schedule, tau_model, found, log_rates)
+        gravity_known.wait()
+        if not kg:
+            return None  # the gravity stiffness failed: its error is raised first
+        own: list[str] = []
         cols = [j - 1 for j in target]
         if len(target) == 1:
-            fitted.append(fit_two_mass(frf, notes, float(kg[cols[0], cols[0]])))
-        else:
-            pj, coupled = fit_coupled(frf, notes, kg[np.ix_(cols, cols)])
-            fitted += pj
+            return frf, [fit_two_mass(frf, own, float(kg[0][cols[0], cols[0]]))], None, own
+        pj, cp = fit_coupled(frf, own, kg[0][np.ix_(cols, cols)])
+        return frf, pj, cp, own
+
+    # the pair's job, the longest, right after the gravity stiffness its fit waits for
+    order = sorted(range(len(targets)), key=lambda k: -len(targets[k]))
+    done = _in_free_slots([gravity] + [partial(analyse, targets[k]) for k in order])
+    by_target = [done[0]] + [done[1 + p] for p in np.argsort(order)]
+    for got in by_target:  # an error: the first in the order they ran in before
+        if isinstance(got, RobidError):
+            raise got
+    for frf, pj, cp, own in by_target[1:]:
+        frfs.append(frf)
+        fitted += pj
+        coupled = cp if cp is not None else coupled
+        notes += own
     if schedule is None:
         notes.append("steps detected from the log alone (no schedule given)")
     return ElasticityResult(robot.name, fitted, frfs, coupled, side, notes,
@@ -181,22 +205,20 @@ def _named(path: str, analysis: Callable[..., _T], *args: Any) -> _T:
         raise DataError(f"{path}: {err}") from err
 
 
-def _in_slots_ordered(jobs: Sequence[Callable[[], Any]]) -> list[Any]:
-    """Each job's result, the jobs shared by the two slots (the gravity stiffness and each
-    target's FRF: their kernels release the GIL, and each is computed whole in one slot, so
-    no result depends on the threads); an error is the first job's in order."""
+def _in_free_slots(jobs: Sequence[Callable[[], Any]]) -> list[Any]:
+    """Each job's result or its error, the jobs shared by the two slots as they come free (the
+    gravity stiffness, each target's FRF and fit: the sine sums and the third mass's fits
+    release the GIL, and each job runs whole in one slot, so no result depends on the
+    threads)."""
     out: list[Any] = [None] * len(jobs)
-    failed: dict[int, BaseException] = {}
 
     def one(k: int, slot: int) -> None:
         try:
             out[k] = jobs[k]()
         except RobidError as err:
-            failed[k] = err
+            out[k] = err
 
-    in_slots(range(len(jobs)), one)
-    if failed:
-        raise failed[min(failed)]
+    in_free_slots(range(len(jobs)), one)
     return out
 
 
