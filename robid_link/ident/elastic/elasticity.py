@@ -192,8 +192,14 @@ def _gravity_stiffness_of_logs(robot: Robot, logs: Sequence[Log], side: str,
             notes.append("no inertials for the arm's gravity stiffness: K is the spring plus "
                          "gravity's ∂g/∂q at the pose (give the robot's inertials)")
         return np.zeros((robot.n, robot.n))
-    # one copy with the joints in rows (a column of q is strided): 20 ms, not 28, for 822k
-    pose = np.median(np.concatenate([log.q.T for log in logs], axis=1), axis=1)
+    # the joints in rows (a column of q is strided), partitioned in place: 15 ms, not 28, for
+    # 822k samples; the same medians
+    rows = np.empty((robot.n, sum(log.q.shape[0] for log in logs)))
+    start = 0
+    for log in logs:
+        rows[:, start:start + log.q.shape[0]] = log.q.T
+        start += log.q.shape[0]
+    pose = np.median(rows, axis=1, overwrite_input=True)
     return gravity_stiffness(robot, pose, np.asarray(theta, dtype=float))
 
 

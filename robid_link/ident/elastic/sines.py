@@ -51,7 +51,7 @@ def step_sines(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int, *,
     cos_sin = np.empty((len(t), 2))  # cos ωt, sin ωt: the residual's pass reads them again
     _window_sums(t, x, w, edges, harmonics_of or 0, nh, gram, rhs, trig, cos_sin)
     coef = _solve(gram, rhs)  # [0]: the whole window, then the blocks
-    span = float(t[-1] - t[0]) + float(np.median(np.diff(t)))
+    span = float(t[-1] - t[0]) + float(np.median(np.diff(t), overwrite_input=True))
     bins = np.zeros((2 * most_bins, m), dtype=complex)
     _residual_bins(t, x, cos_sin, np.ascontiguousarray(coef[0]), span, bins)
     k = np.r_[-most_bins:0, 1:most_bins + 1]
