@@ -253,6 +253,25 @@ def test_plant_axis_within_one_percent(plant_log):
     assert p.d == pytest.approx(TRUE["d"], rel=0.02)
 
 
+def test_the_same_result_in_one_thread_and_in_two_slots(plant_log):
+    """The gravity stiffness and each target's FRF and fit run in the two slots, each whole in
+    one: the result is the same number for number on one thread."""
+    import numba
+
+    robot, traj, log, _, _ = plant_log
+    logs = [Log("sim", log["t"], log["q"], log["tau"])]
+    before = numba.get_num_threads()
+    docs = []
+    try:
+        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+            numba.set_num_threads(threads)
+            docs.append(identify_elasticity(robot, logs, joints=[1],
+                                            schedule=traj.header["schedule"]).to_dict())
+    finally:
+        numba.set_num_threads(before)
+    assert json.dumps(docs[0]) == json.dumps(docs[1])
+
+
 def test_plant_axis_from_the_log_alone(plant_log):
     """No schedule: the steps are found in the log; within 1.5× the known-schedule bounds."""
     robot, _, log, _, ja = plant_log

@@ -9,8 +9,10 @@ friction on the arm side; Kg gravity's stiffness at the pose, from the rigid mod
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -40,6 +42,7 @@ from robid_link.ident.elastic.models import (
     two_mass_frf,
 )
 from robid_link.ident.model.robot import Robot
+from robid_link.ident.model.threads import in_free_slots
 
 __all__ = ["two_mass_frf", "three_mass_frf", "coupled_frf", "arm_coulomb_frf", "as_logged",
            "arm_swing", "gravity_stiffness", "JointElasticity", "CoupledElasticity",
@@ -120,19 +123,44 @@ def identify_elasticity(robot: Robot, logs: Sequence[Log], *, joints: Sequence[i
     fitted: list[JointElasticity] = []
     coupled = None
     targets: list[tuple[int, ...]] = [(j,) for j in joints] + ([tuple(pair)] if pair else [])
-    kg = _gravity_stiffness_of_logs(robot, logs, side, inertials, notes)
     found = None if schedule is not None else [
         _named(log.path, log_schedule, log.t, log.q, log.tau) for log in logs]
     log_rates = [log_rate(log.t) for log in logs]
-    for target in targets:
+    gravity_known = threading.Event()
+    kg: list[np.ndarray] = []
+
+    def gravity() -> None:
+        try:
+            kg.append(_gravity_stiffness_of_logs(robot, logs, side, inertials, notes))
+        finally:
+            gravity_known.set()
+
+    def analyse(target: tuple[int, ...]) -> tuple[Frf, list[JointElasticity],
+                                                  CoupledElasticity | None, list[str]] | None:
+        """The target's FRF, then its fit once the gravity stiffness is known."""
         frf = _merged_frf(logs, target, schedule, tau_model, found, log_rates)
-        frfs.append(frf)
+        gravity_known.wait()
+        if not kg:
+            return None  # the gravity stiffness failed: its error is raised first
+        own: list[str] = []
         cols = [j - 1 for j in target]
         if len(target) == 1:
-            fitted.append(fit_two_mass(frf, notes, float(kg[cols[0], cols[0]])))
-        else:
-            pj, coupled = fit_coupled(frf, notes, kg[np.ix_(cols, cols)])
-            fitted += pj
+            return frf, [fit_two_mass(frf, own, float(kg[0][cols[0], cols[0]]))], None, own
+        pj, cp = fit_coupled(frf, own, kg[0][np.ix_(cols, cols)])
+        return frf, pj, cp, own
+
+    # the pair's job, the longest, right after the gravity stiffness its fit waits for
+    order = sorted(range(len(targets)), key=lambda k: -len(targets[k]))
+    done = _in_free_slots([gravity] + [partial(analyse, targets[k]) for k in order])
+    by_target = [done[0]] + [done[1 + p] for p in np.argsort(order)]
+    for got in by_target:  # an error: the first in the order they ran in before
+        if isinstance(got, RobidError):
+            raise got
+    for frf, pj, cp, own in by_target[1:]:
+        frfs.append(frf)
+        fitted += pj
+        coupled = cp if cp is not None else coupled
+        notes += own
     if schedule is None:
         notes.append("steps detected from the log alone (no schedule given)")
     return ElasticityResult(robot.name, fitted, frfs, coupled, side, notes,
@@ -164,8 +192,14 @@ def _gravity_stiffness_of_logs(robot: Robot, logs: Sequence[Log], side: str,
             notes.append("no inertials for the arm's gravity stiffness: K is the spring plus "
                          "gravity's ∂g/∂q at the pose (give the robot's inertials)")
         return np.zeros((robot.n, robot.n))
-    pose = np.array([np.median(np.concatenate([log.q[:, j] for log in logs]))
-                     for j in range(robot.n)])  # column by column: a third of the time
+    # the joints in rows (a column of q is strided), partitioned in place: 15 ms, not 28, for
+    # 822k samples; the same medians
+    rows = np.empty((robot.n, sum(log.q.shape[0] for log in logs)))
+    start = 0
+    for log in logs:
+        rows[:, start:start + log.q.shape[0]] = log.q.T
+        start += log.q.shape[0]
+    pose = np.median(rows, axis=1, overwrite_input=True)
     return gravity_stiffness(robot, pose, np.asarray(theta, dtype=float))
 
 
@@ -175,6 +209,23 @@ def _named(path: str, analysis: Callable[..., _T], *args: Any) -> _T:
         return analysis(*args)
     except DataError as err:
         raise DataError(f"{path}: {err}") from err
+
+
+def _in_free_slots(jobs: Sequence[Callable[[], Any]]) -> list[Any]:
+    """Each job's result or its error, the jobs shared by the two slots as they come free (the
+    gravity stiffness, each target's FRF and fit: the sine sums and the third mass's fits
+    release the GIL, and each job runs whole in one slot, so no result depends on the
+    threads)."""
+    out: list[Any] = [None] * len(jobs)
+
+    def one(k: int, slot: int) -> None:
+        try:
+            out[k] = jobs[k]()
+        except RobidError as err:
+            out[k] = err
+
+    in_free_slots(range(len(jobs)), one)
+    return out
 
 
 def _merged_frf(logs: Sequence[Log], target: tuple[int, ...],

@@ -1,6 +1,7 @@
 """The two-mass fits: bounded least squares on the log of the FRF, each point weighted by its
 variance, with what the log adds (the controller's hold, a torque–position delay); arm Coulomb
-friction and a third mass kept only when an F-test on the weighted residuals supports them.
+friction and a third mass kept only when an F-test on the weighted residuals supports them
+(the third mass's many fits by the numba trust region of ``bounded``, the others by scipy's).
 
 Parameters stay physical by construction, not by clipping: inertias, stiffness and the joint
 damper are fitted as logarithms (> 0), the arm's viscous friction and Coulomb friction with a
@@ -19,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from robid_link.exceptions import EstimationError
+from robid_link.ident.elastic.bounded import fit_logged
 from robid_link.ident.elastic.frequency import Frf
 from robid_link.ident.elastic.models import (
     LOGGED_PARAMETERS,
@@ -182,18 +184,24 @@ def _lsq(pars: Sequence[_Par], resid: Callable[[dict[str, float]], np.ndarray],
     res = least_squares(lambda x: resid(values(x)), x0, bounds=(lo, hi), method="trf",
                         max_nfev=max_nfev, diff_step=diff_step,
                         jac="2-point" if jac is None else jac_x)
-    rss = float(res.fun @ res.fun)
-    n = res.fun.size
+    return _fit_at(pars, res.x, res.fun, res.jac, what)
+
+
+def _fit_at(pars: Sequence[_Par], x: np.ndarray, fun: np.ndarray, jac: np.ndarray,
+            what: str) -> _Fit:
+    """The fit at the solver's x: the covariance from the Jacobian by x and the residuals."""
+    rss = float(fun @ fun)
+    n = fun.size
     try:
-        cov = np.linalg.inv(res.jac.T @ res.jac) * rss / max(n - x0.size, 1)
+        cov = np.linalg.inv(jac.T @ jac) * rss / max(n - x.size, 1)
     except np.linalg.LinAlgError as err:
         raise EstimationError(f"{what + ': ' if what else ''}elasticity fit: singular "
                               "Jacobian (too few or too noisy FRF points)") from err
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    vals = values(res.x)
+    vals = {p.name: float(p.value(v)) for p, v in zip(pars, x, strict=True)}
     std = {p.name: float(vals[p.name] * s if p.log else s * p.scale)
            for p, s in zip(pars, sd, strict=True)}
-    return _Fit(vals, std, rss, n, res.x, cov)
+    return _Fit(vals, std, rss, n, x, cov)
 
 
 def f_test(small: _Fit, big: _Fit) -> tuple[float, float]:
@@ -294,6 +302,15 @@ def _fit_siso(frf: Frf, start: dict[str, float], kg: float, hold: float, sig: np
     pars = _siso_pars(start, frf, fc=fc, third=third)
     if not fc:  # the Jacobian's columns are the parameters'
         assert tuple(p.name for p in pars) == LOGGED_PARAMETERS[:len(pars)]
+    if third and not fc:  # the extension's many fits: by ``bounded`` (numba), max_nfev steps
+        lo, hi = np.array([p.bounds() for p in pars]).T
+        x, fun, jac_x, _ = fit_logged(2 * np.pi * frf.f_hz, frf.g, sig, kg, hold,
+                                      np.array([p.x0() for p in pars]), lo, hi,
+                                      np.array([p.log for p in pars]),
+                                      np.array([p.scale for p in pars]), max_nfev)
+        fit = _fit_at(pars, x, fun, jac_x, f"joint {frf.joints[0]}")
+        fit.extra.update(hold_s=hold, friction=None)
+        return fit
     last: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray]] = {}
 
     def linear(v: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
@@ -470,7 +487,7 @@ def _try_third_mass(frf: Frf, base: _Fit, kg: float, hold: float, sig: np.ndarra
         above = np.flatnonzero(frf.f_hz > 1.2 * f_res)
         f2 = float(frf.f_hz[above[np.argmax(miss[above])]]) if above.size else 0.9 * f_top
     best = None
-    for f_start in (f2, min(1.5 * f2, f_top)):
+    for f_start in dict.fromkeys((f2, min(1.5 * f2, f_top))):  # f2 may be the band's top
         for share in (0.2, 0.5):
             j3 = share * v["ja"]
             start = {**v, "ja": v["ja"] - j3, "j3": j3, "f3": f_start, "z3": 0.05}

@@ -157,7 +157,7 @@ def frf_from_schedule(t: np.ndarray, q: np.ndarray, tau: np.ndarray,
 
 def log_rate(t: np.ndarray) -> float:
     """A log's sampling rate: one over its median time step."""
-    return 1.0 / float(np.median(np.diff(t)))
+    return 1.0 / float(np.median(np.diff(t), overwrite_input=True))  # diff's own array
 
 
 def _siso(pts: Sequence[_Point]) -> tuple[complex, float]:

@@ -13,7 +13,8 @@ import numba
 import numpy as np
 
 __all__ = ["two_mass_frf", "three_mass_frf", "motor_and_arm", "arm_coulomb_frf",
-           "coupled_frf", "as_logged", "logged_with_derivatives", "LOGGED_PARAMETERS"]
+           "coupled_frf", "as_logged", "logged_with_derivatives", "logged_kernel",
+           "LOGGED_PARAMETERS"]
 
 
 def _arm(s: np.ndarray, ja: float, ba: float | np.ndarray, kg: float,
@@ -149,12 +150,14 @@ def logged_with_derivatives(f_hz: np.ndarray, jm: float, ja: float, k: float, d:
     f3, z3, j3 = f3_z3_j3 if f3_z3_j3 is not None else (0.0, 0.0, 0.0)
     g = np.empty(w.size, dtype=complex)
     dlog = np.empty((w.size, 9 if third else 6), dtype=complex)
-    _logged_kernel(w, hold_s, jm, ja, k, d, ba, kg, third, f3, z3, j3, delay_s, g, dlog)
+    logged_kernel(w, hold_s, jm, ja, k, d, ba, kg, third, f3, z3, j3, delay_s, g, dlog)
     return g, dlog
 
 
 @numba.njit(cache=True, nogil=True)
-def _logged_kernel(w, hold_s, jm, ja, k, d, ba, kg, third, f3, z3, j3, delay_s, g_out, d_out):
+def logged_kernel(w, hold_s, jm, ja, k, d, ba, kg, third, f3, z3, j3, delay_s, g_out, d_out):
+    """``logged_with_derivatives`` into ``g_out`` (K,) and ``d_out`` (K, 6 or 9) at the angular
+    frequencies w: for numba code (the bounded fit evaluates it at every step)."""
     om = 2 * np.pi * f3
     for i in range(w.size):
         s = 1j * w[i]

@@ -48,11 +48,12 @@ def step_sines(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int, *,
     nh = most_harmonics if harmonics_of is not None else 0
     gram, rhs = np.zeros((blocks + 1, 4, 4)), np.zeros((blocks + 1, 4, m))
     trig = np.zeros((6, 2 * nh + 1))  # the sums of the harmonics' normal equations
-    _window_sums(t, x, w, edges, harmonics_of or 0, nh, gram, rhs, trig)
+    cos_sin = np.empty((len(t), 2))  # cos ωt, sin ωt: the residual's pass reads them again
+    _window_sums(t, x, w, edges, harmonics_of or 0, nh, gram, rhs, trig, cos_sin)
     coef = _solve(gram, rhs)  # [0]: the whole window, then the blocks
-    span = float(t[-1] - t[0]) + float(np.median(np.diff(t)))
+    span = float(t[-1] - t[0]) + float(np.median(np.diff(t), overwrite_input=True))
     bins = np.zeros((2 * most_bins, m), dtype=complex)
-    _residual_bins(t, x, w, np.ascontiguousarray(coef[0]), span, bins)
+    _residual_bins(t, x, cos_sin, np.ascontiguousarray(coef[0]), span, bins)
     k = np.r_[-most_bins:0, 1:most_bins + 1]
     keep = f_hz + k / span > 0.25 * f_hz
     harm = None
@@ -66,7 +67,8 @@ def step_sines(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int, *,
 
 def _solve(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """Each symmetric system (upper triangles summed) solved; by the SVD where singular."""
-    full = np.triu(gram) + np.swapaxes(np.triu(gram, 1), -1, -2)
+    below, on_or_below = _lower_masks(gram.shape[-1])  # np.triu's, made once
+    full = np.where(below, 0.0, gram) + np.swapaxes(np.where(on_or_below, 0.0, gram), -1, -2)
     try:
         return np.linalg.solve(full, rhs)
     except np.linalg.LinAlgError:
@@ -74,44 +76,89 @@ def _solve(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
                                                                                 strict=True)])
 
 
+@functools.lru_cache(maxsize=8)
+def _lower_masks(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The masks np.triu(·) and np.triu(·, 1) clear: below and on-or-below the diagonal."""
+    return np.tri(size, size, -1, dtype=bool), np.tri(size, size, 0, dtype=bool)
+
+
 @numba.njit(cache=True, nogil=True)
-def _window_sums(t, x, w, edges, hcol, nh, gram, rhs, trig):
+def _window_sums(t, x, w, edges, hcol, nh, gram, rhs, trig, cos_sin):
     """Upper triangles of the normal equations of [1, u, cos ωt, sin ωt] per column: the whole
     window into [0], block b into [b + 1] (u each one's time scaled to [−1, 1]); for the
     harmonics of column ``hcol`` (nh > 0) the sums their normal equations are made of
     (``_harmonic_system``): Σ cos kωt, Σ sin kωt (k ≤ 2 nh; [0, 0] the count), Σ u cos kωt,
-    Σ u sin kωt, Σ x cos kωt, Σ x sin kωt (k ≤ nh), Σ u, Σ u², Σ x, Σ x u in [2…5, 0]."""
+    Σ u sin kωt, Σ x cos kωt, Σ x sin kωt (k ≤ nh), Σ u, Σ u², Σ x, Σ x u in [2…5, 0]; cos ωt
+    and sin ωt per sample into ``cos_sin``. Every sum runs over the samples in their order
+    (the same numbers however the passes are arranged), the design's and then each column's
+    in local variables: a third of the time of sums kept in the arrays."""
     n, m = x.shape
     mid0, half0 = 0.5 * (t[0] + t[n - 1]), 0.5 * (t[n - 1] - t[0])
     half0 = half0 if half0 > 0 else 1.0
-    row = np.empty(4)
+    a01 = a02 = a03 = a11 = a12 = a13 = a22 = a23 = a33 = count = 0.0  # the whole window's
     for b in range(edges.size - 1):
         i0, i1 = edges[b], edges[b + 1]
         mid, half = 0.5 * (t[i0] + t[i1 - 1]), max(0.5 * (t[i1 - 1] - t[i0]), 1e-300)
+        b01 = b02 = b03 = b11 = b12 = b13 = b22 = b23 = b33 = 0.0  # the block's
         for i in range(i0, i1):
             c, s = math.cos(w * t[i]), math.sin(w * t[i])
-            u0 = (t[i] - mid0) / half0
-            row[0], row[1], row[2], row[3] = 1.0, u0, c, s
-            _add_outer(row, x[i], gram[0], rhs[0])
-            row[1] = (t[i] - mid) / half
-            _add_outer(row, x[i], gram[b + 1], rhs[b + 1])
-            if nh:
-                xi = x[i, hcol]
-                ck, sk = c, s
-                for k in range(1, 2 * nh + 1):  # cos, sin of kωt by the angle sum
-                    trig[0, k] += ck
-                    trig[1, k] += sk
-                    if k <= nh:
-                        trig[2, k] += u0 * ck
-                        trig[3, k] += u0 * sk
-                        trig[4, k] += xi * ck
-                        trig[5, k] += xi * sk
-                    ck, sk = ck * c - sk * s, sk * c + ck * s
-                trig[0, 0] += 1.0
-                trig[2, 0] += u0
-                trig[3, 0] += u0 * u0
-                trig[4, 0] += xi
-                trig[5, 0] += xi * u0
+            cos_sin[i, 0], cos_sin[i, 1] = c, s
+            u0, u = (t[i] - mid0) / half0, (t[i] - mid) / half
+            count += 1.0
+            a01, a02, a03 = a01 + u0, a02 + c, a03 + s
+            a11, a12, a13 = a11 + u0 * u0, a12 + u0 * c, a13 + u0 * s
+            a22, a23, a33 = a22 + c * c, a23 + c * s, a33 + s * s
+            b01, b02, b03 = b01 + u, b02 + c, b03 + s
+            b11, b12, b13 = b11 + u * u, b12 + u * c, b13 + u * s
+            b22, b23, b33 = b22 + c * c, b23 + c * s, b33 + s * s
+        _upper(gram[b + 1], float(i1 - i0), b01, b02, b03, b11, b12, b13, b22, b23, b33)
+    _upper(gram[0], count, a01, a02, a03, a11, a12, a13, a22, a23, a33)
+    for j in range(m):
+        r0 = r1 = r2 = r3 = 0.0
+        for b in range(edges.size - 1):
+            i0, i1 = edges[b], edges[b + 1]
+            mid, half = 0.5 * (t[i0] + t[i1 - 1]), max(0.5 * (t[i1 - 1] - t[i0]), 1e-300)
+            q0 = q1 = q2 = q3 = 0.0
+            for i in range(i0, i1):
+                xi, c, s = x[i, j], cos_sin[i, 0], cos_sin[i, 1]
+                u0, u = (t[i] - mid0) / half0, (t[i] - mid) / half
+                r0, r1, r2, r3 = r0 + xi, r1 + u0 * xi, r2 + c * xi, r3 + s * xi
+                q0, q1, q2, q3 = q0 + xi, q1 + u * xi, q2 + c * xi, q3 + s * xi
+            rhs[b + 1, 0, j], rhs[b + 1, 1, j], rhs[b + 1, 2, j], rhs[b + 1, 3, j] = q0, q1, q2, q3
+        rhs[0, 0, j], rhs[0, 1, j], rhs[0, 2, j], rhs[0, 3, j] = r0, r1, r2, r3
+    if nh:
+        _harmonic_sums(t, x[:, hcol], cos_sin, mid0, half0, nh, trig)
+
+
+@numba.njit(cache=True, nogil=True)
+def _upper(g, s00, s01, s02, s03, s11, s12, s13, s22, s23, s33):
+    g[0, 0], g[0, 1], g[0, 2], g[0, 3] = s00, s01, s02, s03
+    g[1, 1], g[1, 2], g[1, 3] = s11, s12, s13
+    g[2, 2], g[2, 3], g[3, 3] = s22, s23, s33
+
+
+@numba.njit(cache=True, nogil=True)
+def _harmonic_sums(t, xh, cos_sin, mid0, half0, nh, trig):
+    """The harmonics' sums of ``_window_sums`` (cos kωt, sin kωt by the angle sum)."""
+    for i in range(t.size):
+        c, s = cos_sin[i, 0], cos_sin[i, 1]
+        u0 = (t[i] - mid0) / half0
+        xi = xh[i]
+        ck, sk = c, s
+        for k in range(1, 2 * nh + 1):
+            trig[0, k] += ck
+            trig[1, k] += sk
+            if k <= nh:
+                trig[2, k] += u0 * ck
+                trig[3, k] += u0 * sk
+                trig[4, k] += xi * ck
+                trig[5, k] += xi * sk
+            ck, sk = ck * c - sk * s, sk * c + ck * s
+        trig[0, 0] += 1.0
+        trig[2, 0] += u0
+        trig[3, 0] += u0 * u0
+        trig[4, 0] += xi
+        trig[5, 0] += xi * u0
 
 
 def _harmonic_system(trig: np.ndarray, nh: int) -> tuple[np.ndarray, np.ndarray]:
@@ -119,57 +166,64 @@ def _harmonic_system(trig: np.ndarray, nh: int) -> tuple[np.ndarray, np.ndarray]
     ``_window_sums``: products of harmonics are sums of harmonics, cos p cos q =
     (cos(p−q) + cos(p+q))/2, sin p sin q = (cos(p−q) − cos(p+q))/2, cos p sin q =
     (sin(p+q) − sin(p−q))/2."""
-    cos_sum, sin_sum = trig[0], trig[1]  # [0]: the count, Σ sin 0 = 0
-    h = np.arange(1, nh + 1)
-    p, q = np.meshgrid(h, h, indexing="ij")
     gram = np.empty((2 + 2 * nh, 2 + 2 * nh))
-    gram[2::2, 2::2] = 0.5 * (cos_sum[np.abs(p - q)] + cos_sum[p + q])
-    gram[3::2, 3::2] = 0.5 * (cos_sum[np.abs(p - q)] - cos_sum[p + q])
-    gram[2::2, 3::2] = 0.5 * (sin_sum[p + q] - np.sign(p - q) * sin_sum[np.abs(p - q)])
-    gram[3::2, 2::2] = gram[2::2, 3::2].T
-    first = np.empty((2, 2 + 2 * nh))  # the rows of 1 and u
-    first[0, :2] = cos_sum[0], trig[2, 0]
-    first[1, :2] = trig[2, 0], trig[3, 0]
-    first[0, 2::2], first[0, 3::2] = cos_sum[h], sin_sum[h]
-    first[1, 2::2], first[1, 3::2] = trig[2, h], trig[3, h]
-    gram[:2], gram[:, :2] = first, first.T
-    rhs = np.concatenate(([trig[4, 0], trig[5, 0]], np.ravel((trig[4, h], trig[5, h]), "F")))
+    rhs = np.empty(2 + 2 * nh)
+    _harmonic_fill(trig, nh, gram, rhs)
     return gram, rhs
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_outer(row, xi, gram, rhs):
-    for p in range(row.size):
-        for j in range(xi.size):
-            rhs[p, j] += row[p] * xi[j]
-        for q in range(p, row.size):
-            gram[p, q] += row[p] * row[q]
+def _harmonic_fill(trig, nh, gram, rhs):
+    cos_sum, sin_sum = trig[0], trig[1]  # [0]: the count, Σ sin 0 = 0
+    gram[0, 0], gram[0, 1], gram[1, 1] = cos_sum[0], trig[2, 0], trig[3, 0]
+    gram[1, 0] = gram[0, 1]
+    rhs[0], rhs[1] = trig[4, 0], trig[5, 0]
+    for p in range(1, nh + 1):
+        a = 2 * p  # the row of cos pωt; sin pωt is the next
+        gram[0, a], gram[0, a + 1] = cos_sum[p], sin_sum[p]  # the rows of 1 and u
+        gram[1, a], gram[1, a + 1] = trig[2, p], trig[3, p]
+        for r in range(2):
+            gram[a, r], gram[a + 1, r] = gram[r, a], gram[r, a + 1]
+        rhs[a], rhs[a + 1] = trig[4, p], trig[5, p]
+        for q in range(1, nh + 1):
+            b, diff = 2 * q, abs(p - q)
+            sign = 1.0 if p > q else (-1.0 if p < q else 0.0)
+            gram[a, b] = 0.5 * (cos_sum[diff] + cos_sum[p + q])
+            gram[a + 1, b + 1] = 0.5 * (cos_sum[diff] - cos_sum[p + q])
+            gram[a, b + 1] = 0.5 * (sin_sum[p + q] - sign * sin_sum[diff])
+            gram[b + 1, a] = gram[a, b + 1]
 
 
 @numba.njit(cache=True, nogil=True)
-def _residual_bins(t, x, w, coef, span, bins):
+def _residual_bins(t, x, cos_sin, coef, span, bins):
     """Σ r(t) e^{−2πj(f + k/T)t} per column of the residual r of the whole window's fit
-    ``coef`` (4, m), k = −K…−1, 1…K in the rows of ``bins`` (2K, m); e^{−2πjkt/T} as powers
-    of one exponential per sample."""
+    ``coef`` (4, m), k = −K…−1, 1…K in the rows of ``bins`` (2K, m) (cos ωt, sin ωt per
+    sample in ``cos_sin``); e^{−2πjkt/T} as powers of one exponential per sample, a bin at a
+    time (its sums in local variables, over the samples in their order)."""
     n, m = x.shape
     most = bins.shape[0] // 2
     mid0, half0 = 0.5 * (t[0] + t[n - 1]), 0.5 * (t[n - 1] - t[0])
     half0 = half0 if half0 > 0 else 1.0
-    turns = np.empty(most, dtype=np.complex128)
+    step = np.empty(n, dtype=np.complex128)
+    rz = np.empty((m, n), dtype=np.complex128)  # r e^{−jωt} per column and sample
     for i in range(n):
-        c, s = math.cos(w * t[i]), math.sin(w * t[i])
+        c, s = cos_sin[i, 0], cos_sin[i, 1]
         u0 = (t[i] - mid0) / half0
-        step = complex(math.cos(2 * math.pi * t[i] / span), -math.sin(2 * math.pi * t[i] / span))
-        power = complex(1.0, 0.0)
-        for k in range(most):
-            power *= step
-            turns[k] = power
+        step[i] = complex(math.cos(2 * math.pi * t[i] / span),
+                          -math.sin(2 * math.pi * t[i] / span))
         for j in range(m):
             r = x[i, j] - (coef[0, j] + coef[1, j] * u0 + coef[2, j] * c + coef[3, j] * s)
-            rz = complex(r * c, -r * s)  # r e^{−jωt}
-            for k in range(most):
-                bins[most + k, j] += turns[k] * rz
-                bins[most - 1 - k, j] += turns[k].conjugate() * rz
+            rz[j, i] = complex(r * c, -r * s)
+    power = np.full(n, complex(1.0, 0.0))
+    for k in range(most):
+        for i in range(n):
+            power[i] *= step[i]
+        for j in range(m):
+            up, down = bins[most + k, j], bins[most - 1 - k, j]
+            for i in range(n):
+                up += power[i] * rz[j, i]
+                down += power[i].conjugate() * rz[j, i]
+            bins[most + k, j], bins[most - 1 - k, j] = up, down
 
 
 def sine_amplitudes(t: np.ndarray, x: np.ndarray, f_hz: float, blocks: int = 1,

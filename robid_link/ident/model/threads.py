@@ -4,6 +4,9 @@ no two threads writing one row); outside a slot a kernel uses numba's threads it
 
 Slot k takes chunks k, k + SLOTS, … in order, whatever the machine: what a slot sums up is
 the same on every run, so results do not depend on the scheduler or the number of cores.
+Tasks whose results do not depend on the slot at all (each computed whole, nothing summed
+across tasks) may instead go to whichever slot is free (``in_free_slots``): unequal tasks then
+share the cores evenly.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from typing import TypeVar
 
 import numba
 
-__all__ = ["SLOTS", "in_slots", "kernel_threads"]
+__all__ = ["SLOTS", "in_slots", "in_free_slots", "kernel_threads"]
 
 #: slots of a pass (the machine's two cores)
 SLOTS = 2
@@ -43,6 +46,33 @@ def in_slots(tasks: Sequence[T], work: Callable[[T, int], None], slots: int = SL
     def run(slot: int) -> None:
         for task in tasks[slot::slots]:
             _serial(work, task, slot)
+
+    with ThreadPoolExecutor(max_workers=slots, thread_name_prefix="robid-slot") as pool:
+        futures = [pool.submit(run, k) for k in range(slots)]
+        for f in futures:
+            f.result()
+
+
+def in_free_slots(tasks: Sequence[T], work: Callable[[T, int], None],
+                  slots: int = SLOTS) -> None:
+    """As ``in_slots``, each task to the first slot free, in the tasks' order (a task may wait
+    for an earlier one: in one slot they run in order). For tasks whose results do not depend
+    on the slot that ran them."""
+    if len(tasks) <= 1 or slots <= 1 or numba.get_num_threads() <= 1 or \
+            getattr(_local, "serial", False):
+        for task in tasks:
+            _serial(work, task, 0)
+        return
+    queue = iter(range(len(tasks)))
+    lock = threading.Lock()
+
+    def run(slot: int) -> None:
+        while True:
+            with lock:
+                k = next(queue, -1)
+            if k < 0:
+                return
+            _serial(work, tasks[k], slot)
 
     with ThreadPoolExecutor(max_workers=slots, thread_name_prefix="robid-slot") as pool:
         futures = [pool.submit(run, k) for k in range(slots)]
