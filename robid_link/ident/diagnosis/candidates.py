@@ -5,6 +5,7 @@ which parameters), and the in-sample screen (can it remove SCREEN_MIN of the res
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
@@ -81,23 +82,37 @@ def profile_candidates(rows: ProfileRows, candidates: list[Block],
                        aside: Executor | None = None) -> tuple[list[Block], set[str]]:
     """Each effect's free hyper-parameter chosen on its grid, for all its joints at once
     (refined later, for the candidates that survive the screens); and the keys of the
-    candidates that had one. Effects are profiled independently: with ``aside`` those with
-    several hyper-parameters (two rounds each) are profiled on that executor meanwhile."""
+    candidates that had one. Effects are profiled independently: with ``aside`` the joints'
+    bases are made half here, half there, and then this thread and that executor each take
+    the next effect left (those with several hyper-parameters, two rounds each, first)."""
     profiled = {b.key for b in candidates if b.free_hypers()}
     groups = {name: [b for b in candidates if b.effect.name == name]
               for name in sorted({b.effect.name for b in candidates if b.free_hypers()})}
-    beside = {}
-    if aside is not None:
-        for b in candidates:  # the joints' bases first: both threads read them
-            if b.free_hypers() and b.joint is not None and b.effect.name != "ripple":
-                rows.beyond(b)
-        beside = {name: aside.submit(profile_effect, rows, group, False)
-                  for name, group in groups.items() if len(group[0].free_hypers()) > 1}
+    todo = deque(sorted(groups, key=lambda name: -len(groups[name][0].free_hypers())))
+
+    def drain() -> dict[int, Block]:
+        done: dict[int, Block] = {}
+        while True:
+            try:
+                group = groups[todo.popleft()]
+            except IndexError:
+                return done
+            done.update(zip(map(id, group), profile_effect(rows, group, refine=False),
+                            strict=True))
+
     chosen: dict[int, Block] = {}
-    for name, group in groups.items():
-        done = beside[name].result() if name in beside else profile_effect(rows, group,
-                                                                            refine=False)
-        chosen.update(zip(map(id, group), done, strict=True))
+    if aside is not None:  # the bases both threads read, each joint's made once
+        own = list({tuple(rows.rows_of(b)): b for b in candidates if b.free_hypers()
+                    and b.joint is not None and b.effect.name != "ripple"}.values())
+        half = aside.submit(lambda: [rows.beyond(b) for b in own[1::2]])
+        for b in own[::2]:
+            rows.beyond(b)
+        half.result()
+        beside = aside.submit(drain)
+        chosen.update(drain())
+        chosen.update(beside.result())
+    else:
+        chosen.update(drain())
     return [chosen.get(id(b), b) for b in candidates], profiled
 
 
