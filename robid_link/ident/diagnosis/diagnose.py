@@ -123,13 +123,15 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         candidates, profiled = profile_candidates(
             rows, catalog_candidates(robot, model, pool.problem.transmission), aside)
         candidates = drop_slow_ripples(candidates, pool.states)
+        # the structural screen reads no rows: it runs beside the ripples' in-sample check
+        structural_f = aside.submit(structural_screen, robot, pool.problem.blocks, pool.base,
+                                    pool.problem.transmission, candidates)
         # a ripple's refinement projects off the model's basis on all the profiling rows:
         # that SVD is made beside the screens when a ripple will pass them
         ripples = [b for b in candidates if b.effect.name == "ripple"]
         basis_f = (aside.submit(getattr, rows, "beyond_model")
                    if ripples and max(screens(rows, ripples)) >= SCREEN_MIN else None)
-        structural = structural_screen(robot, pool.problem.blocks, pool.base,
-                                       pool.problem.transmission, candidates)
+        structural = structural_f.result()
         insample = insample_screen(rows, structural.new)
         if basis_f is not None:
             basis_f.result()
