@@ -71,6 +71,10 @@ class States:
     #: the current model's rigid-body torque and torque rate (load_friction, delay)
     tau_rigid: np.ndarray | None = None
     tau_rate: np.ndarray | None = None
+    #: motor velocities and their moving signs made so far (friction effects read them on
+    #: every trial of a grid); not copied by ``replace``, which may change the transmission
+    _motor: dict[tuple[str, int], np.ndarray] = field(
+        default_factory=dict, init=False, repr=False, compare=False)
 
     def __len__(self) -> int:
         return int(self.q.shape[0])
@@ -79,7 +83,15 @@ class States:
         """Velocity of motor ``joint`` (the joint's own velocity without a transmission)."""
         if self.transmission is None:
             return self.qd[:, joint]
-        return self.qd @ self.transmission[joint]
+        if ("v", joint) not in self._motor:
+            self._motor["v", joint] = self.qd @ self.transmission[joint]
+        return self._motor["v", joint]
+
+    def motor_sign(self, joint: int) -> np.ndarray:
+        """``moving_sign`` of motor ``joint``'s velocity."""
+        if ("sign", joint) not in self._motor:
+            self._motor["sign", joint] = moving_sign(self.motor_velocity(joint))
+        return self._motor["sign", joint]
 
 
 @dataclass(frozen=True)
@@ -224,7 +236,7 @@ class Coulomb(Effect):
         return [f"fc_{joint + 1}"]
 
     def vectors(self, robot, st, joint, opts):
-        return [moving_sign(st.motor_velocity(joint))]
+        return [st.motor_sign(joint)]
 
 
 @register
@@ -244,8 +256,7 @@ class Friction(Effect):
         return [f"fv_{joint + 1}", f"fc_{joint + 1}"]
 
     def vectors(self, robot, st, joint, opts):
-        v = st.motor_velocity(joint)
-        return [v, moving_sign(v)]
+        return [st.motor_velocity(joint), st.motor_sign(joint)]
 
 
 @register
@@ -280,7 +291,7 @@ class FrictionPower(Effect):
     def vectors(self, robot, st, joint, opts):
         v = st.motor_velocity(joint)
         alpha = float(opts.get("alpha", self.hypers["alpha"].default))
-        sgn = moving_sign(v)
+        sgn = st.motor_sign(joint)
         return [sgn, np.abs(v) ** alpha * sgn, np.ones(len(st))]
 
 
@@ -296,7 +307,7 @@ class CoulombAsymmetric(Effect):
         return [f"fcp_{joint + 1}", f"fcn_{joint + 1}"]
 
     def vectors(self, robot, st, joint, opts):
-        sgn = moving_sign(st.motor_velocity(joint))
+        sgn = st.motor_sign(joint)
         return [(sgn > 0).astype(float), -(sgn < 0).astype(float)]
 
 
@@ -320,7 +331,7 @@ class Stribeck(Effect):
         v = st.motor_velocity(joint)
         vs = float(opts.get("vs", self.hypers["vs"].default))
         shape = float(opts.get("shape", self.hypers["shape"].default))
-        return [np.exp(-np.abs(v / vs) ** shape) * moving_sign(v)]
+        return [np.exp(-np.abs(v / vs) ** shape) * st.motor_sign(joint)]
 
 
 @register
@@ -415,7 +426,7 @@ class FrictionDrift(Effect):
         t = st.t if st.t is not None else np.zeros(len(st))  # seconds since the log's start
         g = np.exp(-t / tau_s) if tau_s < 1e5 else t / 100.0  # "1e6": a linear drift
         v = st.motor_velocity(joint)
-        return [g * moving_sign(v), g * v]
+        return [g * st.motor_sign(joint), g * v]
 
 
 @register
