@@ -33,13 +33,16 @@ from robid_link.ident.diagnosis.evidence import Signatures, evidence_sentence
 from robid_link.ident.diagnosis.hyperparams import screen, screens
 from robid_link.ident.diagnosis.residuals import profile_rows, residual_dict, residual_pool
 from robid_link.ident.diagnosis.scoring import (
+    BLOCKS,
     FOLDS,
     cross_validation,
     fold_masks,
     one_motion_note,
+    reversal_grams,
     score_candidate,
     suggestion,
     union_design,
+    union_passes,
 )
 from robid_link.ident.diagnosis.transfer import (
     model_transfer_doubts,
@@ -60,6 +63,7 @@ from robid_link.ident.diagnosis.verdict import (
     result_doubts,
 )
 from robid_link.ident.fit.design import base_set_for
+from robid_link.ident.fit.estimate import accumulate
 from robid_link.ident.fit.identify import identify, load_logs
 from robid_link.ident.fit.results import ErrorStats, HeldOut
 from robid_link.ident.model.effects import DEFAULT_MODEL, REGISTRY, Block, Model
@@ -309,6 +313,22 @@ def test_fold_cv_equals_a_refit_per_fold(ripple, union):
         counts += held[:, p + 1, p + 1]
     np.testing.assert_allclose(cv.rmse(cand), np.sqrt(sse / counts), rtol=1e-6)
     np.testing.assert_allclose(cv.base, cv.rmse(np.zeros(0, dtype=int)))
+
+
+def test_union_passes_give_each_set_as_a_pass_of_its_own(ripple, union):
+    """One pass, three sets of Grams: the same numbers as the cross-validation's pass, the
+    reversals' and the transfer scorer's (two blocks) each made alone."""
+    pool = ripple.pool
+    got = union_passes(union, pool, candidates=True, transfer=True)
+    alone = [accumulate(union.design, pool.pieces, union.keep, union.block_len,
+                        max_blocks=BLOCKS), reversal_grams(union, pool),
+             accumulate(union.design, pool.pieces, union.keep, union.block_len, max_blocks=2)]
+    for mine, theirs in zip((got.cv, got.turns, got.train), alone, strict=True):
+        assert mine is not None
+        assert np.array_equal(mine.g, theirs.g) and np.array_equal(mine.n_rows, theirs.n_rows)
+    assert got.turns.n_rows.sum() < got.cv.n_rows.sum()  # the reversals' rows only
+    only = union_passes(union, pool, candidates=False, transfer=True)
+    assert only.cv is None and only.turns is None and np.array_equal(only.train.g, alone[2].g)
 
 
 def test_score_candidate_gain_and_test(arm3, ripple, union):

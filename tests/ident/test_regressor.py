@@ -116,3 +116,28 @@ def test_armature_on_first_joint_is_absorbed(arm3):
     # joint 2 is perpendicular to the vertical joint 1: zz_2 only acts through q̈2
     assert absorbed_by("ia_2") == ["zz_2"]
     assert names.index("ia_3") in base.independent
+
+
+@pytest.mark.parametrize("side", [None, "joint", "motor"])
+def test_row_columns_are_the_rows_a_block_loads(industrial6, side):
+    """A per-joint effect's columns built on its rows only (``row_columns``) are the rows of
+    its full block that are not zero, to the bit — on a coupled wrist (motor 6 loads joints 5
+    and 6), either side; and the full block is zero everywhere else."""
+    from robid_link.ident.fit.design import random_states
+    from robid_link.ident.model.effects import REGISTRY
+
+    rng = np.random.default_rng(3)
+    st = random_states(industrial6, rng, 50, industrial6.transmission)
+    checked = 0
+    for eff in REGISTRY.values():
+        if not eff.per_joint or (side is not None and not eff.sided):
+            continue
+        for j in (0, 4, 5):
+            blk = Block(eff, j, {}, side)
+            rows, own = blk.row_columns(industrial6, st)
+            full = blk.columns(industrial6, st)
+            assert np.array_equal(own, full[:, rows, :]), blk.key
+            assert rows == blk.rows(industrial6, st.transmission) or not eff.loads, blk.key
+            assert not np.any(np.delete(full, rows, axis=1)), blk.key
+            checked += 1
+    assert checked >= 3 * 10

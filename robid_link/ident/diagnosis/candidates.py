@@ -5,6 +5,8 @@ which parameters), and the in-sample screen (can it remove SCREEN_MIN of the res
 
 from __future__ import annotations
 
+import threading
+from collections import deque
 from collections.abc import Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
@@ -81,23 +83,46 @@ def profile_candidates(rows: ProfileRows, candidates: list[Block],
                        aside: Executor | None = None) -> tuple[list[Block], set[str]]:
     """Each effect's free hyper-parameter chosen on its grid, for all its joints at once
     (refined later, for the candidates that survive the screens); and the keys of the
-    candidates that had one. Effects are profiled independently: with ``aside`` those with
-    several hyper-parameters (two rounds each) are profiled on that executor meanwhile."""
+    candidates that had one. Effects are profiled independently: with ``aside`` that executor
+    shares the work once it is free — first the joints' bases that every effect reads, then
+    the effects (those with several hyper-parameters, two rounds each, first); each thread
+    takes the next one left."""
     profiled = {b.key for b in candidates if b.free_hypers()}
     groups = {name: [b for b in candidates if b.effect.name == name]
               for name in sorted({b.effect.name for b in candidates if b.free_hypers()})}
-    beside = {}
-    if aside is not None:
-        for b in candidates:  # the joints' bases first: both threads read them
-            if b.free_hypers() and b.joint is not None and b.effect.name != "ripple":
-                rows.beyond(b)
-        beside = {name: aside.submit(profile_effect, rows, group, False)
-                  for name, group in groups.items() if len(group[0].free_hypers()) > 1}
-    chosen: dict[int, Block] = {}
-    for name, group in groups.items():
-        done = beside[name].result() if name in beside else profile_effect(rows, group,
-                                                                            refine=False)
-        chosen.update(zip(map(id, group), done, strict=True))
+    todo = deque(sorted(groups, key=lambda name: -len(groups[name][0].free_hypers())))
+    bases = deque({tuple(rows.rows_of(b)): b for b in candidates if b.free_hypers()
+                   and b.joint is not None and b.effect.name != "ripple"}.values())
+    left, made = [len(bases)], threading.Condition()
+
+    def drain() -> dict[int, Block]:
+        while bases:
+            try:
+                blk = bases.popleft()
+            except IndexError:  # the other thread took the last one
+                break
+            try:
+                rows.beyond(blk)
+            finally:  # made or failed (raised here, or by the other's result()): counted
+                with made:
+                    left[0] -= 1
+                    made.notify_all()
+        with made:  # every base made, whichever thread made it
+            made.wait_for(lambda: left[0] == 0)
+        done: dict[int, Block] = {}
+        while todo:
+            try:
+                group = groups[todo.popleft()]
+            except IndexError:
+                break
+            done.update(zip(map(id, group), profile_effect(rows, group, refine=False),
+                            strict=True))
+        return done
+
+    beside = aside.submit(drain) if aside is not None else None
+    chosen = drain()
+    if beside is not None and not beside.cancel():  # it started: it finishes its share
+        chosen.update(beside.result())
     return [chosen.get(id(b), b) for b in candidates], profiled
 
 

@@ -12,7 +12,7 @@ ranking (verdict.py); the sentence of evidence under each suggestion (evidence.p
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -43,22 +43,19 @@ from robid_link.ident.diagnosis.limits import (
     within_limits,
 )
 from robid_link.ident.diagnosis.residuals import (
-    ResidualPool,
     profile_rows,
     residual_dict,
     residual_pool,
     where_excess,
 )
 from robid_link.ident.diagnosis.scoring import (
-    FoldCV,
-    Union,
     cross_validation,
     given_others,
     one_motion_note,
-    reversal_grams,
     score_candidate,
     suggestion,
     union_design,
+    union_passes,
     without_turns,
 )
 from robid_link.ident.diagnosis.transfer import (
@@ -80,7 +77,6 @@ from robid_link.ident.diagnosis.verdict import (
     result_doubts,
 )
 from robid_link.ident.fit.design import Design
-from robid_link.ident.fit.estimate import Grams
 from robid_link.ident.fit.identify import identify
 from robid_link.ident.fit.results import IdentResult
 from robid_link.ident.model.effects import Block, Model
@@ -127,13 +123,15 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         candidates, profiled = profile_candidates(
             rows, catalog_candidates(robot, model, pool.problem.transmission), aside)
         candidates = drop_slow_ripples(candidates, pool.states)
+        # the structural screen reads no rows: it runs beside the ripples' in-sample check
+        structural_f = aside.submit(structural_screen, robot, pool.problem.blocks, pool.base,
+                                    pool.problem.transmission, candidates)
         # a ripple's refinement projects off the model's basis on all the profiling rows:
         # that SVD is made beside the screens when a ripple will pass them
         ripples = [b for b in candidates if b.effect.name == "ripple"]
         basis_f = (aside.submit(getattr, rows, "beyond_model")
                    if ripples and max(screens(rows, ripples)) >= SCREEN_MIN else None)
-        structural = structural_screen(robot, pool.problem.blocks, pool.base,
-                                       pool.problem.transmission, candidates)
+        structural = structural_f.result()
         insample = insample_screen(rows, structural.new)
         if basis_f is not None:
             basis_f.result()
@@ -161,14 +159,18 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         return Diagnosis(result, model.labels(), None, [], [], absorbed, odd, notes,
                          residuals, doubts=with_floor([]))
     union = union_design(robot, pool, kept)
-    transfer = transfer_scorer(union, pool) if pool.vpieces else None
+    # one pass over the training rows: the cross-validation's Grams, the reversals' (should a
+    # suggestion be judged away from the turns) and the transfer's
+    grams = union_passes(union, pool, candidates=bool(kept), transfer=bool(pool.vpieces))
+    transfer = transfer_scorer(union, pool, grams.train) if pool.vpieces else None
     if transfer is not None:
         doubts += model_transfer_doubts(robot, pool.problem, transfer, pool.base.independent)
     if not kept:  # nothing can show a gain: no candidate pass
         notes += limits_note(limits, {})
         return Diagnosis(result, model.labels(), None, [], [], absorbed, odd, notes,
                          residuals, doubts=with_floor([]))
-    cv = cross_validation(union, pool)
+    assert grams.cv is not None and grams.turns is not None
+    cv = cross_validation(union, pool, grams.cv)
     signatures = Signatures(robot, pool.states, pool.resid)
     scored = []
     for k, blk in enumerate(union.blocks):
@@ -187,11 +189,14 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
     extra = [at["delay"]] if skew is not None else []
     nuisance = "" if skew is None else (f"the log's own sample-and-hold (a shift of "
                                         f"{1e3 * skew.fields['seconds']:.2g} ms)")
+    reversals = grams.turns
     ranked, explained = one_by_one(
         rank(verdicts),
         lambda sug, better: given_others(robot, cv, union, at[sug.label()],
                                          [at[b.label()] for b in better] + extra),
-        _apart(robot, cv, union, pool, at, extra), nuisance)
+        lambda sug, better: without_turns(robot, cv, union, reversals, at[sug.label()],
+                                          [at[b.label()] for b in better] + extra),
+        nuisance)
     notes += _known_torque_pointers(ranked.suggested, law_rows, [k.block for k in kept])
     notes += explained + not_repeating_note(ranked.rejected)
     notes += not_transferring_note(ranked.not_transferring)
@@ -204,21 +209,6 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                      not_transferring=ranked.not_transferring,
                      doubts=with_floor(ranked.suggested),
                      limited=[sug for sug, _ in held_back.values()])
-
-
-def _apart(robot: Robot, cv: FoldCV, union: Union, pool: ResidualPool, at: dict[str, int],
-           extra: list[int]) -> Callable[[Suggestion, list[Suggestion]], tuple[float, float]]:
-    """``without_turns`` for a suggestion with the better ones before it (and the union
-    candidates ``extra``) in the model, the reversal Grams made on first use."""
-    made: list[Grams] = []
-
-    def test(sug: Suggestion, better: list[Suggestion]) -> tuple[float, float]:
-        if not made:
-            made.append(reversal_grams(union, pool))
-        return without_turns(robot, cv, union, made[0], at[sug.label()],
-                             [at[b.label()] for b in better] + extra)
-
-    return test
 
 
 def _shift_candidate(new: Sequence[Candidate], kept: Sequence[Candidate]) -> list[Candidate]:

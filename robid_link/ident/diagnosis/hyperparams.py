@@ -84,6 +84,13 @@ class ProfileRows:
         """A block's (N, n, k) columns on its rows, stacked like ``beyond``'s residual."""
         return cols[:, self.rows_of(blk), :].reshape(-1, cols.shape[2])
 
+    def own_columns(self, blk: Block) -> np.ndarray:
+        """``stacked`` of the block's columns, built on its rows only."""
+        on, cols = blk.row_columns(self.robot, self.states)
+        if on != self.rows_of(blk):  # loads other rows than it names: the dense columns
+            return self.stacked(blk, blk.columns(self.robot, self.states))
+        return cols.reshape(-1, cols.shape[2])
+
     @property
     def beyond_model(self) -> Beyond:
         """The filtered residual (joints stacked) projected off the model's column space."""
@@ -192,9 +199,11 @@ def _refine_one(rows: ProfileRows, chosen: list[Block], hyper: str) -> list[Bloc
 
         def cost(logv: float, b: Block = b, beyond: Beyond = beyond, whole: bool = whole
                  ) -> float:
-            cols = b.with_opts(**{hyper: math.exp(logv)}).columns(rows.robot, rows.states)
-            return -beyond.share(cols.reshape(-1, cols.shape[2]) if whole
-                                 else rows.stacked(b, cols))
+            trial = b.with_opts(**{hyper: math.exp(logv)})
+            if not whole:
+                return -beyond.share(rows.own_columns(trial))
+            cols = trial.columns(rows.robot, rows.states)
+            return -beyond.share(cols.reshape(-1, cols.shape[2]))
 
         res = minimize_scalar(cost, bounds=(math.log(a), math.log(z)), method="bounded",
                               options={"xatol": tol, "maxiter": 40})
@@ -255,10 +264,10 @@ def _profile_effect_grid(rows: ProfileRows, blocks: list[Block], hyper: str,
             if key in rows.tried:  # a second round meets the first's trials again
                 score[gi, bi] = rows.tried[key]
                 continue
-            cols = trial.columns(rows.robot, rows.states)
             if b.joint is not None:
-                score[gi, bi] = beyond[bi].share(rows.stacked(b, cols))
+                score[gi, bi] = beyond[bi].share(rows.own_columns(trial))
             else:  # a global effect: all joints' residual together
+                cols = trial.columns(rows.robot, rows.states)
                 score[gi, bi] = Beyond(no_helpers, rows.resid.reshape(-1)).share(
                     cols.reshape(-1, cols.shape[2]))
             rows.tried[key] = score[gi, bi]
@@ -287,11 +296,14 @@ def screens(rows: ProfileRows, blocks: Sequence[Block]) -> np.ndarray:
     n = rows.resid_filtered.shape[1]
     groups: dict[tuple[int, ...], list[tuple[int, np.ndarray]]] = {}
     for i, blk in enumerate(blocks):
-        cols = blk.columns(rows.robot, rows.states)
         joints = rows.rows_of(blk)
-        if len(joints) < n and np.any(np.delete(cols, joints, axis=1)):
-            joints = list(range(n))  # not confined to its rows: all of them
-        groups.setdefault(tuple(joints), []).append((i, cols[:, joints, :]))
+        on, own = blk.row_columns(rows.robot, rows.states)
+        if on != joints:  # its columns as the effect fills them
+            cols = blk.columns(rows.robot, rows.states)
+            if len(joints) < n and np.any(np.delete(cols, joints, axis=1)):
+                joints = list(range(n))  # not confined to its rows: all of them
+            own = cols[:, joints, :]
+        groups.setdefault(tuple(joints), []).append((i, own))
     out = np.empty(len(blocks))
     for key, members in groups.items():
         on = list(key)

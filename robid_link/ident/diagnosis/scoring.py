@@ -19,13 +19,22 @@ from robid_link.ident.diagnosis.evidence import Signatures, evidence_sentence, r
 from robid_link.ident.diagnosis.residuals import ResidualPool
 from robid_link.ident.diagnosis.verdict import Suggestion
 from robid_link.ident.fit.design import Design, structural_mask
-from robid_link.ident.fit.estimate import RANK_TOL, Grams, accumulate, long_run_factor, solve
+from robid_link.ident.fit.estimate import (
+    RANK_TOL,
+    Grams,
+    GramSet,
+    accumulate,
+    accumulate_sets,
+    long_run_factor,
+    solve,
+)
 from robid_link.ident.model.effects import Block
 from robid_link.ident.model.robot import Robot
 
 __all__ = ["FOLDS", "BLOCKS", "Union", "union_design", "fold_masks", "FoldCV",
-           "cross_validation", "wald", "Score", "score_candidate", "given_others",
-           "reversal_grams", "without_turns", "AT_TURNS", "suggestion", "one_motion_note", "rms"]
+           "cross_validation", "UnionGrams", "union_passes", "wald", "Score", "score_candidate",
+           "given_others", "reversal_grams", "without_turns", "AT_TURNS", "suggestion",
+           "one_motion_note", "rms"]
 
 FOLDS = 5
 #: time blocks of the union Grams (folds are made of them)
@@ -130,11 +139,38 @@ class FoldCV:
         return np.sqrt(np.maximum(sse, 0.0) / np.maximum(self.counts, 1.0))
 
 
-def cross_validation(union: Union, pool: ResidualPool) -> FoldCV:
-    """The union Grams of the pool's rows in BLOCKS time blocks, split into FOLDS folds."""
-    grams = accumulate(union.design, pool.pieces, union.keep, union.block_len,
-                       max_blocks=BLOCKS)
+def cross_validation(union: Union, pool: ResidualPool, grams: Grams | None = None) -> FoldCV:
+    """The union Grams of the pool's rows in BLOCKS time blocks (``grams``: made already,
+    ``union_passes``), split into FOLDS folds."""
+    if grams is None:
+        grams = accumulate(union.design, pool.pieces, union.keep, union.block_len,
+                           max_blocks=BLOCKS)
     return FoldCV(grams, union.n_model, fold_masks(grams.g.shape[1], FOLDS))
+
+
+@dataclass(frozen=True)
+class UnionGrams:
+    """What one pass over the pool's training rows gives the union design: the Grams of the
+    cross-validation, of the rows near the velocity reversals (``reversal_grams``) and, with
+    validation logs, the training Grams of the transfer scorer (two blocks)."""
+
+    cv: Grams | None
+    turns: Grams | None
+    train: Grams | None
+
+
+def union_passes(union: Union, pool: ResidualPool, candidates: bool, transfer: bool
+                 ) -> UnionGrams:
+    """The union Grams the diagnosis needs from the training rows, in one pass: with
+    ``candidates`` the cross-validation's and the reversals' (each chunk's rows are built and
+    filtered once, not once per set); with ``transfer`` the transfer scorer's."""
+    sets = ([GramSet(BLOCKS), GramSet(BLOCKS, lambda pc: _reversal_rows(pc.prep))]
+            if candidates else []) + ([GramSet(2)] if transfer else [])
+    if not sets:
+        return UnionGrams(None, None, None)
+    grams = accumulate_sets(union.design, pool.pieces, union.keep, union.block_len, sets)
+    return UnionGrams(grams[0] if candidates else None, grams[1] if candidates else None,
+                      grams[-1] if transfer else None)
 
 
 def wald(grams: Grams, sub: np.ndarray, cand: np.ndarray) -> tuple[float, np.ndarray]:
@@ -216,7 +252,8 @@ def _reversal_rows(prep: Prepared) -> np.ndarray:
 
 def reversal_grams(union: Union, pool: ResidualPool) -> Grams:
     """The union Grams of each joint's equation on the rows near its own velocity reversals
-    only, on cross_validation's time blocks (the same pieces in the same order)."""
+    only, on cross_validation's time blocks (the same pieces in the same order; a pass of its
+    own: ``union_passes`` gives them with the cross-validation's)."""
     pieces = [replace(pc, prep=replace(pc.prep, tau_mask=_reversal_rows(pc.prep)))
               for pc in pool.pieces]
     return accumulate(union.design, pieces, union.keep, union.block_len, max_blocks=BLOCKS)

@@ -44,12 +44,15 @@ class Transfer:
         return np.sqrt(np.maximum(sse, 0.0) / np.maximum(self.counts, 1.0))
 
 
-def transfer_scorer(union: Union, pool: ResidualPool) -> Transfer:
-    """The union Grams of the training rows and of the validation logs' rows."""
-    return Transfer(accumulate(union.design, pool.pieces, union.keep, union.block_len,
-                               max_blocks=2),
-                    accumulate(union.design, pool.vpieces, union.keep, union.block_len,
-                               max_blocks=2), union.n_model)
+def transfer_scorer(union: Union, pool: ResidualPool, train: Grams | None = None
+                    ) -> Transfer:
+    """The union Grams of the training rows (``train``: made already, ``union_passes``) and
+    of the validation logs' rows."""
+    if train is None:
+        train = accumulate(union.design, pool.pieces, union.keep, union.block_len,
+                           max_blocks=2)
+    return Transfer(train, accumulate(union.design, pool.vpieces, union.keep, union.block_len,
+                                      max_blocks=2), union.n_model)
 
 
 def with_transfer(sug: Suggestion, score: Score, transfer: Transfer, cand: np.ndarray

@@ -115,9 +115,15 @@ class Design:
                 dest[src] = dst
                 rigid_regressor(self.robot, st.q, st.qd, st.qdd, out=out,
                                 dest=dest.reshape(n, 10 * n))
-            else:
-                vals = blk.columns(self.robot, st)
-                out[:, dst] = vals.reshape(n_samp, -1)[:, src]
+            else:  # a per-joint block's columns on its own rows only
+                rows, vals = blk.row_columns(self.robot, st)
+                at = np.full(n, -1)
+                at[rows] = np.arange(len(rows))
+                width = vals.shape[2]
+                pos = at[src // width] * width + src % width
+                if np.any(pos < 0):  # structurally non-zero off its rows: the whole block
+                    vals, pos = blk.columns(self.robot, st), src
+                out[:, dst] = vals.reshape(n_samp, -1)[:, pos]
         return out
 
     def predict(self, c: np.ndarray, theta: np.ndarray) -> np.ndarray:

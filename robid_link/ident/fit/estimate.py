@@ -23,7 +23,8 @@ from robid_link.ident.model.threads import SLOTS, in_slots
 if TYPE_CHECKING:  # pieces only pass through to design_chunks
     from robid_link.ident.data.preprocess import Piece
 
-__all__ = ["WEIGHTS", "TUNING", "RANK_TOL", "Grams", "accumulate", "joint_stats", "solve", "Fit",
+__all__ = ["WEIGHTS", "TUNING", "RANK_TOL", "Grams", "accumulate", "GramSet",
+           "accumulate_sets", "joint_stats", "solve", "Fit",
            "fit", "long_run_factor"]
 
 #: Robust weight functions of r = residual / (tuning · robust scale), as in MATLAB's
@@ -82,13 +83,34 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
     pass go to ``SLOTS`` threads (``in_slots``), each summing into Grams of its own; the
     slots' Grams are added in slot order.
     """
+    return accumulate_sets(design, pieces, interval, block_len, [GramSet(max_blocks)],
+                           row_weight)[0]
+
+
+@dataclass(frozen=True)
+class GramSet:
+    """One set of Grams a pass sums (``accumulate_sets``): at most ``max_blocks`` time
+    blocks, over the equations ``mask(piece)`` keeps (rows × joints; None: the piece's own
+    ``tau_mask``, rows without a joint's torque left out)."""
+
+    max_blocks: int = 128
+    mask: Callable[[Piece], np.ndarray | None] | None = None
+
+
+def accumulate_sets(design: Design, pieces: Sequence[Piece], interval: int, block_len: int,
+                    sets: Sequence[GramSet], row_weight: RowWeight | None = None
+                    ) -> list[Grams]:
+    """``accumulate`` of several sets of Grams in one pass: each chunk's rows are built and
+    filtered once and summed into every set (the same numbers as a pass per set)."""
     total = sum(_n_rows(pc, interval) for pc in pieces)
     # a partial log's piece gives rows only to the joints whose torque it holds
     held = {id(pc): np.ascontiguousarray(pc.prep.log.held, dtype=np.uint8) for pc in pieces}
+    masks = [{id(pc): pc.prep.tau_mask if gs.mask is None else gs.mask(pc) for pc in pieces}
+             for gs in sets]
     n_rows = np.zeros(design.robot.n, dtype=np.int64)
     for pc in pieces:
         n_rows += _n_rows(pc, interval) * held[id(pc)].astype(np.int64)
-    k_blocks = int(min(max_blocks, max(2, total // max(1, block_len))))
+    k_blocks = [int(min(gs.max_blocks, max(2, total // max(1, block_len)))) for gs in sets]
     p, n = design.p, design.robot.n
     sizes = np.diff(design.offsets)
     width = int(sizes.max()) + 2
@@ -99,41 +121,51 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
         for window in filter_windows(pc, interval):
             tasks.append((pc, window, first))
             first += len(range(window[0], window[1], interval))
-    slots = [np.zeros((n, k_blocks, width, width)) for _ in range(min(SLOTS, len(tasks)))]
+    n_slots = min(SLOTS, len(tasks))
+    slots = [[np.zeros((n, k, width, width)) for _ in range(n_slots)] for k in k_blocks]
     rows = max((w[3] - w[2] for _, w, _ in tasks), default=0)
-    bufs: list[np.ndarray | None] = [None] * len(slots)  # one chunk buffer per slot
+    bufs: list[np.ndarray | None] = [None] * n_slots  # one chunk buffer per slot
     no_weight = np.ones((0, n))
-    left_out = [np.zeros(n) for _ in slots]  # rows without a joint's torque, per slot
+    # rows without a joint's torque, per set and slot
+    left_out = [[np.zeros(n) for _ in range(n_slots)] for _ in sets]
 
     def work(task: tuple[Piece, tuple[int, int, int, int, bool], int], slot: int) -> None:
         pc, window, at = task
         if bufs[slot] is None:
             bufs[slot] = np.empty((rows, design.nnz))
         c, y, idx = design_rows(design, pc, window, interval, bufs[slot])
-        bid = (np.arange(at, at + c.shape[0]) * k_blocks) // total
-        sw = np.sqrt(row_weight(c, y, idx)) if row_weight is not None else no_weight
-        if pc.prep.tau_mask is not None:  # rows without a joint's torque: not its equation
-            mw = pc.prep.tau_mask[idx].astype(float)
-            kept = np.array(mw.T, order="C").sum(axis=1)  # (numpy sums along rows slowly)
-            left_out[slot] += (c.shape[0] - kept) * held[id(pc)]
-            sw = mw if row_weight is None else sw * mw
-        _gram_serial(c, np.ascontiguousarray(y), np.ascontiguousarray(sw), bid, offsets,
-                     held[id(pc)], slots[slot], _TILE)
+        y_c = np.ascontiguousarray(y)
+        sw_rows = np.sqrt(row_weight(c, y, idx)) if row_weight is not None else no_weight
+        for s, k in enumerate(k_blocks):
+            bid = (np.arange(at, at + c.shape[0]) * k) // total
+            sw, mask = sw_rows, masks[s][id(pc)]
+            if mask is not None:  # rows without a joint's torque: not its equation
+                mw = mask[idx].astype(float)
+                kept = np.array(mw.T, order="C").sum(axis=1)  # (numpy sums along rows slowly)
+                left_out[s][slot] += (c.shape[0] - kept) * held[id(pc)]
+                if s > 0 and not kept.any():  # nothing of this chunk in the set: zeros
+                    continue
+                sw = mw if row_weight is None else sw_rows * mw
+            _gram_serial(c, y_c, np.ascontiguousarray(sw), bid, offsets, held[id(pc)],
+                         slots[s][slot], _TILE)
 
     in_slots(tasks, work)
     bufs.clear()
-    gc = slots[0]
-    for extra in slots[1:]:
-        gc += extra
-    slots.clear()
-    g = np.zeros((n, k_blocks, p + 2, p + 2))
-    for j in range(n):
-        sup = np.concatenate((design.support[j], [p, p + 1]))
-        s = sup.size
-        upper = gc[j, :, :s, :s]
-        full = upper + np.triu(upper, 1).transpose(0, 2, 1)
-        g[j][np.ix_(np.arange(k_blocks), sup, sup)] = full
-    return Grams(g, n_rows - sum(left_out))
+    out = []
+    for s, k_b in enumerate(k_blocks):
+        gc = slots[s][0]
+        for extra in slots[s][1:]:
+            gc += extra
+        slots[s].clear()
+        g = np.zeros((n, k_b, p + 2, p + 2))
+        for j in range(n):
+            sup = np.concatenate((design.support[j], [p, p + 1]))
+            sz = sup.size
+            upper = gc[j, :, :sz, :sz]
+            full = upper + np.triu(upper, 1).transpose(0, 2, 1)
+            g[j][np.ix_(np.arange(k_b), sup, sup)] = full
+        out.append(Grams(g, n_rows - sum(left_out[s])))
+    return out
 
 
 #: rows per tile of the Gram kernel (transposed into a small contiguous block); passed to the

@@ -71,6 +71,10 @@ class States:
     #: the current model's rigid-body torque and torque rate (load_friction, delay)
     tau_rigid: np.ndarray | None = None
     tau_rate: np.ndarray | None = None
+    #: motor velocities and their moving signs made so far (friction effects read them on
+    #: every trial of a grid); not copied by ``replace``, which may change the transmission
+    _motor: dict[tuple[str, int], np.ndarray] = field(
+        default_factory=dict, init=False, repr=False, compare=False)
 
     def __len__(self) -> int:
         return int(self.q.shape[0])
@@ -79,7 +83,15 @@ class States:
         """Velocity of motor ``joint`` (the joint's own velocity without a transmission)."""
         if self.transmission is None:
             return self.qd[:, joint]
-        return self.qd @ self.transmission[joint]
+        if ("v", joint) not in self._motor:
+            self._motor["v", joint] = self.qd @ self.transmission[joint]
+        return self._motor["v", joint]
+
+    def motor_sign(self, joint: int) -> np.ndarray:
+        """``moving_sign`` of motor ``joint``'s velocity."""
+        if ("sign", joint) not in self._motor:
+            self._motor["sign", joint] = moving_sign(self.motor_velocity(joint))
+        return self._motor["sign", joint]
 
 
 @dataclass(frozen=True)
@@ -120,10 +132,40 @@ class Effect:
     def param_names(self, robot: Robot, joint: int | None, opts: dict[str, Any]) -> list[str]:
         raise NotImplementedError
 
+    #: a per-joint effect given by its ``vectors``: "motor" loads the joints its motor turns
+    #: (τ_joint = Tᵀ τ_motor), "joint" its own row; "" fills its ``columns`` itself
+    loads: ClassVar[str] = ""
+
+    def vectors(self, robot: Robot, st: States, joint: int, opts: dict[str, Any]
+                ) -> list[np.ndarray]:
+        """A per-joint effect's columns as N-vectors, before they reach the joints' rows."""
+        raise NotImplementedError
+
     def columns(self, robot: Robot, st: States, joint: int | None,
                 opts: dict[str, Any]) -> np.ndarray:
         """(N, n, k) block; for a per-joint effect only row ``joint`` is non-zero."""
-        raise NotImplementedError
+        if not self.loads or joint is None:
+            raise NotImplementedError
+        place = _motor_row if self.loads == "motor" else _row
+        return place(st, robot.n, joint, self.vectors(robot, st, joint, opts))
+
+    def row_columns(self, robot: Robot, st: States, joint: int | None, opts: dict[str, Any]
+                    ) -> tuple[list[int], np.ndarray]:
+        """The rows the block loads and its columns there, (N, len(rows), k): ``columns``
+        without the rows that are zero (every row for an effect that fills its own)."""
+        if not self.loads or joint is None:
+            return list(range(robot.n)), self.columns(robot, st, joint, opts)
+        cols = self.vectors(robot, st, joint, opts)
+        if self.loads == "joint" or st.transmission is None:
+            rows, coefs = [joint], None
+        else:
+            rows = [int(i) for i in np.flatnonzero(st.transmission[joint])]
+            coefs = st.transmission[joint]
+        out = np.empty((len(st), len(rows), len(cols)))
+        for r, i in enumerate(rows):
+            for k, c in enumerate(cols):
+                out[:, r, k] = c if coefs is None else coefs[i] * c
+        return rows, out
 
 
 REGISTRY: dict[str, Effect] = {}
@@ -172,27 +214,29 @@ class RigidBody(Effect):
 @register
 class Viscous(Effect):
     name = "viscous"
+    loads = "motor"
     sided = True
     doc = "viscous friction fv·q̇ (of the motor's velocity for motor-side logs)"
 
     def param_names(self, robot, joint, opts):
         return [f"fv_{joint + 1}"]
 
-    def columns(self, robot, st, joint, opts):
-        return _motor_row(st, robot.n, joint, [st.motor_velocity(joint)])
+    def vectors(self, robot, st, joint, opts):
+        return [st.motor_velocity(joint)]
 
 
 @register
 class Coulomb(Effect):
     name = "coulomb"
+    loads = "motor"
     sided = True
     doc = "Coulomb friction fc·sign(q̇)"
 
     def param_names(self, robot, joint, opts):
         return [f"fc_{joint + 1}"]
 
-    def columns(self, robot, st, joint, opts):
-        return _motor_row(st, robot.n, joint, [moving_sign(st.motor_velocity(joint))])
+    def vectors(self, robot, st, joint, opts):
+        return [st.motor_sign(joint)]
 
 
 @register
@@ -202,6 +246,7 @@ class Friction(Effect):
     friction neither joint's own viscous and Coulomb terms can express."""
 
     name = "friction"
+    loads = "motor"
     sided = True
     catalog = False  # a candidate only where a coupling makes the other side's friction new
     doc = "viscous and Coulomb friction together, fv·q̇ + fc·sign(q̇) (a coupled motor's)"
@@ -210,27 +255,28 @@ class Friction(Effect):
     def param_names(self, robot, joint, opts):
         return [f"fv_{joint + 1}", f"fc_{joint + 1}"]
 
-    def columns(self, robot, st, joint, opts):
-        v = st.motor_velocity(joint)
-        return _motor_row(st, robot.n, joint, [v, moving_sign(v)])
+    def vectors(self, robot, st, joint, opts):
+        return [st.motor_velocity(joint), st.motor_sign(joint)]
 
 
 @register
 class Offset(Effect):
     name = "offset"
+    loads = "motor"
     sided = True
     doc = "constant torque offset (sensor bias, unmodelled static load)"
 
     def param_names(self, robot, joint, opts):
         return [f"off_{joint + 1}"]
 
-    def columns(self, robot, st, joint, opts):
-        return _motor_row(st, robot.n, joint, [np.ones(len(st))])
+    def vectors(self, robot, st, joint, opts):
+        return [np.ones(len(st))]
 
 
 @register
 class FrictionPower(Effect):
     name = "friction_power"
+    loads = "motor"
     sided = True
     doc = "FDURoID's friction (Fc + Fv·|q̇|^α)·sign(q̇) + B"
     hypers = {"alpha": Hyper(0.5, (0.2, 0.35, 0.5, 0.65, 0.8, 1.0, 1.25, 1.5),
@@ -242,16 +288,17 @@ class FrictionPower(Effect):
         j = joint + 1
         return [f"fpc_{j}", f"fpv_{j}", f"fpb_{j}"]
 
-    def columns(self, robot, st, joint, opts):
+    def vectors(self, robot, st, joint, opts):
         v = st.motor_velocity(joint)
         alpha = float(opts.get("alpha", self.hypers["alpha"].default))
-        sgn = moving_sign(v)
-        return _motor_row(st, robot.n, joint, [sgn, np.abs(v) ** alpha * sgn, np.ones(len(st))])
+        sgn = st.motor_sign(joint)
+        return [sgn, np.abs(v) ** alpha * sgn, np.ones(len(st))]
 
 
 @register
 class CoulombAsymmetric(Effect):
     name = "coulomb_asymmetric"
+    loads = "motor"
     sided = True
     doc = "Coulomb friction with different levels in the two directions"
     replaces = ("coulomb", "offset")
@@ -259,14 +306,15 @@ class CoulombAsymmetric(Effect):
     def param_names(self, robot, joint, opts):
         return [f"fcp_{joint + 1}", f"fcn_{joint + 1}"]
 
-    def columns(self, robot, st, joint, opts):
-        sgn = moving_sign(st.motor_velocity(joint))
-        return _motor_row(st, robot.n, joint, [(sgn > 0).astype(float), -(sgn < 0).astype(float)])
+    def vectors(self, robot, st, joint, opts):
+        sgn = st.motor_sign(joint)
+        return [(sgn > 0).astype(float), -(sgn < 0).astype(float)]
 
 
 @register
 class Stribeck(Effect):
     name = "stribeck"
+    loads = "motor"
     sided = True
     doc = "breakaway friction above Coulomb, decaying as exp(−|q̇/vs|^δ)"
     # both profiled (the velocity first): a fixed shape leaves part of a breakaway unexplained
@@ -279,16 +327,17 @@ class Stribeck(Effect):
     def param_names(self, robot, joint, opts):
         return [f"fst_{joint + 1}"]
 
-    def columns(self, robot, st, joint, opts):
+    def vectors(self, robot, st, joint, opts):
         v = st.motor_velocity(joint)
         vs = float(opts.get("vs", self.hypers["vs"].default))
         shape = float(opts.get("shape", self.hypers["shape"].default))
-        return _motor_row(st, robot.n, joint, [np.exp(-np.abs(v / vs) ** shape) * moving_sign(v)])
+        return [np.exp(-np.abs(v / vs) ** shape) * st.motor_sign(joint)]
 
 
 @register
 class Presliding(Effect):
     name = "presliding"
+    loads = "motor"
     sided = True
     doc = ("friction's smooth transition through zero velocity (pre-sliding): fp·tanh(q̇/vp) "
            "beside Coulomb's step (fc → 0 when the transition is all smooth)")
@@ -299,29 +348,31 @@ class Presliding(Effect):
     def param_names(self, robot, joint, opts):
         return [f"fp_{joint + 1}"]
 
-    def columns(self, robot, st, joint, opts):
+    def vectors(self, robot, st, joint, opts):
         v = st.motor_velocity(joint)
         vp = float(opts.get("vp", self.hypers["vp"].default))
-        return _motor_row(st, robot.n, joint, [np.tanh(v / vp)])
+        return [np.tanh(v / vp)]
 
 
 @register
 class Armature(Effect):
     name = "armature"
+    loads = "motor"
     sided = True
     doc = "rotor inertia through the gear (J_m·r² on the joint side)"
 
     def param_names(self, robot, joint, opts):
         return [f"ia_{joint + 1}"]
 
-    def columns(self, robot, st, joint, opts):
+    def vectors(self, robot, st, joint, opts):
         acc = st.qdd[:, joint] if st.transmission is None else st.qdd @ st.transmission[joint]
-        return _motor_row(st, robot.n, joint, [acc])
+        return [acc]
 
 
 @register
 class Spring(Effect):
     name = "spring"
+    loads = "joint"
     doc = "a smooth function of the joint angle (Fourier series in q, with its mean)"
     options = frozenset({"order"})
 
@@ -330,17 +381,17 @@ class Spring(Effect):
         return [f"spr0_{joint + 1}"] + [f"spr{k}{c}_{joint + 1}" for k in range(1, order + 1)
                                         for c in ("s", "c")]
 
-    def columns(self, robot, st, joint, opts):
+    def vectors(self, robot, st, joint, opts):
         q = st.q[:, joint]
         order = int(opts.get("order", 4))
-        cols = [np.ones_like(q)] + [f(k * q) for k in range(1, order + 1)
+        return [np.ones_like(q)] + [f(k * q) for k in range(1, order + 1)
                                     for f in (np.sin, np.cos)]
-        return _row(st, robot.n, joint, cols)
 
 
 @register
 class Ripple(Effect):
     name = "ripple"
+    loads = "joint"
     doc = "position-periodic torque (cogging, gear meshing) with period P in the joint angle"
     # the grid is the catalogued range (cogging, gear meshing: a few degrees); the diagnosis
     # searches every period the data resolves, up to half the joint's travel (two cycles)
@@ -351,15 +402,16 @@ class Ripple(Effect):
     def param_names(self, robot, joint, opts):
         return [f"rps_{joint + 1}", f"rpc_{joint + 1}"]
 
-    def columns(self, robot, st, joint, opts):
+    def vectors(self, robot, st, joint, opts):
         period = float(opts.get("period", self.hypers["period"].default))
         ph = 2 * np.pi * st.q[:, joint] / period
-        return _row(st, robot.n, joint, [np.sin(ph), np.cos(ph)])
+        return [np.sin(ph), np.cos(ph)]
 
 
 @register
 class FrictionDrift(Effect):
     name = "friction_drift"
+    loads = "motor"
     sided = True
     doc = "friction changing over the log's time (a joint warming up): exp(−t/τ) terms"
     hypers = {"tau_s": Hyper(60.0, (5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 1e6),
@@ -369,25 +421,26 @@ class FrictionDrift(Effect):
     def param_names(self, robot, joint, opts):
         return [f"dfc_{joint + 1}", f"dfv_{joint + 1}"]
 
-    def columns(self, robot, st, joint, opts):
+    def vectors(self, robot, st, joint, opts):
         tau_s = float(opts.get("tau_s", self.hypers["tau_s"].default))
         t = st.t if st.t is not None else np.zeros(len(st))  # seconds since the log's start
         g = np.exp(-t / tau_s) if tau_s < 1e5 else t / 100.0  # "1e6": a linear drift
         v = st.motor_velocity(joint)
-        return _motor_row(st, robot.n, joint, [g * moving_sign(v), g * v])
+        return [g * st.motor_sign(joint), g * v]
 
 
 @register
 class LoadFriction(Effect):
     name = "load_friction"
+    loads = "joint"
     doc = "friction growing with the transmitted load: μ·|τ_load|·sign(q̇)"
 
     def param_names(self, robot, joint, opts):
         return [f"mu_{joint + 1}"]
 
-    def columns(self, robot, st, joint, opts):
+    def vectors(self, robot, st, joint, opts):
         load = st.tau_rigid[:, joint] if st.tau_rigid is not None else np.zeros(len(st))
-        return _row(st, robot.n, joint, [np.abs(load) * moving_sign(st.qd[:, joint])])
+        return [np.abs(load) * moving_sign(st.qd[:, joint])]
 
 
 @register
@@ -508,6 +561,10 @@ class Block:
 
     def columns(self, robot: Robot, st: States) -> np.ndarray:
         return self.effect.columns(robot, self.states(robot, st), self.joint, self.opts)
+
+    def row_columns(self, robot: Robot, st: States) -> tuple[list[int], np.ndarray]:
+        """``columns`` on the rows the block loads only: (those rows, (N, len(rows), k))."""
+        return self.effect.row_columns(robot, self.states(robot, st), self.joint, self.opts)
 
     def param_names(self, robot: Robot) -> list[str]:
         names = self.effect.param_names(robot, self.joint, self.opts)
