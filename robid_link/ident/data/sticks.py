@@ -88,13 +88,20 @@ def _dwells(q: np.ndarray, accel_at: Callable[[int], float], dt: float
     """Runs [a, b) where a quantized position reads the same value longer than a smooth turn
     could: a turn at acceleration a stays within one count ε of its extremum for at most
     2·√(2ε/a); a run over DWELL_FACTOR times that (and two samples more) rests."""
-    step = np.abs(np.diff(q))
-    moving = step[step > 0]
-    if moving.size < 10:
+    step = np.diff(q)
+    still = step == 0
+    # a rest is two equal steps in a row at least: positions that are not quantized (or a
+    # fine encoder that never halts) have none, and the log's pass ends here
+    if not np.any(still[1:] & still[:-1]):
         return []
-    eps = float(moving.min())  # the encoder's count (positions that are not quantized: tiny)
+    moving = still.size - int(np.count_nonzero(still))
+    if moving < 10:
+        return []
+    # the encoder's count (positions that are not quantized: tiny)
+    eps = float(np.min(np.abs(step, out=step), where=~still, initial=np.inf))
+    del step
     out = []
-    for a, b in _runs(step == 0):
+    for a, b in _runs(still):
         b += 1  # the run's last reading
         if b - a <= 2:  # within two samples of a smooth turn whatever its acceleration
             continue
