@@ -151,13 +151,18 @@ class LagSums:
         # joints × rows: numpy sums a (rows, 6) array along its rows ten times slower
         e_t = np.array(e.T, order="C")
         if mask is None:
-            self.total += e_t.sum(axis=1)
+            total = e_t.sum(axis=1)
+            self.total += total
             self.count += m
-            for k in range(min(self.lags, m - 1) + 1):
-                a, b = e_t[:, : m - k], e_t[:, k:]
-                self.prod[k] += np.einsum("ij,ij->i", a, b)
-                self.head[k] += a.sum(axis=1)
-                self.tail[k] += b.sum(axis=1)
+            top = min(self.lags, m - 1) + 1
+            # a lag's first and second indices leave out the chunk's last and first k rows:
+            # the sums from the whole chunk's, less those few rows (not a pass per lag)
+            first = np.cumsum(e_t[:, : top - 1], axis=1)
+            last = np.cumsum(e_t[:, m - 1: m - top: -1], axis=1)
+            for k in range(top):
+                self.prod[k] += np.einsum("ij,ij->i", e_t[:, : m - k], e_t[:, k:])
+                self.head[k] += total - last[:, k - 1] if k else total
+                self.tail[k] += total - first[:, k - 1] if k else total
                 self.pairs[k] += m - k
             return
         w = np.array(np.broadcast_to(mask, e.shape).T, order="C", dtype=float)
