@@ -30,3 +30,23 @@ def test_streamed_percentile_is_numpys_to_the_bit(n, kind):
 def test_streamed_percentile_of_no_rows_is_nan():
     got = percentile_streamed([], lambda k: np.zeros((0, 2)), 95.0, 2)
     assert np.isnan(got).all()
+
+
+@pytest.mark.parametrize("near", [1.0, 1.02, 0.98, 1.5, 0.0, np.nan])
+def test_a_guess_spares_the_second_read_and_changes_no_bit(near):
+    """Near the percentile, the first read keeps what the second would find; far from it (or
+    no guess at all: NaN), the second read runs — the numbers are numpy's either way."""
+    rng = np.random.default_rng(5)
+    x = np.abs(rng.normal(size=(30_000, 3))) * [1e-3, 1.0, 40.0]
+    x[rng.random(x.shape) < 0.1] = 0.0
+    windows = np.array_split(x, 9)
+    reads = []
+
+    def values(k):
+        reads.append(k)
+        return windows[k]
+
+    want = np.percentile(x, 95.0, axis=0)
+    got = percentile_streamed(range(len(windows)), values, 95.0, 3, guess=near * want)
+    np.testing.assert_array_equal(got, want)
+    assert len(reads) == (9 if near in (1.0, 1.02, 0.98) else 18)

@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from robid_link.ident.data.preprocess import CHUNK, Prepared, Problem, typical_speeds
+from robid_link.ident.data.preprocess import Prepared, Problem, typical_speeds
 from robid_link.ident.model.threads import in_slots
 
 __all__ = ["Sticks", "find_sticks", "find_touches", "without_sticks", "sticks_note",
@@ -183,19 +183,17 @@ def find_touches(prep: Prepared) -> tuple[np.ndarray, list[int]]:
     on both sides, 0 elsewhere (int8); per joint how many touches). A touch is a run of sign
     changes of the filtered velocity, each within one period of the cutoff of the next, that
     ends on the sign it started from; runs that reach a segment's edge (the motion's start or
-    end) are not touches. The velocity's signs are read window by window (one byte a row and
-    joint)."""
+    end) are not touches. The velocity's signs: one byte a row and joint, most often kept by
+    the typical speeds' read (``Prepared.velocity_signs``)."""
     period = max(1, int(round(prep.filt.fs / prep.filt.cutoff_hz)))
     n = prep.log.q.shape[1]
     out = np.zeros(prep.log.q.shape, np.int8)
     counts = [0] * n
+    signs = prep.velocity_signs()
     for seg in prep.log.segments:
         if seg.stop - seg.start < 3 * prep.filt.settle:
             continue
-        sign = np.empty((seg.stop - seg.start, n), np.int8)
-        for lo in range(seg.start, seg.stop, CHUNK):
-            hi = min(seg.stop, lo + CHUNK)
-            sign[lo - seg.start: hi - seg.start] = np.sign(prep.velocity(lo, hi))
+        sign = signs[seg]
         for j in range(n):
             sj = sign[:, j]
             changes = np.flatnonzero(sj[1:] != sj[:-1])
