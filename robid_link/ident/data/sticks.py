@@ -88,8 +88,7 @@ def _dwells(q: np.ndarray, accel_at: Callable[[int], float], dt: float
     """Runs [a, b) where a quantized position reads the same value longer than a smooth turn
     could: a turn at acceleration a stays within one count ε of its extremum for at most
     2·√(2ε/a); a run over DWELL_FACTOR times that (and two samples more) rests."""
-    step = np.diff(q)
-    still = step == 0
+    still = q[1:] == q[:-1]
     # a rest is two equal steps in a row at least: positions that are not quantized (or a
     # fine encoder that never halts) have none, and the log's pass ends here
     if not np.any(still[1:] & still[:-1]):
@@ -97,7 +96,7 @@ def _dwells(q: np.ndarray, accel_at: Callable[[int], float], dt: float
     moving = still.size - int(np.count_nonzero(still))
     if moving < 10:
         return []
-    # the encoder's count (positions that are not quantized: tiny)
+    step = np.diff(q)  # the encoder's count (positions that are not quantized: tiny)
     eps = float(np.min(np.abs(step, out=step), where=~still, initial=np.inf))
     del step
     out = []

@@ -90,16 +90,18 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
         n_rows += _n_rows(pc, interval) * held[id(pc)].astype(np.int64)
     k_blocks = int(min(max_blocks, max(2, total // max(1, block_len))))
     p, n = design.p, design.robot.n
-    sizes = np.diff(design.offsets)
-    width = int(sizes.max()) + 2
     offsets = np.asarray(design.offsets, dtype=np.int64)
+    # joint j's Grams, (K, s_j + 2, s_j + 2) with s_j its support, one after the other in a
+    # slot's flat array (not n × the widest joint's: an outer joint's support is small)
+    widths = np.diff(offsets) + 2
+    starts = np.concatenate(([0], np.cumsum(k_blocks * widths * widths))).astype(np.int64)
     tasks: list[tuple[Piece, tuple[int, int, int, int, bool], int]] = []  # + first row
     first = 0
     for pc in pieces:
         for window in filter_windows(pc, interval):
             tasks.append((pc, window, first))
             first += len(range(window[0], window[1], interval))
-    slots = [np.zeros((n, k_blocks, width, width)) for _ in range(min(SLOTS, len(tasks)))]
+    slots = [np.zeros(int(starts[-1])) for _ in range(min(SLOTS, len(tasks)))]
     rows = max((w[3] - w[2] for _, w, _ in tasks), default=0)
     bufs: list[np.ndarray | None] = [None] * len(slots)  # one chunk buffer per slot
     no_weight = np.ones((0, n))
@@ -118,7 +120,7 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
             left_out[slot] += (c.shape[0] - kept) * held[id(pc)]
             sw = mw if row_weight is None else sw * mw
         _gram_serial(c, np.ascontiguousarray(y), np.ascontiguousarray(sw), bid, offsets,
-                     held[id(pc)], slots[slot], _TILE)
+                     held[id(pc)], slots[slot], starts, k_blocks, _TILE)
 
     in_slots(tasks, work)
     bufs.clear()
@@ -130,7 +132,7 @@ def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len
     for j in range(n):
         sup = np.concatenate((design.support[j], [p, p + 1]))
         s = sup.size
-        upper = gc[j, :, :s, :s]
+        upper = gc[starts[j]: starts[j + 1]].reshape(k_blocks, s, s)
         full = upper + np.triu(upper, 1).transpose(0, 2, 1)
         g[j][np.ix_(np.arange(k_blocks), sup, sup)] = full
     return Grams(g, n_rows - sum(left_out))
@@ -195,12 +197,15 @@ def _gram_joint(c, y, sw, j, off, s, bid, g, tile):
 
 
 @numba.njit(cache=True, nogil=True)
-def _gram_serial(c, y, sw, bid, offsets, held, g, tile):
-    """Every held joint's rows of a chunk into its Grams g[j] (n, K, w, w), on this thread
-    (``held[j]`` 0: the chunk's log holds no torque of joint j, its rows are left out)."""
+def _gram_serial(c, y, sw, bid, offsets, held, g, starts, k_blocks, tile):
+    """Every held joint's rows of a chunk into its Grams, on this thread: joint j's are
+    g[starts[j]:starts[j + 1]] as (K, s + 2, s + 2), s its support's size (``held[j]`` 0: the
+    chunk's log holds no torque of joint j, its rows are left out)."""
     for j in range(offsets.size - 1):
         if held[j]:
-            _gram_joint(c, y, sw, j, offsets[j], offsets[j + 1] - offsets[j], bid, g[j], tile)
+            s = offsets[j + 1] - offsets[j]
+            gj = g[starts[j]: starts[j + 1]].reshape((k_blocks, s + 2, s + 2))
+            _gram_joint(c, y, sw, j, offsets[j], s, bid, gj, tile)
 
 
 #: relative eigenvalue floor of a column-scaled Gram (cond(X) up to 1e6 is kept)
