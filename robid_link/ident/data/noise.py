@@ -4,6 +4,7 @@ whiteness of a residual (its autocorrelation against the 99 % band, Ljung–Box)
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -105,6 +106,7 @@ def _joint_diffs(pieces: Sequence[Piece], j: int) -> tuple[np.ndarray, np.ndarra
 _DIFF_CHUNK = 1 << 16
 
 
+@functools.lru_cache(maxsize=64)
 def chi2_quantile(p: float, df: int) -> float:
     """The p-quantile of the χ² distribution with ``df`` degrees of freedom (scipy's
     ``chi2.ppf`` to ~1e-14): bisection on the regularized lower incomplete gamma function
