@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from robid_link.ident.data.preprocess import Piece
+from robid_link.ident.data.quantiles import median
 from robid_link.ident.model.threads import in_slots
 
 __all__ = ["noise_floor", "Whiteness", "LagSums", "chi2_quantile", "DIFF_ORDER", "LAGS", "Z99",
@@ -61,9 +62,9 @@ def noise_floor(pieces: Sequence[Piece]) -> np.ndarray | None:
         d, ok = _joint_diffs(pieces, j)
         if not ok.any():
             return  # a joint without a torque on these rows
-        kept = d[ok]  # its medians in place: two slots' temporaries stay small
-        kept -= np.median(kept, overwrite_input=True)
-        first = _MAD * np.median(np.abs(kept, out=kept), overwrite_input=True)
+        kept = d[ok]
+        kept -= median(kept)
+        first = _MAD * median(np.abs(kept, out=kept))
         del kept
         # then the standard deviation of the differences within TRIM robust scales (nearly as
         # efficient as the standard deviation), corrected for the normal tails left out

@@ -17,7 +17,7 @@ import numpy as np
 
 from robid_link.ident.model.threads import SLOTS, in_slots
 
-__all__ = ["percentile_streamed"]
+__all__ = ["percentile_streamed", "median"]
 
 T = TypeVar("T")
 
@@ -88,6 +88,38 @@ def percentile_streamed(tasks: Sequence[T], values: Callable[[T], np.ndarray], q
         a, b = kept[prev - below], kept[nxt - below]
         out[j] = _lerp(a, b, gamma)
     return out
+
+
+#: a signed value's bucket: its order-preserving key's leading 16 bits (sign, exponent and 4
+#: bits of mantissa), offset to start at 0
+_SIGNED_BUCKETS = 1 << 16
+#: values bucketed at a time (the keys' temporaries stay small)
+_BLOCK = 1 << 16
+
+
+def median(x: np.ndarray) -> float:
+    """``np.median(x)`` of a 1-D float64 array of finite values, to the bit, in under half its
+    time on a long array: a histogram of the values' buckets finds the one or two that hold
+    the middle ranks, and only their values are partitioned. ``x`` may be reordered (as with
+    np.median's ``overwrite_input``)."""
+    n = x.size
+    if n < 1024:
+        return float(np.median(x, overwrite_input=True))
+    ids = np.empty(n, np.uint16)
+    for a in range(0, n, _BLOCK):  # the order-preserving integer key of each float
+        key = x[a: a + _BLOCK].view(np.int64)
+        key = key ^ ((key >> 63) & 0x7FFFFFFFFFFFFFFF)
+        ids[a: a + _BLOCK] = (key >> 48) + (_SIGNED_BUCKETS >> 1)
+    cum = np.cumsum(np.bincount(ids, minlength=_SIGNED_BUCKETS))
+    ranks = [n // 2] if n % 2 else [n // 2 - 1, n // 2]
+    lo, hi = (int(np.searchsorted(cum, r, side="right")) for r in (ranks[0], ranks[-1]))
+    below = int(cum[lo - 1]) if lo > 0 else 0
+    if cum[hi] - below > n // 2:  # few distinct values (a quantized signal): no gain
+        return float(np.median(x, overwrite_input=True))
+    kept = x[(ids >= lo) & (ids <= hi)]
+    at = [r - below for r in ranks]
+    # np.median's own last steps: the mean of the middle one or two values
+    return float(np.mean(np.partition(kept, at)[at]))
 
 
 def _bucket_ids(v: np.ndarray) -> np.ndarray:

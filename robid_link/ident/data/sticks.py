@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from robid_link.ident.data.preprocess import Prepared, Problem, typical_speeds
+from robid_link.ident.data.quantiles import median
 from robid_link.ident.model.threads import in_slots
 
 __all__ = ["Sticks", "find_sticks", "find_touches", "without_sticks", "sticks_note",
@@ -61,7 +62,7 @@ def _diff_scale(x: np.ndarray) -> float:
     for a in range(0, d.shape[0], 1 << 16):
         b = min(d.shape[0], a + (1 << 16))
         np.abs(np.diff(x[a: b + 3], 3), out=d[a:b])
-    return float(1.4826 * np.median(d, overwrite_input=True) / math.sqrt(20.0))
+    return float(1.4826 * median(d) / math.sqrt(20.0))
 
 
 def _climb(speed: np.ndarray, level: float) -> float:
