@@ -62,10 +62,8 @@ def noise_floor(pieces: Sequence[Piece]) -> np.ndarray | None:
         d, ok = _joint_diffs(pieces, j)
         if not ok.any():
             return  # a joint without a torque on these rows
-        kept = d[ok]
-        kept -= median(kept)
-        first = _MAD * median(np.abs(kept, out=kept))
-        del kept
+        where = None if ok.all() else ok  # its medians without a copy: two slots' temporaries
+        first = _MAD * median(d, where, around=median(d, where))  # stay small
         # then the standard deviation of the differences within TRIM robust scales (nearly as
         # efficient as the standard deviation), corrected for the normal tails left out
         size = np.abs(d, out=d)

@@ -11,13 +11,13 @@ there and back; the joint keeps the sign of its motion on both sides (``Prepared
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from robid_link.ident.data.preprocess import Prepared, Problem, typical_speeds
-from robid_link.ident.data.quantiles import median
+from robid_link.ident.data.quantiles import median_of_blocks
 from robid_link.ident.model.threads import in_slots
 
 __all__ = ["Sticks", "find_sticks", "find_touches", "without_sticks", "sticks_note",
@@ -55,14 +55,16 @@ def smear_rows(prep: Prepared) -> int:
 
 def _diff_scale(x: np.ndarray) -> float:
     """Robust scale of white noise on x (one joint) from its third differences (as the
-    torque noise), differenced a block at a time (np.diff's numbers, one (N,) array)."""
+    torque noise), differenced a block at a time (np.diff's numbers; no (N,) array)."""
     if x.shape[0] < 8:
         return 0.0
-    d = np.empty(x.shape[0] - 3)
-    for a in range(0, d.shape[0], 1 << 16):
-        b = min(d.shape[0], a + (1 << 16))
-        np.abs(np.diff(x[a: b + 3], 3), out=d[a:b])
-    return float(1.4826 * median(d) / math.sqrt(20.0))
+    m = x.shape[0] - 3
+
+    def blocks() -> Iterator[np.ndarray]:
+        for a in range(0, m, 1 << 16):
+            yield np.abs(np.diff(x[a: min(m, a + (1 << 16)) + 3], 3))
+
+    return float(1.4826 * median_of_blocks(blocks) / math.sqrt(20.0))
 
 
 def _climb(speed: np.ndarray, level: float) -> float:
