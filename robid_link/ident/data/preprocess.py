@@ -380,8 +380,8 @@ def _speed_guess(preps: Sequence[Prepared]) -> np.ndarray | None:
             rows = np.arange(a + h, b - h, step)
             parts.append(np.abs(log.qd[rows]) if log.qd is not None else
                          np.abs(log.q[rows + h] - log.q[rows - h]) * (prep.filt.fs / (2 * h)))
-    rows = np.concatenate(parts) if parts else np.zeros((0, 0))
-    return np.percentile(rows, 95.0, axis=0) if rows.size else None
+    speeds = np.concatenate(parts) if parts else np.zeros((0, 0))
+    return np.percentile(speeds, 95.0, axis=0) if speeds.size else None
 
 
 def motion_span(prep: Prepared) -> tuple[int, int]:

@@ -260,7 +260,8 @@ def _nominal_theta(problem: Problem, design: Design) -> np.ndarray | None:
     target = (w[:, :, : 10 * robot.n] @ robot.nominal).reshape(-1)
     cols = w[:, :, design.cols].reshape(-1, design.p)
     theta, *_ = np.linalg.lstsq(cols, target, rcond=None)
-    if np.linalg.norm(cols @ theta - target) > 1e-9 * max(np.linalg.norm(target), 1e-300):
+    scale = max(float(np.linalg.norm(target)), 1e-300)
+    if float(np.linalg.norm(cols @ theta - target)) > 1e-9 * scale:
         return None
     return np.asarray(theta)
 
