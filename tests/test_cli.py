@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -37,6 +39,21 @@ def test_identify_json_and_report(arm3_log, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "relative error" in text and "zz_2 + 0.16·m_3" in text
     assert f"report: {out_dir / 'report.html'}" in text
+
+
+def test_identify_loads_its_modules_without_the_collector_and_turns_it_back_on(arm3_log,
+                                                                              tmp_path):
+    """A fresh process: the numerical modules load with the cyclic collector off, which is on
+    again when the command returns (their objects frozen); the output is whole at exit."""
+    code = ("import gc, sys\nfrom robid_link.cli import main\nrc = main(sys.argv[1:])\n"
+            "print('collector', gc.isenabled(), gc.get_freeze_count() > 0)\nsys.exit(rc)\n")
+    done = subprocess.run([sys.executable, "-c", code, "identify", "--robot",
+                           str(ROBOTS / "arm3.yaml"), "--data", str(arm3_log), "--json",
+                           str(tmp_path / "r.json")], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "relative error" in done.stdout
+    assert done.stdout.rstrip().endswith("collector True True")
+    assert json.loads((tmp_path / "r.json").read_text())["relative_error"] > 0
 
 
 @pytest.mark.parametrize("method", ["wls", "irls"])

@@ -8,10 +8,9 @@ import argparse
 import sys
 from typing import TYPE_CHECKING
 
-from robid_link.cli.runs import format_results, report_lines, wait_for_run
+from robid_link.cli.runs import format_results, report_lines, request, wait_for_run
 from robid_link.cli.types import Command, config_option, output_path
 from robid_link.exceptions import ApprovalError, DaemonUnreachable
-from robid_link.link.control import PREFLIGHT_TIMEOUT_S, request
 
 if TYPE_CHECKING:
     from robid_link.config import DaemonConfig
@@ -48,6 +47,8 @@ def _start_options(p: argparse.ArgumentParser) -> None:
 
 
 def _start(args: argparse.Namespace) -> int:
+    from robid_link.link.control import PREFLIGHT_TIMEOUT_S
+
     cfg = _config(args)
     try:
         run_id = request(cfg.control_socket, {"cmd": "start", "campaign": args.name,

@@ -21,10 +21,17 @@ from robid_link.cli.types import (
     refuse_given,
 )
 from robid_link.exceptions import DaemonUnreachable, RobidError
-from robid_link.link.control import request
 
 __all__ = ["COMMANDS", "wait_for_run", "format_runs", "format_results", "report_lines",
-           "store_reader", "store_option", "open_store_option"]
+           "store_reader", "store_option", "open_store_option", "request"]
+
+
+def request(path: str | Path, req: dict[str, Any], timeout_s: float = 30.0) -> dict[str, Any]:
+    """One request to the daemon (``link.control.request``), imported when a command talks to
+    it: ``robid identify`` and the other commands that never do skip asyncio's import."""
+    from robid_link.link.control import request as send
+
+    return send(path, req, timeout_s)
 
 
 def _unreachable(err: DaemonUnreachable) -> str:

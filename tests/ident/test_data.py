@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import hashlib
+import os
+
 import numpy as np
 import pytest
 import scipy.io
 
 from robid_link.exceptions import DataError, DataWarning
-from robid_link.ident.data.logs import load_log, write_log_csv
+from robid_link.ident.data.logs import file_sha256, load_log, write_log_csv
 
 
 def _log(n=3, samples=200, fs=100.0):
@@ -153,3 +156,23 @@ def test_bad_files(tmp_path):
     np.savez(tmp_path / "len.npz", t=t, q=q[:-1], tau=tau)
     with pytest.raises(DataError, match="'q' has 199 samples, t has 200"):
         load_log(tmp_path / "len.npz", 3)
+
+
+def test_a_files_digest_is_read_once_and_again_when_the_file_changes(tmp_path, monkeypatch):
+    """The digest the result records: asked twice (ahead by the CLI, then by identify), the
+    file is read once; a file rewritten in place (same size) gets its new digest."""
+    from robid_link.ident.data import logs
+
+    reads = []
+    monkeypatch.setattr(logs, "_sha256", lambda p, read=logs._sha256: reads.append(p) or read(p))
+    log = tmp_path / "log.csv"
+    log.write_bytes(b"t,q1,tau1\n0,0,0\n")
+    first = file_sha256(log)
+    assert first == hashlib.sha256(log.read_bytes()).hexdigest()
+    assert file_sha256(str(log)) == first and len(reads) == 1
+    log.write_bytes(b"t,q1,tau1\n0,0,1\n")
+    st = log.stat()  # a coarse clock could give the rewrite the same time: move it on
+    os.utime(log, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    assert file_sha256(log) == hashlib.sha256(log.read_bytes()).hexdigest() != first
+    with pytest.raises(FileNotFoundError):
+        file_sha256(tmp_path / "missing.csv")

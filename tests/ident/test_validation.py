@@ -130,3 +130,23 @@ def test_parameter_set_keeps_motor_friction_apart(arm3: Robot, tmp_path: Path) -
     assert motor_set["friction"]["viscous"][0] == 0.0
     assert motor_set["friction_motor"]["viscous"][0] == pytest.approx(2.0, rel=0.1)
     assert motor_set["friction"]["viscous"][1:] == joint_set["friction"]["viscous"][1:]
+
+
+def test_cad_figures_are_the_a_priori_inverse_dynamics_on_the_held_out_rows(
+        industrial6: Robot, tmp_path: Path) -> None:
+    """The held-out pass predicts the a-priori model from the base columns it has made; the
+    figures are those of the robot's own inverse dynamics (RNEA) on the same rows."""
+    from robid_link.ident.fit.results import StatsAccumulator, row_mask
+    from robid_link.ident.model.dynamics import rigid_torque
+
+    res, _ = _identify(industrial6, _log(industrial6, tmp_path / "cad.csv", moving_s=10.0))
+    acc = StatsAccumulator(industrial6.n)
+    for pc in res.problem.valid:
+        st = pc.prep.states(pc.lo, pc.hi)
+        tau = pc.prep.tau[pc.lo: pc.hi]
+        pred = rigid_torque(industrial6, st.q, st.qd, st.qdd, industrial6.nominal)
+        acc.add(tau - pred, tau, row_mask(pc.prep, pc.lo, pc.hi))
+    rnea = acc.stats()
+    assert rnea is not None and res.nominal is not None
+    np.testing.assert_allclose(res.nominal.rmse, rnea.rmse, rtol=1e-10)
+    assert res.nominal.relative_error == pytest.approx(rnea.relative_error, rel=1e-10)

@@ -131,19 +131,19 @@ def sanity_checks(pb: Problem, nominal: bool, scan: _Scan | None = None) -> list
     for prep, thinned in zip(pb.preps, scan.rows, strict=True):
         tau = prep.log.tau
         name = Path(prep.log.path).name
+        q_span = _extrema(prep.log.q)
         if pb.transmission is None:
-            out += _position_checks(robot, prep.log.q, name)
+            out += _position_checks(robot, *q_span, name)
         q, qd, qdd, meas = thinned  # no whole array of a long log
-        out += _speed_check(robot, prep, qd, name)
-        # |τ|'s peak, column by column (no copy of τ; numpy reduces along rows slowly)
-        peak = np.array([np.maximum(tau[:, j].max(), -tau[:, j].min())
-                         for j in range(tau.shape[1])])
+        out += _speed_check(robot, prep, qd, q_span[1] - q_span[0], name)
+        low, high = _extrema(tau)
+        peak = np.maximum(high, -low)  # |τ|'s peak
         flat = max(5, int(0.05 * prep.filt.fs))  # a clipped signal sits flat at its peak
         held = prep.log.held  # a partial log: no checks of torques it does not hold
         for j in np.flatnonzero(held):
             level = peak[j] - 1e-9 * max(peak[j], 1.0)
             col = tau[:, j]
-            at_peak = (col >= level) | (col <= -level)  # |τ| ≥ level, without |τ|'s copy
+            at_peak = np.abs(col) >= level
             limit = robot.limits.tau_max[j]
             if peak[j] > 0 and _longest_run(at_peak) >= flat:
                 out.append(f"{name}: tau{j + 1} sits flat at {peak[j]:.3g} N·m "
@@ -171,9 +171,18 @@ def sanity_checks(pb: Problem, nominal: bool, scan: _Scan | None = None) -> list
     return out
 
 
-def _position_checks(robot: Robot, q: np.ndarray, name: str) -> list[str]:
-    """Joint positions far outside the robot's limits, with the likely cause: a motor-side
-    log (positions/ratio inside the limits), degrees, or an encoder offset."""
+def _extrema(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each column's minimum and maximum (samples × joints), column by column: numpy reduces
+    a (rows, n) array along its rows slowly, and a copy of a long log's is large."""
+    return (np.array([x[:, j].min() for j in range(x.shape[1])]),
+            np.array([x[:, j].max() for j in range(x.shape[1])]))
+
+
+def _position_checks(robot: Robot, q_min: np.ndarray, q_max: np.ndarray, name: str
+                     ) -> list[str]:
+    """Joint positions (spanning [q_min, q_max] per joint) far outside the robot's limits,
+    with the likely cause: a motor-side log (positions/ratio inside the limits), degrees, or
+    an encoder offset."""
     lim = robot.limits
     ratios = (np.abs(np.diag(robot.transmission)) if robot.transmission is not None
               else np.ones(robot.n))
@@ -182,7 +191,7 @@ def _position_checks(robot: Robot, q: np.ndarray, name: str) -> list[str]:
         lo, hi = float(lim.q_min[j]), float(lim.q_max[j])
         if not (np.isfinite(lo) and np.isfinite(hi)) or hi <= lo:
             continue
-        qmin, qmax = float(q[:, j].min()), float(q[:, j].max())
+        qmin, qmax = float(q_min[j]), float(q_max[j])
         margin = 0.05 * (hi - lo)
         if qmin >= lo - margin and qmax <= hi + margin:
             continue
@@ -207,13 +216,14 @@ def _position_checks(robot: Robot, q: np.ndarray, name: str) -> list[str]:
 CRAWL = 1e-3
 
 
-def _speed_check(robot: Robot, prep: Prepared, qd: np.ndarray, name: str) -> list[str]:
-    """A motion that spans its joints' ranges at a crawl no robot excites dynamics with: the
-    time stamps are likely not in seconds (milliseconds at a rate the rate check allows).
-    ``qd``: the log's filtered velocities on thinned rows."""
+def _speed_check(robot: Robot, prep: Prepared, qd: np.ndarray, span: np.ndarray, name: str
+                 ) -> list[str]:
+    """A motion that spans its joints' ranges (``span``: each joint's max − min position) at a
+    crawl no robot excites dynamics with: the time stamps are likely not in seconds
+    (milliseconds at a rate the rate check allows). ``qd``: the log's filtered velocities on
+    thinned rows."""
     limit = robot.limits.qd_max
     fast = np.percentile(np.abs(qd), 95, axis=0)
-    span = np.array([np.ptp(prep.log.q[:, j]) for j in range(prep.log.q.shape[1])])
     ok = np.isfinite(limit) & (limit > 0)
     if not ok.any() or np.any(fast[ok] >= CRAWL * limit[ok]) or span.max() < 0.05:
         return []

@@ -19,7 +19,7 @@ import numpy as np
 from robid_link.ident.model.threads import kernel_threads
 
 __all__ = ["FILTER_ORDER", "ZeroPhaseFilter", "Track", "butter_lowpass_sos",
-           "sos_steady_state", "TRACK_EVERY"]
+           "sos_steady_state", "TRACK_EVERY", "load_compiler"]
 
 FILTER_ORDER = 4
 #: samples between the stored filter states of a track
@@ -235,6 +235,12 @@ def _track_window(sos, x, fwd, bwd, every, b0, b1, out):
     z[:] = bwd[b1]
     for s in range(sos.shape[0]):
         _run(sos, s, z, out, hi - lo - 1, -1, -1, 0, m)
+
+
+def load_compiler() -> None:
+    """Load numba's compiler now (its registries load with the first kernel a process takes
+    from the cache, ~0.3 s): for a caller that wants it done at a time of its choosing."""
+    _init(np.zeros((1, 2)), np.zeros((1, 2, 1)), np.zeros(1), 0, 1)
 
 
 class Track:

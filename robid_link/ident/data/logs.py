@@ -8,10 +8,12 @@ from __future__ import annotations
 import csv
 import hashlib
 import math
+import threading
 import warnings
 import zipfile
 import zlib
 from collections.abc import Iterator, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -90,9 +92,42 @@ class Log:
         return int(self.t.shape[0])
 
 
+#: a file's digest by (path, inode, size, modification and change times): read once while
+#: the file stays the same
+_DIGESTS: dict[tuple[str, int, int, int, int], Future[str]] = {}
+_DIGESTS_LOCK = threading.Lock()
+
+
 def file_sha256(path: str | Path) -> str:
-    """SHA-256 of a log file; of a folder (a ROS 2 bag), over its files' names and bytes."""
+    """SHA-256 of a log file; of a folder (a ROS 2 bag), over its files' names and bytes.
+    A file's is read once per process while it stays the same (inode, size, times): a caller
+    may ask ahead, on a thread (the CLI does, while the numerical modules load)."""
     p = Path(path)
+    if p.is_dir():
+        return _sha256(p)
+    st = p.stat()
+    key = (str(p.resolve()), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+    with _DIGESTS_LOCK:
+        done = _DIGESTS.get(key)
+        if done is None:
+            done = _DIGESTS[key] = Future()
+            old = next((k for k, f in _DIGESTS.items() if f.done()), None)
+            if len(_DIGESTS) > 64 and old is not None:  # the oldest finished one goes
+                del _DIGESTS[old]
+            mine = True
+        else:
+            mine = False
+    if mine:
+        try:
+            done.set_result(_sha256(p))
+        except BaseException as err:
+            with _DIGESTS_LOCK:
+                del _DIGESTS[key]
+            done.set_exception(err)
+    return done.result()
+
+
+def _sha256(p: Path) -> str:
     h = hashlib.sha256()
     files = sorted(f for f in p.rglob("*") if f.is_file()) if p.is_dir() else [p]
     for f in files:

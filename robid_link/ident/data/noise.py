@@ -4,6 +4,7 @@ whiteness of a residual (its autocorrelation against the 99 % band, Ljung–Box)
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -12,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from robid_link.ident.data.preprocess import Piece
+from robid_link.ident.data.quantiles import median
 from robid_link.ident.model.threads import in_slots
 
 __all__ = ["noise_floor", "Whiteness", "LagSums", "chi2_quantile", "DIFF_ORDER", "LAGS", "Z99",
@@ -60,10 +62,8 @@ def noise_floor(pieces: Sequence[Piece]) -> np.ndarray | None:
         d, ok = _joint_diffs(pieces, j)
         if not ok.any():
             return  # a joint without a torque on these rows
-        kept = d[ok]  # its medians in place: two slots' temporaries stay small
-        kept -= np.median(kept, overwrite_input=True)
-        first = _MAD * np.median(np.abs(kept, out=kept), overwrite_input=True)
-        del kept
+        where = None if ok.all() else ok  # its medians without a copy: two slots' temporaries
+        first = _MAD * median(d, where, around=median(d, where))  # stay small
         # then the standard deviation of the differences within TRIM robust scales (nearly as
         # efficient as the standard deviation), corrected for the normal tails left out
         size = np.abs(d, out=d)
@@ -105,6 +105,7 @@ def _joint_diffs(pieces: Sequence[Piece], j: int) -> tuple[np.ndarray, np.ndarra
 _DIFF_CHUNK = 1 << 16
 
 
+@functools.lru_cache(maxsize=64)
 def chi2_quantile(p: float, df: int) -> float:
     """The p-quantile of the χ² distribution with ``df`` degrees of freedom (scipy's
     ``chi2.ppf`` to ~1e-14): bisection on the regularized lower incomplete gamma function
@@ -151,13 +152,18 @@ class LagSums:
         # joints × rows: numpy sums a (rows, 6) array along its rows ten times slower
         e_t = np.array(e.T, order="C")
         if mask is None:
-            self.total += e_t.sum(axis=1)
+            total = e_t.sum(axis=1)
+            self.total += total
             self.count += m
-            for k in range(min(self.lags, m - 1) + 1):
-                a, b = e_t[:, : m - k], e_t[:, k:]
-                self.prod[k] += np.einsum("ij,ij->i", a, b)
-                self.head[k] += a.sum(axis=1)
-                self.tail[k] += b.sum(axis=1)
+            top = min(self.lags, m - 1) + 1
+            # a lag's first and second indices leave out the chunk's last and first k rows:
+            # the sums from the whole chunk's, less those few rows (not a pass per lag)
+            first = np.cumsum(e_t[:, : top - 1], axis=1)
+            last = np.cumsum(e_t[:, m - 1: m - top: -1], axis=1)
+            for k in range(top):
+                self.prod[k] += np.einsum("ij,ij->i", e_t[:, : m - k], e_t[:, k:])
+                self.head[k] += total - last[:, k - 1] if k else total
+                self.tail[k] += total - first[:, k - 1] if k else total
                 self.pairs[k] += m - k
             return
         w = np.array(np.broadcast_to(mask, e.shape).T, order="C", dtype=float)

@@ -90,10 +90,20 @@ class _Channels:
             if hit is not None and hit[0] is src:
                 return hit[1]
         out = make()
+        self.put(name, src, out)
+        return out
+
+    def put(self, name: str, src: np.ndarray, out: np.ndarray) -> None:
+        """Keep ``out`` (made from ``src``) as the whole array ``name``."""
         out.flags.writeable = False  # shared by every copy of the prepared log
         with self._lock:
             self._whole[name] = (src, out)
-        return out
+
+    def take(self, name: str, src: np.ndarray) -> np.ndarray | None:
+        """The whole array ``name`` made from ``src``, handed over once (None: not kept)."""
+        with self._lock:
+            hit = self._whole.pop(name, None)
+        return None if hit is None or hit[0] is not src else hit[1]
 
 
 @dataclass(frozen=True)
@@ -172,6 +182,19 @@ class Prepared:
     def velocity(self, lo: int, hi: int) -> np.ndarray:
         """q̇ at rows [lo, hi) (``kinematics``' without the q̈)."""
         return self._kinematics(lo, hi, False)[1]
+
+    def velocity_signs(self) -> np.ndarray:
+        """(N, n) int8: the sign of q̇ on every row (0 outside the filtered segments): what the
+        typical speeds' pass kept (``typical_speeds``; handed over once), else read here
+        window by window."""
+        src = self.log.q if self.log.qd is None else self.log.qd
+        kept = self.channels.take("velocity_sign", src) if self.qd_sign is None else None
+        if kept is not None:
+            return kept
+        out = np.zeros(self.log.q.shape, np.int8)
+        for lo, hi in self.speed_windows():
+            out[lo:hi] = np.sign(self.velocity(lo, hi))
+        return out
 
     def speed(self, lo: int, hi: int) -> np.ndarray:
         """|q̇| at rows [lo, hi)."""
@@ -321,10 +344,44 @@ MOVING_FRACTION = 0.05
 
 def typical_speeds(preps: Sequence[Prepared]) -> np.ndarray:
     """Each joint's 95th percentile of |q̇| over the filtered rows of the logs
-    (np.percentile's numbers, read window by window: no array of every row)."""
-    tasks = [(prep, w) for prep in preps for w in prep.speed_windows()]
-    return percentile_streamed(tasks, lambda t: t[0].speed(*t[1]), 95.0,
-                               preps[0].log.q.shape[1])
+    (np.percentile's numbers, read window by window: no array of every row; one read when the
+    raw positions' guess is near, ``_speed_guess``). The read keeps each log's signs of q̇ for
+    the touches of zero speed (``Prepared.velocity_signs``)."""
+    tasks = [(k, w) for k, prep in enumerate(preps) for w in prep.speed_windows()]
+    signs = [np.zeros(p.log.q.shape, np.int8) if p.qd_sign is None else None for p in preps]
+
+    def speeds(task: tuple[int, tuple[int, int]]) -> np.ndarray:
+        k, (lo, hi) = task
+        vel = preps[k].velocity(lo, hi)
+        sign = signs[k]
+        if sign is not None:
+            sign[lo:hi] = np.sign(vel)
+        return np.abs(vel, out=vel)
+
+    out = percentile_streamed(tasks, speeds, 95.0, preps[0].log.q.shape[1],
+                              guess=_speed_guess(preps))
+    for prep, sign in zip(preps, signs, strict=True):
+        if sign is not None:
+            prep.channels.put("velocity_sign", prep.log.q if prep.log.qd is None
+                              else prep.log.qd, sign)
+    return out
+
+
+def _speed_guess(preps: Sequence[Prepared]) -> np.ndarray | None:
+    """Near each joint's typical speed: the 95th percentile of |q̇| from central differences
+    of the raw positions over one period of the cutoff (or the logged q̇), on ~20,000 rows of
+    each log's filtered segments. Where ``typical_speeds`` looks for the exact one."""
+    parts = []
+    for prep in preps:
+        log = prep.log
+        h = max(1, int(round(prep.filt.fs / prep.filt.cutoff_hz / 2)))
+        step = max(1, len(log) // 20_000)
+        for a, b in prep.filtered_segments:
+            rows = np.arange(a + h, b - h, step)
+            parts.append(np.abs(log.qd[rows]) if log.qd is not None else
+                         np.abs(log.q[rows + h] - log.q[rows - h]) * (prep.filt.fs / (2 * h)))
+    speeds = np.concatenate(parts) if parts else np.zeros((0, 0))
+    return np.percentile(speeds, 95.0, axis=0) if speeds.size else None
 
 
 def motion_span(prep: Prepared) -> tuple[int, int]:

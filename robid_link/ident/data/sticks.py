@@ -11,12 +11,13 @@ there and back; the joint keeps the sign of its motion on both sides (``Prepared
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from robid_link.ident.data.preprocess import CHUNK, Prepared, Problem, typical_speeds
+from robid_link.ident.data.preprocess import Prepared, Problem, typical_speeds
+from robid_link.ident.data.quantiles import median_of_blocks
 from robid_link.ident.model.threads import in_slots
 
 __all__ = ["Sticks", "find_sticks", "find_touches", "without_sticks", "sticks_note",
@@ -54,14 +55,16 @@ def smear_rows(prep: Prepared) -> int:
 
 def _diff_scale(x: np.ndarray) -> float:
     """Robust scale of white noise on x (one joint) from its third differences (as the
-    torque noise), differenced a block at a time (np.diff's numbers, one (N,) array)."""
+    torque noise), differenced a block at a time (np.diff's numbers; no (N,) array)."""
     if x.shape[0] < 8:
         return 0.0
-    d = np.empty(x.shape[0] - 3)
-    for a in range(0, d.shape[0], 1 << 16):
-        b = min(d.shape[0], a + (1 << 16))
-        np.abs(np.diff(x[a: b + 3], 3), out=d[a:b])
-    return float(1.4826 * np.median(d, overwrite_input=True) / math.sqrt(20.0))
+    m = x.shape[0] - 3
+
+    def blocks() -> Iterator[np.ndarray]:
+        for a in range(0, m, 1 << 16):
+            yield np.abs(np.diff(x[a: min(m, a + (1 << 16)) + 3], 3))
+
+    return float(1.4826 * median_of_blocks(blocks) / math.sqrt(20.0))
 
 
 def _climb(speed: np.ndarray, level: float) -> float:
@@ -88,13 +91,19 @@ def _dwells(q: np.ndarray, accel_at: Callable[[int], float], dt: float
     """Runs [a, b) where a quantized position reads the same value longer than a smooth turn
     could: a turn at acceleration a stays within one count ε of its extremum for at most
     2·√(2ε/a); a run over DWELL_FACTOR times that (and two samples more) rests."""
-    step = np.abs(np.diff(q))
-    moving = step[step > 0]
-    if moving.size < 10:
+    still = q[1:] == q[:-1]
+    # a rest is two equal steps in a row at least: positions that are not quantized (or a
+    # fine encoder that never halts) have none, and the log's pass ends here
+    if not np.any(still[1:] & still[:-1]):
         return []
-    eps = float(moving.min())  # the encoder's count (positions that are not quantized: tiny)
+    moving = still.size - int(np.count_nonzero(still))
+    if moving < 10:
+        return []
+    step = np.diff(q)  # the encoder's count (positions that are not quantized: tiny)
+    eps = float(np.min(np.abs(step, out=step), where=~still, initial=np.inf))
+    del step
     out = []
-    for a, b in _runs(step == 0):
+    for a, b in _runs(still):
         b += 1  # the run's last reading
         if b - a <= 2:  # within two samples of a smooth turn whatever its acceleration
             continue
@@ -176,19 +185,17 @@ def find_touches(prep: Prepared) -> tuple[np.ndarray, list[int]]:
     on both sides, 0 elsewhere (int8); per joint how many touches). A touch is a run of sign
     changes of the filtered velocity, each within one period of the cutoff of the next, that
     ends on the sign it started from; runs that reach a segment's edge (the motion's start or
-    end) are not touches. The velocity's signs are read window by window (one byte a row and
-    joint)."""
+    end) are not touches. The velocity's signs: one byte a row and joint, most often kept by
+    the typical speeds' read (``Prepared.velocity_signs``)."""
     period = max(1, int(round(prep.filt.fs / prep.filt.cutoff_hz)))
     n = prep.log.q.shape[1]
     out = np.zeros(prep.log.q.shape, np.int8)
     counts = [0] * n
+    signs = prep.velocity_signs()
     for seg in prep.log.segments:
         if seg.stop - seg.start < 3 * prep.filt.settle:
             continue
-        sign = np.empty((seg.stop - seg.start, n), np.int8)
-        for lo in range(seg.start, seg.stop, CHUNK):
-            hi = min(seg.stop, lo + CHUNK)
-            sign[lo - seg.start: hi - seg.start] = np.sign(prep.velocity(lo, hi))
+        sign = signs[seg]
         for j in range(n):
             sj = sign[:, j]
             changes = np.flatnonzero(sj[1:] != sj[:-1])

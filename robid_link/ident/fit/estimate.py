@@ -112,9 +112,12 @@ def accumulate_sets(design: Design, pieces: Sequence[Piece], interval: int, bloc
         n_rows += _n_rows(pc, interval) * held[id(pc)].astype(np.int64)
     k_blocks = [int(min(gs.max_blocks, max(2, total // max(1, block_len)))) for gs in sets]
     p, n = design.p, design.robot.n
-    sizes = np.diff(design.offsets)
-    width = int(sizes.max()) + 2
     offsets = np.asarray(design.offsets, dtype=np.int64)
+    # joint j's Grams, (K, s_j + 2, s_j + 2) with s_j its support, one after the other in a
+    # slot's flat array (not n × the widest joint's: an outer joint's support is small)
+    widths = np.diff(offsets) + 2
+    starts = [np.concatenate(([0], np.cumsum(k * widths * widths))).astype(np.int64)
+              for k in k_blocks]
     tasks: list[tuple[Piece, tuple[int, int, int, int, bool], int]] = []  # + first row
     first = 0
     for pc in pieces:
@@ -122,7 +125,7 @@ def accumulate_sets(design: Design, pieces: Sequence[Piece], interval: int, bloc
             tasks.append((pc, window, first))
             first += len(range(window[0], window[1], interval))
     n_slots = min(SLOTS, len(tasks))
-    slots = [[np.zeros((n, k, width, width)) for _ in range(n_slots)] for k in k_blocks]
+    slots = [[np.zeros(int(st[-1])) for _ in range(n_slots)] for st in starts]
     rows = max((w[3] - w[2] for _, w, _ in tasks), default=0)
     bufs: list[np.ndarray | None] = [None] * n_slots  # one chunk buffer per slot
     no_weight = np.ones((0, n))
@@ -147,7 +150,7 @@ def accumulate_sets(design: Design, pieces: Sequence[Piece], interval: int, bloc
                     continue
                 sw = mw if row_weight is None else sw_rows * mw
             _gram_serial(c, y_c, np.ascontiguousarray(sw), bid, offsets, held[id(pc)],
-                         slots[s][slot], _TILE)
+                         slots[s][slot], starts[s], k, _TILE)
 
     in_slots(tasks, work)
     bufs.clear()
@@ -161,7 +164,7 @@ def accumulate_sets(design: Design, pieces: Sequence[Piece], interval: int, bloc
         for j in range(n):
             sup = np.concatenate((design.support[j], [p, p + 1]))
             sz = sup.size
-            upper = gc[j, :, :sz, :sz]
+            upper = gc[starts[s][j]: starts[s][j + 1]].reshape(k_b, sz, sz)
             full = upper + np.triu(upper, 1).transpose(0, 2, 1)
             g[j][np.ix_(np.arange(k_b), sup, sup)] = full
         out.append(Grams(g, n_rows - sum(left_out[s])))
@@ -227,12 +230,15 @@ def _gram_joint(c, y, sw, j, off, s, bid, g, tile):
 
 
 @numba.njit(cache=True, nogil=True)
-def _gram_serial(c, y, sw, bid, offsets, held, g, tile):
-    """Every held joint's rows of a chunk into its Grams g[j] (n, K, w, w), on this thread
-    (``held[j]`` 0: the chunk's log holds no torque of joint j, its rows are left out)."""
+def _gram_serial(c, y, sw, bid, offsets, held, g, starts, k_blocks, tile):
+    """Every held joint's rows of a chunk into its Grams, on this thread: joint j's are
+    g[starts[j]:starts[j + 1]] as (K, s + 2, s + 2), s its support's size (``held[j]`` 0: the
+    chunk's log holds no torque of joint j, its rows are left out)."""
     for j in range(offsets.size - 1):
         if held[j]:
-            _gram_joint(c, y, sw, j, offsets[j], offsets[j + 1] - offsets[j], bid, g[j], tile)
+            s = offsets[j + 1] - offsets[j]
+            gj = g[starts[j]: starts[j + 1]].reshape((k_blocks, s + 2, s + 2))
+            _gram_joint(c, y, sw, j, offsets[j], s, bid, gj, tile)
 
 
 #: relative eigenvalue floor of a column-scaled Gram (cond(X) up to 1e6 is kept)

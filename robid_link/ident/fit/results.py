@@ -16,7 +16,12 @@ import numpy as np
 
 from robid_link.ident.data.noise import AT_FLOOR, LagSums, Whiteness, noise_floor
 from robid_link.ident.data.preprocess import CHUNK, Prepared, Problem
-from robid_link.ident.fit.design import Design, predict_torque
+from robid_link.ident.fit.design import (
+    Design,
+    block_columns,
+    predict_torque,
+    random_states,
+)
 from robid_link.ident.model.dynamics import rigid_torque
 from robid_link.ident.model.threads import SLOTS, in_slots
 
@@ -189,13 +194,15 @@ def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> He
                     LagSums] | None]
     out = [None] * len(tasks)
     bufs: list[np.ndarray | None] = [None] * SLOTS
+    theta_nom = _nominal_theta(problem, design) if robot.nominal is not None else None
 
     def work(k: int, slot: int) -> None:
         pc, a, b = tasks[k]
         if bufs[slot] is None:
             bufs[slot] = np.empty((CHUNK, design.nnz))
         st = pc.prep.states(a, b)
-        pred = design.predict(design.compact(st, bufs[slot]), theta)
+        c = design.compact(st, bufs[slot])
+        pred = design.predict(c, theta)
         tau = pc.prep.tau[a:b]
         known = pc.prep.tau_known
         if known is not None:  # known torques: subtracted from τ, added back to both
@@ -207,7 +214,8 @@ def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> He
         lag.add(tau - pred, m)
         nom = None
         if robot.nominal is not None:
-            pred_nom = rigid_torque(robot, st.q, st.qd, st.qdd, robot.nominal)
+            pred_nom = (design.predict(c, theta_nom) if theta_nom is not None
+                        else rigid_torque(robot, st.q, st.qd, st.qdd, robot.nominal))
             if known is not None:
                 pred_nom = pred_nom + known[a:b]
             nom = StatsAccumulator(robot.n)
@@ -234,6 +242,28 @@ def evaluate_held_out(problem: Problem, design: Design, theta: np.ndarray) -> He
     traces = [{"file": path, **{key: np.concatenate(v) for key, v in tr.items()}}
               for path, tr in parts.items()]
     return HeldOut(acc.stats(), None if nom is None else nom.stats(), traces, lags.result())
+
+
+def _nominal_theta(problem: Problem, design: Design) -> np.ndarray | None:
+    """The values of ``design``'s columns that give the a-priori rigid-body torque (the
+    robot's nominal inertials, every effect at zero), least squares on random states —
+    exact up to rounding: a base column stands for the standard columns it absorbs. The
+    held-out pass then predicts the a-priori model from the columns it has already made
+    (an inverse dynamics per row cost as much as the columns). None without a rigid body's
+    block or when the columns do not carry that torque."""
+    robot = problem.robot
+    if robot.nominal is None or not design.blocks or \
+            design.blocks[0].effect.name != "rigid_body":
+        return None
+    st = random_states(robot, np.random.default_rng(11), 64, problem.transmission)
+    w = block_columns(robot, design.blocks, st)  # (N, n, P): the rigid body's 10 n first
+    target = (w[:, :, : 10 * robot.n] @ robot.nominal).reshape(-1)
+    cols = w[:, :, design.cols].reshape(-1, design.p)
+    theta, *_ = np.linalg.lstsq(cols, target, rcond=None)
+    scale = max(float(np.linalg.norm(target)), 1e-300)
+    if float(np.linalg.norm(cols @ theta - target)) > 1e-9 * scale:
+        return None
+    return np.asarray(theta)
 
 
 @dataclass
