@@ -213,23 +213,28 @@ def test_process_hold_freezes_the_heap_shortens_the_switch_interval_and_restores
     """A ProcessHold freezes the heap (gc.freeze) and lowers the GIL switch interval to its
     own; holds nest (the shortest interval wins, the last release unfreezes and restores the
     interval from before); a second hold or release of the same one changes nothing."""
-    assert gc.get_freeze_count() == 0
+    gc.unfreeze()  # a clean slate: a CLI run in this process may have frozen the heap
     before = sys.getswitchinterval()
     first, second = ProcessHold(0.001), ProcessHold(0.00025)
-    first.hold()
-    first.hold()
-    frozen = gc.get_freeze_count()
-    assert frozen > 1000 and sys.getswitchinterval() == pytest.approx(0.001)
-    second.hold()
-    assert sys.getswitchinterval() == pytest.approx(0.00025)
-    first.release()
-    first.release()
-    assert gc.get_freeze_count() >= frozen  # the second still holds
-    assert sys.getswitchinterval() == pytest.approx(0.00025)
-    second.release()
-    assert gc.get_freeze_count() == 0 and sys.getswitchinterval() == before
-    second.release()
-    assert gc.get_freeze_count() == 0 and sys.getswitchinterval() == before
+    try:
+        first.hold()
+        first.hold()
+        frozen = gc.get_freeze_count()
+        assert frozen > 1000 and sys.getswitchinterval() == pytest.approx(0.001)
+        second.hold()
+        assert sys.getswitchinterval() == pytest.approx(0.00025)
+        first.release()
+        first.release()
+        # the second still holds (a frozen object that dies leaves the count: not an exact one)
+        assert gc.get_freeze_count() > frozen // 2
+        assert sys.getswitchinterval() == pytest.approx(0.00025)
+        second.release()
+        assert gc.get_freeze_count() == 0 and sys.getswitchinterval() == before
+        second.release()
+        assert gc.get_freeze_count() == 0 and sys.getswitchinterval() == before
+    finally:  # a failure above must not leave the process held for the tests after it
+        first.release()
+        second.release()
 
 
 def test_process_hold_leaves_an_interval_set_by_someone_else() -> None:
@@ -249,6 +254,7 @@ def test_process_held_while_the_master_runs(tmp_path: Path, robot: Robot) -> Non
     """While the driver is open what was alive when the SYNC started is out of the collector's
     reach (a full collection would walk it all, holding the GIL for 40–100 ms) and the switch
     interval is a quarter SYNC period; once closed, closing twice included, both are back."""
+    gc.unfreeze()  # a clean slate: a CLI run in this process may have frozen the heap
     before = sys.getswitchinterval()
     with drives(tmp_path, robot) as (driver, peer):
         async def go() -> tuple[int, float]:
