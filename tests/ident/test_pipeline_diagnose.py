@@ -355,6 +355,24 @@ def test_suggestion_states_its_evidence_in_its_fields(arm3, ripple, union):
     assert sig.of(_block("delay", None)) == {}
 
 
+def test_signatures_read_a_sided_effect_against_its_motor_whatever_came_first(arm3):
+    """Review: on a motor-side log the first candidate scored on a joint set the velocity every
+    other candidate's evidence was read against (a spring's 'q̇m1' or a friction's 'q̇1',
+    depending on the order). A sided effect reads its motor's velocity, the others the
+    joint's, in either order."""
+    from robid_link.ident.model.effects import States
+
+    rng = np.random.default_rng(3)
+    q, qd, qdd = (rng.normal(size=(400, 3)) for _ in range(3))
+    coupled = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+    states = States(q, qd, qdd, transmission=coupled)
+    resid = rng.normal(size=(400, 3))
+    for order in (("spring", "coulomb"), ("coulomb", "spring")):
+        sig = Signatures(arm3, states, resid)
+        labels = {name: sig.of(_block(name, 2))["r2_qd"][0] for name in order}
+        assert labels == {"spring": "q̇2", "coulomb": "q̇m2"}, order
+
+
 def test_evidence_sentence_of_an_offset_and_a_delay():
     text, fields = evidence_sentence(_block("offset", 3), 0.5, 0.4, {}, np.array([0.8]))
     assert text == ("joint 3: a constant torque; cross-validated RMSE of the filtered torque "

@@ -74,8 +74,8 @@ def signature_r2(robot: Robot, blk: Block, states: States, resid: np.ndarray
 
 
 class Signatures:
-    """``signature_r2`` of the residual rows, computed once per joint and side (the first
-    candidate there stands for the others)."""
+    """``signature_r2`` of the residual rows, computed once per joint and the velocity read
+    (the motor's or the joint's: the first candidate there stands for the others)."""
 
     def __init__(self, robot: Robot, states: States, resid: np.ndarray) -> None:
         self.robot, self.states, self.resid = robot, states, resid
@@ -85,7 +85,10 @@ class Signatures:
         """key → (label, R²); empty for a global effect."""
         if blk.joint is None:
             return {}
-        tag = f"{blk.joint}{blk.side}{blk.effect.name == 'friction_drift'}"
+        # the velocity a block's signature is read against: its motor's for a sided effect
+        # on a log with a transmission, else the joint's (as ``signature_r2`` decides)
+        on_motor = blk.effect.sided and blk.states(self.robot, self.states).transmission is not None
+        tag = f"{blk.joint}{on_motor}{blk.effect.name == 'friction_drift'}"
         if tag not in self._cache:
             self._cache[tag] = signature_r2(self.robot, blk, self.states, self.resid)
         return self._cache[tag]
