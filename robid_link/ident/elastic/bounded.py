@@ -22,6 +22,7 @@ import numpy as np
 
 from robid_link.exceptions import EstimationError
 from robid_link.ident.elastic.models import logged_kernel
+from robid_link.ident.model.dynamics import cholesky_solve
 
 __all__ = ["fit_logged"]
 
@@ -199,16 +200,7 @@ def _cholesky_solve(b, lam, gs, low, p, qv):
                 low[q, q] = math.sqrt(acc)
             else:
                 low[q, t] = acc / low[t, t]
-    for q in range(k):  # L y = −gs, then Lᵀ p = y
-        acc = -gs[q]
-        for j in range(q):
-            acc -= low[q, j] * p[j]
-        p[q] = acc / low[q, q]
-    for q in range(k - 1, -1, -1):
-        acc = p[q]
-        for j in range(q + 1, k):
-            acc -= low[j, q] * p[j]
-        p[q] = acc / low[q, q]
+    cholesky_solve(low, -gs, p)
     for q in range(k):  # L qv = p
         acc = p[q]
         for j in range(q):
