@@ -231,21 +231,8 @@ def test_a_restart_after_the_last_attempt_failed_gives_no_further_attempt() -> N
     from robid_link.link.cycle import CyclePolicy, run_cycle
 
     calls: list[tuple[Any, ...]] = []
-
-    class Driver:
-        def __getattr__(self, name: str) -> Any:
-            async def record(*a: Any, **k: Any) -> None:
-                calls.append((name, *a))
-            return record
-
-    class Store:
-        async def experiment(self, run_id: str, exp_id: str) -> dict[str, Any]:
-            return {"log_sha": None, "attempt": 1, "nonce": "n1", "state": "attempt_failed",
-                    "error": "file_share: no answer within 1.5 s"}
-
-        async def step(self, run_id: str, exp_id: str, state: str, **fields: Any) -> None:
-            calls.append(("step", exp_id, state, fields.get("error")))
-
+    store = _RowStore(calls, attempt=1, nonce="n1", state="attempt_failed",
+                      error="file_share: no answer within 1.5 s")
     program = SimpleNamespace(exp_id="friction", files={}, sha256="0" * 64)
 
     async def check(path: str) -> None:
@@ -253,8 +240,8 @@ def test_a_restart_after_the_last_attempt_failed_gives_no_further_attempt() -> N
 
     with pytest.raises(CycleError, match=r"experiment friction: file_share: no answer within "
                        r"1\.5 s \(after 1 attempt; a restart adds none\)"):
-        asyncio.run(run_cycle(Store(), Driver(), "r", "friction", program,  # type: ignore
-                              CyclePolicy(timeout_s=1.5, retries=0), check))
+        asyncio.run(run_cycle(store, _RecordingDriver(calls), "r", "friction",  # type: ignore
+                              program, CyclePolicy(timeout_s=1.5, retries=0), check))
     assert calls == [("withdraw", "friction", "n1"),
                      ("step", "friction", "failed", "file_share: no answer within 1.5 s")]
 
