@@ -37,6 +37,13 @@ from robid_link.ident.data.logs import Log
 from robid_link.ident.data.preprocess import Piece
 from robid_link.ident.fit.design import Design
 from robid_link.ident.fit.estimate import Grams, accumulate, joint_stats
+from robid_link.ident.fit.pseudo import (
+    from_log_cholesky,
+    lm_solve,
+    log_cholesky,
+    pseudo_inertia,
+    standard_from_pseudo,
+)
 
 __all__ = ["ConsistentFit", "fit_consistent", "pseudo_inertia", "standard_from_pseudo",
            "log_cholesky", "from_log_cholesky", "same_motion", "motion_groups", "LAMBDA_GRID"]
@@ -54,80 +61,6 @@ _CAD_FLOOR = 1e-6
 
 
 # ----------------------------------------------------------------------- pseudo-inertias
-
-def pseudo_inertia(theta: np.ndarray) -> np.ndarray:
-    """(…, 10) standard parameters in Pinocchio's order → (…, 4, 4) pseudo-inertias."""
-    th = np.asarray(theta, dtype=float)
-    m, h = th[..., 0], th[..., 1:4]
-    xx, xy, yy, xz, yz, zz = (th[..., k] for k in range(4, 10))
-    inertia = np.stack([np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1),
-                        np.stack([xz, yz, zz], -1)], -2)
-    tr = (xx + yy + zz)[..., None, None]
-    out = np.zeros((*th.shape[:-1], 4, 4))
-    out[..., :3, :3] = 0.5 * tr * np.eye(3) - inertia
-    out[..., :3, 3] = h
-    out[..., 3, :3] = h
-    out[..., 3, 3] = m
-    return out
-
-
-def standard_from_pseudo(j: np.ndarray) -> np.ndarray:
-    """(…, 4, 4) pseudo-inertias → (…, 10) standard parameters (inverse of the above)."""
-    sig = j[..., :3, :3]
-    inertia = np.trace(sig, axis1=-2, axis2=-1)[..., None, None] * np.eye(3) - sig
-    return np.stack([j[..., 3, 3], j[..., 0, 3], j[..., 1, 3], j[..., 2, 3],
-                     inertia[..., 0, 0], inertia[..., 0, 1], inertia[..., 1, 1],
-                     inertia[..., 0, 2], inertia[..., 1, 2], inertia[..., 2, 2]], -1)
-
-
-#: U's entries driven by φ₄…φ₉: s₁₂, s₂₃, s₁₃, t₁, t₂, t₃
-_OFF = ((0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3))
-
-
-def _u_and_derivatives(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(n, 10) φ → U (n, 4, 4) and dU/dφ (n, 10, 4, 4)."""
-    n = phi.shape[0]
-    scale = np.exp(phi[:, 0])
-    v = np.zeros((n, 4, 4))
-    for k in range(3):
-        v[:, k, k] = np.exp(phi[:, 1 + k])
-    for k, (r, c) in enumerate(_OFF):
-        v[:, r, c] = phi[:, 4 + k]
-    v[:, 3, 3] = 1.0
-    u = scale[:, None, None] * v
-    du = np.zeros((n, 10, 4, 4))
-    du[:, 0] = u
-    for k in range(3):
-        du[:, 1 + k, k, k] = u[:, k, k]
-    for k, (r, c) in enumerate(_OFF):
-        du[:, 4 + k, r, c] = scale
-    return u, du
-
-
-def from_log_cholesky(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(n, 10) log-Cholesky φ → standard parameters (n, 10) and dθ/dφ (n, 10, 10)."""
-    u, du = _u_and_derivatives(np.asarray(phi, dtype=float))
-    theta = standard_from_pseudo(u @ np.swapaxes(u, -1, -2))
-    dj = du @ np.swapaxes(u, -1, -2)[:, None]
-    dj = dj + np.swapaxes(dj, -1, -2)
-    return theta, np.swapaxes(standard_from_pseudo(dj), -1, -2)
-
-
-def log_cholesky(j: np.ndarray) -> np.ndarray:
-    """(n, 4, 4) positive definite pseudo-inertias → (n, 10) φ with J = U Uᵀ, U upper."""
-    flip = np.eye(4)[::-1]
-    low = np.linalg.cholesky(flip @ j @ flip)
-    u = flip @ low @ flip  # upper triangular, U Uᵀ = J
-    alpha = np.log(u[:, 3, 3])
-    v = u / u[:, 3, 3][:, None, None]
-    phi = np.empty((j.shape[0], 10))
-    phi[:, 0] = alpha
-    for k in range(3):
-        phi[:, 1 + k] = np.log(v[:, k, k])
-    for k, (r, c) in enumerate(_OFF):
-        phi[:, 4 + k] = v[:, r, c]
-    return phi
-
 
 def _realizable(j: np.ndarray) -> np.ndarray:
     """Nudge pseudo-inertias onto the positive definite cone (CAD links may be degenerate)."""
@@ -257,67 +190,19 @@ class _Prior:
         return tr - logdet + self.logdet0 - 4.0
 
 
-#: d log det J / dφ (per link)
-_LOGDET_GRAD = 2.0 * np.array([4.0, 1.0, 1.0, 1.0, 0, 0, 0, 0, 0, 0])
-
-
 def _solve(red: _Reduced, lam: float, prior: _Prior, phi0: np.ndarray, tol: float,
            max_iter: int = 200) -> tuple[np.ndarray, np.ndarray, int]:
-    """Levenberg–Marquardt in φ for one λ on the compact normal equations.
+    """Levenberg–Marquardt in φ for one λ on the compact normal equations
+    (``pseudo.lm_solve``, compiled).
 
     F(φ) = πᵀAπ − 2bᵀπ + λ(wᵀπ − log det J): the data term's Gauss–Newton Hessian is DᵀAD
     with D = dπ/dφ block-diagonal (10 × 10 per link), the prior's is that of ‖L₀⁻¹U‖².
     Stops when an accepted step lowers F by less than ``tol`` ((N·m)², absolute).
     Returns φ, π and the number of objective evaluations.
     """
-    n = phi0.shape[0]
-    lin = np.tile(_LOGDET_GRAD, n)
-
-    def objective(pi: np.ndarray, phi: np.ndarray) -> float:
-        return float(pi @ red.a @ pi - 2.0 * red.b @ pi
-                     + lam * (prior.w @ pi - lin @ phi.ravel()))
-
-    phi = phi0.copy()
-    pi, d = from_log_cholesky(phi)
-    pi = pi.ravel()
-    f = objective(pi, phi)
-    mu, nfev = 1e-4, 1
-    dfull = np.zeros((10 * n, 10 * n))
-    hp = np.zeros((10 * n, 10 * n))
-    for _ in range(max_iter):
-        _, du = _u_and_derivatives(phi)
-        ju = np.einsum("nab,nkbc->nack", prior.l0_inv, du).reshape(n, 16, 10)
-        for i in range(n):
-            sl = slice(10 * i, 10 * i + 10)
-            dfull[sl, sl] = d[i]
-            hp[sl, sl] = ju[i].T @ ju[i]
-        hess = 2.0 * (dfull.T @ red.a @ dfull + lam * hp)
-        grad = dfull.T @ (2.0 * (red.a @ pi - red.b) + lam * prior.w) - lam * lin
-        diag = np.maximum(np.diag(hess), 1e-12 * max(float(np.diag(hess).max()), 1e-300))
-        improved = False
-        for _ in range(30):
-            try:
-                step = np.linalg.solve(hess + mu * np.diag(diag), -grad)
-            except np.linalg.LinAlgError:
-                mu *= 10.0
-                continue
-            trial = phi + step.reshape(n, 10)
-            with np.errstate(all="ignore"):
-                th, d_new = from_log_cholesky(trial)
-                f_new = objective(th.ravel(), trial)
-            nfev += 1
-            if np.isfinite(f_new) and np.all(np.isfinite(d_new)) and f_new <= f:
-                improved = True
-                break
-            mu *= 4.0
-        if not improved:
-            break
-        decrease = f - f_new
-        phi, pi, d, f = trial, th.ravel(), d_new, f_new
-        mu = max(mu / 3.0, 1e-12)
-        if decrease <= tol:
-            break
-    return phi, pi, nfev
+    phi, pi, nfev = lm_solve(red.a, red.b, float(lam), prior.w, prior.l0_inv,
+                             np.ascontiguousarray(phi0, dtype=float), float(tol), max_iter)
+    return phi, pi, int(nfev)
 
 
 # ----------------------------------------------------------------------- the fit
@@ -433,8 +318,7 @@ def fit_consistent(design: Design, train: Sequence[Piece], names: Sequence[str],
     else:
         phi, pi = phi_cad, standard_from_pseudo(j0).ravel()
     theta = np.concatenate((pi, red.back_b - red.back @ pi))
-    u, _ = _u_and_derivatives(phi)
-    min_eig = np.linalg.eigvalsh(u @ np.swapaxes(u, -1, -2))[:, 0]
+    min_eig = np.linalg.eigvalsh(pseudo_inertia(from_log_cholesky(phi)[0]))[:, 0]
     g_tot = np.sum([gr.total() for gr in grams], axis=0)
     rss, mean_res = joint_stats(g_tot, theta)
     cov = _covariance(total, g_tot, theta, rss, n_rigid, lam_abs, m_full)
@@ -459,18 +343,26 @@ def _folds(grams: Sequence[Grams], groups: list[list[int]]
             rest = _total([grams[i] for i in range(len(grams)) if i not in g])
             folds.append((rest, held))
         return folds, f"leave one motion out ({len(groups)} motions)"
+    parts: list[list[tuple[_Quad, _Quad]]] = [[] for _ in range(N_FOLDS)]
+    for gr in grams:
+        nb = gr.g.shape[1]
+        fold = (np.arange(nb) * N_FOLDS) // nb
+        test = fold[None, :] == np.arange(N_FOLDS)[:, None]  # (folds, blocks)
+        near = np.stack([np.convolve(t.astype(float), np.ones(3), mode="same") > 0
+                         for t in test])
+        # one pass over the blocks: the sums of the runs of blocks whose role is the same
+        # in every fold, then each fold's held-out and training sums from those few runs
+        roles = np.concatenate((test, near))
+        cuts = np.concatenate(([0], np.flatnonzero(np.any(roles[:, 1:] != roles[:, :-1],
+                                                          axis=0)) + 1))
+        runs = np.add.reduceat(gr.g, cuts, axis=1)
+        for k in range(N_FOLDS):
+            parts[k].append((_quad(runs[:, ~near[k, cuts]].sum(axis=1)),
+                             _quad(runs[:, test[k, cuts]].sum(axis=1))))
     folds = []
-    for k in range(N_FOLDS):
-        tr_parts, te_parts = [], []
-        for gr in grams:
-            nb = gr.g.shape[1]
-            fold = (np.arange(nb) * N_FOLDS) // nb
-            test = fold == k
-            near = np.convolve(test.astype(float), np.ones(3), mode="same") > 0
-            te_parts.append(_quad(gr.g[:, test].sum(axis=1)))
-            tr_parts.append(_quad(gr.g[:, ~near].sum(axis=1)))
-        tr, te = tr_parts[0], te_parts[0]
-        for a, b in zip(tr_parts[1:], te_parts[1:], strict=True):
+    for per_file in parts:
+        tr, te = per_file[0]
+        for a, b in per_file[1:]:
             tr, te = tr + a, te + b
         folds.append((tr, te))
     what = "one motion" if len(grams) == 1 else f"one motion repeated in {len(grams)} files"

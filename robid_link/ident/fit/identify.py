@@ -33,6 +33,7 @@ from robid_link.ident.fit.design import Design, make_design, structural_mask, wi
 from robid_link.ident.fit.estimate import Fit, Grams, accumulate, fit
 from robid_link.ident.fit.results import (
     ErrorStats,
+    HeldOut,
     IdentResult,
     Parameter,
     evaluate_held_out,
@@ -257,6 +258,7 @@ class Estimate:
     design: Design
     notes: list[str]
     consistent: ConsistentFit | None = None
+    held_out: HeldOut | None = None  # the held-out figures, when a step computed them
 
 
 def estimate(pb: Problem, asm: Assembly, method: str, weight: str = "bisquare") -> Estimate:
@@ -312,7 +314,8 @@ def estimate_consistent(pb: Problem, asm: Assembly, est: Estimate,
     cons = fit_consistent(full, pb.train, asm.names, nominal=pb.robot.nominal,
                           interval=pb.interval, block_len=pb.block_len,
                           grams=None if fa is None else fa.grams)
-    val = evaluate_held_out(pb, full, cons.theta).validation
+    held = evaluate_held_out(pb, full, cons.theta)
+    val = held.validation
     val_ols = evaluate_held_out(pb, asm.design, est.theta).validation
     cons.validation_ols = None if val_ols is None else val_ols.as_dict()
     std = np.sqrt(np.clip(np.diag(cons.cov), 0.0, None))
@@ -330,7 +333,7 @@ def estimate_consistent(pb: Problem, asm: Assembly, est: Estimate,
                      f"{100 * val_ols.relative_error:.2f} %")
     return replace(est, theta=cons.theta, cov=cons.cov, parameters=params,
                    fit=ErrorStats(np.sqrt(ms), np.sqrt(var), var, est.n_samples),
-                   design=full, notes=notes, consistent=cons)
+                   design=full, notes=notes, consistent=cons, held_out=held)
 
 
 def _consistent_note(cons: ConsistentFit) -> str:
@@ -351,7 +354,7 @@ def result_of(pb: Problem, asm: Assembly, est: Estimate, *, method: str,
     computed from them on first use); ``files``: the data and the validation logs, with
     their SHA-256 by path in ``digests`` (else read here)."""
     robot = pb.robot
-    return IdentResult(
+    res = IdentResult(
         robot=robot.name,
         joints=robot.mapping(),
         effects=pb.model.labels(),
@@ -381,6 +384,9 @@ def result_of(pb: Problem, asm: Assembly, est: Estimate, *, method: str,
         design=est.design,
         consistent=est.consistent,
     )
+    if est.held_out is not None:  # computed on the same problem, design and θ: not again
+        res.__dict__["held_out"] = est.held_out
+    return res
 
 
 def _nominal_base(robot: Robot, base: BaseSet, names: list[str]) -> list[float | None] | None:
