@@ -167,3 +167,20 @@ def test_the_worker_entry_answers_through_the_door() -> None:
         run_here(jb.ModelCheckJob(None, ("warp@1",)))
     with pytest.raises(RecordError, match="schema 'robid-job/2' unknown"):
         run(_wire("model-check-job", schema="robid-job/2"))
+
+
+def test_a_numerical_job_loads_the_numerical_modules_without_the_collector() -> None:
+    """The worker process's side of the door: a job that computes (here: drift over no
+    records) loads numba's compiler with the collector off and freezes what it loaded (the
+    collector on again after); a job that only reads a file freezes nothing. A fresh
+    process each, as the daemon's workers are."""
+    code = ("import gc, sys\nfrom robid_link import jobs as jb\nfrom robid_link.ident.entry "
+            "import run\njob = {job}\nprint(jb.Record.from_json(run(job.to_json())).TYPE, "
+            "gc.isenabled(), gc.get_freeze_count() > 0)\n")
+    cases = {"jb.DriftJob('arm3', (), None)": "drift-report True True",
+             "jb.ModelCheckJob(None, ('coulomb',))": "model-check True False"}
+    for job, expected in cases.items():
+        out = subprocess.run([sys.executable, "-c", code.format(job=job)], capture_output=True,
+                             text=True, timeout=120)
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.split("\n")[-2] == expected, (job, out.stdout)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import gc
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -24,6 +23,7 @@ from robid_link.cli.types import (
     robot_options,
 )
 from robid_link.exceptions import ConfigError, DataError, RobidError
+from robid_link.ident.entry import load_numerics
 
 __all__ = ["COMMANDS", "IRLS_WEIGHTS"]
 
@@ -71,31 +71,6 @@ def _load_model(args: argparse.Namespace) -> Any:
     for entry in args.add:
         model = model.with_added(parse_effect(entry, f"--add {entry}"), f"--add {entry}")
     return model
-
-
-_numerics_loaded = False
-
-
-def _load_numerics() -> None:
-    """The worker's numerical modules and numba's compiler, loaded once per process without the
-    cyclic garbage collector: their ~10^5 objects live as long as the process, and the
-    collector walked them some 25 times while they loaded, for nothing (~0.2 s of a short
-    identify). Frozen then, later collections skip them."""
-    global _numerics_loaded
-    if _numerics_loaded:
-        return
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        import robid_link.ident.runner  # noqa: F401
-        from robid_link.ident.data.filtering import load_compiler
-
-        load_compiler()
-        gc.freeze()
-    finally:
-        if enabled:
-            gc.enable()
-    _numerics_loaded = True
 
 
 @contextlib.contextmanager
@@ -164,7 +139,7 @@ def _identify_check(args: argparse.Namespace) -> None:
 
 def _identify(args: argparse.Namespace) -> int:
     with _digests_ahead(args):
-        _load_numerics()
+        load_numerics()
         return _identify_loaded(args)
 
 
@@ -203,7 +178,7 @@ def _diagnose_options(p: argparse.ArgumentParser) -> None:
 
 def _diagnose(args: argparse.Namespace) -> int:
     with _digests_ahead(args):
-        _load_numerics()
+        load_numerics()
         return _diagnose_loaded(args)
 
 
