@@ -46,6 +46,39 @@ def test_log_cholesky_round_trip_and_derivative():
     assert np.all(np.linalg.eigvalsh(pseudo_inertia(from_log_cholesky(wild)[0]))[:, 0] > 0)
 
 
+def test_compiled_solve_ends_at_a_stationary_point_inside_the_cone():
+    """``lm_solve`` (one λ, compiled): from the CAD φ it lowers the objective to a point where
+    its gradient in φ, by central differences through ``from_log_cholesky``, is ~0 and every
+    link's pseudo-inertia is positive definite."""
+    from robid_link.ident.fit.consistent import _Prior
+    from robid_link.ident.fit.pseudo import LOGDET_GRAD, lm_solve
+
+    rng = np.random.default_rng(7)
+    n = 2
+    x = rng.normal(size=(400, 10 * n))
+    a = x.T @ x / 400
+    b = a @ rng.normal(size=10 * n)
+    m = rng.normal(size=(n, 4, 4))
+    j0 = m @ np.swapaxes(m, -1, -2) + np.eye(4)
+    prior, phi0, lam = _Prior.of(j0), log_cholesky(j0), 0.05
+
+    def objective(phi):
+        pi = from_log_cholesky(phi.reshape(n, 10))[0].ravel()
+        return (pi @ a @ pi - 2 * b @ pi + lam * prior.w @ pi
+                - lam * np.tile(LOGDET_GRAD, n) @ phi.ravel())
+
+    def gradient(phi):
+        eps = 1e-6
+        return np.array([(objective(phi + eps * e) - objective(phi - eps * e)) / (2 * eps)
+                         for e in np.eye(10 * n)])
+
+    phi, pi, nfev = lm_solve(a, b, lam, prior.w, prior.l0_inv, phi0, 0.0, 500)
+    assert nfev > 1 and objective(phi) < objective(phi0.ravel())
+    assert np.allclose(pi, from_log_cholesky(phi)[0].ravel())
+    assert np.linalg.norm(gradient(phi.ravel())) < 1e-4 * np.linalg.norm(gradient(phi0.ravel()))
+    assert np.all(np.linalg.eigvalsh(pseudo_inertia(pi.reshape(n, 10)))[:, 0] > 0)
+
+
 def _identify(robot: Robot, data, valid, model=MODEL):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
