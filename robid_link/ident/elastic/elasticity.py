@@ -302,11 +302,11 @@ def bode_cells(res: ElasticityResult, frf: Frf
 def elasticity_figures(res: ElasticityResult, out_dir: str | Path) -> list[Path]:
     """Bode magnitude and phase of q̈m/τ per fitted FRF: measured circles shaded by coherence,
     the model as a line, parameters and resonances under the plot; the 2×2 grid for a pair."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.ticker import NullFormatter
+
+    from robid_link.ident.report.figures import pyplot
+
+    plt = pyplot()
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

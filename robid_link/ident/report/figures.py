@@ -15,11 +15,12 @@ from robid_link.atomic import atomic_write, write_json
 from robid_link.ident.fit.results import IdentResult
 from robid_link.ident.model.robot import Robot
 
-__all__ = ["write_report", "draw_robot", "write_json", "residual_figures", "history_figure",
-           "trend_figure", "tracking_figure"]
+__all__ = ["pyplot", "write_report", "draw_robot", "write_json", "residual_figures",
+           "history_figure", "trend_figure", "tracking_figure"]
 
 
-def _pyplot() -> Any:
+def pyplot() -> Any:
+    """matplotlib's pyplot on the Agg backend (files only), its font-cache chatter quieted."""
     import matplotlib
 
     # a fresh install builds matplotlib's font cache at the first figure and tells of every
@@ -74,7 +75,7 @@ def write_report(res: IdentResult, out_dir: str | Path) -> list[Path]:
 def _torque_figures(res: IdentResult, out: Path) -> list[Path]:
     if not res.traces:
         return []
-    plt = _pyplot()
+    plt = pyplot()
     paths = []
     for j, jt in enumerate(res.joints):
         if all(np.isnan(tr["tau"][:, j]).all() for tr in res.traces):
@@ -108,7 +109,7 @@ def draw_robot(robot: Robot, q: np.ndarray, path: str | Path) -> Path:
     """The kinematic chain at pose q: joint origins, links, and each joint's axis."""
     import pinocchio as pin
 
-    plt = _pyplot()
+    plt = pyplot()
     data = robot.model.createData()
     pin.forwardKinematics(robot.model, data, robot.pin_q(np.asarray(q, dtype=float)))
     pts = [np.zeros(3)]
@@ -203,7 +204,7 @@ def residual_figures(res: dict[str, np.ndarray], joints: list[dict[str, Any]], o
     """Per joint: residual against time, q, q̇, q̈ and its spectrum; the worst region marked."""
     import scipy.signal as sig
 
-    plt = _pyplot()
+    plt = pyplot()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -238,7 +239,7 @@ def residual_figures(res: dict[str, np.ndarray], joints: list[dict[str, Any]], o
 
 def history_figure(records: list[dict[str, Any]], path: str | Path) -> Path:
     """The error ladder: per-joint validation RMSE per model version."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 4))
     rmse = np.array([r["rmse"] for r in records if r.get("rmse")], dtype=float)
     labels = [", ".join(r.get("effects") or [])[-40:] for r in records if r.get("rmse")]
@@ -261,7 +262,7 @@ def history_figure(records: list[dict[str, Any]], path: str | Path) -> Path:
 def trend_figure(trend: Any, names: list[str], path: str | Path) -> Path:
     """Each named parameter over a robot's runs (value ± 2 std, relative to its baseline),
     flagged runs marked: the drift and wear report."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(9, 4.5))
     x = np.arange(1, len(trend.runs) + 1)
     for name in names:
@@ -291,7 +292,7 @@ def trend_figure(trend: Any, names: list[str], path: str | Path) -> Path:
 
 def tracking_figure(tracking: dict[str, Any], path: str | Path) -> Path:
     """Before/after the upload: tool error (RMS, max, after the stop) and per-joint RMS."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
     b, a = tracking["before"], tracking["after"]
     keys = [("tool_rms_mm", "tool RMS"), ("tool_max_mm", "tool max"),
