@@ -50,8 +50,10 @@ wheel-check: $(BIN)/python
 		&& $(CURDIR)/$(WHEEL)/venv/bin/robid demo --out demo-out > demo.txt \
 		&& tail -n 2 demo.txt && test -f demo-out/summary.txt
 
+# ruff, then mypy on the package (it ships py.typed: users' type checkers read our annotations)
 lint: $(DEVSTAMP)
 	$(BIN)/ruff check robid_link drivers fakes tests benchmarks
+	$(BIN)/mypy robid_link
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -207,8 +207,9 @@ def _num(doc: dict[str, Any], key: str, where: str, default: Any, *, positive: b
             or not (isinstance(v, int) or math.isfinite(v)) or (v <= 0 if positive else v < 0)):
         raise ConfigError(f"{where}.{key}: expected {what}, got {v!r}")
     if v > high:  # 10**400 is an int: it would overflow a float later (a sleep, a timeout)
-        shown = (str(v) if isinstance(v, int) and v < 10 ** 15 else f"{v:.3g}" if v < 1e300
-                 else f"an integer of {v.bit_length()} bits")
+        shown = (str(v) if isinstance(v, int) and v < 10 ** 15
+                 else f"an integer of {v.bit_length()} bits" if isinstance(v, int)
+                 and v >= 10 ** 300 else f"{v:.3g}")  # a float: 1e305 has no bit_length
         raise ConfigError(f"{where}.{key}: expected {what} up to {high:g}, got {shown}")
     return v
 

@@ -50,10 +50,10 @@ def _setup(work: Path, out: Path, driver: dict[str, Any], calibrate: bool = True
     from robid_link.ident.model.effects import DEFAULT_MODEL, save_model
 
     save_model(model, DEFAULT_MODEL)
-    cfg = {"robot": str(DEMO_ROBOT), "state_dir": str(work / "state"),
-           "control_socket": str(work / "control.sock"),
-           "driver": driver,
-           "campaigns": {"demo": {**CAMPAIGN, "model": str(model)}}}
+    cfg: dict[str, Any] = {"robot": str(DEMO_ROBOT), "state_dir": str(work / "state"),
+                           "control_socket": str(work / "control.sock"),
+                           "driver": driver,
+                           "campaigns": {"demo": {**CAMPAIGN, "model": str(model)}}}
     if calibrate:  # only over a link that can upload a parameter set
         cfg["campaigns"]["calibrate"] = {**CALIBRATE, "model": str(model)}
     if quick:

@@ -66,9 +66,9 @@ class _BoundedLoader(_Bounds, yaml.SafeLoader):
 
 _LOADERS: list[type] = [_BoundedLoader]
 if getattr(yaml, "__with_libyaml__", False):
+    from yaml._yaml import CParser  # libyaml's parser (yaml.cyaml imports it from here)
     from yaml.composer import Composer
     from yaml.constructor import SafeConstructor
-    from yaml.cyaml import CParser
     from yaml.resolver import Resolver
 
     class _BoundedCLoader(_Bounds, Composer, CParser, SafeConstructor, Resolver):

@@ -67,7 +67,7 @@ def _one_line_warnings() -> None:
     def show(message: Warning | str, category: type[Warning], *args: Any, **kw: Any) -> None:
         print(f"robid: warning: {message}", file=sys.stderr)
 
-    warnings.showwarning = show  # type: ignore[assignment]
+    warnings.showwarning = show
     warnings.simplefilter("default")
     library = logging.getLogger("robid_link")
     if not any(isinstance(h, _OneLineLog) for h in library.handlers):

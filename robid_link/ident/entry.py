@@ -174,7 +174,7 @@ def verify(job: jb.VerifyJob) -> jb.VerifyOutcome:
     from robid_link.ident.excite.verify import tracking
 
     robot = _robot(job.robot, job.lock)
-    records = []
+    records: list[dict[str, Any]] = []
     for run_ in job.runs:
         tr = run_.program.trajectory()
         ref = Trajectory(tr.t - tr.t[0], tr.q, tr.rate_hz, tr.kind, tr.robot, dict(tr.header))

@@ -95,17 +95,17 @@ async def run_cycle(store: AsyncStore, driver: Driver, run_id: str, exp_id: str,
         return str(row["log_sha"])
     attempt, nonce, state = int(row["attempt"]), row["nonce"], row["state"]
     if state == "failed":  # the verdict was journaled before the stop: it stands
-        err = row.get("error") or "it failed"
-        raise CycleError(f"experiment {exp_id}: {err} (failed before the restart; a restart "
+        reason = row.get("error") or "it failed"
+        raise CycleError(f"experiment {exp_id}: {reason} (failed before the restart; a restart "
                          "adds no attempt)")
     if state == "attempt_failed" and nonce:  # killed before the old 'ready' was taken back
         await driver.withdraw(exp_id, nonce)
     if state == "attempt_failed" and attempt > policy.retries:
         # stopped between the last allowed attempt's failure and its verdict: a restart buys
         # no further attempt
-        err = row.get("error") or "its last attempt failed"
-        await store.step(run_id, exp_id, "failed", error=err)
-        raise CycleError(f"experiment {exp_id}: {err} (after {attempt} attempt"
+        reason = row.get("error") or "its last attempt failed"
+        await store.step(run_id, exp_id, "failed", error=reason)
+        raise CycleError(f"experiment {exp_id}: {reason} (after {attempt} attempt"
                          f"{'s' if attempt > 1 else ''}; a restart adds none)")
     if state not in ("giving", "given", "taken"):
         nonce = None  # pending, or a failed attempt: start a new one

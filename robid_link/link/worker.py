@@ -18,7 +18,7 @@ __all__ = ["run_in_worker", "run_here"]
 def _entry(name: str) -> Callable[[str], str]:
     """The function ``module:function`` names (the worker's entry point)."""
     module_name, _, func = name.partition(":")
-    return getattr(importlib.import_module(module_name), func)  # type: ignore[no-any-return]
+    return getattr(importlib.import_module(module_name), func)
 
 
 def _answer(job: Job, text: str) -> Record:

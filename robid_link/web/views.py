@@ -25,12 +25,16 @@ RUNS_MAX = 5000
 JOURNAL_TAIL = 100
 
 
-def _report_path(store: Store, run_id: str) -> Path:
-    return store.dir / "reports" / run_id / REPORT_NAME
+def _report_path(store: Store, run_id: str) -> Path | None:
+    """Where the run's report.html is; None for a plant's store opened by its URL alone (the
+    reports are in each cell's state dir)."""
+    return store.dir / "reports" / run_id / REPORT_NAME if store.dir is not None else None
 
 
 def _reported(store: Store) -> set[str]:
     """Runs whose report folder holds a report.html (one listing, not a path per run)."""
+    if store.dir is None:  # a plant's store without a cell: no report here
+        return set()
     try:
         with os.scandir(store.dir / "reports") as it:
             return {e.name for e in it if os.path.isfile(os.path.join(e.path, REPORT_NAME))}
@@ -74,7 +78,7 @@ def report_document_of(store: Store, run_id: str, results: Sequence[dict[str, An
     verification runs, the elasticity fits (their parameters; the stored records keep no
     frequency points)."""
     path = _report_path(store, run_id)
-    if not path.is_file():
+    if path is None or not path.is_file():
         return None
     doc = read_report_data(path)
     phases = {r["kind"].removeprefix("verify_"): r["record"]["tracking"] for r in results

@@ -327,6 +327,7 @@ def test_a_plug_in_declaring_option_names_only_is_checked_without_its_paths(tmp_
     ("retries", 10 ** 400, "retries: expected a non-negative integer up to 1000, got an integer"),
     ("retries", 1001, "retries: expected a non-negative integer up to 1000, got 1001"),
     ("backoff_s", 10 ** 20, "backoff_s: expected a non-negative number up to 1e+09, got 1e+20"),
+    ("backoff_s", 1e305, "backoff_s: expected a non-negative number up to 1e+09, got 1e+305"),
 ])
 def test_a_campaign_number_beyond_any_use_is_refused(tmp_path, key, value, said):
     """The fuzz found retries: 10**400 accepted (an int: it would overflow a float later)."""

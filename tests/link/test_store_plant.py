@@ -120,6 +120,20 @@ def test_robots_share_a_database_and_each_is_held_once(tmp_path: Path, pg_url: s
         assert sorted(r["robot"] for r in plant.runs()) == ["a", "b"]
 
 
+def test_the_pages_views_read_a_plant_store_opened_by_its_url_alone(tmp_path: Path,
+                                                                   pg_url: str) -> None:
+    """A store opened by its URL has no cell folder, so no reports: the page's views said so
+    with a TypeError (None / "reports"; found by mypy)."""
+    from robid_link.web.views import run_view, runs_view
+
+    with Store(tmp_path / "a", url=pg_url, robot="a") as a:
+        run_id = a.create_run("quick", "operator", {}, [("x", "rigid_body")])
+    with Store(None, url=pg_url, readonly=True) as plant:
+        rows = runs_view(plant, "a")["runs"]
+        assert [(r["run_id"], r["report"]) for r in rows] == [(run_id, False)]
+        assert run_view(plant, run_id, "a")["report"] is None
+
+
 def test_another_robots_parameter_set_is_refused_naming_both(tmp_path: Path,
                                                              backend: Backend) -> None:
     """Robot a's store may read robot b's sets (``params show``), but approving one was a

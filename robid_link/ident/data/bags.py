@@ -248,10 +248,15 @@ def _arrays(p: Path, rows: _Rows, topic: str, msgtype: str, notes: list[str],
                      f"{'zero' if np.all(stamp == 0) else 'not increasing'}; the bag's receive "
                      "times are used (they carry the transport's delay and jitter)")
         stamp = np.asarray(rows.received)
-    qd = np.vstack(rows.qd) if all(v is not None for v in rows.qd) else None  # type: ignore[misc]
-    ref = np.vstack(rows.ref) if all(v is not None for v in rows.ref) else None  # type: ignore[misc]
+    tau = np.vstack([e for e in rows.tau if e is not None])  # none is None (refused above)
     t0 = float(stamp[0])
     source = {"format": _storage(p), "topic": topic, "msgtype": msgtype,
               "t0_unix_s": t0, "duration_s": float(stamp[-1] - t0), "messages": len(rows.q)}
-    return BagLog(stamp - t0, np.vstack(rows.q), np.vstack(rows.tau), qd, topic, msgtype,  # type: ignore[arg-type]
-                  ref, notes, source)
+    return BagLog(stamp - t0, np.vstack(rows.q), tau, _stacked(rows.qd), topic, msgtype,
+                  _stacked(rows.ref), notes, source)
+
+
+def _stacked(rows: list[np.ndarray | None]) -> np.ndarray | None:
+    """The rows as one array when every message had them, else None."""
+    given = [v for v in rows if v is not None]
+    return np.vstack(given) if len(given) == len(rows) else None

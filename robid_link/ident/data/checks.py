@@ -140,7 +140,7 @@ def sanity_checks(pb: Problem, nominal: bool, scan: _Scan | None = None) -> list
         peak = np.maximum(high, -low)  # |τ|'s peak
         flat = max(5, int(0.05 * prep.filt.fs))  # a clipped signal sits flat at its peak
         held = prep.log.held  # a partial log: no checks of torques it does not hold
-        for j in np.flatnonzero(held):
+        for j in np.flatnonzero(held).tolist():
             level = peak[j] - 1e-9 * max(peak[j], 1.0)
             col = tau[:, j]
             at_peak = np.abs(col) >= level
@@ -153,7 +153,7 @@ def sanity_checks(pb: Problem, nominal: bool, scan: _Scan | None = None) -> list
                            f"limit {limit:.3g} N·m: saturation or a wrong limit?")
         if nominal:
             pred = rigid_regressor(robot, q, qd, qdd) @ robot.nominal
-            for j in np.flatnonzero(held):
+            for j in np.flatnonzero(held).tolist():
                 sp, sm = pred[:, j].std(), meas[:, j].std()
                 if sp < 1e-9 or sm < 1e-9:
                     continue

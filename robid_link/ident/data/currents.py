@@ -186,7 +186,7 @@ def _motor_grams(pb: Problem, design: Design) -> tuple[np.ndarray, int]:
             a = np.zeros((idx.size, n, p))
             for j in range(n):
                 cj = c[:, design.joint_slice(j)]
-                for m in np.flatnonzero(m_inv[:, j]):
+                for m in np.flatnonzero(m_inv[:, j]).tolist():
                     a[:, m, design.support[j]] += m_inv[m, j] * cj
             z = y @ m_inv.T
             for m in range(n):

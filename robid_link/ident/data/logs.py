@@ -500,12 +500,12 @@ def _check_and_grid(p: Path, cols: dict[str, np.ndarray], n: int, fs: float | No
     if not np.all(np.isfinite(dt)):
         raise DataError(f"{p}: time stamps span more than a float can hold")
     if np.any(dt == 0):
-        k = int(np.argmax(dt == 0))
-        raise DataError(f"{p}: duplicate time stamp {t[k]:.6g} s at samples {k + 1} and {k + 2}")
+        i = int(np.argmax(dt == 0))
+        raise DataError(f"{p}: duplicate time stamp {t[i]:.6g} s at samples {i + 1} and {i + 2}")
     if np.any(dt < 0):
-        k = int(np.argmax(dt < 0))
-        raise DataError(f"{p}: time goes backwards at sample {k + 2} "
-                        f"({t[k]:.6g} → {t[k + 1]:.6g} s)")
+        i = int(np.argmax(dt < 0))
+        raise DataError(f"{p}: time goes backwards at sample {i + 2} "
+                        f"({t[i]:.6g} → {t[i + 1]:.6g} s)")
     notes: list[str] = []
     h = float(np.median(dt))
     _time_units(p, time_col, h)
@@ -528,7 +528,7 @@ def _check_and_grid(p: Path, cols: dict[str, np.ndarray], n: int, fs: float | No
         notes.append(f"{p.name}: time step varies by up to {100 * jitter:.0f} % around "
                      f"{1e3 * h:.3g} ms; resampled onto a uniform grid")
         warnings.warn(notes[-1], DataWarning, stacklevel=3)
-        out = {k: [] for k in ["t", *keys]}
+        out: dict[str, list[np.ndarray]] = {k: [] for k in ["t", *keys]}
         segs: list[slice] = []
         start = 0
         for a, b in pieces:

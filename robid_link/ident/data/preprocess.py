@@ -254,7 +254,8 @@ class Prepared:
         if not parts:
             empty = np.zeros((0, self.log.q.shape[1]))
             return empty, empty, empty, empty
-        return tuple(np.concatenate([p[k] for p in parts]) for k in range(4))  # type: ignore
+        q, qd, qdd, tf = (np.concatenate([p[k] for p in parts]) for k in range(4))
+        return q, qd, qdd, tf
 
     def _whole(self, k: int) -> np.ndarray:
         names = ("q", "qd", "qdd")

@@ -121,7 +121,7 @@ def check_limits(robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
         bad = over | under
         if bad.any():
             k, j = np.argwhere(bad)[0]
-            bound = hi[j] if over[k, j] else lo[j]
+            bound = hi[j] if over[k, j] or lo is None else lo[j]  # no lo: only over
             raise ConfigError(f"{where}: {name}{j + 1} = {x[k, j] * deg[j]:.4g} {unit} at sample "
                               f"{k + 1} exceeds the limit {bound * deg[j]:.4g} {unit}")
     if tau is not None:

@@ -263,5 +263,6 @@ def with_predictions(robot: Robot, preps: Sequence[Prepared], design: Design,
 
         in_slots(range(0, n, CHUNK), work)
         out.append(replace(prep, tau_rigid=rigid, tau_model=full,
-                           tau_rate=np.gradient(full, 1.0 / prep.filt.fs, axis=0)))
+                           # numpy's stub: a 2-D array's gradient is a pair, axis or not
+                           tau_rate=np.gradient(full, 1.0 / prep.filt.fs, axis=0)))  # type: ignore[arg-type]
     return out

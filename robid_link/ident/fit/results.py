@@ -290,7 +290,8 @@ class IdentResult:
     n_standard: int
     least_excited: list[str]
     hypers: dict[str, dict[str, float]]
-    data_files: list[dict[str, str]]
+    #: path, sha256, role ("data" or "validate") and, for a bag, its source (a dict)
+    data_files: list[dict[str, Any]]
     validation_source: str
     notes: list[str] = field(default_factory=list)
     theta: np.ndarray | None = field(default=None, repr=False)

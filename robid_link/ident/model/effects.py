@@ -627,8 +627,8 @@ def _parse_at(entry: str, text: str, where: str) -> tuple[int, str | None]:
 
 def parse_effect(entry: Any, where: str = "effect") -> EffectSpec:
     if isinstance(entry, str):
-        name, at, joint = entry.strip().partition("@")
-        spec_joint, side = _parse_at(entry, joint, where) if at else (None, None)
+        name, at, after = entry.strip().partition("@")
+        spec_joint, side = _parse_at(entry, after, where) if at else (None, None)
         return _checked(EffectSpec(name, spec_joint, side=side), where)
     if isinstance(entry, dict):
         if "name" not in entry:

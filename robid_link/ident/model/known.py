@@ -284,7 +284,7 @@ def _entry_point(spec: str, where: str) -> Callable[..., Any]:
         raise ModelError(f"{where}.function: module {module!r} has no {attr!r}") from err
     if not callable(fn):
         raise ModelError(f"{where}.function: {spec} is not callable")
-    return fn  # type: ignore[no-any-return]
+    return fn
 
 
 # ----------------------------------------------------------------------------- expressions
@@ -301,7 +301,7 @@ def _checked_tree(expr: str, where: str) -> ast.Expression:
                          f"{err.offset})") from err
     except (RecursionError, MemoryError) as err:
         raise ModelError(f"{where}.expression: nested too deeply") from err
-    depth, stack = 0, [(tree, 1)]
+    depth, stack = 0, list[tuple[ast.AST, int]]([(tree, 1)])
     while stack:  # the evaluator recurses: bound the depth before it runs
         node, d = stack.pop()
         depth = max(depth, d)

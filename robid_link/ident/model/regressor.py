@@ -18,7 +18,7 @@ from robid_link.ident.model.spatial import joint_frame, joint_motion, to_child
 from robid_link.ident.model.threads import kernel_threads
 
 __all__ = ["rigid_regressor", "reference_regressor", "BaseSet", "structural_base_set",
-           "robot_arrays"]
+           "robot_arrays", "RobotArrays"]
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
@@ -152,10 +152,13 @@ def _regressor_part(q, qd, qdd, r0s, p0s, axes, revolute, parents, anc, gravity,
                     out[k, d] = s3 * b39 + s4 * b49 + s5 * b59
 
 
-_ARRAYS: dict[int, tuple[Robot, tuple[np.ndarray, ...]]] = {}
+#: r0s, p0s, axes, revolute, parents, ancestors, gravity (``robot_arrays``)
+RobotArrays = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                    np.ndarray]
+_ARRAYS: dict[int, tuple[Robot, RobotArrays]] = {}
 
 
-def robot_arrays(robot: Robot) -> tuple[np.ndarray, ...]:
+def robot_arrays(robot: Robot) -> RobotArrays:
     """The kernels' view of a robot (r0s, p0s, axes, revolute, parents, ancestors, gravity),
     made once per robot object: a call on a chunk of samples should not rebuild them."""
     hit = _ARRAYS.get(id(robot))

@@ -212,7 +212,8 @@ def _load_mdh(p: Path, allow_unlimited: bool) -> Robot:
     model.gravity = pin.Motion(gravity, np.zeros(3))
     names: list[str] = []
     types: list[str] = []
-    lim = {k: [] for k in ("q_min", "q_max", "qd_max", "qdd_max", "tau_max")}
+    lim: dict[str, list[float]] = {k: [] for k in ("q_min", "q_max", "qd_max", "qdd_max",
+                                                   "tau_max")}
     inertials: list[np.ndarray | None] = []
     parent = 0
     for i, row in enumerate(rows):
@@ -251,9 +252,8 @@ def _load_mdh(p: Path, allow_unlimited: bool) -> Robot:
         types.append(jtype)
         parent = jid
     n = len(names)
-    nominal = None
-    if all(x is not None for x in inertials):
-        nominal = np.concatenate(inertials)  # type: ignore[arg-type]
+    given = [x for x in inertials if x is not None]
+    nominal = np.concatenate(given) if len(given) == len(inertials) else None
     limits = Limits(**{k: np.array(v, dtype=float) for k, v in lim.items()})
     model.lowerPositionLimit = limits.q_min.copy()
     model.upperPositionLimit = limits.q_max.copy()

@@ -78,11 +78,12 @@ def _float(text: str | None, what: str, p: Path) -> float:
 
 
 def _vec3(elem: ET.Element | None, attr: str, what: str, p: Path) -> None:
-    if elem is None or elem.get(attr) is None:
+    text = elem.get(attr) if elem is not None else None
+    if text is None:
         return
-    parts = elem.get(attr, "").split()
+    parts = text.split()
     if len(parts) != 3:
-        raise RobotError(f"{p}: {what}: expected 3 numbers, got {elem.get(attr)[:30]!r}")
+        raise RobotError(f"{p}: {what}: expected 3 numbers, got {text[:30]!r}")
     for k, v in enumerate(parts):
         _float(v, f"{what}[{k}]", p)
 

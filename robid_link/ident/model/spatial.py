@@ -15,7 +15,7 @@ __all__ = ["joint_frame", "to_child", "joint_motion"]
 
 
 @numba.njit(inline="always")
-def joint_frame(r0s, p0s, axes, revolute, j, qj):  # type: ignore[no-untyped-def]
+def joint_frame(r0s, p0s, axes, revolute, j, qj):
     """Joint j's rotation R (9-tuple, row after row) and origin p (3-tuple) in its parent's
     frame at position qj: R = R0 · Rot(u, qj) and p = p0 (revolute), R = R0 and
     p = p0 + R0 u qj (prismatic)."""
@@ -46,7 +46,7 @@ def joint_frame(r0s, p0s, axes, revolute, j, qj):  # type: ignore[no-untyped-def
 
 
 @numba.njit(inline="always")
-def to_child(rot, pos, s0, s1, s2, s3, s4, s5):  # type: ignore[no-untyped-def]
+def to_child(rot, pos, s0, s1, s2, s3, s4, s5):
     """A motion vector (s0..s5) of the parent's frame in the joint's frame (``joint_frame``'s
     rot, pos): angular Rᵀ ω, linear Rᵀ (v − p × ω)."""
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = rot
@@ -60,7 +60,7 @@ def to_child(rot, pos, s0, s1, s2, s3, s4, s5):  # type: ignore[no-untyped-def]
 
 
 @numba.njit(inline="always")
-def joint_motion(revolute, u0, u1, u2, vd, ad, v, a):  # type: ignore[no-untyped-def]
+def joint_motion(revolute, u0, u1, u2, vd, ad, v, a):
     """The joint's own motion added to the velocity v and acceleration a (6-tuples, its frame,
     carried from the parent): v + S q̇, a + S q̈ + v × S q̇ (v before the update)."""
     v0, v1, v2, v3, v4, v5 = v

@@ -172,7 +172,7 @@ def residual_stats(res: IdentResult, resid: dict[int, tuple[np.ndarray, np.ndarr
         vel.append(prep.qd[pc.lo: pc.hi: step])
         held.append(prep.log.held)
     n_dec = sum(x.shape[0] for x in smooth)
-    joints = []
+    joints: list[dict[str, Any]] = []
     for j in range(pb.robot.n):
         mine = [k for k, h in enumerate(held) if h[j]]
         if not mine:  # partial logs: none of these rows holds the joint's torque

@@ -218,7 +218,7 @@ class Store:
         """Rows of this store's robot (all rows for a store opened for no robot)."""
         if self.robot is None:
             return true()
-        return column == self.robot  # type: ignore[no-any-return]
+        return column == self.robot
 
     def _key(self) -> str:
         """The robot column of programs, approvals and logs ('' before robots had names)."""

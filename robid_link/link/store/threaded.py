@@ -82,7 +82,7 @@ class ThreadedStore(AsyncStore):
         self._thread: _StoreThread | None = None
 
     @property
-    def reserve_bytes(self) -> int:  # type: ignore[override]
+    def reserve_bytes(self) -> int:
         return self._reserve_bytes
 
     @reserve_bytes.setter
