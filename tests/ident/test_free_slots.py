@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
+from typing import Any
 
 import numba
 import pytest
@@ -64,3 +65,50 @@ def test_an_error_is_raised_after_the_other_tasks_ran(threads: int) -> None:
         in_free_slots([0, 1, 2, 3], work)
     if threads > 1:  # the other slot keeps taking tasks
         assert sorted(done) == [0, 2, 3]
+
+
+def _both_slots(seen: set[int]) -> None:
+    """A pass whose two slots must run at once (a barrier of two): it records their threads."""
+    from robid_link.ident.model.threads import in_slots
+
+    barrier = threading.Barrier(2, timeout=20)
+
+    def work(task: int, slot: int) -> None:
+        barrier.wait()
+        seen.add(threading.get_ident())
+
+    in_slots([0, 1], work)
+
+
+def test_the_slots_threads_are_the_processs_own_and_a_fork_makes_its_own(threads: int) -> None:
+    """Passes reuse the process's two slot threads (none started per pass); a forked child,
+    which has none of its parent's threads, runs its passes on two threads of its own (with
+    its parent's pool it would wait forever)."""
+    import multiprocessing as mp
+
+    if threads == 1:
+        pytest.skip("one thread: the passes run in the caller")
+    seen: set[int] = set()
+    for _ in range(3):
+        _both_slots(seen)
+    assert len(seen) == 2
+    if "fork" not in mp.get_all_start_methods():
+        return
+
+    def child(conn: Any) -> None:
+        out: set[int] = set()
+        _both_slots(out)
+        conn.send(len(out))
+
+    ctx = mp.get_context("fork")
+    recv, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=child, args=(send,))
+    proc.start()
+    try:
+        assert recv.poll(30), "a forked child's pass never finished"
+        assert recv.recv() == 2
+    finally:
+        proc.join(10)
+        if proc.is_alive():
+            proc.kill()
+    assert proc.exitcode == 0
