@@ -144,7 +144,7 @@ def cross_validation(union: Union, pool: ResidualPool, grams: Grams | None = Non
     ``union_passes``), split into FOLDS folds."""
     if grams is None:
         grams = accumulate(union.design, pool.pieces, union.keep, union.block_len,
-                           max_blocks=BLOCKS)
+                           max_blocks=BLOCKS, smooth=True)
     return FoldCV(grams, union.n_model, fold_masks(grams.g.shape[1], FOLDS))
 
 
@@ -168,7 +168,8 @@ def union_passes(union: Union, pool: ResidualPool, candidates: bool, transfer: b
             if candidates else []) + ([GramSet(2)] if transfer else [])
     if not sets:
         return UnionGrams(None, None, None)
-    grams = accumulate_sets(union.design, pool.pieces, union.keep, union.block_len, sets)
+    grams = accumulate_sets(union.design, pool.pieces, union.keep, union.block_len, sets,
+                            smooth=True)
     return UnionGrams(grams[0] if candidates else None, grams[1] if candidates else None,
                       grams[-1] if transfer else None)
 
@@ -256,7 +257,8 @@ def reversal_grams(union: Union, pool: ResidualPool) -> Grams:
     own: ``union_passes`` gives them with the cross-validation's)."""
     pieces = [replace(pc, prep=replace(pc.prep, tau_mask=_reversal_rows(pc.prep)))
               for pc in pool.pieces]
-    return accumulate(union.design, pieces, union.keep, union.block_len, max_blocks=BLOCKS)
+    return accumulate(union.design, pieces, union.keep, union.block_len, max_blocks=BLOCKS,
+                      smooth=True)
 
 
 #: effects whose evidence lies at the turns too — friction laws of the velocity, and a delay

@@ -75,16 +75,18 @@ def _n_rows(piece: Piece, interval: int) -> int:
 
 
 def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len: int,
-               row_weight: RowWeight | None = None, max_blocks: int = 128) -> Grams:
+               row_weight: RowWeight | None = None, max_blocks: int = 128,
+               smooth: bool = False) -> Grams:
     """One pass over the training rows into per-joint, per-time-block augmented Grams.
 
     Joint j's rows are non-zero only in its structural columns, so its Gram is built on
     those alone (a large saving for the outer joints of a serial robot). The chunks of the
     pass go to ``SLOTS`` threads (``in_slots``), each summing into Grams of its own; the
-    slots' Grams are added in slot order.
+    slots' Grams are added in slot order. ``smooth``: the smooth blocks' columns are read at
+    the kept rows unfiltered (``design_rows``).
     """
     return accumulate_sets(design, pieces, interval, block_len, [GramSet(max_blocks)],
-                           row_weight)[0]
+                           row_weight, smooth)[0]
 
 
 @dataclass(frozen=True)
@@ -98,8 +100,8 @@ class GramSet:
 
 
 def accumulate_sets(design: Design, pieces: Sequence[Piece], interval: int, block_len: int,
-                    sets: Sequence[GramSet], row_weight: RowWeight | None = None
-                    ) -> list[Grams]:
+                    sets: Sequence[GramSet], row_weight: RowWeight | None = None,
+                    smooth: bool = False) -> list[Grams]:
     """``accumulate`` of several sets of Grams in one pass: each chunk's rows are built and
     filtered once and summed into every set (the same numbers as a pass per set)."""
     total = sum(_n_rows(pc, interval) for pc in pieces)
@@ -126,7 +128,8 @@ def accumulate_sets(design: Design, pieces: Sequence[Piece], interval: int, bloc
             first += len(range(window[0], window[1], interval))
     n_slots = min(SLOTS, len(tasks))
     slots = [[np.zeros(int(st[-1])) for _ in range(n_slots)] for st in starts]
-    rows = max((w[3] - w[2] for _, w, _ in tasks), default=0)
+    rows = max((len(range(w[0], w[1], interval)) if smooth else w[3] - w[2]
+                for _, w, _ in tasks), default=0)
     bufs: list[np.ndarray | None] = [None] * n_slots  # one chunk buffer per slot
     no_weight = np.ones((0, n))
     # rows without a joint's torque, per set and slot
@@ -136,7 +139,7 @@ def accumulate_sets(design: Design, pieces: Sequence[Piece], interval: int, bloc
         pc, window, at = task
         if bufs[slot] is None:
             bufs[slot] = np.empty((rows, design.nnz))
-        c, y, idx = design_rows(design, pc, window, interval, bufs[slot])
+        c, y, idx = design_rows(design, pc, window, interval, bufs[slot], smooth)
         y_c = np.ascontiguousarray(y)
         sw_rows = np.sqrt(row_weight(c, y, idx)) if row_weight is not None else no_weight
         for s, k in enumerate(k_blocks):
