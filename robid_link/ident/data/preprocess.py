@@ -93,6 +93,12 @@ class _Channels:
         self.put(name, src, out)
         return out
 
+    def kept(self, name: str, src: np.ndarray) -> np.ndarray | None:
+        """The whole array ``name`` made from ``src`` when it is made already, else None."""
+        with self._lock:
+            hit = self._whole.get(name)
+        return hit[1] if hit is not None and hit[0] is src else None
+
     def put(self, name: str, src: np.ndarray, out: np.ndarray) -> None:
         """Keep ``out`` (made from ``src``) as the whole array ``name``."""
         out.flags.writeable = False  # shared by every copy of the prepared log
@@ -233,8 +239,12 @@ class Prepared:
         return self._track("tau", self.log.tau).window(lo, hi)
 
     def states(self, lo: int, hi: int) -> States:
+        """The states at rows [lo, hi): rows of the whole filtered arrays when they are made
+        already (the same numbers), else computed for the window."""
+        kept = [self.channels.kept(*self._key(k)) for k in range(3)]
+        q, qd, qdd = (a[lo:hi] for a in kept) if all(a is not None for a in kept) else \
+            self.kinematics(lo, hi)
         # time since the log's start: effects that change over the log (friction drift)
-        q, qd, qdd = self.kinematics(lo, hi)
         return States(q, qd, qdd, self.log.t[lo:hi] - self.log.t[0], self.transmission,
                       None if self.tau_rigid is None else self.tau_rigid[lo:hi],
                       None if self.tau_rate is None else self.tau_rate[lo:hi])
@@ -256,11 +266,24 @@ class Prepared:
             return empty, empty, empty, empty
         return tuple(np.concatenate([p[k] for p in parts]) for k in range(4))  # type: ignore
 
-    def _whole(self, k: int) -> np.ndarray:
-        names = ("q", "qd", "qdd")
+    def _key(self, k: int) -> tuple[str, np.ndarray]:
+        """The name and source of the whole array of q (k = 0), q̇ (1) or q̈ (2)."""
         src = self.log.q if self.log.qd is None or k == 0 else self.log.qd
-        name = names[k] if k != 1 or self.qd_sign is None else f"qd~{id(self.qd_sign)}"
-        return self.channels.whole(name, src, lambda: self.kinematics(0, len(self.log))[k])
+        name = ("q", "qd", "qdd")[k]
+        return (name if k != 1 or self.qd_sign is None else f"qd~{id(self.qd_sign)}"), src
+
+    def _whole(self, k: int) -> np.ndarray:
+        kept = self.channels.kept(*self._key(k))
+        return kept if kept is not None else self.keep_kinematics()[k]
+
+    def keep_kinematics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The whole filtered q, q̇ and q̈ (``q``, ``qd``, ``qdd``), made in one read and kept:
+        ``states`` reads its windows from them from then on (for passes that read every row
+        several times)."""
+        made = self.kinematics(0, len(self.log))
+        for k, arr in enumerate(made):
+            self.channels.put(*self._key(k), arr)
+        return made
 
     @property
     def q(self) -> np.ndarray:

@@ -23,7 +23,6 @@ from robid_link.exceptions import DataError
 from robid_link.ident.data.logs import Log
 from robid_link.ident.data.preprocess import Prepared
 from robid_link.ident.diagnosis.candidates import (
-    SCREEN_MIN,
     Candidate,
     catalog_candidates,
     drop_slow_ripples,
@@ -34,7 +33,7 @@ from robid_link.ident.diagnosis.candidates import (
     structural_screen,
 )
 from robid_link.ident.diagnosis.evidence import Signatures, counterbalances
-from robid_link.ident.diagnosis.hyperparams import ProfileRows, screens
+from robid_link.ident.diagnosis.hyperparams import ProfileRows
 from robid_link.ident.diagnosis.limits import (
     limited_candidates,
     limits_note,
@@ -126,15 +125,8 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         # the structural screen reads no rows: it runs beside the ripples' in-sample check
         structural_f = aside.submit(structural_screen, robot, pool.problem.blocks, pool.base,
                                     pool.problem.transmission, candidates)
-        # a ripple's refinement projects off the model's basis on all the profiling rows:
-        # that SVD is made beside the screens when a ripple will pass them
-        ripples = [b for b in candidates if b.effect.name == "ripple"]
-        basis_f = (aside.submit(getattr, rows, "beyond_model")
-                   if ripples and max(screens(rows, ripples)) >= SCREEN_MIN else None)
         structural = structural_f.result()
         insample = insample_screen(rows, structural.new)
-        if basis_f is not None:
-            basis_f.result()
         kept = refine_survivors(rows, insample.kept, profiled)
         kept += _shift_candidate(structural.new, kept)
         odd, doubts, limits = odd_f.result(), doubts_f.result(), limits_f.result()

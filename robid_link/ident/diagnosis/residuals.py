@@ -65,6 +65,8 @@ def residual_pool(robot: Robot, result: IdentResult) -> ResidualPool:
         raise ValueError("diagnose needs a result from identify (it keeps the fitted problem)")
     base, _ = base_set_for(robot, pb.blocks, pb.transmission)
     theta = np.asarray(result.theta)  # same model, same base set: identify's estimate
+    for prep in (*pb.preps, *pb.vpreps):  # every pass below reads all the states' rows
+        prep.keep_kinematics()
     filt = pb.preps[0].filt
     preps = with_predictions(robot, [*pb.preps, *pb.vpreps], design, theta,
                              every=max(1, int(filt.fs / (SPLINE_NODES * filt.cutoff_hz))))
