@@ -104,7 +104,8 @@ class FoldCV:
         p = grams.p
         self.grams = grams
         self.p, self.n_model = p, n_model
-        self.train = [grams.g[:, tr].sum(axis=(0, 1)) for _, tr in folds]  # (p+2, p+2)
+        per_block = grams.g.sum(axis=0)  # (K, p+2, p+2): the joints' equations together
+        self.train = [per_block[tr].sum(axis=0) for _, tr in folds]  # (p+2, p+2)
         self.held = [grams.g[:, held].sum(axis=1) for held, _ in folds]  # (n, p+2, p+2)
         self.counts = sum(h[:, p + 1, p + 1] for h in self.held)
         self.fact = []
@@ -178,11 +179,10 @@ def wald(grams: Grams, sub: np.ndarray, cand: np.ndarray) -> tuple[float, np.nda
     """p-value that the candidate's coefficients are zero, and the full-data θ."""
     p = grams.p
     idx = np.concatenate((sub, [p, p + 1]))
-    sg = Grams(grams.g[:, :, idx[:, None], idx[None, :]], grams.n_rows)
-    tot = sg.total()
+    tot = grams.total()[:, idx[:, None], idx[None, :]]
     s = sub.size
     theta, a_inv, _ = solve(tot[:, :s, :s].sum(0), tot[:, :s, s].sum(0), warn=False)
-    kappa, var = long_run_factor(sg, theta)
+    kappa, var = long_run_factor(grams, theta, sub)
     cov = a_inv @ np.einsum("j,jik->ik", kappa * var, tot[:, :s, :s]) @ a_inv
     pos = np.searchsorted(sub, cand) if np.all(np.diff(sub) > 0) else \
         np.array([int(np.flatnonzero(sub == c)[0]) for c in cand])

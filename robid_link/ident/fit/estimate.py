@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numba
@@ -60,13 +60,18 @@ class Grams:
 
     g: np.ndarray  # (n, K, p + 2, p + 2)
     n_rows: np.ndarray  # (n,) rows per joint (samples)
+    _total: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def p(self) -> int:
         return self.g.shape[2] - 2
 
     def total(self) -> np.ndarray:
-        return self.g.sum(axis=1)  # (n, p+2, p+2)
+        """(n, p+2, p+2): each joint's Gram over all the blocks (summed once; read-only)."""
+        if self._total is None:
+            self._total = self.g.sum(axis=1)
+            self._total.flags.writeable = False
+        return self._total
 
 
 def _n_rows(piece: Piece, interval: int) -> int:
@@ -306,19 +311,23 @@ def _weighted_solve(grams: Grams, wj: np.ndarray, names: Sequence[str] | None, w
     return theta, cov, a_inv, cond
 
 
-def long_run_factor(grams: Grams, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def long_run_factor(grams: Grams, theta: np.ndarray, cols: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Per joint: κ = long-run variance / variance of the residual, and the variance.
 
     Filtering correlates neighbouring residuals, so σ²(XᵀX)⁻¹ would be too optimistic.
     The long-run variance comes from batch means over the time blocks (the block sums of
     residuals are in the augmented Grams); with regressor columns that are smooth over the
-    residual's correlation time, Cov = A⁻¹ (Σ_j w_j² κ_j σ_j² G_j) A⁻¹.
+    residual's correlation time, Cov = A⁻¹ (Σ_j w_j² κ_j σ_j² G_j) A⁻¹. ``cols``: θ is of
+    these columns only (None: of all).
     """
     p = grams.p
     gb = grams.g
-    sums = gb[:, :, p + 1, p] - gb[:, :, p + 1, :p] @ theta  # (n, K)
+    cols = np.arange(p) if cols is None else np.asarray(cols)
+    sums = gb[:, :, p + 1, p] - gb[:, :, p + 1, cols] @ theta  # (n, K)
     counts = gb[:, :, p + 1, p + 1]
-    rss, mean = joint_stats(grams.total(), theta)
+    idx = np.concatenate((cols, [p, p + 1]))
+    rss, mean = joint_stats(grams.total()[:, idx[:, None], idx[None, :]], theta)
     n = np.maximum(counts.sum(axis=1), 1.0)
     var = rss / n - mean**2
     lrv = ((sums - counts * mean[:, None]) ** 2).sum(axis=1) / n
