@@ -36,6 +36,7 @@ from robid_link.ident.diagnosis.residuals import profile_rows, residual_dict, re
 from robid_link.ident.diagnosis.scoring import (
     BLOCKS,
     FOLDS,
+    FoldSums,
     cross_validation,
     fold_masks,
     one_motion_note,
@@ -64,7 +65,7 @@ from robid_link.ident.diagnosis.verdict import (
     result_doubts,
 )
 from robid_link.ident.fit.design import base_set_for, design_rows, with_predictions
-from robid_link.ident.fit.estimate import accumulate
+from robid_link.ident.fit.estimate import Grams, accumulate
 from robid_link.ident.fit.identify import identify, load_logs
 from robid_link.ident.fit.results import ErrorStats, HeldOut
 from robid_link.ident.model.effects import DEFAULT_MODEL, REGISTRY, Block, Model
@@ -314,6 +315,24 @@ def test_fold_cv_equals_a_refit_per_fold(ripple, union):
         counts += held[:, p + 1, p + 1]
     np.testing.assert_allclose(cv.rmse(cand), np.sqrt(sse / counts), rtol=1e-6)
     np.testing.assert_allclose(cv.base, cv.rmse(np.zeros(0, dtype=int)))
+
+
+def test_fold_sums_without_the_turns_are_those_of_the_grams_without_them(ripple, union):
+    """``without_turns`` scores on the fold sums less the reversals' on some joints: the
+    same numbers as the fold sums of the Grams with those rows taken off."""
+    made = union_passes(union, ripple.pool, candidates=True, transfer=False)
+    assert made.cv is not None and made.turns is not None
+    folds = fold_masks(made.cv.g.shape[1], FOLDS)
+    out = np.array([0, 2])
+    g = made.cv.g.copy()
+    g[out] -= made.turns.g[out]
+    want = FoldSums.of(Grams(g, made.cv.n_rows), folds)
+    got = FoldSums.of(made.cv, folds).without(FoldSums.of(made.turns, folds), out)
+    scale = np.abs(want.total).max()
+    pairs = [(got.total, want.total), (got.last, want.last),
+             *zip(got.train, want.train, strict=True), *zip(got.held, want.held, strict=True)]
+    for a, b in pairs:
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * scale)
 
 
 def test_union_rows_filter_only_the_blocks_that_are_not_smooth(ripple, union):

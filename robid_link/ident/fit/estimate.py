@@ -25,7 +25,7 @@ if TYPE_CHECKING:  # pieces only pass through to design_chunks
 
 __all__ = ["WEIGHTS", "TUNING", "RANK_TOL", "Grams", "accumulate", "GramSet",
            "accumulate_sets", "joint_stats", "solve", "Fit",
-           "fit", "long_run_factor"]
+           "fit", "long_run_factor", "batch_factor"]
 
 #: Robust weight functions of r = residual / (tuning · robust scale), as in MATLAB's
 #: robustfit; the tuning constants give 95 % efficiency at Gaussian noise.
@@ -149,7 +149,7 @@ def accumulate_sets(design: Design, pieces: Sequence[Piece], interval: int, bloc
         sw_rows = np.sqrt(row_weight(c, y, idx)) if row_weight is not None else no_weight
         for s, k in enumerate(k_blocks):
             bid = (np.arange(at, at + c.shape[0]) * k) // total
-            sw, mask = sw_rows, masks[s][id(pc)]
+            sw, mask, rows_c, y_s = sw_rows, masks[s][id(pc)], c, y_c
             if mask is not None:  # rows without a joint's torque: not its equation
                 mw = mask[idx].astype(float)
                 kept = np.array(mw.T, order="C").sum(axis=1)  # (numpy sums along rows slowly)
@@ -157,7 +157,10 @@ def accumulate_sets(design: Design, pieces: Sequence[Piece], interval: int, bloc
                 if s > 0 and not kept.any():  # nothing of this chunk in the set: zeros
                     continue
                 sw = mw if row_weight is None else sw_rows * mw
-            _gram_serial(c, y_c, np.ascontiguousarray(sw), bid, offsets, held[id(pc)],
+                some = np.flatnonzero(mw.any(axis=1))
+                if some.size < c.shape[0] // 2:  # a set of few rows (the reversals'): those
+                    rows_c, y_s, sw, bid = c[some], y_c[some], sw[some], bid[some]
+            _gram_serial(rows_c, y_s, np.ascontiguousarray(sw), bid, offsets, held[id(pc)],
                          slots[s][slot], starts[s], k, _TILE)
 
     in_slots(tasks, work)
@@ -321,13 +324,19 @@ def long_run_factor(grams: Grams, theta: np.ndarray, cols: np.ndarray | None = N
     residual's correlation time, Cov = A⁻¹ (Σ_j w_j² κ_j σ_j² G_j) A⁻¹. ``cols``: θ is of
     these columns only (None: of all).
     """
-    p = grams.p
-    gb = grams.g
+    return batch_factor(grams.total(), grams.g[:, :, grams.p + 1, :], theta, cols)
+
+
+def batch_factor(total: np.ndarray, last: np.ndarray, theta: np.ndarray,
+                 cols: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``long_run_factor`` from what it reads of the Grams: the joints' totals (n, p+2, p+2)
+    and each block's last row (n, K, p+2: its rows' count, sums of columns and torque)."""
+    p = total.shape[1] - 2
     cols = np.arange(p) if cols is None else np.asarray(cols)
-    sums = gb[:, :, p + 1, p] - gb[:, :, p + 1, cols] @ theta  # (n, K)
-    counts = gb[:, :, p + 1, p + 1]
+    sums = last[:, :, p] - last[:, :, cols] @ theta  # (n, K)
+    counts = last[:, :, p + 1]
     idx = np.concatenate((cols, [p, p + 1]))
-    rss, mean = joint_stats(grams.total()[:, idx[:, None], idx[None, :]], theta)
+    rss, mean = joint_stats(total[:, idx[:, None], idx[None, :]], theta)
     n = np.maximum(counts.sum(axis=1), 1.0)
     var = rss / n - mean**2
     lrv = ((sums - counts * mean[:, None]) ** 2).sum(axis=1) / n
