@@ -22,8 +22,8 @@ __all__ = ["ResidualPool", "residual_pool", "residual_rows", "profile_rows", "re
            "TURN_SHARE_MIN", "TURN_CONCENTRATION", "FAST_MARGIN"]
 
 #: the model's smooth torque is evaluated on this many rows per period of the cutoff, a
-#: cubic spline between (``with_predictions``): twice the rate the union Grams read
-SPLINE_NODES = 16
+#: cubic spline between (``with_predictions``): the rate the union Grams are read at
+SPLINE_NODES = 8
 #: rows (spread over the log) on which hyper-parameters are profiled
 PROFILE_ROWS = 3000
 #: about this many decimated rows carry the residual (evidence and profiling)
