@@ -8,9 +8,8 @@ as the torques (Gautier's parallel filtering), in chunks with overlap (bounded m
 from __future__ import annotations
 
 import math
-import threading
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -19,6 +18,7 @@ import numpy as np
 from robid_link.exceptions import DataError, DataWarning
 from robid_link.ident.data.filtering import (
     FILTER_ORDER,
+    Channels,
     Track,
     ZeroPhaseFilter,
     butter_lowpass_sos,
@@ -61,57 +61,6 @@ DEFAULT_CUTOFF_HZ = 10.0
 CHUNK = 8192
 
 
-class _Channels:
-    """The filtered channels of one prepared log: a ``Track`` per source array (made at
-    ``prepare``; made again when a step replaces the source, e.g. the torque) and, only when
-    someone asks for them, the whole filtered arrays."""
-
-    def __init__(self) -> None:
-        self._tracks: dict[str, Track] = {}
-        self._whole: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        self._lock = threading.Lock()
-
-    def track(self, name: str, src: np.ndarray, filt: ZeroPhaseFilter,
-              segments: Sequence[slice]) -> Track:
-        with self._lock:
-            hit = self._tracks.get(name)
-        if hit is not None and hit.source is src:
-            return hit
-        made = Track(src, filt, segments, 3 * filt.settle)  # outside the lock: channels at once
-        with self._lock:
-            hit = self._tracks.get(name)
-            if hit is None or hit.source is not src:
-                hit = self._tracks[name] = made
-            return hit
-
-    def whole(self, name: str, src: np.ndarray, make: Callable[[], np.ndarray]) -> np.ndarray:
-        with self._lock:
-            hit = self._whole.get(name)
-            if hit is not None and hit[0] is src:
-                return hit[1]
-        out = make()
-        self.put(name, src, out)
-        return out
-
-    def kept(self, name: str, src: np.ndarray) -> np.ndarray | None:
-        """The whole array ``name`` made from ``src`` when it is made already, else None."""
-        with self._lock:
-            hit = self._whole.get(name)
-        return hit[1] if hit is not None and hit[0] is src else None
-
-    def put(self, name: str, src: np.ndarray, out: np.ndarray) -> None:
-        """Keep ``out`` (made from ``src``) as the whole array ``name``."""
-        out.flags.writeable = False  # shared by every copy of the prepared log
-        with self._lock:
-            self._whole[name] = (src, out)
-
-    def take(self, name: str, src: np.ndarray) -> np.ndarray | None:
-        """The whole array ``name`` made from ``src``, handed over once (None: not kept)."""
-        with self._lock:
-            hit = self._whole.pop(name, None)
-        return None if hit is None or hit[0] is not src else hit[1]
-
-
 @dataclass(frozen=True)
 class Prepared:
     """One log after filtering: states for the regressor, raw and filtered torques. Frozen:
@@ -139,7 +88,7 @@ class Prepared:
     #: the filter resolves), the sign the joint's motion has on both sides (0 elsewhere): the
     #: states' velocity keeps it there (``data/sticks.py``)
     qd_sign: np.ndarray | None = None
-    channels: _Channels = field(default_factory=_Channels, compare=False, repr=False)
+    channels: Channels = field(default_factory=Channels, compare=False, repr=False)
 
     @property
     def tau(self) -> np.ndarray:
