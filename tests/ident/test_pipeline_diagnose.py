@@ -13,6 +13,7 @@ import pytest
 
 from robid_link.exceptions import ConditioningWarning, DataWarning, ExcitationWarning
 from robid_link.fakes.plant import perturbed_inertials
+from robid_link.ident.data.preprocess import filter_windows
 from robid_link.ident.diagnosis import diagnose as diagnose_module
 from robid_link.ident.diagnosis.candidates import (
     SCREEN_MIN,
@@ -35,6 +36,7 @@ from robid_link.ident.diagnosis.residuals import profile_rows, residual_dict, re
 from robid_link.ident.diagnosis.scoring import (
     BLOCKS,
     FOLDS,
+    FoldSums,
     cross_validation,
     fold_masks,
     one_motion_note,
@@ -62,8 +64,8 @@ from robid_link.ident.diagnosis.verdict import (
     rank,
     result_doubts,
 )
-from robid_link.ident.fit.design import base_set_for
-from robid_link.ident.fit.estimate import accumulate
+from robid_link.ident.fit.design import base_set_for, design_rows, with_predictions
+from robid_link.ident.fit.estimate import Grams, accumulate
 from robid_link.ident.fit.identify import identify, load_logs
 from robid_link.ident.fit.results import ErrorStats, HeldOut
 from robid_link.ident.model.effects import DEFAULT_MODEL, REGISTRY, Block, Model
@@ -315,14 +317,67 @@ def test_fold_cv_equals_a_refit_per_fold(ripple, union):
     np.testing.assert_allclose(cv.base, cv.rmse(np.zeros(0, dtype=int)))
 
 
+def test_fold_sums_without_the_turns_are_those_of_the_grams_without_them(ripple, union):
+    """``without_turns`` scores on the fold sums less the reversals' on some joints: the
+    same numbers as the fold sums of the Grams with those rows taken off."""
+    made = union_passes(union, ripple.pool, candidates=True, transfer=False)
+    assert made.cv is not None and made.turns is not None
+    folds = fold_masks(made.cv.g.shape[1], FOLDS)
+    out = np.array([0, 2])
+    g = made.cv.g.copy()
+    g[out] -= made.turns.g[out]
+    want = FoldSums.of(Grams(g, made.cv.n_rows), folds)
+    got = FoldSums.of(made.cv, folds).without(FoldSums.of(made.turns, folds), out)
+    scale = np.abs(want.total).max()
+    pairs = [(got.total, want.total), (got.last, want.last),
+             *zip(got.train, want.train, strict=True), *zip(got.held, want.held, strict=True)]
+    for a, b in pairs:
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * scale)
+
+
+def test_union_rows_filter_only_the_blocks_that_are_not_smooth(ripple, union):
+    """The union's rows: the Coulomb and ripple columns parallel-filtered as identify's are
+    (the same numbers), the smooth ones (rigid body, viscous, offset) read at the kept rows
+    unfiltered — what the filter leaves of them, to a small fraction of each column."""
+    pc = ripple.pool.pieces[0]
+    window = next(filter_windows(pc, union.keep))
+    c, y, idx = design_rows(union.design, pc, window, union.keep, smooth=True)
+    ref, y_ref, idx_ref = design_rows(union.design, pc, window, union.keep)
+    part = union.design.fast
+    assert part is not None
+    assert part.at.size == 3 + 2  # each joint's Coulomb column, the ripple's two
+    np.testing.assert_array_equal(c[:, part.at], ref[:, part.at])
+    np.testing.assert_array_equal(y, y_ref)
+    np.testing.assert_array_equal(idx, idx_ref)
+    smooth = np.setdiff1d(np.arange(c.shape[1]), part.at)
+    assert not np.array_equal(c[:, smooth], ref[:, smooth])
+    scale = np.abs(ref[:, smooth]).max(axis=0)
+    assert np.all(np.abs(c[:, smooth] - ref[:, smooth]).max(axis=0) <= 1e-3 * scale + 1e-12)
+
+
+def test_predictions_between_spline_nodes(arm3, ripple):
+    """The model's smooth torque on every 6th row with a spline between: the torque on every
+    row to far below the noise; the Coulomb steps (not smooth) on every row as they are."""
+    pb, res = ripple.result.problem, ripple.result
+    every = with_predictions(arm3, pb.preps, res.design, res.theta)[0]
+    spline = with_predictions(arm3, pb.preps, res.design, res.theta, every=6)[0]
+    for name in ("tau_model", "tau_rigid"):
+        err = np.abs(getattr(spline, name) - getattr(every, name))
+        assert err.max() < 1e-3 and 0 < err.max()
+    coulomb = np.flatnonzero(np.diff(np.sign(every.qd[:, 0])))  # a step there, in both
+    np.testing.assert_allclose(np.diff(spline.tau_model[:, 0])[coulomb],
+                               np.diff(every.tau_model[:, 0])[coulomb], atol=1e-3)
+
+
 def test_union_passes_give_each_set_as_a_pass_of_its_own(ripple, union):
     """One pass, three sets of Grams: the same numbers as the cross-validation's pass, the
     reversals' and the transfer scorer's (two blocks) each made alone."""
     pool = ripple.pool
     got = union_passes(union, pool, candidates=True, transfer=True)
     alone = [accumulate(union.design, pool.pieces, union.keep, union.block_len,
-                        max_blocks=BLOCKS), reversal_grams(union, pool),
-             accumulate(union.design, pool.pieces, union.keep, union.block_len, max_blocks=2)]
+                        max_blocks=BLOCKS, smooth=True), reversal_grams(union, pool),
+             accumulate(union.design, pool.pieces, union.keep, union.block_len, max_blocks=2,
+                        smooth=True)]
     for mine, theirs in zip((got.cv, got.turns, got.train), alone, strict=True):
         assert mine is not None
         assert np.array_equal(mine.g, theirs.g) and np.array_equal(mine.n_rows, theirs.n_rows)

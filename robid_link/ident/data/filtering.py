@@ -1,6 +1,7 @@
 """Zero-phase low-pass filtering: the Butterworth design, a forward–backward kernel (scipy's
 sosfiltfilt with odd padding) that runs in place over contiguous columns, and checkpointed
-tracks that give any window of a filtered log channel exactly as filtering its whole segment.
+tracks that give any window of a filtered log channel exactly as filtering its whole segment,
+and a prepared log's channels (its tracks and, when asked for, whole filtered arrays).
 
 A track stores the filter's state every ``TRACK_EVERY`` samples of a segment in both passes;
 a window is then two short passes from the nearest states — to the bit the rows the whole
@@ -10,7 +11,8 @@ segment's filtering gives — so a long log is filtered window by window in boun
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numba
@@ -18,7 +20,7 @@ import numpy as np
 
 from robid_link.ident.model.threads import kernel_threads
 
-__all__ = ["FILTER_ORDER", "ZeroPhaseFilter", "Track", "butter_lowpass_sos",
+__all__ = ["FILTER_ORDER", "ZeroPhaseFilter", "Track", "Channels", "butter_lowpass_sos",
            "sos_steady_state", "TRACK_EVERY", "load_compiler"]
 
 FILTER_ORDER = 4
@@ -288,3 +290,54 @@ class Track:
                 _track_window(self._sos, seg, st[0], st[1], self.every, b0, b1, buf)
             out[s0 - lo: s1 - lo] = buf[r0 - b0 * self.every: r1 - b0 * self.every]
         return out
+
+
+class Channels:
+    """The filtered channels of one prepared log: a ``Track`` per source array (made at
+    ``prepare``; made again when a step replaces the source, e.g. the torque) and, only when
+    someone asks for them, the whole filtered arrays."""
+
+    def __init__(self) -> None:
+        self._tracks: dict[str, Track] = {}
+        self._whole: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._lock = threading.Lock()
+
+    def track(self, name: str, src: np.ndarray, filt: ZeroPhaseFilter,
+              segments: Sequence[slice]) -> Track:
+        with self._lock:
+            hit = self._tracks.get(name)
+        if hit is not None and hit.source is src:
+            return hit
+        made = Track(src, filt, segments, 3 * filt.settle)  # outside the lock: channels at once
+        with self._lock:
+            hit = self._tracks.get(name)
+            if hit is None or hit.source is not src:
+                hit = self._tracks[name] = made
+            return hit
+
+    def whole(self, name: str, src: np.ndarray, make: Callable[[], np.ndarray]) -> np.ndarray:
+        """The whole array ``name`` made from ``src``: kept, else made by ``make`` and kept."""
+        hit = self.kept(name, src)
+        if hit is not None:
+            return hit
+        out = make()
+        self.put(name, src, out)
+        return out
+
+    def kept(self, name: str, src: np.ndarray) -> np.ndarray | None:
+        """The whole array ``name`` made from ``src`` when it is made already, else None."""
+        with self._lock:
+            hit = self._whole.get(name)
+        return hit[1] if hit is not None and hit[0] is src else None
+
+    def put(self, name: str, src: np.ndarray, out: np.ndarray) -> None:
+        """Keep ``out`` (made from ``src``) as the whole array ``name``."""
+        out.flags.writeable = False  # shared by every copy of the prepared log
+        with self._lock:
+            self._whole[name] = (src, out)
+
+    def take(self, name: str, src: np.ndarray) -> np.ndarray | None:
+        """The whole array ``name`` made from ``src``, handed over once (None: not kept)."""
+        with self._lock:
+            hit = self._whole.pop(name, None)
+        return None if hit is None or hit[0] is not src else hit[1]

@@ -8,9 +8,8 @@ as the torques (Gautier's parallel filtering), in chunks with overlap (bounded m
 from __future__ import annotations
 
 import math
-import threading
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -19,6 +18,7 @@ import numpy as np
 from robid_link.exceptions import DataError, DataWarning
 from robid_link.ident.data.filtering import (
     FILTER_ORDER,
+    Channels,
     Track,
     ZeroPhaseFilter,
     butter_lowpass_sos,
@@ -61,51 +61,6 @@ DEFAULT_CUTOFF_HZ = 10.0
 CHUNK = 8192
 
 
-class _Channels:
-    """The filtered channels of one prepared log: a ``Track`` per source array (made at
-    ``prepare``; made again when a step replaces the source, e.g. the torque) and, only when
-    someone asks for them, the whole filtered arrays."""
-
-    def __init__(self) -> None:
-        self._tracks: dict[str, Track] = {}
-        self._whole: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        self._lock = threading.Lock()
-
-    def track(self, name: str, src: np.ndarray, filt: ZeroPhaseFilter,
-              segments: Sequence[slice]) -> Track:
-        with self._lock:
-            hit = self._tracks.get(name)
-        if hit is not None and hit.source is src:
-            return hit
-        made = Track(src, filt, segments, 3 * filt.settle)  # outside the lock: channels at once
-        with self._lock:
-            hit = self._tracks.get(name)
-            if hit is None or hit.source is not src:
-                hit = self._tracks[name] = made
-            return hit
-
-    def whole(self, name: str, src: np.ndarray, make: Callable[[], np.ndarray]) -> np.ndarray:
-        with self._lock:
-            hit = self._whole.get(name)
-            if hit is not None and hit[0] is src:
-                return hit[1]
-        out = make()
-        self.put(name, src, out)
-        return out
-
-    def put(self, name: str, src: np.ndarray, out: np.ndarray) -> None:
-        """Keep ``out`` (made from ``src``) as the whole array ``name``."""
-        out.flags.writeable = False  # shared by every copy of the prepared log
-        with self._lock:
-            self._whole[name] = (src, out)
-
-    def take(self, name: str, src: np.ndarray) -> np.ndarray | None:
-        """The whole array ``name`` made from ``src``, handed over once (None: not kept)."""
-        with self._lock:
-            hit = self._whole.pop(name, None)
-        return None if hit is None or hit[0] is not src else hit[1]
-
-
 @dataclass(frozen=True)
 class Prepared:
     """One log after filtering: states for the regressor, raw and filtered torques. Frozen:
@@ -133,7 +88,7 @@ class Prepared:
     #: the filter resolves), the sign the joint's motion has on both sides (0 elsewhere): the
     #: states' velocity keeps it there (``data/sticks.py``)
     qd_sign: np.ndarray | None = None
-    channels: _Channels = field(default_factory=_Channels, compare=False, repr=False)
+    channels: Channels = field(default_factory=Channels, compare=False, repr=False)
 
     @property
     def tau(self) -> np.ndarray:
@@ -233,8 +188,12 @@ class Prepared:
         return self._track("tau", self.log.tau).window(lo, hi)
 
     def states(self, lo: int, hi: int) -> States:
+        """The states at rows [lo, hi): rows of the whole filtered arrays when they are made
+        already (the same numbers), else computed for the window."""
+        kept = [a for a in (self.channels.kept(*self._key(k)) for k in range(3))
+                if a is not None]
+        q, qd, qdd = (a[lo:hi] for a in kept) if len(kept) == 3 else self.kinematics(lo, hi)
         # time since the log's start: effects that change over the log (friction drift)
-        q, qd, qdd = self.kinematics(lo, hi)
         return States(q, qd, qdd, self.log.t[lo:hi] - self.log.t[0], self.transmission,
                       None if self.tau_rigid is None else self.tau_rigid[lo:hi],
                       None if self.tau_rate is None else self.tau_rate[lo:hi])
@@ -257,11 +216,24 @@ class Prepared:
         q, qd, qdd, tf = (np.concatenate([p[k] for p in parts]) for k in range(4))
         return q, qd, qdd, tf
 
-    def _whole(self, k: int) -> np.ndarray:
-        names = ("q", "qd", "qdd")
+    def _key(self, k: int) -> tuple[str, np.ndarray]:
+        """The name and source of the whole array of q (k = 0), q̇ (1) or q̈ (2)."""
         src = self.log.q if self.log.qd is None or k == 0 else self.log.qd
-        name = names[k] if k != 1 or self.qd_sign is None else f"qd~{id(self.qd_sign)}"
-        return self.channels.whole(name, src, lambda: self.kinematics(0, len(self.log))[k])
+        name = ("q", "qd", "qdd")[k]
+        return (name if k != 1 or self.qd_sign is None else f"qd~{id(self.qd_sign)}"), src
+
+    def _whole(self, k: int) -> np.ndarray:
+        kept = self.channels.kept(*self._key(k))
+        return kept if kept is not None else self.keep_kinematics()[k]
+
+    def keep_kinematics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The whole filtered q, q̇ and q̈ (``q``, ``qd``, ``qdd``), made in one read and kept:
+        ``states`` reads its windows from them from then on (for passes that read every row
+        several times)."""
+        made = self.kinematics(0, len(self.log))
+        for k, arr in enumerate(made):
+            self.channels.put(*self._key(k), arr)
+        return made
 
     @property
     def q(self) -> np.ndarray:

@@ -23,7 +23,6 @@ from robid_link.exceptions import DataError
 from robid_link.ident.data.logs import Log
 from robid_link.ident.data.preprocess import Prepared
 from robid_link.ident.diagnosis.candidates import (
-    SCREEN_MIN,
     Candidate,
     catalog_candidates,
     drop_slow_ripples,
@@ -111,30 +110,26 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                           interval=interval, method=method, motor_side=motor_side)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="robid-diagnose") as aside:
         # what reads only the fit and the logs runs on a second core beside the candidates
+        floor_f = aside.submit(getattr, result, "noise_floor")  # the raw torque's noise
         doubts_f = aside.submit(result_doubts, result)
         pool = residual_pool(robot, result)
         odd_f = aside.submit(_unexplained, pool.preps[0], pool.design, pool.theta,
                              resonance_hints)
         limits_f = aside.submit(log_limits, pool.preps[: len(pool.problem.preps)])
         notes = one_motion_note([*data, *(validate or ())])
-        turns = where_excess(pool, result.noise_floor)
+        turns = where_excess(pool, floor_f.result())
         # the candidates: profiled, then screened (structure, then in-sample) on a few rows
         rows = profile_rows(robot, pool)
         candidates, profiled = profile_candidates(
             rows, catalog_candidates(robot, model, pool.problem.transmission), aside)
         candidates = drop_slow_ripples(candidates, pool.states)
-        # the structural screen reads no rows: it runs beside the ripples' in-sample check
+        # the structural screen reads no rows: it runs beside every candidate's in-sample
+        # screen (those it finds absorbed are dropped from that one's answer)
         structural_f = aside.submit(structural_screen, robot, pool.problem.blocks, pool.base,
                                     pool.problem.transmission, candidates)
-        # a ripple's refinement projects off the model's basis on all the profiling rows:
-        # that SVD is made beside the screens when a ripple will pass them
-        ripples = [b for b in candidates if b.effect.name == "ripple"]
-        basis_f = (aside.submit(getattr, rows, "beyond_model")
-                   if ripples and max(screens(rows, ripples)) >= SCREEN_MIN else None)
+        shares = dict(zip(map(id, candidates), screens(rows, candidates), strict=True))
         structural = structural_f.result()
-        insample = insample_screen(rows, structural.new)
-        if basis_f is not None:
-            basis_f.result()
+        insample = insample_screen(rows, structural.new, shares)
         kept = refine_survivors(rows, insample.kept, profiled)
         kept += _shift_candidate(structural.new, kept)
         odd, doubts, limits = odd_f.result(), doubts_f.result(), limits_f.result()

@@ -190,17 +190,16 @@ def _refine_one(rows: ProfileRows, chosen: list[Block], hyper: str) -> list[Bloc
         if not z > a:
             out.append(b.with_opts(**{hyper: centre}))
             continue
-        # a ripple's period beyond the whole model (its joints' rows bound together, as in
-        # the cross-validation): a slow ripple hides in one joint's free model row
-        whole = eff.name == "ripple" or b.joint is None
-        beyond = rows.beyond_model if eff.name == "ripple" else (
-            rows.beyond(b) if b.joint is not None else
-            Beyond(np.zeros((rows.resid.size, 0)), rows.resid.reshape(-1)))
+        beyond = rows.beyond(b) if b.joint is not None else \
+            Beyond(np.zeros((rows.resid.size, 0)), rows.resid.reshape(-1))
 
-        def cost(logv: float, b: Block = b, beyond: Beyond = beyond, whole: bool = whole
-                 ) -> float:
+        def cost(logv: float, b: Block = b, beyond: Beyond = beyond) -> float:
             trial = b.with_opts(**{hyper: math.exp(logv)})
-            if not whole:
+            if eff.name == "ripple":
+                # its period beyond the whole model (its joints' rows bound together, as in
+                # the cross-validation): a slow ripple hides in one joint's free model row
+                return -float(screens(rows, [trial])[0])
+            if b.joint is not None:
                 return -beyond.share(rows.own_columns(trial))
             cols = trial.columns(rows.robot, rows.states)
             return -beyond.share(cols.reshape(-1, cols.shape[2]))
@@ -221,7 +220,7 @@ def _period_from_residual(q: np.ndarray, r: np.ndarray, span: tuple[float, float
     delta = pmin / 20.0
     k = np.round((q - q.min()) / delta).astype(np.int64)
     binned = np.bincount(k, weights=r - r.mean())
-    size = 1 << int(np.ceil(np.log2(max(4 * binned.size, 64.0 * pmax / delta))))
+    size = 1 << int(np.ceil(np.log2(max(4 * binned.size, 16.0 * pmax / delta))))
     power = np.abs(np.fft.rfft(binned, min(size, 1 << 22))) ** 2
     nfft = 2 * (power.size - 1)
     idx = np.arange(1, power.size)
@@ -243,34 +242,40 @@ class Beyond:
         self.yy = max(float(y @ y), 1e-300)
 
     def share(self, cols: np.ndarray) -> float:
-        c = cols - self.u @ (self.u.T @ cols)
-        cty = c.T @ self.y
-        coef = np.linalg.lstsq(c.T @ c, cty, rcond=None)[0]
-        return float(cty @ coef) / self.yy
+        """The share of ``y`` that the columns (N, k) explain beyond the helpers."""
+        return float(self.shares([cols])[0])
+
+    def shares(self, trials: Sequence[np.ndarray]) -> np.ndarray:
+        """``share`` of each trial's columns (N, k; one k for all) in one projection, the
+        least-squares fits on each trial's small Gram at once (minimum norm)."""
+        c = np.concatenate(trials, axis=1)
+        c = (c - self.u @ (self.u.T @ c)).T.reshape(len(trials), trials[0].shape[1], -1)
+        cty = c @ self.y  # (trials, k)
+        coef = np.linalg.pinv(c @ c.transpose(0, 2, 1), hermitian=True) @ cty[:, :, None]
+        return np.einsum("gk,gk->g", cty, coef[:, :, 0]) / self.yy
 
 
 def _profile_effect_grid(rows: ProfileRows, blocks: list[Block], hyper: str,
                          values: np.ndarray) -> list[Block]:
-    """Score ``values`` (G × blocks: each joint its own candidates) in G passes. With each
-    candidate the joint's own friction and its row of the model are refitted, so the model's
-    parameters cannot hide what the value explains."""
+    """Score ``values`` (G × blocks: each joint its own candidates), each joint's in one
+    projection (``Beyond.shares``). With each candidate the joint's own friction and its row
+    of the model are refitted, so the model's parameters cannot hide what the value
+    explains."""
     score = np.full(values.shape, -np.inf)
-    no_helpers = np.zeros((rows.resid.size, 0))
-    beyond = {bi: rows.beyond(b) for bi, b in enumerate(blocks) if b.joint is not None}
-    for gi, row in enumerate(values):
-        for bi, (b, v) in enumerate(zip(blocks, row, strict=True)):
-            trial = b.with_opts(**{hyper: float(v)})
-            key = (trial.key, tuple(sorted(trial.opts.items())))
-            if key in rows.tried:  # a second round meets the first's trials again
-                score[gi, bi] = rows.tried[key]
-                continue
+    for bi, b in enumerate(blocks):
+        trials = [b.with_opts(**{hyper: float(v)}) for v in values[:, bi]]
+        keys = [(t.key, tuple(sorted(t.opts.items()))) for t in trials]
+        # a second round meets the first's trials again
+        new = {key: t for key, t in zip(keys, trials, strict=True) if key not in rows.tried}
+        if new:
             if b.joint is not None:
-                score[gi, bi] = beyond[bi].share(rows.own_columns(trial))
+                beyond, cols = rows.beyond(b), [rows.own_columns(t) for t in new.values()]
             else:  # a global effect: all joints' residual together
-                cols = trial.columns(rows.robot, rows.states)
-                score[gi, bi] = Beyond(no_helpers, rows.resid.reshape(-1)).share(
-                    cols.reshape(-1, cols.shape[2]))
-            rows.tried[key] = score[gi, bi]
+                beyond = Beyond(np.zeros((rows.resid.size, 0)), rows.resid.reshape(-1))
+                cols = [c.reshape(-1, c.shape[2]) for c in
+                        (t.columns(rows.robot, rows.states) for t in new.values())]
+            rows.tried.update(zip(new, map(float, beyond.shares(cols)), strict=True))
+        score[:, bi] = [rows.tried[key] for key in keys]
     best = np.argmax(score, axis=0)
     return [b.with_opts(**{hyper: float(values[best[bi], bi])}) for bi, b in enumerate(blocks)]
 

@@ -18,9 +18,12 @@ from robid_link.ident.model.regressor import BaseSet
 from robid_link.ident.model.robot import Robot
 
 __all__ = ["ResidualPool", "residual_pool", "residual_rows", "profile_rows", "residual_dict",
-           "where_excess", "Where", "PROFILE_ROWS", "RESIDUAL_ROWS", "TURN_SHARE_MIN",
-           "TURN_CONCENTRATION", "FAST_MARGIN"]
+           "where_excess", "Where", "SPLINE_NODES", "PROFILE_ROWS", "RESIDUAL_ROWS",
+           "TURN_SHARE_MIN", "TURN_CONCENTRATION", "FAST_MARGIN"]
 
+#: the model's smooth torque is evaluated on this many rows per period of the cutoff, a
+#: cubic spline between (``with_predictions``): the rate the union Grams are read at
+SPLINE_NODES = 8
 #: rows (spread over the log) on which hyper-parameters are profiled
 PROFILE_ROWS = 3000
 #: about this many decimated rows carry the residual (evidence and profiling)
@@ -62,7 +65,11 @@ def residual_pool(robot: Robot, result: IdentResult) -> ResidualPool:
         raise ValueError("diagnose needs a result from identify (it keeps the fitted problem)")
     base, _ = base_set_for(robot, pb.blocks, pb.transmission)
     theta = np.asarray(result.theta)  # same model, same base set: identify's estimate
-    preps = with_predictions(robot, [*pb.preps, *pb.vpreps], design, theta)
+    for prep in (*pb.preps, *pb.vpreps):  # every pass below reads all the states' rows
+        prep.keep_kinematics()
+    filt = pb.preps[0].filt
+    preps = with_predictions(robot, [*pb.preps, *pb.vpreps], design, theta,
+                             every=max(1, int(filt.fs / (SPLINE_NODES * filt.cutoff_hz))))
     pieces, _ = split(preps[: len(pb.preps)] if pb.vpreps else preps, None, holdout=0.0)
     vpieces = split(preps[len(pb.preps):], None, holdout=0.0)[0] if pb.vpreps else []
     step = max(1, sum(len(p) for p in pieces) // RESIDUAL_ROWS)
@@ -110,13 +117,7 @@ def profile_rows(robot: Robot, pool: ResidualPool) -> ProfileRows:
     dense regressor on them: where hyper-parameters are profiled and candidates screened."""
     states = pool.states
     every = max(1, len(states) // PROFILE_ROWS)
-
-    def thin(a: np.ndarray | None) -> np.ndarray | None:
-        return None if a is None else a[::every]
-
-    sub_states = States(states.q[::every], states.qd[::every], states.qdd[::every],
-                        thin(states.t), states.transmission, thin(states.tau_rigid),
-                        thin(states.tau_rate))
+    sub_states = states.rows(slice(None, None, every))
     return ProfileRows(robot, sub_states, pool.raw[::every], pool.resid[::every],
                        pool.design.expand(pool.design.compact(sub_states)))
 
@@ -124,6 +125,7 @@ def profile_rows(robot: Robot, pool: ResidualPool) -> ProfileRows:
 def residual_dict(pool: ResidualPool) -> dict[str, np.ndarray]:
     """What the residual figures plot."""
     st = pool.states
+    assert st.t is not None  # the pool's rows carry their times (``residual_pool``)
     return {"r": pool.resid, "q": st.q, "qd": st.qd, "qdd": st.qdd, "t": st.t,
             "fs": np.array(pool.problem.preps[0].filt.fs / pool.step)}
 

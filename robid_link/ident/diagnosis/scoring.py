@@ -25,13 +25,13 @@ from robid_link.ident.fit.estimate import (
     GramSet,
     accumulate,
     accumulate_sets,
-    long_run_factor,
+    batch_factor,
     solve,
 )
 from robid_link.ident.model.effects import Block
 from robid_link.ident.model.robot import Robot
 
-__all__ = ["FOLDS", "BLOCKS", "Union", "union_design", "fold_masks", "FoldCV",
+__all__ = ["FOLDS", "BLOCKS", "Union", "union_design", "fold_masks", "FoldSums", "FoldCV",
            "cross_validation", "UnionGrams", "union_passes", "wald", "Score", "score_candidate",
            "given_others", "reversal_grams", "without_turns", "AT_TURNS", "suggestion",
            "one_motion_note", "rms"]
@@ -92,20 +92,57 @@ def fold_masks(k_blocks: int, folds: int) -> list[tuple[np.ndarray, np.ndarray]]
     return out
 
 
+@dataclass(frozen=True)
+class FoldSums:
+    """What the cross-validation and the Wald test read of the union Grams: each joint's
+    total (n, p+2, p+2), each block's last row (n, K, p+2: counts and sums) and, per fold,
+    each joint's training and held-out Grams — summed over contiguous runs of blocks (a
+    fold's held-out blocks and the gap round them are one run each), never copied."""
+
+    total: np.ndarray
+    last: np.ndarray
+    train: list[np.ndarray]  # per fold (n, p+2, p+2)
+    held: list[np.ndarray]  # per fold (n, p+2, p+2)
+
+    @classmethod
+    def of(cls, grams: Grams, folds: Sequence[tuple[np.ndarray, np.ndarray]]) -> FoldSums:
+        g, total = grams.g, grams.total()
+        train, held = [], []
+        for h, tr in folds:
+            run, gap = np.flatnonzero(h), np.flatnonzero(~tr)
+            held.append(g[:, run[0]: run[-1] + 1].sum(axis=1))
+            train.append(total - g[:, gap[0]: gap[-1] + 1].sum(axis=1))
+        return cls(total, g[:, :, grams.p + 1, :], train, held)
+
+    def without(self, other: FoldSums, joints: np.ndarray) -> FoldSums:
+        """These sums with ``other``'s taken off the equations of ``joints``."""
+        on = np.zeros(self.total.shape[0])
+        on[joints] = 1.0
+
+        def minus(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+            return a - b * on.reshape((-1,) + (1,) * (a.ndim - 1))
+
+        return FoldSums(minus(self.total, other.total), minus(self.last, other.last),
+                        [minus(a, b) for a, b in zip(self.train, other.train, strict=True)],
+                        [minus(a, b) for a, b in zip(self.held, other.held, strict=True)])
+
+
 class FoldCV:
     """Blocked cross-validation on sub-blocks of the union Grams.
 
     Per fold the model's block is factored once (column-scaled); a candidate's columns are
     added through the Schur complement, so scoring it costs O(p·k) instead of a refit.
+    ``sums``: the Grams' fold sums when made already (``FoldSums.without``).
     """
 
-    def __init__(self, grams: Grams, n_model: int, folds: list[tuple[np.ndarray, np.ndarray]]
-                 ) -> None:
+    def __init__(self, grams: Grams, n_model: int, folds: list[tuple[np.ndarray, np.ndarray]],
+                 sums: FoldSums | None = None) -> None:
         p = grams.p
         self.grams = grams
         self.p, self.n_model = p, n_model
-        self.train = [grams.g[:, tr].sum(axis=(0, 1)) for _, tr in folds]  # (p+2, p+2)
-        self.held = [grams.g[:, held].sum(axis=1) for held, _ in folds]  # (n, p+2, p+2)
+        self.sums = FoldSums.of(grams, folds) if sums is None else sums
+        self.train = [a.sum(axis=0) for a in self.sums.train]  # (p+2, p+2)
+        self.held = self.sums.held  # (n, p+2, p+2)
         self.counts = sum(h[:, p + 1, p + 1] for h in self.held)
         self.fact = []
         m = np.arange(n_model)
@@ -144,7 +181,7 @@ def cross_validation(union: Union, pool: ResidualPool, grams: Grams | None = Non
     ``union_passes``), split into FOLDS folds."""
     if grams is None:
         grams = accumulate(union.design, pool.pieces, union.keep, union.block_len,
-                           max_blocks=BLOCKS)
+                           max_blocks=BLOCKS, smooth=True)
     return FoldCV(grams, union.n_model, fold_masks(grams.g.shape[1], FOLDS))
 
 
@@ -168,20 +205,20 @@ def union_passes(union: Union, pool: ResidualPool, candidates: bool, transfer: b
             if candidates else []) + ([GramSet(2)] if transfer else [])
     if not sets:
         return UnionGrams(None, None, None)
-    grams = accumulate_sets(union.design, pool.pieces, union.keep, union.block_len, sets)
+    grams = accumulate_sets(union.design, pool.pieces, union.keep, union.block_len, sets,
+                            smooth=True)
     return UnionGrams(grams[0] if candidates else None, grams[1] if candidates else None,
                       grams[-1] if transfer else None)
 
 
-def wald(grams: Grams, sub: np.ndarray, cand: np.ndarray) -> tuple[float, np.ndarray]:
+def wald(sums: FoldSums, sub: np.ndarray, cand: np.ndarray) -> tuple[float, np.ndarray]:
     """p-value that the candidate's coefficients are zero, and the full-data θ."""
-    p = grams.p
+    p = sums.total.shape[1] - 2
     idx = np.concatenate((sub, [p, p + 1]))
-    sg = Grams(grams.g[:, :, idx[:, None], idx[None, :]], grams.n_rows)
-    tot = sg.total()
+    tot = sums.total[:, idx[:, None], idx[None, :]]
     s = sub.size
     theta, a_inv, _ = solve(tot[:, :s, :s].sum(0), tot[:, :s, s].sum(0), warn=False)
-    kappa, var = long_run_factor(sg, theta)
+    kappa, var = batch_factor(sums.total, sums.last, theta, sub)
     cov = a_inv @ np.einsum("j,jik->ik", kappa * var, tot[:, :s, :s]) @ a_inv
     pos = np.searchsorted(sub, cand) if np.all(np.diff(sub) > 0) else \
         np.array([int(np.flatnonzero(sub == c)[0]) for c in cand])
@@ -215,7 +252,7 @@ def score_candidate(robot: Robot, cv: FoldCV, union: Union, k: int) -> Score:
     blk, cand = union.blocks[k], union.positions[k]
     sub = np.concatenate((np.arange(union.n_model), cand))
     rmse1 = cv.rmse(cand)
-    p_value, theta = wald(cv.grams, sub, cand)
+    p_value, theta = wald(cv.sums, sub, cand)
     rws = blk.rows(robot, union.transmission)  # a coupled motor's friction: several joints
     before, after = rms(cv.base[rws]), rms(rmse1[rws])
     return Score(rmse1, p_value, theta[union.n_model:], rws, before, after,
@@ -233,7 +270,7 @@ def given_others(robot: Robot, cv: FoldCV, union: Union, k: int, others: Sequenc
     before = rms(cv.rmse(held)[rws])
     after = rms(cv.rmse(np.concatenate((held, cand)))[rws])
     sub = np.sort(np.concatenate((np.arange(union.n_model), held, cand)))
-    p_value, _ = wald(cv.grams, sub, cand)
+    p_value, _ = wald(cv.sums, sub, cand)
     return 1.0 - after / max(before, 1e-300), p_value
 
 
@@ -256,7 +293,8 @@ def reversal_grams(union: Union, pool: ResidualPool) -> Grams:
     own: ``union_passes`` gives them with the cross-validation's)."""
     pieces = [replace(pc, prep=replace(pc.prep, tau_mask=_reversal_rows(pc.prep)))
               for pc in pool.pieces]
-    return accumulate(union.design, pieces, union.keep, union.block_len, max_blocks=BLOCKS)
+    return accumulate(union.design, pieces, union.keep, union.block_len, max_blocks=BLOCKS,
+                      smooth=True)
 
 
 #: effects whose evidence lies at the turns too — friction laws of the velocity, and a delay
@@ -283,16 +321,13 @@ def without_turns(robot: Robot, cv: FoldCV, union: Union, turns: Grams, k: int,
     out = np.arange(robot.n)
     if blk.effect.name in AT_TURNS:
         out = np.setdiff1d(out, own)
-    g = cv.grams.g.copy()
-    g[out] -= turns.g[out]
-    n_rows = cv.grams.n_rows.copy()
-    n_rows[out] -= turns.n_rows[out]
-    grams = Grams(g, n_rows)
-    fold = FoldCV(grams, union.n_model, fold_masks(g.shape[1], FOLDS))
+    folds = fold_masks(cv.grams.g.shape[1], FOLDS)
+    sums = cv.sums.without(FoldSums.of(turns, folds), out)
+    fold = FoldCV(cv.grams, union.n_model, folds, sums)
     before = rms(fold.rmse(held)[own])
     after = rms(fold.rmse(np.concatenate((held, cand)))[own])
     sub = np.sort(np.concatenate((np.arange(union.n_model), held, cand)))
-    p_value, _ = wald(grams, sub, cand)
+    p_value, _ = wald(sums, sub, cand)
     return 1.0 - after / max(before, 1e-300), p_value
 
 

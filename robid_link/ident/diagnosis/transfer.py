@@ -50,9 +50,9 @@ def transfer_scorer(union: Union, pool: ResidualPool, train: Grams | None = None
     of the validation logs' rows."""
     if train is None:
         train = accumulate(union.design, pool.pieces, union.keep, union.block_len,
-                           max_blocks=2)
+                           max_blocks=2, smooth=True)
     return Transfer(train, accumulate(union.design, pool.vpieces, union.keep, union.block_len,
-                                      max_blocks=2), union.n_model)
+                                      max_blocks=2, smooth=True), union.n_model)
 
 
 def with_transfer(sug: Suggestion, score: Score, transfer: Transfer, cand: np.ndarray

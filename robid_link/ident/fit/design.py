@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -126,6 +127,21 @@ class Design:
                 out[:, dst] = vals.reshape(n_samp, -1)[:, pos]
         return out
 
+    @cached_property
+    def fast(self) -> Part | None:
+        """The columns of the blocks that are not smooth (``Effect.smooth``: a step at a
+        reversal, a position frequency the filter cuts) as a design of their own, with where
+        its compact columns sit in this one's; None when every block is smooth."""
+        widths = [len(b.param_names(self.robot)) for b in self.blocks]
+        smooth = np.repeat([b.effect.smooth for b in self.blocks], widths)
+        which = np.flatnonzero(~smooth[self.cols])
+        if not which.size:
+            return None
+        at = [self.offsets[j] + np.flatnonzero(np.isin(self.support[j], which))
+              for j in range(self.robot.n)]
+        return Part(Design(self.robot, self.blocks, self.cols[which], self.mask[:, which]),
+                    which, np.concatenate(at).astype(int))
+
     def predict(self, c: np.ndarray, theta: np.ndarray) -> np.ndarray:
         """Torques (N, n) from compact columns and base parameters."""
         return np.stack([c[:, self.joint_slice(j)] @ theta[self.support[j]]
@@ -137,6 +153,15 @@ class Design:
         for j in range(self.robot.n):
             out[:, j, self.support[j]] = c[:, self.joint_slice(j)]
         return out
+
+
+@dataclass(frozen=True)
+class Part:
+    """Some of a design's columns as a design of their own (``Design.fast``)."""
+
+    design: Design
+    which: np.ndarray  # its columns among the whole design's (θ[which] are its parameters)
+    at: np.ndarray  # its compact columns among the whole design's, in order
 
 
 # ----------------------------------------------------------------------------- base set
@@ -215,17 +240,30 @@ def design_chunks(design: Design, piece: Piece, interval: int = 1, filtered: boo
 
 
 def design_rows(design: Design, piece: Piece, window: tuple[int, int, int, int, bool],
-                interval: int = 1, buf: np.ndarray | None = None
+                interval: int = 1, buf: np.ndarray | None = None, smooth: bool = False
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The training rows of one ``filter_windows`` window of a piece: parallel-filtered
     compact columns (in ``buf`` when given), filtered torque and sample index, decimated by
-    ``interval``."""
+    ``interval``. With ``smooth`` only the columns of the blocks that are not smooth
+    (``Design.fast``) are filtered; the smooth ones are read at the kept rows of the filtered
+    states as they are (the filter would leave them unchanged: ``interval`` times fewer rows
+    to evaluate, nothing of theirs to filter)."""
     a, b, ca, cb, at_edge = window
     prep = piece.prep
-    c = design.compact(prep.states(ca, cb), buf)
-    prep.filt.apply_inplace(c, edges=at_edge)
-    return c[a - ca: b - ca: interval], prep.tau_f_rows(a, b)[::interval], \
-        np.arange(a, b, interval)
+    st = prep.states(ca, cb)
+    kept = slice(a - ca, b - ca, interval)
+    if smooth:
+        c = design.compact(st.rows(kept), buf)
+        part = design.fast
+        if part is not None:
+            fast = part.design.compact(st)
+            prep.filt.apply_inplace(fast, edges=at_edge)
+            c[:, part.at] = fast[kept]
+    else:
+        c = design.compact(st, buf)
+        prep.filt.apply_inplace(c, edges=at_edge)
+        c = c[kept]
+    return c, prep.tau_f_rows(a, b)[::interval], np.arange(a, b, interval)
 
 
 def predict_torque(design: Design, prep: Prepared, theta: np.ndarray,
@@ -240,29 +278,74 @@ def predict_torque(design: Design, prep: Prepared, theta: np.ndarray,
 
 
 def with_predictions(robot: Robot, preps: Sequence[Prepared], design: Design,
-                     theta: np.ndarray) -> list[Prepared]:
+                     theta: np.ndarray, every: int = 1) -> list[Prepared]:
     """The prepared logs with the current model's torque, rigid torque and torque rate on
     every sample (effects that depend on the model's own torque — load friction, delay, the
-    diagnosis' candidates — read them); the given ones are left as they are."""
-    blocks = design.blocks
-    n_rigid = 10 * robot.n if blocks and blocks[0].effect.name == "rigid_body" else 0
-    rigid_theta = theta.copy()
-    rigid_theta[np.asarray(design.cols) >= n_rigid] = 0.0
+    diagnosis' candidates — read them); the given ones are left as they are.
+
+    With ``every`` > 1 the smooth blocks' torque (all but ``Design.fast``'s) is evaluated on
+    every ``every``-th row of each stretch of the log and a cubic spline is drawn between:
+    functions of the filtered states, their content lies far below that rate's Nyquist
+    frequency (the diagnosis' rows, ``every`` the rate its Grams are read at). The other
+    blocks' torque is evaluated on every row."""
+    n_rigid = 10 * robot.n if design.blocks and design.blocks[0].effect.name == "rigid_body" \
+        else 0
+    part = design.fast if every > 1 else None
+    thetas = np.zeros((3, theta.size))  # every column's, the rigid body's, the smooth ones'
+    thetas[0] = theta
+    thetas[1, np.asarray(design.cols) < n_rigid] = theta[np.asarray(design.cols) < n_rigid]
+    thetas[2] = theta
+    if part is not None:
+        thetas[2, part.which] = 0.0
+    return [_predicted(prep, design, thetas, part, every) for prep in preps]
+
+
+def _predicted(prep: Prepared, design: Design, thetas: np.ndarray, part: Part | None,
+               every: int) -> Prepared:
+    """``with_predictions`` of one prepared log."""
+    n, n_j = len(prep.log), design.robot.n
+    full, rigid = np.zeros((n, n_j)), np.zeros((n, n_j))
+    stretches = _stretches(prep, every) if part is not None else []
+    nodes = np.concatenate([x for x, _ in stretches]) if stretches else np.zeros(0, int)
+    smooth = np.zeros((nodes.size, 2 * n_j))  # the smooth torque and the rigid one there
+
+    def work(a: int, slot: int) -> None:
+        b = min(a + CHUNK, n)
+        st = prep.states(a, b)
+        if part is None:
+            c = design.compact(st)
+            full[a:b], rigid[a:b] = design.predict(c, thetas[0]), design.predict(c, thetas[1])
+            return
+        full[a:b] = part.design.predict(part.design.compact(st), thetas[0][part.which])
+        at = np.flatnonzero((nodes >= a) & (nodes < b))
+        c = design.compact(st.rows(nodes[at] - a))
+        smooth[at] = np.hstack((design.predict(c, thetas[2]), design.predict(c, thetas[1])))
+
+    in_slots(range(0, n, CHUNK), work)
+    if stretches:
+        from scipy.interpolate import CubicSpline
+
+        at = 0
+        for x, rows in stretches:
+            y = smooth[at: at + x.size]
+            at += x.size
+            between = CubicSpline(x, y, axis=0)(rows) if x.size < rows.size else y
+            full[rows] += between[:, :n_j]
+            rigid[rows] = between[:, n_j:]
+    return replace(prep, tau_rigid=rigid, tau_model=full,
+                   # numpy's stub: a 2-D array's gradient is a pair, axis or not
+                   tau_rate=np.gradient(full, 1.0 / prep.filt.fs, axis=0))  # type: ignore[arg-type]
+
+
+def _stretches(prep: Prepared, every: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The log's filtered segments and the gaps between them, each as (its rows a spline
+    runs through: every ``every``-th and the last; its rows), in order. A stretch too short
+    for a spline runs through all its rows."""
+    n = len(prep.log)
+    edges = sorted({0, n, *(e for seg in prep.filtered_segments for e in seg)})
     out = []
-    for prep in preps:
-        n = len(prep.log)
-        full = np.zeros((n, robot.n))
-        rigid = np.zeros((n, robot.n))
-
-        def work(a: int, slot: int, prep: Prepared = prep, full: np.ndarray = full,
-                 rigid: np.ndarray = rigid) -> None:
-            b = min(a + CHUNK, len(prep.log))
-            c = design.compact(prep.states(a, b))
-            full[a:b] = design.predict(c, theta)
-            rigid[a:b] = design.predict(c, rigid_theta)
-
-        in_slots(range(0, n, CHUNK), work)
-        out.append(replace(prep, tau_rigid=rigid, tau_model=full,
-                           # numpy's stub: a 2-D array's gradient is a pair, axis or not
-                           tau_rate=np.gradient(full, 1.0 / prep.filt.fs, axis=0)))  # type: ignore[arg-type]
+    for a, b in zip(edges[:-1], edges[1:], strict=False):
+        rows = np.arange(a, b)
+        x = rows if b - a < 4 * every else np.unique(np.append(rows[::every], b - 1))
+        out.append((x, rows))
     return out

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numba
@@ -25,7 +25,7 @@ if TYPE_CHECKING:  # pieces only pass through to design_chunks
 
 __all__ = ["WEIGHTS", "TUNING", "RANK_TOL", "Grams", "accumulate", "GramSet",
            "accumulate_sets", "joint_stats", "solve", "Fit",
-           "fit", "long_run_factor"]
+           "fit", "long_run_factor", "batch_factor"]
 
 #: Robust weight functions of r = residual / (tuning · robust scale), as in MATLAB's
 #: robustfit; the tuning constants give 95 % efficiency at Gaussian noise.
@@ -60,13 +60,18 @@ class Grams:
 
     g: np.ndarray  # (n, K, p + 2, p + 2)
     n_rows: np.ndarray  # (n,) rows per joint (samples)
+    _total: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def p(self) -> int:
         return self.g.shape[2] - 2
 
     def total(self) -> np.ndarray:
-        return self.g.sum(axis=1)  # (n, p+2, p+2)
+        """(n, p+2, p+2): each joint's Gram over all the blocks (summed once; read-only)."""
+        if self._total is None:
+            self._total = self.g.sum(axis=1)
+            self._total.flags.writeable = False
+        return self._total
 
 
 def _n_rows(piece: Piece, interval: int) -> int:
@@ -75,16 +80,18 @@ def _n_rows(piece: Piece, interval: int) -> int:
 
 
 def accumulate(design: Design, pieces: Sequence[Piece], interval: int, block_len: int,
-               row_weight: RowWeight | None = None, max_blocks: int = 128) -> Grams:
+               row_weight: RowWeight | None = None, max_blocks: int = 128,
+               smooth: bool = False) -> Grams:
     """One pass over the training rows into per-joint, per-time-block augmented Grams.
 
     Joint j's rows are non-zero only in its structural columns, so its Gram is built on
     those alone (a large saving for the outer joints of a serial robot). The chunks of the
     pass go to ``SLOTS`` threads (``in_slots``), each summing into Grams of its own; the
-    slots' Grams are added in slot order.
+    slots' Grams are added in slot order. ``smooth``: the smooth blocks' columns are read at
+    the kept rows unfiltered (``design_rows``).
     """
     return accumulate_sets(design, pieces, interval, block_len, [GramSet(max_blocks)],
-                           row_weight)[0]
+                           row_weight, smooth)[0]
 
 
 @dataclass(frozen=True)
@@ -98,8 +105,8 @@ class GramSet:
 
 
 def accumulate_sets(design: Design, pieces: Sequence[Piece], interval: int, block_len: int,
-                    sets: Sequence[GramSet], row_weight: RowWeight | None = None
-                    ) -> list[Grams]:
+                    sets: Sequence[GramSet], row_weight: RowWeight | None = None,
+                    smooth: bool = False) -> list[Grams]:
     """``accumulate`` of several sets of Grams in one pass: each chunk's rows are built and
     filtered once and summed into every set (the same numbers as a pass per set)."""
     total = sum(_n_rows(pc, interval) for pc in pieces)
@@ -126,7 +133,8 @@ def accumulate_sets(design: Design, pieces: Sequence[Piece], interval: int, bloc
             first += len(range(window[0], window[1], interval))
     n_slots = min(SLOTS, len(tasks))
     slots = [[np.zeros(int(st[-1])) for _ in range(n_slots)] for st in starts]
-    rows = max((w[3] - w[2] for _, w, _ in tasks), default=0)
+    rows = max((len(range(w[0], w[1], interval)) if smooth else w[3] - w[2]
+                for _, w, _ in tasks), default=0)
     bufs: list[np.ndarray | None] = [None] * n_slots  # one chunk buffer per slot
     no_weight = np.ones((0, n))
     # rows without a joint's torque, per set and slot
@@ -136,12 +144,12 @@ def accumulate_sets(design: Design, pieces: Sequence[Piece], interval: int, bloc
         pc, window, at = task
         if bufs[slot] is None:
             bufs[slot] = np.empty((rows, design.nnz))
-        c, y, idx = design_rows(design, pc, window, interval, bufs[slot])
+        c, y, idx = design_rows(design, pc, window, interval, bufs[slot], smooth)
         y_c = np.ascontiguousarray(y)
         sw_rows = np.sqrt(row_weight(c, y, idx)) if row_weight is not None else no_weight
         for s, k in enumerate(k_blocks):
             bid = (np.arange(at, at + c.shape[0]) * k) // total
-            sw, mask = sw_rows, masks[s][id(pc)]
+            sw, mask, rows_c, y_s = sw_rows, masks[s][id(pc)], c, y_c
             if mask is not None:  # rows without a joint's torque: not its equation
                 mw = mask[idx].astype(float)
                 kept = np.array(mw.T, order="C").sum(axis=1)  # (numpy sums along rows slowly)
@@ -149,7 +157,10 @@ def accumulate_sets(design: Design, pieces: Sequence[Piece], interval: int, bloc
                 if s > 0 and not kept.any():  # nothing of this chunk in the set: zeros
                     continue
                 sw = mw if row_weight is None else sw_rows * mw
-            _gram_serial(c, y_c, np.ascontiguousarray(sw), bid, offsets, held[id(pc)],
+                some = np.flatnonzero(mw.any(axis=1))
+                if some.size < c.shape[0] // 2:  # a set of few rows (the reversals'): those
+                    rows_c, y_s, sw, bid = c[some], y_c[some], sw[some], bid[some]
+            _gram_serial(rows_c, y_s, np.ascontiguousarray(sw), bid, offsets, held[id(pc)],
                          slots[s][slot], starts[s], k, _TILE)
 
     in_slots(tasks, work)
@@ -303,19 +314,29 @@ def _weighted_solve(grams: Grams, wj: np.ndarray, names: Sequence[str] | None, w
     return theta, cov, a_inv, cond
 
 
-def long_run_factor(grams: Grams, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def long_run_factor(grams: Grams, theta: np.ndarray, cols: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Per joint: κ = long-run variance / variance of the residual, and the variance.
 
     Filtering correlates neighbouring residuals, so σ²(XᵀX)⁻¹ would be too optimistic.
     The long-run variance comes from batch means over the time blocks (the block sums of
     residuals are in the augmented Grams); with regressor columns that are smooth over the
-    residual's correlation time, Cov = A⁻¹ (Σ_j w_j² κ_j σ_j² G_j) A⁻¹.
+    residual's correlation time, Cov = A⁻¹ (Σ_j w_j² κ_j σ_j² G_j) A⁻¹. ``cols``: θ is of
+    these columns only (None: of all).
     """
-    p = grams.p
-    gb = grams.g
-    sums = gb[:, :, p + 1, p] - gb[:, :, p + 1, :p] @ theta  # (n, K)
-    counts = gb[:, :, p + 1, p + 1]
-    rss, mean = joint_stats(grams.total(), theta)
+    return batch_factor(grams.total(), grams.g[:, :, grams.p + 1, :], theta, cols)
+
+
+def batch_factor(total: np.ndarray, last: np.ndarray, theta: np.ndarray,
+                 cols: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``long_run_factor`` from what it reads of the Grams: the joints' totals (n, p+2, p+2)
+    and each block's last row (n, K, p+2: its rows' count, sums of columns and torque)."""
+    p = total.shape[1] - 2
+    cols = np.arange(p) if cols is None else np.asarray(cols)
+    sums = last[:, :, p] - last[:, :, cols] @ theta  # (n, K)
+    counts = last[:, :, p + 1]
+    idx = np.concatenate((cols, [p, p + 1]))
+    rss, mean = joint_stats(total[:, idx[:, None], idx[None, :]], theta)
     n = np.maximum(counts.sum(axis=1), 1.0)
     var = rss / n - mean**2
     lrv = ((sums - counts * mean[:, None]) ** 2).sum(axis=1) / n

@@ -79,6 +79,14 @@ class States:
     def __len__(self) -> int:
         return int(self.q.shape[0])
 
+    def rows(self, sl: slice | np.ndarray) -> States:
+        """The states of rows ``sl`` (a slice or an index array)."""
+        def take(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[sl]
+
+        return States(self.q[sl], self.qd[sl], self.qdd[sl], take(self.t), self.transmission,
+                      take(self.tau_rigid), take(self.tau_rate))
+
     def motor_velocity(self, joint: int) -> np.ndarray:
         """Velocity of motor ``joint`` (the joint's own velocity without a transmission)."""
         if self.transmission is None:
@@ -127,6 +135,10 @@ class Effect:
     sided: ClassVar[bool] = False
     #: the diagnosis scores it on every joint (False: only where a coupling makes it new)
     catalog: ClassVar[bool] = True
+    #: its columns are smooth functions of the filtered states — no step at a velocity
+    #: reversal, no position frequency the filter would cut — so the filter leaves them as
+    #: they are: the diagnosis reads them on its decimated rows without filtering them
+    smooth: ClassVar[bool] = False
     doc: ClassVar[str] = ""
 
     def param_names(self, robot: Robot, joint: int | None, opts: dict[str, Any]) -> list[str]:
@@ -201,6 +213,7 @@ def _motor_row(st: States, n: int, motor: int, cols: Sequence[np.ndarray]) -> np
 @register
 class RigidBody(Effect):
     name = "rigid_body"
+    smooth = True
     per_joint = False
     doc = "inertia, Coriolis/centrifugal and gravity torques (10 standard parameters per link)"
 
@@ -214,6 +227,7 @@ class RigidBody(Effect):
 @register
 class Viscous(Effect):
     name = "viscous"
+    smooth = True
     loads = "motor"
     sided = True
     doc = "viscous friction fv·q̇ (of the motor's velocity for motor-side logs)"
@@ -262,6 +276,7 @@ class Friction(Effect):
 @register
 class Offset(Effect):
     name = "offset"
+    smooth = True
     loads = "motor"
     sided = True
     doc = "constant torque offset (sensor bias, unmodelled static load)"
@@ -357,6 +372,7 @@ class Presliding(Effect):
 @register
 class Armature(Effect):
     name = "armature"
+    smooth = True
     loads = "motor"
     sided = True
     doc = "rotor inertia through the gear (J_m·r² on the joint side)"
@@ -372,6 +388,7 @@ class Armature(Effect):
 @register
 class Spring(Effect):
     name = "spring"
+    smooth = True
     loads = "joint"
     doc = "a smooth function of the joint angle (Fourier series in q, with its mean)"
     options = frozenset({"order"})
