@@ -12,6 +12,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from robid_link.ident.model.dynamics import cholesky, cholesky_solve
+
 __all__ = ["pseudo_inertia", "standard_from_pseudo", "log_cholesky", "from_log_cholesky",
            "lm_solve", "LOGDET_GRAD", "OFF"]
 
@@ -221,33 +223,16 @@ def _normal_equations(a, b, lam, w, l0_inv, pi, phi, d, du, hess, grad):
 
 @numba.njit(cache=True, nogil=True)
 def _damped_solve(hess, diag, mu, grad, lo, step):
-    """step with (H + μ diag) step = −grad by Cholesky; False when not positive definite."""
-    p = grad.size
+    """step with (H + μ diag) step = −grad by Cholesky; False when not positive definite (a
+    pivot ≤ 0 or NaN: its square root is NaN)."""
     m = hess.copy()
-    for r in range(p):
+    for r in range(grad.size):
         m[r, r] += mu * diag[r]
-    lo[:] = 0.0
-    for r in range(p):
-        for c in range(r + 1):
-            s = m[r, c]
-            for k in range(c):
-                s -= lo[r, k] * lo[c, k]
-            if r == c:
-                if not s > 0.0:  # also NaN
-                    return False
-                lo[r, r] = np.sqrt(s)
-            else:
-                lo[r, c] = s / lo[c, c]
-    for r in range(p):
-        s = -grad[r]
-        for k in range(r):
-            s -= lo[r, k] * step[k]
-        step[r] = s / lo[r, r]
-    for r in range(p - 1, -1, -1):
-        s = step[r]
-        for k in range(r + 1, p):
-            s -= lo[k, r] * step[k]
-        step[r] = s / lo[r, r]
+    cholesky(m, lo)
+    for r in range(grad.size):
+        if not lo[r, r] > 0.0:
+            return False
+    cholesky_solve(lo, -grad, step)
     return True
 
 
