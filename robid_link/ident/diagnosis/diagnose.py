@@ -12,6 +12,7 @@ ranking (verdict.py); the sentence of evidence under each suggestion (evidence.p
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -130,7 +131,8 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         shares = dict(zip(map(id, candidates), screens(rows, candidates), strict=True))
         structural = structural_f.result()
         insample = insample_screen(rows, structural.new, shares)
-        kept = refine_survivors(rows, insample.kept, profiled)
+        kept = refine_survivors(rows, insample.kept, profiled, functools.cache(
+            lambda: profile_rows(robot, pool, len(pool.states))))
         kept += _shift_candidate(structural.new, kept)
         odd, doubts, limits = odd_f.result(), doubts_f.result(), limits_f.result()
     base = len(doubts)
