@@ -35,6 +35,7 @@ def _stribeck_case(robot, tmp_path, delta: float, joint: int, seed: int = 1
         assert (top.effect, top.joint) == ("stribeck", joint), dg.summary()
         assert top.hypers["shape"] == pytest.approx(delta, rel=0.15), top.hypers
         assert top.fields["shape"] == pytest.approx(top.hypers["shape"], rel=1e-4)
+        assert top.fields["breakaway"] > 0.0, top.evidence  # static above Coulomb friction
         spec = EffectSpec(top.effect, top.joint, tuple(sorted(top.hypers.items())))
         before = identify(robot, logs, DEFAULT_MODEL).rmse[joint - 1]
         ref = identify(robot, load_logs(robot, [cp]), DEFAULT_MODEL).rmse[joint - 1]

@@ -75,6 +75,7 @@ from robid_link.ident.diagnosis.verdict import (
     one_by_one,
     rank,
     result_doubts,
+    unphysical_note,
 )
 from robid_link.ident.fit.design import Design
 from robid_link.ident.fit.identify import identify
@@ -195,7 +196,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                                           [at[b.label()] for b in better] + extra),
         nuisance)
     notes += _known_torque_pointers(ranked.suggested, law_rows, [k.block for k in kept])
-    notes += explained + not_repeating_note(ranked.rejected)
+    notes += explained + not_repeating_note(ranked.rejected) + unphysical_note(ranked.rejected)
     notes += not_transferring_note(ranked.not_transferring)
     notes += limits_note(limits, held_back)
     if held_back:
