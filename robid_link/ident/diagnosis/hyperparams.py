@@ -176,11 +176,12 @@ def _refine_jointly(rows: ProfileRows, b: Block, hypers: list[str]) -> Block:
     their logarithms from the grid's choice, within their bounds (the grid's span). On their
     ridge, one at a time between grid neighbours stopped short of the optimum (a hidden δ 1
     refined to 0.84 where the optimum lies at 0.98), and a simplex stuck at a bound."""
-    box = np.log([bounds(rows, b, h) for h in hypers])  # (hypers, 2)
+    span = np.array([bounds(rows, b, h) for h in hypers])  # (hypers, 2)
+    box = np.log(span)
     beyond = rows.beyond(b)
 
-    def at(x: np.ndarray) -> Block:
-        vals = np.exp(np.clip(x, box[:, 0], box[:, 1]))
+    def at(x: np.ndarray) -> Block:  # exp(log(lo)) may round below lo: clipped again
+        vals = np.clip(np.exp(np.clip(x, box[:, 0], box[:, 1])), span[:, 0], span[:, 1])
         return b.with_opts(**{h: float(v) for h, v in zip(hypers, vals, strict=True)})
 
     def cost(x: np.ndarray) -> float:
