@@ -63,6 +63,7 @@ from robid_link.ident.diagnosis.verdict import (
     one_by_one,
     rank,
     result_doubts,
+    unphysical_note,
 )
 from robid_link.ident.fit.design import base_set_for, design_rows, with_predictions
 from robid_link.ident.fit.estimate import Grams, accumulate
@@ -393,6 +394,7 @@ def test_score_candidate_gain_and_test(arm3, ripple, union):
     assert rip.gain == pytest.approx(1 - rip.after / rip.before)
     assert rip.coef.shape == (2,)
     assert np.hypot(*rip.coef) == pytest.approx(0.6, rel=0.1)  # the hidden amplitude
+    assert rip.se.shape == (2,) and np.all((rip.se > 0) & (rip.se < 0.05 * np.hypot(*rip.coef)))
     assert offset.rows == [2] and offset.gain < GAIN_MIN
 
 
@@ -499,6 +501,23 @@ def test_judge_needs_the_gain_the_test_and_the_transfer():
         "offset@1 won the cross-validation but did not cut the error on the validation "
         "logs: not suggested"]
     assert not_transferring_note([]) == []
+
+
+def test_a_stribeck_with_a_negative_breakaway_is_not_suggested():
+    """Static below Coulomb friction is friction rising with speed: no Stribeck curve; a
+    breakaway within 2σ of zero, or another effect's coefficients, are not judged by sign."""
+    rising = _sug("stribeck", 2, gain=0.595, breakaway=-3.82, breakaway_sigma=0.058)
+    faint = _sug("stribeck", 3, gain=0.2, breakaway=-0.05, breakaway_sigma=0.03)
+    real = _sug("stribeck", 1, gain=0.8, breakaway=2.5, breakaway_sigma=0.015)
+    power = _sug("friction_power", 2, gain=0.587)
+    v = judge([rising, faint, real, power])
+    assert v.suggested == [faint, real, power] and v.rejected == [rising]
+    assert unphysical_note(v.rejected) == [
+        "stribeck@2 cuts the error (gain 59.5 %) but its fitted breakaway fst_2 = -3.82 ± "
+        "0.058 N·m is negative: the friction rises with speed from standstill, not a Stribeck "
+        "curve (a velocity-dependent law such as friction_power describes it): not suggested"]
+    assert unphysical_note([_sug("stribeck", 2, gain=0.01, breakaway=-3.0,
+                                 breakaway_sigma=0.1)]) == []  # not worth a word
 
 
 def test_rank_prefers_transfer_then_physics_then_fewer_parameters():

@@ -19,9 +19,11 @@ from ..conftest import ROBOTS
 from ..sims.cases import BASE, hidden, plant_log, quiet
 
 
-def _stribeck_case(robot, tmp_path, delta: float, joint: int, seed: int = 1) -> float:
+def _stribeck_case(robot, tmp_path, delta: float, joint: int, seed: int = 1
+                   ) -> tuple[float, dict[str, float]]:
     """The share of the excess held-out MSE (hidden minus clean log) the top suggestion
-    removes; asserts it is Stribeck on ``joint`` with δ within 15 %."""
+    removes, and its hyper-parameters; asserts it is Stribeck on ``joint`` with δ within
+    15 %."""
     with warnings.catch_warnings():
         quiet()
         hp, _ = plant_log(robot, tmp_path / "h.csv", seed=seed,
@@ -33,20 +35,21 @@ def _stribeck_case(robot, tmp_path, delta: float, joint: int, seed: int = 1) -> 
         assert (top.effect, top.joint) == ("stribeck", joint), dg.summary()
         assert top.hypers["shape"] == pytest.approx(delta, rel=0.15), top.hypers
         assert top.fields["shape"] == pytest.approx(top.hypers["shape"], rel=1e-4)
+        assert top.fields["breakaway"] > 0.0, top.evidence  # static above Coulomb friction
         spec = EffectSpec(top.effect, top.joint, tuple(sorted(top.hypers.items())))
         before = identify(robot, logs, DEFAULT_MODEL).rmse[joint - 1]
         ref = identify(robot, load_logs(robot, [cp]), DEFAULT_MODEL).rmse[joint - 1]
         after = identify(robot, logs, DEFAULT_MODEL.with_added(spec)).rmse[joint - 1]
     excess = before**2 - ref**2
     assert excess > 0
-    return 1.0 - (after**2 - ref**2) / excess
+    return 1.0 - (after**2 - ref**2) / excess, top.hypers
 
 
 @pytest.mark.parametrize("delta", [0.6, 1.0])
 def test_stribeck_of_any_shape_is_removed(arm3, tmp_path, delta):
     """With δ fixed at 2 the δ = 0.6 breakaway was taken for friction_power, whose fit raised
     the error (−200 % of the excess removed); δ = 1 for presliding."""
-    removed = _stribeck_case(arm3, tmp_path, delta, joint=2)
+    removed, _ = _stribeck_case(arm3, tmp_path, delta, joint=2)
     assert removed >= 0.95, f"δ {delta}: {100 * removed:.1f} % of the excess removed"
 
 
@@ -71,9 +74,11 @@ def test_identify_profiles_the_shape_of_a_model_stribeck(arm3, tmp_path):
                                               ("industrial6", 5)])
 def test_stribeck_matrix(tmp_path, robot_name, joint):
     robot = load_robot(ROBOTS / f"{robot_name}.yaml")
-    removed = {(d, s): _stribeck_case(robot, tmp_path, d, joint, seed=s)
-               for d in (0.5, 1.0, 1.5, 2.0) for s in (1, 2)}
+    cases = {(d, s): _stribeck_case(robot, tmp_path, d, joint, seed=s)
+             for d in (0.5, 1.0, 1.5, 2.0) for s in (1, 2)}
     print(f"{robot_name} joint {joint}: " + ", ".join(
-        f"δ {d} seed {s} {100 * v:.1f} %" for (d, s), v in removed.items()))
+        f"δ {d} seed {s}: δ̂ {h['shape']:.3f} vs {h['vs']:.4f} {100 * v:.1f} %"
+        for (d, s), (v, h) in cases.items()))
+    removed = {key: v for key, (v, _) in cases.items()}
     assert min(removed.values()) >= 0.95
     assert np.isfinite(list(removed.values())).all()

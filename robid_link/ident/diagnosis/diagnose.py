@@ -12,6 +12,7 @@ ranking (verdict.py); the sentence of evidence under each suggestion (evidence.p
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -74,6 +75,7 @@ from robid_link.ident.diagnosis.verdict import (
     one_by_one,
     rank,
     result_doubts,
+    unphysical_note,
 )
 from robid_link.ident.fit.design import Design
 from robid_link.ident.fit.identify import identify
@@ -130,7 +132,8 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
         shares = dict(zip(map(id, candidates), screens(rows, candidates), strict=True))
         structural = structural_f.result()
         insample = insample_screen(rows, structural.new, shares)
-        kept = refine_survivors(rows, insample.kept, profiled)
+        kept = refine_survivors(rows, insample.kept, profiled, functools.cache(
+            lambda: profile_rows(robot, pool, len(pool.states))))
         kept += _shift_candidate(structural.new, kept)
         odd, doubts, limits = odd_f.result(), doubts_f.result(), limits_f.result()
     base = len(doubts)
@@ -193,7 +196,7 @@ def diagnose(robot: Robot, data: Sequence[Log], model: Model, *,
                                           [at[b.label()] for b in better] + extra),
         nuisance)
     notes += _known_torque_pointers(ranked.suggested, law_rows, [k.block for k in kept])
-    notes += explained + not_repeating_note(ranked.rejected)
+    notes += explained + not_repeating_note(ranked.rejected) + unphysical_note(ranked.rejected)
     notes += not_transferring_note(ranked.not_transferring)
     notes += limits_note(limits, held_back)
     if held_back:

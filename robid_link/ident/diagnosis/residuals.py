@@ -112,11 +112,12 @@ def residual_rows(pieces: Sequence[Piece], step: int
     return np.concatenate(res), np.concatenate(raw), st
 
 
-def profile_rows(robot: Robot, pool: ResidualPool) -> ProfileRows:
-    """About PROFILE_ROWS of the residual rows, spread over the whole log, with the model's
-    dense regressor on them: where hyper-parameters are profiled and candidates screened."""
+def profile_rows(robot: Robot, pool: ResidualPool, count: int = PROFILE_ROWS) -> ProfileRows:
+    """About ``count`` of the residual rows, spread over the whole log, with the model's
+    dense regressor on them: where hyper-parameters are profiled and candidates screened
+    (PROFILE_ROWS), or where a shape is refined (every residual row)."""
     states = pool.states
-    every = max(1, len(states) // PROFILE_ROWS)
+    every = max(1, len(states) // count)
     sub_states = states.rows(slice(None, None, every))
     return ProfileRows(robot, sub_states, pool.raw[::every], pool.resid[::every],
                        pool.design.expand(pool.design.compact(sub_states)))

@@ -211,8 +211,10 @@ def union_passes(union: Union, pool: ResidualPool, candidates: bool, transfer: b
                       grams[-1] if transfer else None)
 
 
-def wald(sums: FoldSums, sub: np.ndarray, cand: np.ndarray) -> tuple[float, np.ndarray]:
-    """p-value that the candidate's coefficients are zero, and the full-data θ."""
+def wald(sums: FoldSums, sub: np.ndarray, cand: np.ndarray
+         ) -> tuple[float, np.ndarray, np.ndarray]:
+    """p-value that the candidate's coefficients are zero, the full-data θ and the
+    candidate's coefficients' standard errors (the long-run-variance covariance's)."""
     p = sums.total.shape[1] - 2
     idx = np.concatenate((sub, [p, p + 1]))
     tot = sums.total[:, idx[:, None], idx[None, :]]
@@ -224,14 +226,15 @@ def wald(sums: FoldSums, sub: np.ndarray, cand: np.ndarray) -> tuple[float, np.n
         np.array([int(np.flatnonzero(sub == c)[0]) for c in cand])
     beta = theta[pos]
     c_cc = cov[np.ix_(pos, pos)]
+    se = np.sqrt(np.clip(np.diag(c_cc), 0.0, None))
     # rank-revealing: directions the data cannot tell apart carry no degrees of freedom
     evals, evecs = np.linalg.eigh((c_cc + c_cc.T) / 2)
     keep = evals > max(evals.max(), 0.0) * 1e-10
     if not keep.any():
-        return 1.0, theta
+        return 1.0, theta, se
     z = evecs[:, keep].T @ beta
     stat = float(np.sum(z * z / evals[keep]))
-    return float(chi2.sf(stat, int(keep.sum()))), theta
+    return float(chi2.sf(stat, int(keep.sum()))), theta, se
 
 
 @dataclass(frozen=True)
@@ -241,6 +244,7 @@ class Score:
     rmse: np.ndarray  # per joint, held out (CV), with the candidate
     p_value: float  # Wald test that its coefficients are zero
     coef: np.ndarray  # its coefficients, fitted on all the rows
+    se: np.ndarray  # … and their standard errors (the Wald test's covariance)
     rows: list[int]  # the joints whose torque it loads
     before: float  # RMS over those joints of the held-out RMSE without it …
     after: float  # … and with it
@@ -252,10 +256,10 @@ def score_candidate(robot: Robot, cv: FoldCV, union: Union, k: int) -> Score:
     blk, cand = union.blocks[k], union.positions[k]
     sub = np.concatenate((np.arange(union.n_model), cand))
     rmse1 = cv.rmse(cand)
-    p_value, theta = wald(cv.sums, sub, cand)
+    p_value, theta, se = wald(cv.sums, sub, cand)
     rws = blk.rows(robot, union.transmission)  # a coupled motor's friction: several joints
     before, after = rms(cv.base[rws]), rms(rmse1[rws])
-    return Score(rmse1, p_value, theta[union.n_model:], rws, before, after,
+    return Score(rmse1, p_value, theta[union.n_model:], se, rws, before, after,
                  1.0 - after / max(before, 1e-300))
 
 
@@ -270,7 +274,7 @@ def given_others(robot: Robot, cv: FoldCV, union: Union, k: int, others: Sequenc
     before = rms(cv.rmse(held)[rws])
     after = rms(cv.rmse(np.concatenate((held, cand)))[rws])
     sub = np.sort(np.concatenate((np.arange(union.n_model), held, cand)))
-    p_value, _ = wald(cv.sums, sub, cand)
+    p_value, _, _ = wald(cv.sums, sub, cand)
     return 1.0 - after / max(before, 1e-300), p_value
 
 
@@ -327,15 +331,21 @@ def without_turns(robot: Robot, cv: FoldCV, union: Union, turns: Grams, k: int,
     before = rms(fold.rmse(held)[own])
     after = rms(fold.rmse(np.concatenate((held, cand)))[own])
     sub = np.sort(np.concatenate((np.arange(union.n_model), held, cand)))
-    p_value, _ = wald(sums, sub, cand)
+    p_value, _, _ = wald(sums, sub, cand)
     return 1.0 - after / max(before, 1e-300), p_value
 
 
 def suggestion(blk: Block, score: Score, signatures: Signatures) -> Suggestion:
     """The candidate as a suggestion: its figures, its evidence sentence and fields (with a
-    ripple, whether the residual repeats one period on)."""
+    ripple, whether the residual repeats one period on; with a Stribeck curve, its fitted
+    breakaway and σ, which ``verdict.judge`` reads)."""
     text, fields = evidence_sentence(blk, score.before, score.after, signatures.of(blk),
                                      score.coef)
+    if blk.effect.name == "stribeck" and score.coef.size:
+        fields["breakaway"] = float(f"{score.coef[0]:.4g}")
+        fields["breakaway_sigma"] = float(f"{score.se[0]:.3g}")
+        text += (f"; breakaway {blk.param_names(signatures.robot)[0]} "
+                 f"{fields['breakaway']:.4g} ± {fields['breakaway_sigma']:.3g} N·m")
     if blk.effect.name == "ripple" and blk.joint is not None:
         fields["repeat"] = round(repeats(signatures.states.q[:, blk.joint],
                                          signatures.resid[:, blk.joint],

@@ -15,7 +15,8 @@ from robid_link.ident.model.effects import effect_label
 
 __all__ = ["Suggestion", "Diagnosis", "Verdicts", "GAIN_MIN", "P_MAX", "TRANSFER_MIN",
            "EQUIVALENT", "judge", "rank", "one_by_one", "result_doubts", "floor_doubts",
-           "not_transferring_note", "not_repeating_note", "physics_order", "prefer_simpler"]
+           "not_transferring_note", "not_repeating_note", "unphysical_note", "physics_order",
+           "prefer_simpler"]
 
 #: a suggestion must cut its joint's held-out RMSE by at least this fraction …
 GAIN_MIN = 0.05
@@ -34,6 +35,9 @@ REPEAT_MIN = 0.5
 #: two explanations of one joint leave the same held-out error within this fraction: the log
 #: cannot tell them apart
 EQUIVALENT = 0.01
+#: a Stribeck curve's breakaway (static minus Coulomb friction) more than this many σ below
+#: zero is friction rising with speed: not a Stribeck curve, whatever it cuts
+BREAKAWAY_SIGMAS = 2.0
 #: suggestions spelled out in the terminal summary (all of them go to the JSON)
 SUMMARY_MAX = 5
 
@@ -150,12 +154,14 @@ class Verdicts:
 
 
 def judge(scored: list[Suggestion]) -> Verdicts:
-    """Suggested when the gain is at least GAIN_MIN at p ≤ P_MAX and, for a ripple, the
-    residual repeats one period on — unless, on validation logs, it raises the error or cuts
-    its own rows' by under TRANSFER_MIN; in candidate order."""
+    """Suggested when the gain is at least GAIN_MIN at p ≤ P_MAX, for a ripple the residual
+    repeats one period on and for a Stribeck curve the breakaway is not negative — unless, on
+    validation logs, it raises the error or cuts its own rows' by under TRANSFER_MIN; in
+    candidate order."""
     good, bad, lost = [], [], []
     for sug in scored:
-        if sug.gain >= GAIN_MIN and sug.p_value <= P_MAX and not _not_repeating(sug):
+        if sug.gain >= GAIN_MIN and sug.p_value <= P_MAX and not _not_repeating(sug) \
+                and not _unphysical(sug):
             if sug.transfer is not None and (sug.transfer <= 0.0 or
                                              sug.fields["transfer_own"] < TRANSFER_MIN):
                 lost.append(sug)
@@ -191,6 +197,27 @@ def not_repeating_note(rejected: list[Suggestion]) -> list[str]:
                       f"{s.fields.get('repeat', 0.0):.2g})" for s in odd[:6])
             + f" cut the error, but the residual does not repeat along the angle one period on "
             f"(correlation under {REPEAT_MIN:g}): not cogging or meshing, not suggested"]
+
+
+def _unphysical(sug: Suggestion) -> bool:
+    """A Stribeck curve whose friction rises from standstill (breakaway below zero beyond
+    BREAKAWAY_SIGMAS σ). The sign rule is for Stribeck only: presliding's fp below zero beside
+    Coulomb's step is friction falling with speed, and friction_power's velocity term beside
+    the model's own viscous friction may bend either way."""
+    if sug.effect != "stribeck" or "breakaway" not in sug.fields:
+        return False
+    return sug.fields["breakaway"] < -BREAKAWAY_SIGMAS * sug.fields["breakaway_sigma"]
+
+
+def unphysical_note(rejected: list[Suggestion]) -> list[str]:
+    """The Stribeck curves that cut the error with a negative breakaway, one line each."""
+    return [f"{s.label()} cuts the error (gain {100 * s.gain:.3g} %) but its fitted breakaway "
+            f"fst_{'' if s.side is None else s.side[0]}{s.joint} = "
+            f"{s.fields['breakaway']:.3g} ± {s.fields['breakaway_sigma']:.2g} N·m is negative: "
+            "the friction rises with speed from standstill, not a Stribeck curve (a "
+            "velocity-dependent law such as friction_power describes it): not suggested"
+            for s in rejected if _unphysical(s) and s.gain >= GAIN_MIN
+            and s.p_value <= P_MAX][:6]
 
 
 Given = Callable[["Suggestion", list["Suggestion"]], tuple[float, float]]

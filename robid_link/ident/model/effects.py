@@ -335,7 +335,7 @@ class Stribeck(Effect):
     # both profiled (the velocity first): a fixed shape leaves part of a breakaway unexplained
     hypers = {"vs": Hyper(0.05, (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.4),
                           "Stribeck velocity, rad/s (of the side's velocity)", "velocity"),
-              "shape": Hyper(2.0, (0.5, 0.75, 1.0, 1.5, 2.0, 3.0),
+              "shape": Hyper(2.0, (0.35, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0),
                              "shape exponent δ of exp(−|q̇/vs|^δ): 1 exponential, 2 Gaussian")}
     options = frozenset({"vs", "shape"})
 
