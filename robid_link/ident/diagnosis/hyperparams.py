@@ -15,7 +15,7 @@ from scipy.optimize import minimize, minimize_scalar
 from robid_link.ident.model.effects import REGISTRY, Block, States
 from robid_link.ident.model.robot import Robot
 
-#: friction_drift's time constants from here on mean a linear drift (see effects.py)
+#: friction_drift's time constants from here on mean a linear drift (see model/catalog.py)
 LINEAR_DRIFT = 1e5
 
 __all__ = ["ProfileRows", "profile_effect", "refine_effect", "screen", "screens", "basis",
