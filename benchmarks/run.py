@@ -330,7 +330,7 @@ def _modbus(fig: Figures, args: argparse.Namespace) -> None:
 
 
 def _consistent(fig: Figures, args: argparse.Namespace) -> None:  # issue 15 item 6
-    from benchmarks.consistent import bench_consistent
+    from benchmarks.consistent import bench_consistent, bench_consistent_kuka, report_kuka
     from benchmarks.consistent import report as report_consistent
 
     r = bench_consistent(ROBOT, _make_npz)
@@ -338,6 +338,12 @@ def _consistent(fig: Figures, args: argparse.Namespace) -> None:  # issue 15 ite
     fig.add("consistent_ratio", r["ratio"], "×", label="physically consistent fit vs OLS, 60 s "
             "at 1 kHz", baseline=("OLS", r["ols_s"], "s"), target="≤ 2×",
             ok=r["ratio"] <= 2, consistent_s=r["consistent_s"])
+    k = bench_consistent_kuka(ROOT.parent / "shared" / "data" / "kuka_lwr4")
+    if k is not None:
+        report_kuka(k)
+        fig.add("consistent_kuka_ratio", k["ratio"], "×", label="physically consistent fit vs "
+                "OLS, real KUKA LWR4+ logs 1+2 → 3", baseline=("OLS", k["ols_s"], "s"),
+                consistent_s=k["consistent_s"], evaluations=k["n_evaluations"])
 
 
 def _elasticity(fig: Figures, args: argparse.Namespace) -> None:  # issue 12 item 5
