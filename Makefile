@@ -51,9 +51,10 @@ wheel-check: $(BIN)/python
 		&& tail -n 2 demo.txt && test -f demo-out/summary.txt
 
 # ruff, then mypy on the package (it ships py.typed: users' type checkers read our annotations)
+# as installed: drivers/, fakes/, examples/ under robid_link (.ci/mypy-tree; one run, all of it)
 lint: $(DEVSTAMP)
-	$(BIN)/ruff check robid_link drivers fakes tests benchmarks
-	$(BIN)/mypy robid_link
+	$(BIN)/ruff check robid_link drivers fakes tests benchmarks .ci/mypy-tree
+	$(BIN)/python .ci/mypy-tree
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

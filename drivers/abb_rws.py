@@ -141,7 +141,8 @@ class AbbRwsDriver(Driver):
     @staticmethod
     def _check_url(url: str, version: int) -> URL:
         u = URL(url)  # checked by the Url option: a scheme, a host, no credentials, no path
-        if version == 2 and u.scheme == "http" and not _loopback(u.host):
+        # (the option leaves no URL without a host; none would count as not loopback)
+        if version == 2 and u.scheme == "http" and not _loopback(u.host or ""):
             raise ConfigError("driver.url: RWS 2.0 sends the password with every request "
                               "(Basic auth): use https://")
         return u.with_path("/")

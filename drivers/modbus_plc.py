@@ -158,7 +158,7 @@ class ModbusPlcDriver(Driver):
         self.io_timeout_s = o.io_timeout_s
         self.connect_retries = o.connect_retries
         if o.rapid:
-            self.capabilities = frozenset({CAP_RAPID})  # type: ignore[misc]
+            self.capabilities = frozenset({CAP_RAPID})
         self.transfer = ShareTransfer(o.share, rapid=o.rapid, max_log_bytes=o.max_log_bytes)
         self._index_path = self.transfer.inbox / "experiments.json"
         self._numbers: dict[str, int] = {}

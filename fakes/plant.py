@@ -401,6 +401,7 @@ class Plant:
         if self.truth.side == "motor":
             out["q"], out["tau"] = self.robot.to_motor_side(out["q"], out["tau"])
             t_mat = self.robot.transmission
+            assert t_mat is not None  # to_motor_side refused a robot without one
             out["qd"], out["qdd"] = qd @ t_mat.T, qdd @ t_mat.T
         else:  # the encoders read the robot's offsets (motor side: in to_motor_side)
             out["q"] = self.robot.add_offsets(out["q"])
@@ -502,16 +503,17 @@ class Plant:
         return out
 
     def _integrate(self, t: np.ndarray, command: Callable[..., np.ndarray], q0: np.ndarray,
-                   v0: np.ndarray) -> tuple[np.ndarray, ...]:
+                   v0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Semi-implicit Euler at ``controller.rate_hz`` (≥ the log rate); logs, per sample,
         the measured state each logged torque was computed at."""
         n = self.robot.n
         sub = self._substeps(t)
         h = float(t[1] - t[0]) / sub
-        elastic = {e["joint"] - 1 if e.get("joint") else None: e
-                   for e in self.truth.effects if e["name"] == "elasticity"}
-        if None in elastic:
-            elastic = {j: elastic[None] for j in range(n)}
+        # per 0-based joint; an entry without a joint (the last) holds for every joint
+        springs = [e for e in self.truth.effects if e["name"] == "elasticity"]
+        everywhere = [e for e in springs if not e.get("joint")]
+        elastic = ({j: everywhere[-1] for j in range(n)} if everywhere
+                   else {e["joint"] - 1: e for e in springs})
         is_elastic = np.array([j in elastic for j in range(n)])
         per_joint = self._per_joint()
         # viscous and Coulomb as vectors (the common case); other effects one by one
@@ -586,9 +588,9 @@ class Plant:
                     logs[3][k] = tau_cmd
                 v = v_new
                 q = q + h * v
-        return tuple(logs)
+        return logs[0], logs[1], logs[2], logs[3]
 
-    def elastic_truth(self, q: np.ndarray) -> dict[int, dict[str, float]]:
+    def elastic_truth(self, q: np.ndarray) -> dict[int, dict[str, Any]]:
         """Per elastic joint (1-based) at the pose q: jm, k, d, the arm inertia ja = M_jj(q) and
         the coupled inertia ``jcop`` {other elastic joint: M_ij(q)} (the rigid body's mass
         matrix couples the arms of two elastic axes)."""

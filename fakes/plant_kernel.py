@@ -35,7 +35,7 @@ def model_params(model: pin.Model) -> np.ndarray:
 def integrate(robot: Robot, params: np.ndarray, t: np.ndarray, sub: int,
               effects: dict[str, np.ndarray], q0: np.ndarray, v0: np.ndarray,
               controller: dict[str, Any] | None, tau_motor: np.ndarray | None
-              ) -> tuple[np.ndarray, ...]:
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Logs (q, q̇, q̈, τ) per sample, as ``Plant._integrate``: ``controller`` holds the PID
     gains and the reference (closed loop), else ``tau_motor`` is applied (open loop)."""
     r0s, p0s, axes, revolute, parents, _, gravity = robot_arrays(robot)

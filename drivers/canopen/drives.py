@@ -16,6 +16,7 @@ import struct
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -257,9 +258,11 @@ class CanopenDrivesDriver(Driver):
         self._tap = BlfTap(below)
         assert net.notifier is not None
         net.notifier.add_listener(self._tap)
-        self._writer = ThreadPoolExecutor(1, thread_name_prefix="ThreadPoolExecutor-canopen",
-                                          initializer=realtime if below else None,
-                                          initargs=(below,) if below else ())
+        if below:
+            self._writer = ThreadPoolExecutor(1, thread_name_prefix="ThreadPoolExecutor-canopen",
+                                              initializer=realtime, initargs=(below,))
+        else:
+            self._writer = ThreadPoolExecutor(1, thread_name_prefix="ThreadPoolExecutor-canopen")
         for j, node_id in enumerate(self.nodes):
             self.axes.append(Axis(node_id, j + 1, self.robot.joint_names[j],
                                   self.counts_per_rad[j], 0.0,
@@ -277,7 +280,7 @@ class CanopenDrivesDriver(Driver):
         for a in self.axes:
             self._configure(a)
         hold = np.array([self._enable(a) for a in self.axes], dtype=np.int64)
-        self._start_master(hold)
+        self._start_master(bus, hold)
 
     def _heartbeat_cb(self, i: int, event: threading.Event) -> Any:
         def cb(can_id: int, data: bytearray, timestamp: float) -> None:
@@ -375,11 +378,11 @@ class CanopenDrivesDriver(Driver):
                                   f"{want} within {self.state_timeout:g} s")
             time.sleep(0.002)
 
-    def _start_master(self, hold: np.ndarray) -> None:
+    def _start_master(self, bus: can.BusABC, hold: np.ndarray) -> None:
         assert self.network is not None and self.robot is not None and self._tap is not None
         qdd = np.array([x if math.isfinite(x) else 2.0 for x in self.robot.qdd_max])
         self.master = master = SyncMaster(
-            self.network.bus, self.axes, self.period, heartbeat_timeout_s=self.hb_timeout,
+            bus, self.axes, self.period, heartbeat_timeout_s=self.hb_timeout,
             max_missed=self.max_missed, overrun_streak=self.overrun_streak,
             standstill_rad_s=self.standstill, decel_rad_s2=0.5 * qdd, on_end=self._job_ended,
             tap=self._tap.on_message_received, send_lock=self.network.send_lock,
@@ -389,9 +392,9 @@ class CanopenDrivesDriver(Driver):
             assert net.notifier is not None
             net.notifier.add_listener(RealtimeListener(self.sync_priority))
         for i, a in enumerate(self.axes):
-            net.subscribe(0x180 + a.node, lambda _c, d, _t, i=i: master.on_tpdo1(i, d))
-            net.subscribe(0x280 + a.node, lambda _c, d, _t, i=i: master.on_tpdo2(i, d))
-            net.subscribe(0x80 + a.node, lambda _c, d, _t, i=i: master.on_emcy(i, d))
+            net.subscribe(0x180 + a.node, _frames_of(i, master.on_tpdo1))
+            net.subscribe(0x280 + a.node, _frames_of(i, master.on_tpdo2))
+            net.subscribe(0x80 + a.node, _frames_of(i, master.on_emcy))
         net.nmt.send_command(NMT_START)
         self._hold.hold()
         master.start(hold)
@@ -622,3 +625,11 @@ def _server(interface: str, host: str | None, port: int | None) -> dict[str, Any
             raise ConfigError(f"driver.{key}: missing (the socketcand server's "
                               f"{'host name or address' if key == 'host' else 'TCP port'})")
     return {"host": host, "port": port, "tcp_tune": True}  # TCP_NODELAY: no Nagle delay
+
+
+def _frames_of(i: int, handler: Callable[[int, bytes | bytearray], None]
+               ) -> Callable[[int, bytearray, float], None]:
+    """A canopen subscriber handing drive ``i``'s frames to one of the master's inputs."""
+    def cb(can_id: int, data: bytearray, timestamp: float) -> None:
+        handler(i, data)
+    return cb

@@ -38,6 +38,11 @@ __all__ = ["Axis", "Job", "SyncMaster", "quintic", "ramp_to_rest"]
 
 log = logging.getLogger("robid.driver.canopen")
 
+# a drive's answer to one SYNC: status, position (counts), torque, velocity (counts/s: a
+# difference of positions, inf when unknown), and in a sample its last EMCY error code
+_Answer = tuple[int, int, int, float]
+_Sample = tuple[int, int, int, float, int]
+
 
 @dataclass
 class Axis:
@@ -59,7 +64,7 @@ class Axis:
     slots: dict[int, list[Any]] = field(default_factory=dict)
     heard: list[int] = field(default_factory=lambda: [-1, -1])
     newest: int = -1
-    last: tuple[int, int, int, int, int] | None = None  # status, pos, torque, vel, error
+    last: _Sample | None = None  # status, pos, torque, vel, error
     missed: int = 0
     seen: tuple[int, int] | None = None  # (SYNC index, position) of ``last``
     row_seen: tuple[int, int] | None = None  # (SYNC index, position) of the last recorded row
@@ -181,7 +186,7 @@ class SyncMaster:
         self.next_row = 0  # the oldest SYNC index not yet recorded or given up
         # the SYNC indices every drive answered (status, pos, torque, vel per drive), None for
         # one a drive left unanswered, oldest first; the running job takes what is its own
-        self.answered: list[tuple[int, list[tuple[int, int, int, int]] | None]] = []
+        self.answered: list[tuple[int, list[_Answer] | None]] = []
         self.overruns = 0
         self.worst_late_s = 0.0  # the longest interval between two SYNCs beyond a period
         self.late_streak = 0
@@ -195,14 +200,14 @@ class SyncMaster:
         self.idle = threading.Event()
 
     # -- inputs (notifier thread)
-    def on_tpdo1(self, i: int, data: bytes) -> None:
+    def on_tpdo1(self, i: int, data: bytes | bytearray) -> None:
         if len(data) != TPDO1.size:
             self._refuse(i, f"TPDO1 of {len(data)} bytes, {TPDO1.size} mapped")
             return
         status, pos, counter = TPDO1.unpack(data)
         self._answer(i, 0, counter, (status, pos))
 
-    def on_tpdo2(self, i: int, data: bytes) -> None:
+    def on_tpdo2(self, i: int, data: bytes | bytearray) -> None:
         if len(data) != self.tpdo2.size:
             self._refuse(i, f"TPDO2 of {len(data)} bytes, {self.tpdo2.size} mapped")
             return
@@ -216,7 +221,7 @@ class SyncMaster:
                                                       "(another node on its COB-ID, or mapped "
                                                       "otherwise); refused")
 
-    def _answer(self, i: int, part: int, counter: int, values: tuple[int, int]) -> None:
+    def _answer(self, i: int, part: int, counter: int, values: tuple[int, ...]) -> None:
         """A TPDO put at the SYNC it answers: the newest SYNC sent (or being sent) with its
         counter. ``max_missed`` < SYNC_OVERFLOW keeps that unambiguous: a drive whose answers
         come later than that is stopped first. The same answer twice is ignored; a different
@@ -245,7 +250,7 @@ class SyncMaster:
         axis = self.axes[i]
         axis.heartbeat_at, axis.nmt_state = time.monotonic(), data[0] if data else -1
 
-    def on_emcy(self, i: int, data: bytes) -> None:
+    def on_emcy(self, i: int, data: bytes | bytearray) -> None:
         if len(data) >= 2:
             self.axes[i].emcy = int.from_bytes(data[:2], "little")
 
@@ -347,16 +352,16 @@ class SyncMaster:
         self._send(cw, target)
         self._record(self.job)
 
-    def _collect(self) -> list[tuple[int, int, int, int, int] | None]:
+    def _collect(self) -> list[_Sample | None]:
         """Per drive its newest complete answer if newer than at the last tick (else None);
         the SYNCs every drive answered, in order, into ``answered``. A SYNC some drive left
         unanswered is given up once that drive answered a later one (its frames come in
         order: the answer was lost) or ``max_missed`` periods passed."""
-        out: list[tuple[int, int, int, int, int] | None] = []
+        out: list[_Sample | None] = []
         last = self.sync_count - 1
         with self.lock:
             for a in self.axes:
-                fresh = None
+                fresh: _Sample | None = None
                 for index, (p1, p2) in a.slots.items():
                     if p1 is not None and p2 is not None and index > a.newest:
                         a.newest = index
@@ -373,7 +378,7 @@ class SyncMaster:
                 done = [p for p in parts if p is not None and p[0] is not None
                         and p[1] is not None]
                 if len(done) == len(parts):
-                    row = []
+                    row: list[_Answer] = []
                     for a, p in zip(self.axes, done, strict=True):
                         row.append((p[0][0], p[0][1], p[1][0],
                                     self._velocity(a.row_seen, index, p[0][1])))
@@ -396,7 +401,7 @@ class SyncMaster:
             return math.inf
         return (pos - before[1]) / ((index - before[0]) * self.period)
 
-    def _check(self, samples: list[tuple[int, int, int, int, int] | None]) -> None:
+    def _check(self, samples: list[_Sample | None]) -> None:
         if self.mode == "halted":
             return
         if self.protocol_fault is not None:
@@ -448,7 +453,7 @@ class SyncMaster:
                 self.idle.set()
         return CW_ENABLE, self.hold if self.mode == "hold" else self.cmd
 
-    def _at_rest(self, parts: Sequence[tuple[int, ...]], target: np.ndarray) -> bool:
+    def _at_rest(self, parts: Sequence[_Answer], target: np.ndarray) -> bool:
         """Every drive's answer to one SYNC (status, pos, torque, vel) at rest on target."""
         for a, p in zip(self.axes, parts, strict=True):
             if abs(p[3]) > self.standstill[a.joint - 1]:

@@ -229,7 +229,7 @@ class Cia402Peer(Peer):
 
     driver = "canopen_drives"
     #: the contract suite runs over the in-process virtual bus and over socketcand on loopback
-    contract_variants = ({}, {"interface": "socketcand"})
+    contract_variants: tuple[dict[str, Any], ...] = ({}, {"interface": "socketcand"})
     faults = ("drive_fault", "no_boot", "heartbeat_loss", "following_error", "dropped_frames",
               "drive_fault_quiet", "foreign_tpdo", "bad_length")
     unsupported = {

@@ -77,7 +77,7 @@ class RwsPeer(Peer):
     #: the faults that play the controller as hostile (the program runs until stopped)
     hostile = ("garbage_state", "wrong_shape", "endless_log", "redirect")
     #: the contract suite runs once per RWS version (2.0: HTTPS, Basic auth, hal+json)
-    contract_variants = ({"version": 1}, {"version": 2})
+    contract_variants: tuple[dict[str, Any], ...] = ({"version": 1}, {"version": 2})
 
     def __init__(self, core: ControllerCore, workdir: Path, *, version: int = 1,
                  tls: str | bool = "auto", ping_interval_s: float = 30.0,

@@ -114,8 +114,9 @@ class _Line:
         return tok is not None and tok[0] in ("op", "name") and tok[1] == value
 
     def done(self) -> None:
-        if self.peek() is not None:
-            raise ScriptError(f"line {self.no}: unexpected {self.peek()[1]!r}")  # type: ignore
+        tok = self.peek()
+        if tok is not None:
+            raise ScriptError(f"line {self.no}: unexpected {tok[1]!r}")
 
     # precedence climbing: or < and < not < comparison < + - < * / % < unary < postfix
     def expr(self) -> Expr:
@@ -449,7 +450,7 @@ class _Compiler:
         target, no = self.load(name, ln.no), ln.no
 
         def assign_item(f: _Frame) -> None:
-            seq, i = target(f), index(f)  # type: ignore[misc]
+            seq, i = target(f), index(f)
             try:
                 seq[i] = value(f)
             except (IndexError, TypeError):

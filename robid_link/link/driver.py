@@ -192,7 +192,9 @@ class Driver(abc.ABC):
     """
 
     name: ClassVar[str] = "driver"
-    capabilities: ClassVar[frozenset[str]] = frozenset()
+    #: the driver's capabilities, read from the class before an instance exists (``robid
+    #: demo``: upload); an instance may state its own from its options (``rapid``)
+    capabilities: frozenset[str] = frozenset()
     #: the options the driver accepts (besides ``name``), declared once: ``__init__`` checks
     #: the given ones into ``self.config``; per-joint vectors are checked by ``bind_robot``.
     #: (A plain set of names is still accepted from older plug-ins: only unknown keys are
