@@ -74,6 +74,13 @@ class ProfileRows:
         return self._helpers[key]
 
     def beyond(self, blk: Block) -> Beyond:
+        """The raw residual of the joints ``blk`` loads, beyond their helpers
+        (``helper_basis``); a global effect's: every joint's residual together, no helpers."""
+        if blk.joint is None:
+            if () not in self._beyonds:
+                self._beyonds[()] = Beyond(np.zeros((self.resid.size, 0)),
+                                           self.resid.reshape(-1))
+            return self._beyonds[()]
         rows = self.rows_of(blk)
         key = tuple(rows)
         if key not in self._beyonds:
@@ -85,7 +92,11 @@ class ProfileRows:
         return cols[:, self.rows_of(blk), :].reshape(-1, cols.shape[2])
 
     def own_columns(self, blk: Block) -> np.ndarray:
-        """``stacked`` of the block's columns, built on its rows only."""
+        """``stacked`` of the block's columns, built on its rows only; a global effect's on
+        every joint's rows, stacked as ``beyond``'s residual."""
+        if blk.joint is None:
+            cols = blk.columns(self.robot, self.states)
+            return cols.reshape(-1, cols.shape[2])
         on, cols = blk.row_columns(self.robot, self.states)
         if on != self.rows_of(blk):  # loads other rows than it names: the dense columns
             return self.stacked(blk, blk.columns(self.robot, self.states))
@@ -215,19 +226,13 @@ def _refine_one(rows: ProfileRows, chosen: list[Block], hyper: str) -> list[Bloc
         if not z > a:
             out.append(b.with_opts(**{hyper: centre}))
             continue
-        beyond = rows.beyond(b) if b.joint is not None else \
-            Beyond(np.zeros((rows.resid.size, 0)), rows.resid.reshape(-1))
-
-        def cost(logv: float, b: Block = b, beyond: Beyond = beyond) -> float:
+        def cost(logv: float, b: Block = b) -> float:
             trial = b.with_opts(**{hyper: math.exp(logv)})
             if eff.name == "ripple":
                 # its period beyond the whole model (its joints' rows bound together, as in
                 # the cross-validation): a slow ripple hides in one joint's free model row
                 return -float(screens(rows, [trial])[0])
-            if b.joint is not None:
-                return -beyond.share(rows.own_columns(trial))
-            cols = trial.columns(rows.robot, rows.states)
-            return -beyond.share(cols.reshape(-1, cols.shape[2]))
+            return -rows.beyond(b).share(rows.own_columns(trial))
 
         res = minimize_scalar(cost, bounds=(math.log(a), math.log(z)), method="bounded",
                               options={"xatol": tol, "maxiter": 40})
@@ -292,14 +297,9 @@ def _profile_effect_grid(rows: ProfileRows, blocks: list[Block], hyper: str,
         keys = [(t.key, tuple(sorted(t.opts.items()))) for t in trials]
         # a second round meets the first's trials again
         new = {key: t for key, t in zip(keys, trials, strict=True) if key not in rows.tried}
-        if new:
-            if b.joint is not None:
-                beyond, cols = rows.beyond(b), [rows.own_columns(t) for t in new.values()]
-            else:  # a global effect: all joints' residual together
-                beyond = Beyond(np.zeros((rows.resid.size, 0)), rows.resid.reshape(-1))
-                cols = [c.reshape(-1, c.shape[2]) for c in
-                        (t.columns(rows.robot, rows.states) for t in new.values())]
-            rows.tried.update(zip(new, map(float, beyond.shares(cols)), strict=True))
+        if new:  # (a global effect: all joints' residual together, ``beyond``)
+            shares = rows.beyond(b).shares([rows.own_columns(t) for t in new.values()])
+            rows.tried.update(zip(new, map(float, shares), strict=True))
         score[:, bi] = [rows.tried[key] for key in keys]
     best = np.argmax(score, axis=0)
     return [b.with_opts(**{hyper: float(values[best[bi], bi])}) for bi, b in enumerate(blocks)]
