@@ -112,11 +112,17 @@ class Prepared:
         derivative of q̇) at rows [lo, hi); zero outside the filtered segments."""
         return self._kinematics(lo, hi, True)
 
+    @property
+    def velocity_source(self) -> np.ndarray:
+        """What q̇ is filtered from: the logged q̇, else q (its derivative): the source its
+        channels are kept under."""
+        return self.log.q if self.log.qd is None else self.log.qd
+
     def typical_speed(self) -> np.ndarray:
         """Each joint's typical speed: the 95th percentile of |q̇| over the filtered rows (made
         once per log, ``typical_speeds``)."""
-        src = self.log.q if self.log.qd is None else self.log.qd
-        return self.channels.whole("typical_speed", src, lambda: typical_speeds([self]))
+        return self.channels.whole("typical_speed", self.velocity_source,
+                                   lambda: typical_speeds([self]))
 
     def speeds_at(self, rows: np.ndarray, j: int) -> np.ndarray:
         """Joint j's |q̇| at the log's rows where ``rows`` (N,) is True, in row order (rows
@@ -142,8 +148,8 @@ class Prepared:
         """(N, n) int8: the sign of q̇ on every row (0 outside the filtered segments): what the
         typical speeds' pass kept (``typical_speeds``; handed over once), else read here
         window by window."""
-        src = self.log.q if self.log.qd is None else self.log.qd
-        kept = self.channels.take("velocity_sign", src) if self.qd_sign is None else None
+        kept = (self.channels.take("velocity_sign", self.velocity_source)
+                if self.qd_sign is None else None)
         if kept is not None:
             return kept
         out = np.zeros(self.log.q.shape, np.int8)
@@ -218,7 +224,7 @@ class Prepared:
 
     def _key(self, k: int) -> tuple[str, np.ndarray]:
         """The name and source of the whole array of q (k = 0), q̇ (1) or q̈ (2)."""
-        src = self.log.q if self.log.qd is None or k == 0 else self.log.qd
+        src = self.log.q if k == 0 else self.velocity_source
         name = ("q", "qd", "qdd")[k]
         return (name if k != 1 or self.qd_sign is None else f"qd~{id(self.qd_sign)}"), src
 
@@ -335,8 +341,7 @@ def typical_speeds(preps: Sequence[Prepared]) -> np.ndarray:
                               guess=_speed_guess(preps))
     for prep, sign in zip(preps, signs, strict=True):
         if sign is not None:
-            prep.channels.put("velocity_sign", prep.log.q if prep.log.qd is None
-                              else prep.log.qd, sign)
+            prep.channels.put("velocity_sign", prep.velocity_source, sign)
     return out
 
 
