@@ -360,9 +360,9 @@ def _folds(grams: Sequence[Grams], groups: list[list[int]]
             parts[k].append((_quad(runs[:, ~near[k, cuts]].sum(axis=1)),
                              _quad(runs[:, test[k, cuts]].sum(axis=1))))
     folds = []
-    for per_file in parts:
-        tr, te = per_file[0]
-        for a, b in per_file[1:]:
+    for files in parts:  # one fold's (train, held-out) of each file, summed
+        tr, te = files[0]
+        for a, b in files[1:]:
             tr, te = tr + a, te + b
         folds.append((tr, te))
     what = "one motion" if len(grams) == 1 else f"one motion repeated in {len(grams)} files"

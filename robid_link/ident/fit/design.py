@@ -293,7 +293,8 @@ def with_predictions(robot: Robot, preps: Sequence[Prepared], design: Design,
     part = design.fast if every > 1 else None
     thetas = np.zeros((3, theta.size))  # every column's, the rigid body's, the smooth ones'
     thetas[0] = theta
-    thetas[1, np.asarray(design.cols) < n_rigid] = theta[np.asarray(design.cols) < n_rigid]
+    rigid = np.asarray(design.cols) < n_rigid
+    thetas[1, rigid] = theta[rigid]
     thetas[2] = theta
     if part is not None:
         thetas[2, part.which] = 0.0
